@@ -1,0 +1,18 @@
+"""pylensfit: Bayesian galaxy shape and weak-lensing shear measurement (lensfit).
+
+The public API (see README.md and ``DESIGN.md`` section 6)::
+
+    import pylensfit as plf
+    cfg = plf.Config()
+    egrid = plf.ellipticity_grid(step=0.1)
+    fits = plf.fit_stamps(stamps, psf, noise_sigma=4.0, config=cfg)
+    prior = plf.estimate_prior(fits.lnL, fits.egrid)
+    shapes = plf.shapes(fits.lnL, fits.egrid, prior)
+    g = plf.estimate_shear(shapes)
+"""
+
+from .grid import ellipticity_grid
+
+__version__ = "0.1.0"
+
+__all__ = ["ellipticity_grid", "__version__"]
