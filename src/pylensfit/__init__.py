@@ -11,8 +11,17 @@ The public API (see README.md and ``DESIGN.md`` section 6)::
     g = plf.estimate_shear(shapes)
 """
 
+from .config import Config, ConfigError
 from .grid import ellipticity_grid
+from .likelihood import StampFits, fit_stamps
 
 __version__ = "0.1.0"
 
-__all__ = ["ellipticity_grid", "__version__"]
+__all__ = [
+    "Config",
+    "ConfigError",
+    "StampFits",
+    "ellipticity_grid",
+    "fit_stamps",
+    "__version__",
+]

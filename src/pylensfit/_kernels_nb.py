@@ -1,0 +1,177 @@
+"""numba kernel of the likelihood engine: Laplace terms and the sum over r, fused.
+
+Called by :mod:`pylensfit.likelihood` on the outputs of the six matrix products
+(``DESIGN.md`` section 3). One pass over (galaxy, model) pairs, parallel over galaxies,
+with the sum over radius kept as a running log-sum-exp so that nothing of size
+(galaxies x models) is written back.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+_LN2PI = math.log(2.0 * math.pi)
+_SQRT2 = math.sqrt(2.0)
+_INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
+def _amplitude_terms(t):
+    """``0.5 t^2 + ln Phi(t)`` and ``t + phi(t)/Phi(t)`` for the S/N ``t = h / (sigma sqrt S)``.
+
+    ``exp(0.5 t^2) Phi(t)`` is the integral over a positive amplitude (uniform prior)
+    of ``exp(-chi^2 / 2)``, up to factors independent of ``t``; the second value is
+    ``sigma sqrt(S)`` times its ``h`` derivative, which sets the curvature in position.
+    """
+    if t > 7.5:  # Phi(t) = 1 to 3e-14
+        val = 0.5 * t * t
+        dl = t
+    elif t > -5.0:
+        phi_cdf = 0.5 * math.erfc(-t / _SQRT2)
+        val = 0.5 * t * t + math.log(phi_cdf)
+        dl = t + math.exp(-0.5 * t * t) * _INV_SQRT2PI / phi_cdf
+    else:  # asymptotic series of Mills' ratio, no cancellation
+        u = 1.0 / (t * t)
+        corr = 1.0 - u + 3.0 * u * u - 15.0 * u * u * u
+        val = -math.log(-t) - 0.5 * _LN2PI + math.log(corr)
+        dl = (-1.0 / t) * (1.0 - 3.0 * u + 15.0 * u * u) / corr
+    return val, dl
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
+def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, s, sqs, lns, mxx, mxy, myy, sig, x0, y0, b2,
+                 max_step2):  # fmt: skip
+    """ln L of one model, marginalised over amplitude (> 0) and position (Laplace).
+
+    ``s``, ``sqs``, ``lns`` are ``S = sum m^2``, its square root and its log.
+    Returns ``(ln L, h*, X*, Y*)``. See :func:`pylensfit.likelihood.fit_stamps`.
+    """
+    ss = sig * sqs
+    iss = 1.0 / ss
+    det = hxx * hyy - hxy * hxy
+    ok = hxx < 0.0 and det > 0.0
+    if ok:
+        idet = 1.0 / det
+        x = (hxy * gy - hyy * gx) * idet
+        y = (hxy * gx - hxx * gy) * idet
+        if x * x + y * y > max_step2:
+            ok = False
+    if not ok:
+        # the data Hessian is not a maximum here (noise, or far from the peak):
+        # use the expected Hessian, that of the model's autocorrelation
+        scale = max(h0, ss) / s
+        hxx = scale * mxx
+        hxy = scale * mxy
+        hyy = scale * myy
+        idet = 1.0 / (hxx * hyy - hxy * hxy)
+        x = (hxy * gy - hyy * gx) * idet
+        y = (hxy * gx - hxx * gy) * idet
+        rr = x * x + y * y
+        if rr > max_step2:
+            f = math.sqrt(max_step2 / rr)
+            x *= f
+            y *= f
+    hstar = h0 + gx * x + gy * y + 0.5 * (hxx * x * x + 2.0 * hxy * x * y + hyy * y * y)
+    val, dl = _amplitude_terms(hstar * iss)
+    dl = -dl * iss
+    # Fisher matrix of position, F = -(dl/dh) Hess h, and M = I + b^2 F
+    f11 = dl * hxx
+    f12 = dl * hxy
+    f22 = dl * hyy
+    detf = f11 * f22 - f12 * f12
+    m11 = 1.0 + b2 * f11
+    m22 = 1.0 + b2 * f22
+    m12 = b2 * f12
+    detm = m11 * m22 - m12 * m12
+    # (F^-1 + b^2 I)^-1 = F M^-1, symmetric since F and M commute
+    dx = x - x0
+    dy = y - y0
+    # F M^-1 = adj(M) F / det M ... written out: C^-1 = (F + b^2 det(F) I) / det(M)
+    quad = (
+        (f11 + b2 * detf) * dx * dx + 2.0 * f12 * dx * dy + (f22 + b2 * detf) * dy * dy
+    ) / detm
+    lnl = val - 0.5 * lns - 0.5 * math.log(detm) - 0.5 * quad
+    return lnl, hstar, x, y
+
+
+#: below this many e-folds under a galaxy's peak, exp() underflows in double precision
+_UNDERFLOW = 700.0
+
+
+@njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
+def laplace_grid(
+    prod, n_gal, n_e, n_r, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step, ln_dr,
+    out_lnle, out_lnlr, out_best, out_h, out_x, out_y,
+):  # fmt: skip
+    """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
+
+    Two passes per galaxy: the first evaluates ``ln L(e, r)`` of every model into a
+    buffer and finds the peak ``M``; the second takes one ``exp(ln L - M)`` per model and
+    accumulates both the sum over r (for ``L(e)``) and the mean over e (for ``L(r)``).
+    Where a whole e cell lies more than 700 e-folds under the peak (bright galaxies far
+    from their ellipticity) its sum underflows and ``ln L(e)`` is replaced by the
+    largest term plus ``ln dr``: exact to within ``ln n_r`` at a point whose posterior
+    weight is ``exp(-700)``.
+
+    Parameters
+    ----------
+    prod : (6 * n_gal, n_models) array
+        Rows ``q * n_gal + g`` hold, for ``q = 0..5``: ``h``, ``dh/dx``, ``dh/dy``,
+        ``d2h/dx2``, ``d2h/dxdy``, ``d2h/dy2`` at the re-centred origin.
+    s_m, mxx, mxy, myy : (n_models,) arrays
+        ``sum m^2`` and the Hessian of the model autocorrelation per model.
+    sigma, x0, y0 : (n_gal,) arrays
+        Noise per pixel and catalogue position relative to the re-centred origin.
+    """
+    n_mod = n_e * n_r + 1
+    max_step2 = max_step * max_step
+    star = n_mod - 1
+    sq_m = np.sqrt(s_m)
+    ln_m = np.log(s_m)
+    lne = math.log(n_e)
+    for g in prange(n_gal):
+        sig = sigma[g]
+        gx0 = x0[g]
+        gy0 = y0[g]
+        buf = np.empty(n_mod)
+        best = -np.inf
+        jb = 0
+        for j in range(n_mod):
+            l, hh, xx, yy = _laplace_lnl(
+                prod[g, j], prod[n_gal + g, j], prod[2 * n_gal + g, j],
+                prod[3 * n_gal + g, j], prod[4 * n_gal + g, j], prod[5 * n_gal + g, j],
+                s_m[j], sq_m[j], ln_m[j], mxx[j], mxy[j], myy[j], sig, gx0, gy0, b2, max_step2,
+            )  # fmt: skip
+            buf[j] = l
+            if l > best:
+                best = l
+                jb = j
+                out_h[g] = hh
+                out_x[g] = xx
+                out_y[g] = yy
+        out_best[g] = jb
+        ex_star = math.exp(buf[star] - best)
+        rsum = np.zeros(n_r)
+        for ie in range(n_e):
+            acc = ex_star
+            emax = buf[star]
+            for ir in range(n_r):
+                l = buf[ie * n_r + ir]
+                ex = math.exp(l - best)
+                acc += ex
+                rsum[ir] += ex
+                if l > emax:
+                    emax = l
+            if emax > best - _UNDERFLOW:
+                out_lnle[g, ie] = best + math.log(acc) + ln_dr
+            else:
+                out_lnle[g, ie] = emax + ln_dr
+        for ir in range(n_r):
+            if rsum[ir] > 0.0:
+                out_lnlr[g, ir] = best + math.log(rsum[ir]) - lne
+            else:
+                out_lnlr[g, ir] = -np.inf
+        out_lnlr[g, n_r] = buf[star]

@@ -1,0 +1,156 @@
+"""Configuration: one schema of typed parameters whose defaults are the paper's numbers.
+
+The same parameters come from keyword arguments, a dict or a YAML file::
+
+    cfg = Config(e_step=0.05)
+    cfg = Config.from_yaml("lensfit.yaml", r_max=8.0)
+
+Every field is documented in :data:`Config.__doc__` and in ``Config.describe()``;
+values are validated once, when the object is made.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+__all__ = ["Config", "ConfigError"]
+
+
+class ConfigError(ValueError):
+    """An invalid configuration value or file."""
+
+
+def _f(default, doc: str):
+    return field(default=default, metadata={"doc": doc})
+
+
+@dataclass(frozen=True)
+class Config:
+    """Settings of a pylensfit run; defaults are Kitching et al. (2008)'s values.
+
+    Use :meth:`describe` for the documentation of every field.
+    """
+
+    # --- model grid (paper section 2.3) ---
+    stamp_size: int = _f(32, "postage-stamp side in pixels, also the model and PSF size")
+    e_step: float = _f(0.1, "ellipticity grid step Delta e (cell centres, |e| < e_max)")
+    e_max: float = _f(1.0, "largest |e| of the ellipticity grid")
+    r_min: float = _f(0.0, "smallest model size in pixels (0: the point-source model)")
+    r_max: float = _f(10.0, "largest model size in pixels")
+    r_step: float = _f(0.2, "model size step Delta r in pixels")
+    model: str = _f(
+        "devaucouleurs", "galaxy model: 'devaucouleurs', 'exponential' or 'bulge+disc'"
+    )
+    bulge_fraction: float = _f(0.5, "bulge-to-total flux ratio of the bulge+disc model")
+    bulge_size_ratio: float = _f(
+        0.6, "bulge half-light radius / disc scale length of the bulge+disc model"
+    )
+    # --- marginalisation over position (paper eq. eq:likelihood) ---
+    position_prior_sigma: float = _f(
+        2.0, "width b of the Gaussian prior on position about the catalogue position, px"
+    )
+    max_offset: float = _f(
+        8.0, "search radius for the cross-correlation peak about the catalogue position, px"
+    )
+    centring_scale: float = _f(
+        1.5, "scale length (px) of the round exponential used to find the centre"
+    )
+    max_newton_step: float = _f(
+        1.0, "largest Newton step (px) from the centre before the model Hessian is used"
+    )
+    # --- numerics ---
+    dtype: str = _f("float32", "precision of the matrix products: 'float32' or 'float64'")
+    block_size: int = _f(128, "galaxies per block of matrix products")
+    # --- Bayesian shear (paper sections 2.1 and 3) ---
+    sensitivity: str = _f("exact", "shear sensitivity: 'exact' (DESIGN.md s.4) or 'paper'")
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    # ------------------------------------------------------------------ helpers
+    @classmethod
+    def describe(cls) -> dict[str, tuple[Any, str]]:
+        """``{name: (default, description)}`` for every parameter."""
+        return {f.name: (f.default, f.metadata.get("doc", "")) for f in fields(cls)}
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain ``dict`` of the parameters (for headers and YAML)."""
+        return dataclasses.asdict(self)
+
+    def replace(self, **overrides: Any) -> Config:
+        """A copy with some parameters changed (validated)."""
+        return self.from_dict({**self.to_dict(), **overrides})
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any] | None = None, **overrides: Any) -> Config:
+        """Build from a mapping, rejecting unknown keys with a clear message."""
+        values = {**(values or {}), **overrides}
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise ConfigError(f"unknown configuration key(s) {unknown}; known: {sorted(known)}")
+        kw = {}
+        for name, val in values.items():
+            typ = type(known[name].default)
+            try:
+                kw[name] = typ(val) if typ in (int, float) else val
+            except (TypeError, ValueError):
+                raise ConfigError(
+                    f"configuration key {name!r} must be {typ.__name__}, got {val!r}"
+                ) from None
+        return cls(**kw)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path, **overrides: Any) -> Config:
+        """Read a YAML file of ``key: value`` pairs; keyword overrides win."""
+        import yaml
+
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as err:
+            raise ConfigError(f"{path}: cannot read configuration file ({err.strerror})") from None
+        try:
+            data = yaml.safe_load(text) or {}
+        except yaml.YAMLError as err:
+            raise ConfigError(f"{path}: not valid YAML ({err})") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a mapping of key: value pairs")
+        try:
+            return cls.from_dict(data, **overrides)
+        except ConfigError as err:
+            raise ConfigError(f"{path}: {err}") from None
+
+    def to_yaml(self, path: str | Path) -> None:
+        """Write the parameters as YAML."""
+        import yaml
+
+        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+
+def _validate(c: Config) -> None:
+    def need(ok: bool, msg: str) -> None:
+        if not ok:
+            raise ConfigError(msg)
+
+    need(c.stamp_size >= 8, f"stamp_size must be >= 8, got {c.stamp_size}")
+    need(0 < c.e_step <= 0.5, f"e_step must be in (0, 0.5], got {c.e_step}")
+    need(0 < c.e_max <= 1, f"e_max must be in (0, 1], got {c.e_max}")
+    need(c.r_step > 0, f"r_step must be > 0, got {c.r_step}")
+    need(0 <= c.r_min < c.r_max, f"need 0 <= r_min < r_max, got {c.r_min}, {c.r_max}")
+    need(
+        c.model in ("exponential", "devaucouleurs", "bulge+disc"),
+        f"model must be 'exponential', 'devaucouleurs' or 'bulge+disc', got {c.model!r}",
+    )
+    need(0 <= c.bulge_fraction <= 1, f"bulge_fraction must be in [0, 1], got {c.bulge_fraction}")
+    need(c.bulge_size_ratio > 0, f"bulge_size_ratio must be > 0, got {c.bulge_size_ratio}")
+    need(c.position_prior_sigma > 0, "position_prior_sigma must be > 0")
+    need(c.max_offset >= 0, "max_offset must be >= 0")
+    need(c.centring_scale > 0, "centring_scale must be > 0")
+    need(c.max_newton_step > 0, "max_newton_step must be > 0")
+    need(c.dtype in ("float32", "float64"), f"dtype must be float32 or float64, got {c.dtype!r}")
+    need(c.block_size >= 1, "block_size must be >= 1")
+    need(c.sensitivity in ("exact", "paper"), "sensitivity must be 'exact' or 'paper'")

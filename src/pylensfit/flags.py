@@ -1,0 +1,43 @@
+"""Per-object bit flags with a name table (every catalogue row carries one).
+
+A row with ``flags == 0`` was measured and is usable for shear. Any other value says
+why not; several reasons may be set at once. ``STAR`` is informational (the object
+was measured, and its most likely size is 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["FLAGS", "describe", "flag_value"]
+
+#: name -> (bit value, description)
+FLAGS: dict[str, tuple[int, str]] = {
+    "STAR": (1, "most likely model radius is 0: a point source"),
+    "FIT_FAILED": (2, "likelihood not finite anywhere on the grid"),
+    "BAD_PIXELS": (4, "non-finite pixels in the stamp"),
+    "BAD_NOISE": (8, "noise sigma not finite and positive"),
+    "NO_PEAK": (16, "no positive cross-correlation peak near the catalogue position"),
+    "EDGE": (32, "stamp crosses the image edge"),
+    "CLOSE_PAIR": (64, "another detected object inside the stamp"),
+    "MASKED": (128, "masked or zero-weight pixels in the stamp"),
+    "PSF_FAILED": (256, "no usable PSF for this object"),
+    "NOT_MEASURED": (512, "not attempted"),
+}
+
+#: flags that make a row unusable for shear
+BAD = sum(v for k, (v, _) in FLAGS.items() if k not in ("NO_PEAK",))
+
+
+def flag_value(*names: str) -> int:
+    """The bit mask of the given flag names."""
+    try:
+        return int(sum(FLAGS[n][0] for n in names))
+    except KeyError as err:
+        raise ValueError(f"unknown flag {err.args[0]!r}; known: {list(FLAGS)}") from None
+
+
+def describe(flags: int) -> list[str]:
+    """Names of the bits set in ``flags``."""
+    f = int(np.asarray(flags))
+    return [n for n, (v, _) in FLAGS.items() if f & v]

@@ -1,0 +1,354 @@
+"""The likelihood of every galaxy on the (e1, e2, r) grid, summed over r.
+
+Paper section 2.2 (eqs. ``likee1``, ``likee``, ``eq:likelihood``); ``DESIGN.md`` sections 2-3.
+
+For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of unit flux:
+
+* **amplitude** (uniform prior, ``A > 0``)::
+
+      ln L(e, r, X) = h^2 / (2 sigma^2 S) + ln Phi(h / (sigma sqrt S)) - ln(S) / 2
+
+  with ``h(X) = sum_x d(x) m(x - X)`` the cross-correlation and ``S = sum m^2``
+  (paper eq. ``likee``; the ``Phi`` term is the positive-flux prior, which keeps a
+  negative cross-correlation from being read as a bright negative galaxy);
+* **position**: the data are re-centred once per galaxy on the peak of their
+  cross-correlation with a round model (found by FFT and refined by a parabola,
+  then applied exactly by a Fourier phase ramp). ``h``, its gradient and Hessian at
+  the re-centred origin are sums over frequencies, which for all galaxies and all
+  models are six matrix products. One Newton step gives the peak ``X*``, ``h*``, and
+  the Laplace approximation of the integral over ``X`` with a Gaussian prior of width
+  ``b`` about the catalogue position ``X0`` is the 2-D form of paper eq.
+  ``eq:likelihood``::
+
+      ln L(e, r) = l* - ln det(I + b^2 F) / 2 - (X* - X0)^T (F^-1 + b^2 I)^-1 (X* - X0) / 2
+
+  with ``F = -(dl/dh) Hess h`` the curvature of ``l = ln L(e, r, X)`` in position;
+* **size**: ``L(e) = sum_r L(e, r) dr`` over ``r = r_min ... r_max`` (uniform prior);
+  ``r = 0`` is the point source. An object whose most likely ``r`` (marginal over
+  the e grid) is 0 is flagged as a star.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import flags as _flags
+from .config import Config
+from .models import fourier_profile, model_bank, rfft_frequencies
+from .psf import psf_transform
+
+__all__ = ["StampFits", "fit_stamps"]
+
+
+@dataclass
+class StampFits:
+    """Result of :func:`fit_stamps`: one row per stamp.
+
+    Attributes
+    ----------
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` ellipticity cell centres.
+    lnL : numpy.ndarray
+        ``(n, n_e)`` float32 ``ln L(e)`` summed over r, each row shifted so that its
+        maximum is 0; NaN rows for stamps that could not be fitted (see ``flags``).
+    lnL_peak : numpy.ndarray
+        ``(n,)`` the shift removed from each row (the maximum of the unnormalised
+        ``ln L(e)``, up to a constant common to all stamps of one noise level).
+    r_best : numpy.ndarray
+        Most likely model size in pixels (marginal over the e grid); 0 for stars.
+    flux : numpy.ndarray
+        Amplitude of the most likely model (data units, total flux of the model).
+    x, y : numpy.ndarray
+        Fitted centre of the most likely model, in stamp pixels (0-based).
+    snr : numpy.ndarray
+        Matched-filter signal-to-noise ``h* / (sigma sqrt S)`` of the most likely model.
+    is_star : numpy.ndarray
+        Boolean, most likely size is 0.
+    flags : numpy.ndarray
+        Bit mask, see :data:`pylensfit.flags.FLAGS`.
+    e1_best, e2_best : numpy.ndarray
+        Ellipticity of the most likely model (the maximum of ``L(e, r)``).
+    """
+
+    egrid: np.ndarray
+    lnL: np.ndarray
+    lnL_peak: np.ndarray
+    r_best: np.ndarray
+    flux: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    snr: np.ndarray
+    is_star: np.ndarray
+    flags: np.ndarray
+    e1_best: np.ndarray
+    e2_best: np.ndarray
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return self.lnL.shape[0]
+
+    _COLUMNS = ("r_best", "flux", "x", "y", "snr", "is_star", "flags", "e1_best", "e2_best",
+                "lnL_peak")  # fmt: skip
+
+    def to_table(self):
+        """An :class:`astropy.table.Table` with one row per stamp, ``lnL`` a 2-D column."""
+        from astropy.table import Table
+
+        t = Table({name: getattr(self, name) for name in self._COLUMNS})
+        t["lnL"] = self.lnL
+        t.meta.update({k.upper()[:8]: v for k, v in self.meta.items()})
+        return t
+
+    def write(self, path: str | Path, *, overwrite: bool = False) -> None:
+        """Write as FITS: the table in HDU 1, the ellipticity grid in HDU 2 (atomic)."""
+        from astropy.io import fits
+
+        from .catalogue import atomic_write
+
+        tab = fits.table_to_hdu(self.to_table())
+        tab.name = "FITS"
+        eg = fits.ImageHDU(self.egrid, name="EGRID")
+        atomic_write(fits.HDUList([fits.PrimaryHDU(), tab, eg]), path, overwrite=overwrite)
+
+    @classmethod
+    def read(cls, path: str | Path) -> StampFits:
+        """Read a file written by :meth:`write`."""
+        from astropy.io import fits
+        from astropy.table import Table
+
+        with fits.open(path) as hdul:
+            t = Table(hdul["FITS"].data)
+            egrid = np.array(hdul["EGRID"].data, dtype=float)
+        kw = {name: np.asarray(t[name]) for name in cls._COLUMNS}
+        return cls(egrid=egrid, lnL=np.asarray(t["lnL"], dtype=np.float32), **kw)
+
+
+@dataclass(frozen=True)
+class _PSFBank:
+    """Per-PSF quantities: the PSF transform and the per-model sums that need no data."""
+
+    P: np.ndarray  # (n_freq,) complex
+    S: np.ndarray  # (n_models,) sum m^2
+    mxx: np.ndarray  # (n_models,) Hessian of the model autocorrelation at 0
+    mxy: np.ndarray
+    myy: np.ndarray
+
+
+def _psf_bank(psf: np.ndarray, config: Config, bank) -> _PSFBank:
+    n = config.stamp_size
+    P = psf_transform(psf, n)
+    kx, ky, w = rfft_frequencies(n)
+    p2 = (w * np.abs(P) ** 2 / n**2).ravel()
+    kx = kx.ravel()
+    ky = ky.ravel()
+    G2 = np.square(bank.G, dtype=np.float64)
+    S = p2 @ G2
+    mxx = -(p2 * kx * kx) @ G2
+    mxy = -(p2 * kx * ky) @ G2
+    myy = -(p2 * ky * ky) @ G2
+    return _PSFBank(P=P.ravel(), S=S, mxx=mxx, mxy=mxy, myy=myy)
+
+
+def _as_per_stamp(value, n: int, name: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        return np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must be a scalar or have shape ({n},), got {arr.shape}")
+    return arr.copy()
+
+
+def _cut_stamps(stamps: np.ndarray, n: int, cx: np.ndarray, cy: np.ndarray):
+    """Cut ``n x n`` windows centred on round(c) (zero padded); return them and new centres."""
+    k, ny, nx = stamps.shape
+    if ny == n and nx == n:
+        return stamps, cx, cy
+    ix = np.rint(cx).astype(int) - n // 2
+    iy = np.rint(cy).astype(int) - n // 2
+    pad = n
+    padded = np.pad(stamps, ((0, 0), (pad, pad), (pad, pad)))
+    rows = (iy[:, None] + pad + np.arange(n)[None, :]).clip(0, ny + 2 * pad - 1)
+    cols = (ix[:, None] + pad + np.arange(n)[None, :]).clip(0, nx + 2 * pad - 1)
+    out = padded[np.arange(k)[:, None, None], rows[:, :, None], cols[:, None, :]]
+    return out, cx - ix, cy - iy
+
+
+def _centre(D: np.ndarray, P: np.ndarray, config: Config, x0: np.ndarray, y0: np.ndarray):
+    """Integer-then-parabola peak of the cross-correlation with a round model.
+
+    ``D`` is phase-referenced to the stamp centre ``n//2``; ``x0, y0`` are catalogue
+    offsets from it. Returns the offsets of the peak and a flag for "no positive peak".
+    """
+    n = config.stamp_size
+    kx, ky, _ = rfft_frequencies(n)
+    ref = fourier_profile(np.hypot(kx, ky) * config.centring_scale, "exponential") * P
+    cc = np.fft.irfft2(D * np.conj(ref)[None], s=(n, n))  # cc[g, iy, ix] = h(X=(ix, iy))
+    off = (np.arange(n) + n // 2) % n - n // 2
+    rad = max(config.max_offset, 0.75)
+    d2 = (off[None, None, :] - x0[:, None, None]) ** 2 + (
+        off[None, :, None] - y0[:, None, None]
+    ) ** 2
+    masked = np.where(d2 <= rad * rad, cc, -np.inf)
+    flat = masked.reshape(len(D), -1).argmax(axis=1)
+    iy, ix = np.unravel_index(flat, (n, n))
+    g = np.arange(len(D))
+    v0 = cc[g, iy, ix]
+
+    def parabola(vm, vp):
+        den = vm - 2 * v0 + vp
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(den < 0, 0.5 * (vm - vp) / den, 0.0)
+        return np.clip(step, -0.5, 0.5)
+
+    dx = parabola(cc[g, iy, (ix - 1) % n], cc[g, iy, (ix + 1) % n])
+    dy = parabola(cc[g, (iy - 1) % n, ix], cc[g, (iy + 1) % n, ix])
+    xc = off[ix] + dx
+    yc = off[iy] + dy
+    no_peak = ~(v0 > 0)
+    xc = np.where(no_peak, x0, xc)
+    yc = np.where(no_peak, y0, yc)
+    return xc, yc, no_peak
+
+
+def fit_stamps(
+    stamps: np.ndarray,
+    psf: np.ndarray,
+    noise_sigma,
+    *,
+    config: Config | None = None,
+    centres: tuple[np.ndarray, np.ndarray] | None = None,
+) -> StampFits:
+    """Likelihood ``L(e)`` of every stamp on the ellipticity grid, and the best model.
+
+    Parameters
+    ----------
+    stamps : numpy.ndarray
+        ``(n, N, N)`` (or one ``(N, N)``) background-subtracted images indexed
+        ``[k, y, x]``, each galaxy near element ``[N//2, N//2]`` unless ``centres`` is
+        given. ``N`` may differ from ``config.stamp_size``: a window of that size is cut
+        about each centre (zero padded outside the input).
+    psf : numpy.ndarray
+        2-D PSF image including the pixel response, centred on ``[s//2, s//2]``, any size
+        and normalisation; shared by all stamps of the call.
+    noise_sigma : float or numpy.ndarray
+        Per-pixel noise standard deviation, scalar or one per stamp.
+    config : Config, optional
+        Grid, model and marginalisation settings (the paper's by default).
+    centres : tuple of numpy.ndarray, optional
+        Catalogue positions ``(x, y)`` in stamp pixels (0-based), the centres of the
+        position prior.
+
+    Returns
+    -------
+    StampFits
+        One row per stamp. Stamps with non-finite pixels or a bad noise value are
+        flagged and get NaN ``lnL``; they never raise.
+    """
+    cfg = config if config is not None else Config()
+    stamps = np.asarray(stamps, dtype=float)
+    if stamps.ndim == 2:
+        stamps = stamps[None]
+    if stamps.ndim != 3 or stamps.shape[1] < 2 or stamps.shape[2] < 2:
+        raise ValueError(f"stamps must have shape (n, N, N), got {stamps.shape}")
+    n_gal = stamps.shape[0]
+    n = cfg.stamp_size
+    bank = model_bank(cfg)
+    pb = _psf_bank(psf, cfg, bank)
+    sigma = _as_per_stamp(noise_sigma, n_gal, "noise_sigma")
+    if centres is None:
+        cx = np.full(n_gal, stamps.shape[2] // 2, dtype=float)
+        cy = np.full(n_gal, stamps.shape[1] // 2, dtype=float)
+    else:
+        cx = _as_per_stamp(centres[0], n_gal, "centres[0]")
+        cy = _as_per_stamp(centres[1], n_gal, "centres[1]")
+    stamps, cx, cy = _cut_stamps(stamps, n, cx, cy)
+
+    flags = np.zeros(n_gal, dtype=np.int32)
+    bad_pix = ~np.isfinite(stamps).all(axis=(1, 2))
+    bad_sig = ~(np.isfinite(sigma) & (sigma > 0))
+    flags[bad_pix] |= _flags.flag_value("BAD_PIXELS")
+    flags[bad_sig] |= _flags.flag_value("BAD_NOISE")
+    bad = bad_pix | bad_sig
+    if bad.any():
+        stamps = np.where(bad[:, None, None], 0.0, stamps)
+        stamps = np.nan_to_num(stamps, nan=0.0, posinf=0.0, neginf=0.0)
+        sigma = np.where(bad, 1.0, sigma)
+
+    kx, ky, w = rfft_frequencies(n)
+    c = n // 2
+    x0 = cx - c
+    y0 = cy - c
+    D = np.fft.rfft2(stamps) * np.exp(1j * (kx * c + ky * c))[None]
+    xc, yc, no_peak = _centre(D, pb.P.reshape(kx.shape), cfg, x0, y0)
+    flags[no_peak & ~bad] |= _flags.flag_value("NO_PEAK")
+    D = D * np.exp(1j * (kx[None] * xc[:, None, None] + ky[None] * yc[:, None, None]))
+    Dp = D.reshape(n_gal, -1) * np.conj(pb.P)[None]
+
+    wk = (w / n**2).ravel()
+    kxf = kx.ravel()
+    kyf = ky.ravel()
+    re = Dp.real * wk
+    im = Dp.imag * wk
+    dtype = np.dtype(cfg.dtype)
+    G = bank.G if bank.G.dtype == dtype else bank.G.astype(dtype)
+
+    from ._kernels_nb import laplace_grid
+
+    n_e, n_r = bank.n_e, bank.n_r
+    lnle = np.empty((n_gal, n_e))
+    lnlr = np.empty((n_gal, n_r + 1))
+    best = np.empty(n_gal, dtype=np.int64)
+    hbest = np.empty(n_gal)
+    xb = np.empty(n_gal)
+    yb = np.empty(n_gal)
+    ln_dr = float(np.log(cfg.r_step))
+    b2 = cfg.position_prior_sigma**2
+    for s0 in range(0, n_gal, cfg.block_size):
+        sl = slice(s0, min(s0 + cfg.block_size, n_gal))
+        r, i = re[sl], im[sl]
+        A = np.concatenate(
+            [r, -kxf * i, -kyf * i, -kxf * kxf * r, -kxf * kyf * r, -kyf * kyf * r], axis=0
+        ).astype(dtype, copy=False)
+        prod = A @ G
+        m = r.shape[0]
+        laplace_grid(
+            prod, m, n_e, n_r, pb.S, pb.mxx, pb.mxy, pb.myy, sigma[sl], x0[sl] - xc[sl],
+            y0[sl] - yc[sl], b2, cfg.max_newton_step, ln_dr,
+            lnle[sl], lnlr[sl], best[sl], hbest[sl], xb[sl], yb[sl],
+        )  # fmt: skip
+
+    peak = lnle.max(axis=1)
+    failed = ~np.isfinite(peak) | ~np.isfinite(lnle).all(axis=1)
+    flags[failed & ~bad] |= _flags.flag_value("FIT_FAILED")
+    dead = bad | failed
+    lnL = (lnle - peak[:, None]).astype(np.float32)
+    lnL[dead] = np.nan
+
+    ir_best = lnlr.argmax(axis=1)
+    radii = np.append(bank.radii, 0.0)
+    r_best = radii[ir_best]
+    is_star = (ir_best == n_r) & ~dead
+    flags[is_star] |= _flags.flag_value("STAR")
+    S_best = pb.S[best]
+    ie_best = np.where(best == bank.n_models - 1, -1, best // max(n_r, 1))
+    e_best = np.where(ie_best[:, None] >= 0, bank.egrid[np.maximum(ie_best, 0)], 0.0)
+    nanif = np.where(dead, np.nan, 1.0)
+    return StampFits(
+        egrid=bank.egrid.copy(),
+        lnL=lnL,
+        lnL_peak=np.where(dead, np.nan, peak),
+        r_best=r_best * nanif,
+        flux=hbest / S_best * nanif,
+        x=(c + xc + xb) * nanif,
+        y=(c + yc + yb) * nanif,
+        snr=hbest / (sigma * np.sqrt(S_best)) * nanif,
+        is_star=is_star,
+        flags=flags,
+        e1_best=e_best[:, 0] * nanif,
+        e2_best=e_best[:, 1] * nanif,
+        meta={"model": cfg.model, "e_step": cfg.e_step, "r_step": cfg.r_step,
+              "r_max": cfg.r_max},  # fmt: skip
+    )

@@ -1,0 +1,247 @@
+"""Galaxy models in Fourier space and the model bank of the (e1, e2, r) grid.
+
+Paper section 2.2; ``DESIGN.md`` sections 1 and 3.
+
+Conventions
+-----------
+A model of ellipticity ``e`` and size ``r`` is a circular profile of scale ``r``
+transformed by the area-preserving shear matrix of reduced shear ``g = e``::
+
+    S(e) = [[1 + e1, e2], [e2, 1 - e1]] / sqrt(1 - |e|^2)      (det S = 1)
+
+which is GalSim's ``Shear`` convention (``e1 > 0`` elongates along x). Its Fourier
+transform is ``G(k) = F(|S(e)^T k| r)`` with ``F`` the transform of the circular
+profile at unit scale, normalised to ``F(0) = 1`` (unit total flux):
+
+* exponential disc, ``r`` = scale length: ``F(q) = (1 + q^2)^(-3/2)`` (analytic);
+* de Vaucouleurs bulge, ``r`` = half-light radius: tabulated once from GalSim's
+  Hankel transform (``galsim.DeVaucouleurs.kValue``), truncated at
+  :data:`DEVAUC_TRUNCATION` = 8 half-light radii (the untruncated profile has 5.7 %
+  of its flux beyond that; the truncation keeps the wings of large models from
+  wrapping round a 32-pixel stamp), then interpolated with a cubic spline in
+  ``ln(1 + q)`` for ``q <= 2000``;
+* bulge + disc: ``F = f_b F_dev(q s) + (1 - f_b) F_exp(q)``, ``r`` = disc scale length,
+  bulge half-light radius ``s r`` (``s`` = ``bulge_size_ratio``), both components with
+  the same ellipticity.
+
+The models are evaluated on the ``rfft2`` frequencies of an ``N x N`` stamp,
+``k = 2 pi (f_x, f_y)`` in radians per pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from .grid import ellipticity_grid
+
+__all__ = [
+    "DEVAUC_TRUNCATION",
+    "MODEL_TYPES",
+    "ModelBank",
+    "fourier_profile",
+    "model_bank",
+    "rfft_frequencies",
+    "sheared_k",
+]
+
+#: Truncation radius of the de Vaucouleurs profile, in half-light radii.
+DEVAUC_TRUNCATION = 8.0
+#: Model families understood by :func:`fourier_profile`.
+MODEL_TYPES = ("exponential", "devaucouleurs", "bulge+disc")
+
+_Q_MAX_TABLE = 2000.0
+
+
+@lru_cache(maxsize=4)
+def _devauc_spline(trunc: float):
+    """Spline of the de Vaucouleurs transform, tabulated uniformly in ln(1 + q)."""
+    import galsim
+    from scipy.interpolate import CubicSpline
+
+    prof = galsim.DeVaucouleurs(half_light_radius=1.0, trunc=trunc)
+    x = np.linspace(0.0, np.log1p(_Q_MAX_TABLE), 3001)
+    q = np.expm1(x)
+    f = np.array([prof.kValue(galsim.PositionD(float(qi), 0.0)).real for qi in q])
+    return CubicSpline(x, f / f[0])
+
+
+def _devauc_profile(q: np.ndarray) -> np.ndarray:
+    return _devauc_spline(DEVAUC_TRUNCATION)(np.log1p(np.minimum(q, _Q_MAX_TABLE)))
+
+
+def fourier_profile(
+    q: np.ndarray,
+    model: str = "devaucouleurs",
+    *,
+    bulge_fraction: float = 0.5,
+    bulge_size_ratio: float = 0.6,
+) -> np.ndarray:
+    """Fourier transform ``F(q)`` of a circular profile at unit scale, ``F(0) = 1``.
+
+    Parameters
+    ----------
+    q : array_like
+        Dimensionless wavenumber ``|k| r`` (``k`` in radians per pixel, ``r`` in pixels).
+    model : {"exponential", "devaucouleurs", "bulge+disc"}
+        Profile family; see the module docstring for the meaning of the scale.
+    bulge_fraction : float
+        Bulge-to-total flux ratio of the ``"bulge+disc"`` model.
+    bulge_size_ratio : float
+        Bulge half-light radius over disc scale length for ``"bulge+disc"``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``F(q)``, float64, same shape as ``q``.
+    """
+    q = np.abs(np.asarray(q, dtype=float))
+    if model == "exponential":
+        return (1.0 + q * q) ** -1.5
+    if model == "devaucouleurs":
+        return _devauc_profile(q)
+    if model == "bulge+disc":
+        if not 0.0 <= bulge_fraction <= 1.0:
+            raise ValueError(f"bulge_fraction must be in [0, 1], got {bulge_fraction}")
+        if bulge_size_ratio <= 0:
+            raise ValueError(f"bulge_size_ratio must be > 0, got {bulge_size_ratio}")
+        return bulge_fraction * _devauc_profile(q * bulge_size_ratio) + (
+            1.0 - bulge_fraction
+        ) * (1.0 + q * q) ** -1.5
+    raise ValueError(f"unknown model {model!r}; choose one of {MODEL_TYPES}")
+
+
+def rfft_frequencies(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Angular frequencies and Hermitian weights of ``numpy.fft.rfft2`` on ``n x n``.
+
+    Returns
+    -------
+    kx, ky, w : numpy.ndarray
+        Arrays of shape ``(n, n // 2 + 1)``: ``kx``, ``ky`` in radians per pixel and the
+        weight ``w`` (1 or 2) with which each half-plane frequency stands for the full
+        plane in a sum of an even function of ``k``.
+    """
+    kx1 = 2 * np.pi * np.fft.rfftfreq(n)
+    ky1 = 2 * np.pi * np.fft.fftfreq(n)
+    kx, ky = np.meshgrid(kx1, ky1, indexing="xy")
+    w = np.full(kx.shape, 2.0)
+    w[:, 0] = 1.0
+    if n % 2 == 0:
+        w[:, -1] = 1.0
+    return kx, ky, w
+
+
+def sheared_k(kx: np.ndarray, ky: np.ndarray, e1, e2) -> np.ndarray:
+    """``|S(e)^T k|`` for the area-preserving shear ``S(e)`` (broadcasting)."""
+    e1 = np.asarray(e1, dtype=float)
+    e2 = np.asarray(e2, dtype=float)
+    norm = 1.0 / np.sqrt(1.0 - e1 * e1 - e2 * e2)
+    ux = ((1.0 + e1) * kx + e2 * ky) * norm
+    uy = (e2 * kx + (1.0 - e1) * ky) * norm
+    return np.hypot(ux, uy)
+
+
+@dataclass(frozen=True)
+class ModelBank:
+    """The PSF-independent model transforms ``G`` of every grid model on one stamp size.
+
+    Attributes
+    ----------
+    G : numpy.ndarray
+        ``(n_freq, n_models)`` real transforms on the ``rfft2`` frequencies (flattened
+        row-major from ``(n, n // 2 + 1)``). Column ``ie * n_r + ir`` is ellipticity
+        ``egrid[ie]`` and radius ``radii[ir]``; the last column is the point source (r = 0).
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` ellipticity cell centres.
+    radii : numpy.ndarray
+        ``(n_r,)`` model sizes in pixels, all > 0.
+    n : int
+        Stamp side in pixels.
+    model : str
+        Model family.
+    """
+
+    G: np.ndarray
+    egrid: np.ndarray
+    radii: np.ndarray
+    n: int
+    model: str
+
+    @property
+    def n_e(self) -> int:
+        return self.egrid.shape[0]
+
+    @property
+    def n_r(self) -> int:
+        return self.radii.size
+
+    @property
+    def n_models(self) -> int:
+        return self.G.shape[1]
+
+
+def radius_grid(r_min: float, r_max: float, r_step: float) -> np.ndarray:
+    """Model sizes ``r_min, r_min + dr, ..., r_max`` excluding 0 (the point source)."""
+    if r_step <= 0 or r_max <= 0 or r_min < 0 or r_max < r_min:
+        raise ValueError(f"bad radius grid r_min={r_min}, r_max={r_max}, r_step={r_step}")
+    n = int(np.floor((r_max - r_min) / r_step + 1e-9)) + 1
+    r = r_min + r_step * np.arange(n)
+    return r[r > 0]
+
+
+@lru_cache(maxsize=8)
+def _cached_bank(
+    n: int,
+    e_step: float,
+    e_max: float,
+    r_min: float,
+    r_max: float,
+    r_step: float,
+    model: str,
+    bulge_fraction: float,
+    bulge_size_ratio: float,
+    dtype: str,
+) -> ModelBank:
+    egrid = ellipticity_grid(e_step, emax=e_max)
+    radii = radius_grid(r_min, r_max, r_step)
+    kx, ky, _ = rfft_frequencies(n)
+    kx = kx.ravel()
+    ky = ky.ravel()
+    n_freq = kx.size
+    G = np.empty((n_freq, egrid.shape[0] * radii.size + 1), dtype=dtype)
+    for ie, (e1, e2) in enumerate(egrid):  # one vectorised (freq x r) block per e
+        ks = sheared_k(kx, ky, e1, e2)
+        q = ks[:, None] * radii[None, :]
+        G[:, ie * radii.size : (ie + 1) * radii.size] = fourier_profile(
+            q, model, bulge_fraction=bulge_fraction, bulge_size_ratio=bulge_size_ratio
+        )
+    G[:, -1] = 1.0
+    G.setflags(write=False)
+    return ModelBank(G=G, egrid=egrid, radii=radii, n=n, model=model)
+
+
+def model_bank(config=None) -> ModelBank:
+    """The model bank of a configuration (cached: built once per process).
+
+    Parameters
+    ----------
+    config : pylensfit.Config, optional
+        Grid and model settings; the paper's defaults if omitted.
+    """
+    from .config import Config
+
+    cfg = config if config is not None else Config()
+    return _cached_bank(
+        cfg.stamp_size,
+        cfg.e_step,
+        cfg.e_max,
+        cfg.r_min,
+        cfg.r_max,
+        cfg.r_step,
+        cfg.model,
+        cfg.bulge_fraction,
+        cfg.bulge_size_ratio,
+        cfg.dtype,
+    )
