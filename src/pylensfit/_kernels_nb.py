@@ -42,11 +42,13 @@ def _amplitude_terms(t):
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
-def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, s, sqs, lns, mxx, mxy, myy, sig, x0, y0, b2,
-                 max_step2):  # fmt: skip
+def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sqs, lns,
+                 mxx, mxy, myy, sig, x0, y0, b2, max_step2):  # fmt: skip
     """ln L of one model, marginalised over amplitude (> 0) and position (Laplace).
 
-    ``s``, ``sqs``, ``lns`` are ``S = sum m^2``, its square root and its log.
+    ``s``, ``sqs``, ``lns`` are ``S = sum m^2``, its square root and its log. With
+    ``cubic``, the third derivatives ``t...`` of ``h`` refine the peak (two Newton steps
+    on the cubic expansion) and give the Hessian at the peak rather than at the origin.
     Returns ``(ln L, h*, X*, Y*)``. See :func:`pylensfit.likelihood.fit_stamps`.
     """
     ss = sig * sqs
@@ -74,7 +76,37 @@ def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, s, sqs, lns, mxx, mxy, myy, sig, x0,
             f = math.sqrt(max_step2 / rr)
             x *= f
             y *= f
+        cubic = False
     hstar = h0 + gx * x + gy * y + 0.5 * (hxx * x * x + 2.0 * hxy * x * y + hyy * y * y)
+    if cubic:
+        for _ in range(2):
+            ax = hxx + txxx * x + txxy * y
+            axy = hxy + txxy * x + txyy * y
+            ay = hyy + txyy * x + tyyy * y
+            d3 = ax * ay - axy * axy
+            if not (ax < 0.0 and d3 > 0.0):
+                break
+            rx = gx + hxx * x + hxy * y + 0.5 * (txxx * x * x + 2 * txxy * x * y + txyy * y * y)
+            ry = gy + hxy * x + hyy * y + 0.5 * (txxy * x * x + 2 * txyy * x * y + tyyy * y * y)
+            nx = x + (axy * ry - ay * rx) / d3
+            ny = y + (axy * rx - ax * ry) / d3
+            if nx * nx + ny * ny > max_step2:
+                break
+            x = nx
+            y = ny
+        ax = hxx + txxx * x + txxy * y
+        axy = hxy + txxy * x + txyy * y
+        ay = hyy + txyy * x + tyyy * y
+        if ax < 0.0 and ax * ay - axy * axy > 0.0:
+            hstar = (
+                h0 + gx * x + gy * y
+                + 0.5 * (hxx * x * x + 2.0 * hxy * x * y + hyy * y * y)
+                + (txxx * x * x * x + 3 * txxy * x * x * y + 3 * txyy * x * y * y
+                   + tyyy * y * y * y) / 6.0
+            )  # fmt: skip
+            hxx = ax
+            hxy = axy
+            hyy = ay
     val, dl = _amplitude_terms(hstar * iss)
     dl = -dl * iss
     # Fisher matrix of position, F = -(dl/dh) Hess h, and M = I + b^2 F
@@ -103,7 +135,7 @@ _UNDERFLOW = 700.0
 
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
-    prod, n_gal, n_e, n_r, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step, ln_dr,
+    prod, n_gal, n_e, n_r, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step, ln_dr, cubic,
     out_lnle, out_lnlr, out_best, out_h, out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
@@ -118,9 +150,10 @@ def laplace_grid(
 
     Parameters
     ----------
-    prod : (6 * n_gal, n_models) array
+    prod : (6 * n_gal or 10 * n_gal, n_models) array
         Rows ``q * n_gal + g`` hold, for ``q = 0..5``: ``h``, ``dh/dx``, ``dh/dy``,
-        ``d2h/dx2``, ``d2h/dxdy``, ``d2h/dy2`` at the re-centred origin.
+        ``d2h/dx2``, ``d2h/dxdy``, ``d2h/dy2`` at the re-centred origin, and with
+        ``cubic`` for ``q = 6..9`` the third derivatives ``xxx, xxy, xyy, yyy``.
     s_m, mxx, mxy, myy : (n_models,) arrays
         ``sum m^2`` and the Hessian of the model autocorrelation per model.
     sigma, x0, y0 : (n_gal,) arrays
@@ -140,10 +173,18 @@ def laplace_grid(
         best = -np.inf
         jb = 0
         for j in range(n_mod):
+            if cubic:
+                t0 = prod[6 * n_gal + g, j]
+                t1 = prod[7 * n_gal + g, j]
+                t2 = prod[8 * n_gal + g, j]
+                t3 = prod[9 * n_gal + g, j]
+            else:
+                t0 = t1 = t2 = t3 = 0.0
             l, hh, xx, yy = _laplace_lnl(
                 prod[g, j], prod[n_gal + g, j], prod[2 * n_gal + g, j],
                 prod[3 * n_gal + g, j], prod[4 * n_gal + g, j], prod[5 * n_gal + g, j],
-                s_m[j], sq_m[j], ln_m[j], mxx[j], mxy[j], myy[j], sig, gx0, gy0, b2, max_step2,
+                t0, t1, t2, t3, cubic, s_m[j], sq_m[j], ln_m[j], mxx[j], mxy[j], myy[j],
+                sig, gx0, gy0, b2, max_step2,
             )  # fmt: skip
             buf[j] = l
             if l > best:

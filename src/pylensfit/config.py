@@ -61,6 +61,11 @@ class Config:
     max_newton_step: float = _f(
         1.0, "largest Newton step (px) from the centre before the model Hessian is used"
     )
+    cubic_snr: float = _f(
+        40.0,
+        "galaxies below this S/N get the third-order expansion of the cross-correlation "
+        "in position (4 more matrix products; 0 never, inf always)",
+    )
     # --- numerics ---
     dtype: str = _f("float32", "precision of the matrix products: 'float32' or 'float64'")
     block_size: int = _f(128, "galaxies per block of matrix products")
@@ -151,6 +156,7 @@ def _validate(c: Config) -> None:
     need(c.max_offset >= 0, "max_offset must be >= 0")
     need(c.centring_scale > 0, "centring_scale must be > 0")
     need(c.max_newton_step > 0, "max_newton_step must be > 0")
+    need(c.cubic_snr >= 0, "cubic_snr must be >= 0")
     need(c.dtype in ("float32", "float64"), f"dtype must be float32 or float64, got {c.dtype!r}")
     need(c.block_size >= 1, "block_size must be >= 1")
     need(c.sensitivity in ("exact", "paper"), "sensitivity must be 'exact' or 'paper'")

@@ -176,6 +176,21 @@ def _cut_stamps(stamps: np.ndarray, n: int, cx: np.ndarray, cy: np.ndarray):
     return out, cx - ix, cy - iy
 
 
+@dataclass(frozen=True)
+class _Coarse:
+    cols: np.ndarray
+    n_e: int
+    n_r: int
+
+
+def _coarse_models(n_e: int, n_r: int, e_stride: int = 2, r_stride: int = 5) -> _Coarse:
+    """Bank columns of a sub-grid (every ``e_stride``-th e cell and ``r_stride``-th r)."""
+    ie = np.arange(0, n_e, e_stride)
+    ir = np.arange(min(r_stride // 2, n_r - 1), n_r, r_stride)
+    cols = (ie[:, None] * n_r + ir[None, :]).ravel()
+    return _Coarse(cols=np.append(cols, n_e * n_r), n_e=ie.size, n_r=ir.size)
+
+
 def _centre(D: np.ndarray, P: np.ndarray, config: Config, x0: np.ndarray, y0: np.ndarray):
     """Integer-then-parabola peak of the cross-correlation with a round model.
 
@@ -207,6 +222,28 @@ def _centre(D: np.ndarray, P: np.ndarray, config: Config, x0: np.ndarray, y0: np
     dy = parabola(cc[g, (iy - 1) % n, ix], cc[g, (iy + 1) % n, ix])
     xc = off[ix] + dx
     yc = off[iy] + dy
+    # Newton iterations on the exact (Fourier-interpolated) cross-correlation: every
+    # model's Laplace step then starts from a fraction of its own peak width
+    _, _, w = rfft_frequencies(n)
+    wr = (w / n**2) * np.conj(ref)
+    for _ in range(3):
+        ramp = np.exp(1j * (kx[None] * xc[:, None, None] + ky[None] * yc[:, None, None]))
+        Dp = D * wr[None] * ramp
+        re, im = Dp.real, Dp.imag
+        gx = -(kx * im).sum(axis=(1, 2))
+        gy = -(ky * im).sum(axis=(1, 2))
+        hxx = -(kx * kx * re).sum(axis=(1, 2))
+        hxy = -(kx * ky * re).sum(axis=(1, 2))
+        hyy = -(ky * ky * re).sum(axis=(1, 2))
+        det = hxx * hyy - hxy * hxy
+        good = (hxx < 0) & (det > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sx = np.where(good, (hxy * gy - hyy * gx) / det, 0.0)
+            sy = np.where(good, (hxy * gx - hxx * gy) / det, 0.0)
+        step = np.hypot(sx, sy)
+        ok = good & (step < 1.0)
+        xc = np.where(ok, xc + sx, xc)
+        yc = np.where(ok, yc + sy, yc)
     no_peak = ~(v0 > 0)
     xc = np.where(no_peak, x0, xc)
     yc = np.where(no_peak, y0, yc)
@@ -284,20 +321,28 @@ def fit_stamps(
     D = np.fft.rfft2(stamps) * np.exp(1j * (kx * c + ky * c))[None]
     xc, yc, no_peak = _centre(D, pb.P.reshape(kx.shape), cfg, x0, y0)
     flags[no_peak & ~bad] |= _flags.flag_value("NO_PEAK")
-    D = D * np.exp(1j * (kx[None] * xc[:, None, None] + ky[None] * yc[:, None, None]))
-    Dp = D.reshape(n_gal, -1) * np.conj(pb.P)[None]
+    from ._kernels_nb import laplace_grid
 
+    dtype = np.dtype(cfg.dtype)
+    G = bank.G if bank.G.dtype == dtype else bank.G.astype(dtype)
+    n_e, n_r = bank.n_e, bank.n_r
+    coarse = _coarse_models(n_e, n_r)
+    Gc = np.ascontiguousarray(G[:, coarse.cols])
     wk = (w / n**2).ravel()
     kxf = kx.ravel()
     kyf = ky.ravel()
-    re = Dp.real * wk
-    im = Dp.imag * wk
-    dtype = np.dtype(cfg.dtype)
-    G = bank.G if bank.G.dtype == dtype else bank.G.astype(dtype)
+    Pc = np.conj(pb.P) * wk
 
-    from ._kernels_nb import laplace_grid
+    def products(sl, Gm, cubic=False):
+        """Matrix products: h, grad h, Hess h (and third derivatives) for ``sl`` x ``Gm``."""
+        ph = np.exp(1j * (kxf[None] * xc[sl, None] + kyf[None] * yc[sl, None]))
+        Dp = D[sl].reshape(-1, kxf.size) * ph * Pc[None]
+        r, i = Dp.real, Dp.imag
+        rows = [r, -kxf * i, -kyf * i, -kxf * kxf * r, -kxf * kyf * r, -kyf * kyf * r]
+        if cubic:
+            rows += [kxf**3 * i, kxf**2 * kyf * i, kxf * kyf**2 * i, kyf**3 * i]
+        return np.concatenate(rows, axis=0).astype(dtype, copy=False) @ Gm
 
-    n_e, n_r = bank.n_e, bank.n_r
     lnle = np.empty((n_gal, n_e))
     lnlr = np.empty((n_gal, n_r + 1))
     best = np.empty(n_gal, dtype=np.int64)
@@ -308,17 +353,37 @@ def fit_stamps(
     b2 = cfg.position_prior_sigma**2
     for s0 in range(0, n_gal, cfg.block_size):
         sl = slice(s0, min(s0 + cfg.block_size, n_gal))
-        r, i = re[sl], im[sl]
-        A = np.concatenate(
-            [r, -kxf * i, -kyf * i, -kxf * kxf * r, -kxf * kyf * r, -kyf * kyf * r], axis=0
-        ).astype(dtype, copy=False)
-        prod = A @ G
-        m = r.shape[0]
+        m = sl.stop - sl.start
+        # pass 1, on a coarse subset of models: move the origin to the peak of the most
+        # likely model, so that the Laplace step of every model near it is short
+        tmp = (np.empty((m, coarse.n_e)), np.empty((m, coarse.n_r + 1)),
+               np.empty(m, dtype=np.int64), np.empty(m), np.empty(m), np.empty(m))  # fmt: skip
         laplace_grid(
-            prod, m, n_e, n_r, pb.S, pb.mxx, pb.mxy, pb.myy, sigma[sl], x0[sl] - xc[sl],
-            y0[sl] - yc[sl], b2, cfg.max_newton_step, ln_dr,
-            lnle[sl], lnlr[sl], best[sl], hbest[sl], xb[sl], yb[sl],
+            products(sl, Gc), m, coarse.n_e, coarse.n_r, pb.S[coarse.cols], pb.mxx[coarse.cols],
+            pb.mxy[coarse.cols], pb.myy[coarse.cols], sigma[sl], x0[sl] - xc[sl],
+            y0[sl] - yc[sl], b2, cfg.max_newton_step, ln_dr, False, *tmp,
         )  # fmt: skip
+        step_x, step_y = tmp[4], tmp[5]
+        move = np.isfinite(step_x) & np.isfinite(step_y) & ~no_peak[sl]
+        xc[sl] += np.where(move, step_x, 0.0)
+        yc[sl] += np.where(move, step_y, 0.0)
+        # pass 2, every model; faint galaxies, whose models' peaks spread over a good
+        # fraction of a pixel, with the third-order expansion in position
+        snr_c = tmp[3] / (sigma[sl] * np.sqrt(pb.S[coarse.cols][tmp[2]]))
+        low = snr_c < cfg.cubic_snr
+        for sel, cubic in ((np.flatnonzero(low), True), (np.flatnonzero(~low), False)):
+            if sel.size == 0:
+                continue
+            idx = sel + s0
+            out = (np.empty((sel.size, n_e)), np.empty((sel.size, n_r + 1)),
+                   np.empty(sel.size, dtype=np.int64), np.empty(sel.size), np.empty(sel.size),
+                   np.empty(sel.size))  # fmt: skip
+            laplace_grid(
+                products(idx, G, cubic), sel.size, n_e, n_r, pb.S, pb.mxx, pb.mxy, pb.myy,
+                sigma[idx], x0[idx] - xc[idx], y0[idx] - yc[idx], b2, cfg.max_newton_step,
+                ln_dr, cubic, *out,
+            )  # fmt: skip
+            lnle[idx], lnlr[idx], best[idx], hbest[idx], xb[idx], yb[idx] = out
 
     peak = lnle.max(axis=1)
     failed = ~np.isfinite(peak) | ~np.isfinite(lnle).all(axis=1)

@@ -1,0 +1,266 @@
+"""The likelihood engine against brute force, GalSim renderings and bad input."""
+
+import galsim
+import numpy as np
+import pytest
+
+from conftest import PSFS, N, draw, galsim_model
+from pylensfit import Config, fit_stamps
+from pylensfit.flags import flag_value
+from pylensfit.models import model_bank
+from pylensfit.psf import psf_transform
+
+
+def _model_images(cfg, cols, P, centres):
+    """Real-space unit-flux model images of bank columns ``cols`` centred at ``centres``.
+
+    Returns ``(len(cols), len(centres), N, N)``; built independently of the engine's
+    matrix products, by an inverse FFT per model and position.
+    """
+    bank = model_bank(cfg)
+    kx1 = 2 * np.pi * np.fft.rfftfreq(N)
+    ky1 = 2 * np.pi * np.fft.fftfreq(N)
+    kx, ky = np.meshgrid(kx1, ky1)
+    G = bank.G[:, cols].astype(float).T.reshape(len(cols), N, N // 2 + 1)
+    cx = centres[:, 0, None, None]
+    cy = centres[:, 1, None, None]
+    phase = np.exp(-1j * (kx[None] * cx + ky[None] * cy))
+    return np.fft.irfft2(G[:, None] * P[None, None] * phase[None], s=(N, N))
+
+
+def brute_force_lnL(cfg, d, sigma, psf_img, x0, cells):
+    """ln L(e) of grid cells ``cells`` by direct numerical marginalisation.
+
+    For every model: chi-square in real space on a fine grid of sub-pixel positions,
+    amplitude (> 0, uniform prior) integrated numerically, times the Gaussian position
+    prior about ``x0``, integrated over position by the trapezoid rule; then summed over
+    r (the point source included) with weight dr.
+    """
+    bank = model_bank(cfg)
+    P = psf_transform(psf_img, N)
+    n_r = bank.n_r
+    b = cfg.position_prior_sigma
+    # the peak of the cross-correlation with a near-round model of r = 2 px
+    ie_round = np.argmin(np.hypot(*(bank.egrid - 0.01).T))
+    ref = [ie_round * n_r + int(np.argmin(np.abs(bank.radii - 2.0)))]
+    yy, xx = np.mgrid[-6:7, -6:7]
+    c0 = np.column_stack([xx.ravel(), yy.ravel()]).astype(float) + N // 2
+    p0 = c0[np.argmax(np.einsum("pij,ij->p", _model_images(cfg, ref, P, c0)[0], d))]
+    fine = np.linspace(-0.6, 0.6, 61)
+    fx, fy = np.meshgrid(fine, fine)
+    cf = p0 + np.column_stack([fx.ravel(), fy.ravel()])
+    mi = _model_images(cfg, ref, P, cf)[0]
+    ll = (np.einsum("pij,ij->p", mi, d) ** 2 / np.einsum("pij,pij->p", mi, mi)).reshape(61, 61)
+    iy, ix = np.unravel_index(np.argmax(ll), ll.shape)
+    pk = np.array([p0[0] + fine[ix], p0[1] + fine[iy]])
+    ix = min(max(ix, 1), 59)
+    curv = -(ll[iy, ix - 1] - 2 * ll[iy, ix] + ll[iy, ix + 1]) / (2 * sigma**2 * 0.02**2)
+    sp = 1.0 / np.sqrt(max(curv, 1e-3))  # position width of the round model
+    # a grid wide enough for the broadest model of the cells (elongated ones at low S/N)
+    half = float(np.clip(16 * sp, 0.3, 4.0))
+    g = np.linspace(-half, half, 71)
+    gx, gy = np.meshgrid(g, g)
+    cen = pk + np.column_stack([gx.ravel(), gy.ravel()])
+    prior = np.exp(-((cen - x0) ** 2).sum(1) / (2 * b * b)) / (2 * np.pi * b * b)
+
+    def ln_marg(cols):
+        imgs = _model_images(cfg, cols, P, cen)  # (m, p, N, N)
+        hh = np.einsum("mpij,ij->mp", imgs, d)
+        ss = np.einsum("mpij,mpij->mp", imgs, imgs)
+        # amplitude integral, numerically on a grid adapted to each (model, position)
+        w = sigma / np.sqrt(ss)
+        a_hat = hh / ss
+        lo = np.maximum(a_hat - 10 * w, 0.0)
+        u = np.linspace(0.0, 1.0, 201)
+        amp = lo[..., None] + (np.maximum(a_hat, 0) + 10 * w - lo)[..., None] * u
+        chi = (ss[..., None] * amp**2 - 2 * hh[..., None] * amp) / (2 * sigma**2)
+        cmin = chi.min(axis=-1, keepdims=True)
+        la = np.log(np.trapezoid(np.exp(-(chi - cmin)), amp, axis=-1)) - cmin[..., 0]
+        # position integral with the prior (trapezoid on the regular grid)
+        m = la.max(axis=1, keepdims=True)
+        f = (np.exp(la - m) * prior).reshape(len(cols), len(g), len(g))
+        return np.log(np.trapezoid(np.trapezoid(f, g, axis=2), g, axis=1)) + m[:, 0]
+
+    star = ln_marg([bank.n_models - 1])[0]
+    out = np.full(bank.n_e, np.nan)
+    for ie in cells:
+        lr = ln_marg(list(range(ie * n_r, (ie + 1) * n_r)))
+        out[ie] = np.logaddexp(np.logaddexp.reduce(lr), star) + np.log(cfg.r_step)
+    return out
+
+
+def _galaxy(snr, offset, e=(0.25, -0.15), r=2.0, psf="moffat_e1", seed=3):
+    rng = np.random.default_rng(seed)
+    psf_obj = PSFS[psf]
+    img = draw(galsim.Convolve(galsim_model("exponential", r, *e), psf_obj), offset=offset)
+    flux = snr / np.sqrt((img**2).sum())  # matched-filter S/N with sigma = 1
+    return img * flux + rng.normal(size=img.shape), draw(psf_obj)
+
+
+@pytest.mark.parametrize(
+    "snr,offset,e_step",
+    [(10, (0.7, -0.4), 0.1), (30, (3.8, 1.1), 0.1), (100, (0.3, 0.2), 0.025),
+     (200, (-2.6, 3.1), 0.025)],
+)  # fmt: skip
+def test_laplace_matches_brute_force(snr, offset, e_step):
+    """ln L(e) differences within 0.05 of brute force where L > 1e-3 of its peak.
+
+    At S/N 100-200 the likelihood is narrower than the paper's grid step, so those cases
+    use a finer grid (0.025) to have a region worth the name.
+    """
+    cfg = Config(model="exponential", r_step=0.5, r_max=6.0, e_step=e_step)
+    sigma = 1.0
+    d, psf_img = _galaxy(snr, offset)
+    x0 = np.array([N // 2, N // 2], dtype=float)  # catalogue position: the stamp centre
+    fits = fit_stamps(d, psf_img, sigma, config=cfg.replace(dtype="float64"))
+    eng = fits.lnL[0].astype(float)
+    # up to 16 cells spread over the region where L > 1e-3 of the peak, and up to 4 deeper
+    # ones down to L ~ 1e-4, always including the deepest
+    order = np.argsort(eng)
+    inside = order[eng[order] > np.log(1e-3)]
+    outside = order[(eng[order] > -9) & (eng[order] <= np.log(1e-3))]
+    pick = lambda a, k: a[np.unique(np.linspace(0, a.size - 1, min(k, a.size)).astype(int))]  # noqa: E731
+    cells = np.concatenate([pick(inside, 16), pick(outside, 4)]).astype(int)
+    brute = brute_force_lnL(cfg, d, sigma, psf_img, x0, cells)
+    ref = np.nanargmax(brute)
+    db = brute - brute[ref]
+    de = eng - eng[ref]
+    region = db > np.log(1e-3)
+    # at S/N 200 only 4 cells of the 0.025 grid lie inside the region
+    assert region.sum() >= 4
+    err = np.abs(de[region] - db[region])
+    assert err.max() < 0.05, f"max |d lnL| = {err.max():.3f} at S/N {snr}"
+    # the float32 default agrees with float64 to well within that tolerance
+    f32 = fit_stamps(d, psf_img, sigma, config=cfg).lnL[0]
+    assert np.max(np.abs(f32 - fits.lnL[0])[region]) < 0.01
+
+
+@pytest.mark.parametrize("model", ["exponential", "devaucouleurs", "bulge+disc"])
+@pytest.mark.parametrize("e", [(0.3, 0.1), (-0.2, 0.45), (0.12, -0.33)])
+def test_noise_free_peak_at_input_ellipticity(model, e):
+    psf = PSFS["kolmogorov_e2"]
+    cfg = Config(model=model)
+    img = draw(galsim.Convolve(galsim_model(model, 2.5, *e), psf), offset=(0.3, -0.4)) * 1e3
+    fits = fit_stamps(img, draw(psf), 1.0, config=cfg)
+    peak = fits.egrid[np.argmax(fits.lnL[0])]
+    assert np.all(np.abs(peak - e) <= cfg.e_step + 1e-9)
+    assert np.hypot(*(peak - e)) < cfg.e_step
+    assert not fits.is_star[0] and fits.flags[0] == 0
+    assert fits.r_best[0] == pytest.approx(2.5, abs=0.21)
+    assert fits.x[0] == pytest.approx(N // 2 + 0.3, abs=0.02)
+    assert fits.y[0] == pytest.approx(N // 2 - 0.4, abs=0.02)
+
+
+@pytest.mark.parametrize("model", ["exponential", "devaucouleurs", "bulge+disc"])
+@pytest.mark.parametrize("e", [(0.25, -0.15), (0.05, 0.35)])
+def test_flux_of_an_on_grid_galaxy(model, e):
+    """With e and r on the grid the best model is the true one, and its amplitude the flux.
+
+    The PSF image, normalised on its 32x32 stamp, misses the Kolmogorov wings beyond it
+    (0.6% of the flux), so the model's unit flux stands for that fraction of the galaxy's.
+    """
+    psf = PSFS["kolmogorov_e2"]
+    img = draw(galsim.Convolve(galsim_model(model, 2.4, *e), psf), offset=(0.3, -0.4)) * 1e3
+    fits = fit_stamps(img, draw(psf), 1.0, config=Config(model=model))
+    assert np.allclose(fits.egrid[np.argmax(fits.lnL[0])], e)
+    assert fits.r_best[0] == pytest.approx(2.4)
+    assert fits.flux[0] == pytest.approx(1e3 * draw(psf).sum(), rel=2e-3)
+
+
+def test_point_source_is_a_star(rng):
+    psf = PSFS["moffat_e1"]
+    img = draw(psf, offset=(-0.25, 0.4)) * 2e3 + rng.normal(size=(N, N))
+    fits = fit_stamps(img, draw(psf), 1.0)
+    assert fits.is_star[0] and fits.r_best[0] == 0.0
+    assert fits.flags[0] & flag_value("STAR")
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (2.5, -1.5), (-5.0, 0.0), (3.0, 4.0)])
+def test_catalogue_offset_does_not_move_the_peak(offset):
+    """Paper Fig. 2, lower right: catalogue positions off by up to 5 px."""
+    psf = PSFS["moffat_round"]
+    e = (0.35, -0.25)
+    img = draw(galsim.Convolve(galsim_model("exponential", 2.0, *e), psf)) * 800
+    img = img + np.random.default_rng(7).normal(size=img.shape)
+    centres = (np.array([N // 2 + offset[0]]), np.array([N // 2 + offset[1]]))
+    cfg = Config(model="exponential")
+    fits = fit_stamps(img, draw(psf), 1.0, config=cfg, centres=centres)
+    base = fit_stamps(img, draw(psf), 1.0, config=cfg)
+    assert np.argmax(fits.lnL[0]) == np.argmax(base.lnL[0])
+    assert np.hypot(*(fits.egrid[np.argmax(fits.lnL[0])] - e)) < cfg.e_step
+    assert fits.x[0] == pytest.approx(base.x[0], abs=0.01)
+    assert fits.y[0] == pytest.approx(base.y[0], abs=0.01)
+    assert np.hypot(fits.x[0] - N // 2, fits.y[0] - N // 2) < 0.2  # S/N 60: sigma_x ~ 0.05
+
+
+def test_flat_likelihood_at_very_low_snr_and_negative_correlation(rng):
+    psf = PSFS["moffat_round"]
+    noise = rng.normal(size=(3, N, N))
+    noise[2] = -draw(galsim.Convolve(galsim.Exponential(scale_radius=2), psf)) * 300
+    fits = fit_stamps(noise, draw(psf), 1.0)
+    assert np.all(np.isfinite(fits.lnL))
+    # pure noise: the likelihood is broad, no cell more than a few e-folds below the peak
+    assert np.all(np.ptp(fits.lnL[:2], axis=1) < 15)
+    # a negative galaxy: positive-flux prior keeps it finite and flat, and flags NO_PEAK
+    assert fits.flags[2] & flag_value("NO_PEAK")
+    assert np.ptp(fits.lnL[2]) < 15
+
+
+def test_bad_stamps_are_flagged_not_raised(rng):
+    psf = PSFS["moffat_round"]
+    gal = draw(galsim.Convolve(galsim.Exponential(scale_radius=2), psf)) * 500
+    stamps = gal[None] + rng.normal(size=(4, N, N))
+    stamps[1, 3, 4] = np.nan
+    sigma = np.array([1.0, 1.0, 0.0, 1.0])
+    fits = fit_stamps(stamps, draw(psf), sigma)
+    assert fits.flags[1] & flag_value("BAD_PIXELS")
+    assert fits.flags[2] & flag_value("BAD_NOISE")
+    assert np.all(np.isnan(fits.lnL[1])) and np.all(np.isnan(fits.lnL[2]))
+    assert np.all(np.isfinite(fits.lnL[[0, 3]]))
+    assert fits.flags[0] == 0 and fits.flags[3] == 0
+
+
+def test_galaxy_partly_outside_the_stamp(rng):
+    """A galaxy whose centre is 13 px from the middle of a 32 px stamp still fits."""
+    psf = PSFS["moffat_round"]
+    big = draw(galsim.Convolve(galsim_model("exponential", 2.0, 0.3, 0.0), psf), n=64) * 800
+    big = big + rng.normal(size=big.shape)
+    fits = fit_stamps(big, draw(psf), 1.0, centres=(np.array([45.0]), np.array([32.0])),
+                      config=Config(model="exponential"))  # fmt: skip
+    assert np.all(np.isfinite(fits.lnL))
+    assert fits.flags[0] == 0
+
+
+def test_larger_input_stamps_are_cut_to_config_size(rng):
+    psf = PSFS["moffat_round"]
+    gal = galsim.Convolve(galsim_model("exponential", 2.0, -0.3, 0.2), psf)
+    big = draw(gal, n=48) * 800
+    small = draw(gal) * 800
+    noise = rng.normal(size=(48, 48))
+    cfg = Config(model="exponential")
+    f_big = fit_stamps(big + noise, draw(psf), 1.0, config=cfg)
+    f_small = fit_stamps(small + noise[8:40, 8:40], draw(psf), 1.0, config=cfg)
+    assert np.allclose(f_big.lnL, f_small.lnL, atol=1e-3)
+
+
+def test_wrong_shapes_raise():
+    with pytest.raises(ValueError, match="stamps"):
+        fit_stamps(np.zeros(5), np.ones((5, 5)), 1.0)
+    with pytest.raises(ValueError, match="noise_sigma"):
+        fit_stamps(np.zeros((3, N, N)), np.ones((5, 5)), np.ones(2))
+    with pytest.raises(ValueError, match="PSF"):
+        fit_stamps(np.zeros((3, N, N)), np.full((5, 5), np.nan), 1.0)
+
+
+def test_stampfits_roundtrip(tmp_path, rng):
+    psf = PSFS["moffat_round"]
+    gal = draw(galsim.Convolve(galsim.Exponential(scale_radius=2), psf)) * 500
+    fits = fit_stamps(gal[None] + rng.normal(size=(3, N, N)), draw(psf), 1.0)
+    path = tmp_path / "fits.fits"
+    fits.write(path)
+    back = type(fits).read(path)
+    assert np.array_equal(back.lnL, fits.lnL)
+    assert np.allclose(back.egrid, fits.egrid)
+    assert np.array_equal(back.flags, fits.flags)
+    with pytest.raises(FileExistsError):
+        fits.write(path)
