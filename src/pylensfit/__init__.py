@@ -14,14 +14,23 @@ The public API (see README.md and ``DESIGN.md`` section 6)::
 from .config import Config, ConfigError
 from .grid import ellipticity_grid
 from .likelihood import StampFits, fit_stamps
+from .prior import BinnedPrior, Prior, estimate_prior, estimate_prior_binned
+from .shear import ShearEstimate, estimate_shear, shapes
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "BinnedPrior",
     "Config",
     "ConfigError",
+    "Prior",
+    "ShearEstimate",
     "StampFits",
     "ellipticity_grid",
+    "estimate_prior",
+    "estimate_prior_binned",
+    "estimate_shear",
     "fit_stamps",
+    "shapes",
     "__version__",
 ]
