@@ -1,4 +1,22 @@
-"""Catalogue input and output: FITS tables written atomically."""
+"""Catalogue input and output: the shear catalogue's columns, FITS written atomically.
+
+The output catalogue is a FITS file:
+
+* HDU ``CATALOG``: one row per object that entered the pipeline (:data:`COLUMNS`);
+* HDU ``LNL``: ``(n_objects, n_e)`` float32 ``ln L(e)`` grids, row ``i`` for catalogue row
+  ``i`` (each row's maximum is 0; NaN rows for objects not measured), so that the prior
+  can be re-estimated, or estimated per bin, without refitting;
+* HDU ``EGRID``: the ``(n_e, 2)`` ellipticity cell centres;
+* HDU ``PSFS``: one row per input image with its PSF diagnostics, and ``PSFIMG``, the
+  ``(n_images, N, N)`` PSF images;
+* HDU ``CONFIG``: the configuration (``key``, ``value`` as YAML text);
+* the primary header: provenance (``PLFVERS``, date, number of images and objects, the
+  prior's parameters).
+
+Column names follow the KiDS lensfit catalogues where those have one (``e1``, ``e2``,
+``weight``, ``fitclass``, ``model_SNratio``, ``pixel_SNratio``, ``PSF_e1``, ``PSF_e2``,
+``ALPHA_J2000``, ``DELTA_J2000``), so that survey code reads ours unchanged.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +24,59 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["atomic_write"]
+__all__ = ["COLUMNS", "FITCLASS", "atomic_write", "column_table"]
+
+#: name -> (unit, description) of every column of the output catalogue.
+COLUMNS: dict[str, tuple[str, str]] = {
+    "id": ("", "running object number in the catalogue (1-based)"),
+    "image": ("", "input image file name (as given)"),
+    "image_index": ("", "index of the input image in the run (0-based)"),
+    "object_id": ("", "detection number within its image (1-based; input catalogue row)"),
+    "x": ("pix", "x position in the image, 0-based (pixel centres at integers); fitted "
+          "centre when measured, detection position otherwise"),
+    "y": ("pix", "y position in the image, 0-based; as x"),
+    "ALPHA_J2000": ("deg", "right ascension from the image WCS (float64; NaN without WCS)"),
+    "DELTA_J2000": ("deg", "declination from the image WCS (float64; NaN without WCS)"),
+    "x_detect": ("pix", "detection (catalogue) x position, 0-based"),
+    "y_detect": ("pix", "detection (catalogue) y position, 0-based"),
+    "mag": ("mag", "-2.5 log10(detection flux) + zeropoint (zeropoint 0 unless configured)"),
+    "pixel_SNratio": ("", "detection S/N: aperture flux over its error"),
+    "noise_sigma": ("adu", "per-pixel noise standard deviation used in the fit"),
+    "model_flux": ("adu", "amplitude of the most likely model (total flux)"),
+    "model_SNratio": ("", "matched-filter S/N of the most likely model"),
+    "scalelength": ("pix", "most likely model size r (marginal over e); 0 for a point "
+                    "source; scale length (exponential, bulge+disc) or half-light radius "
+                    "(de Vaucouleurs)"),
+    "e1": ("", "posterior mean ellipticity <e1> (paper eq. expecte), e = (a-b)/(a+b)"),
+    "e2": ("", "posterior mean ellipticity <e2>"),
+    "e1_var": ("", "posterior variance of e1"),
+    "e2_var": ("", "posterior variance of e2"),
+    "e12_cov": ("", "posterior covariance of e1 and e2"),
+    "sens1": ("", "shear sensitivity d<e1>/dg1 (exact by default, DESIGN.md s.4)"),
+    "sens2": ("", "shear sensitivity d<e2>/dg2"),
+    "weight": ("", "1 for a galaxy usable for shear, 0 otherwise (the shear estimator "
+               "of paper eq. key2 is unweighted)"),
+    "fitclass": ("", "0 galaxy measured, 1 star (most likely r = 0), -1 not measured "
+                 "(see flags)"),
+    "is_star": ("", "most likely model size is 0 (a point source)"),
+    "e1_best": ("", "e1 of the single most likely model (grid cell)"),
+    "e2_best": ("", "e2 of the single most likely model (grid cell)"),
+    "PSF_e1": ("", "ellipticity e1 of the PSF used for this object"),
+    "PSF_e2": ("", "ellipticity e2 of the PSF used for this object"),
+    "flags": ("", "bit mask of reasons, see pylensfit.flags.FLAGS (0: measured, usable)"),
+}
+
+#: fitclass codes (KiDS-like)
+FITCLASS = {"galaxy": 0, "star": 1, "not_measured": -1}
+
+
+def column_table():
+    """The documentation of :data:`COLUMNS` as an astropy Table (name, unit, description)."""
+    from astropy.table import Table
+
+    return Table(
+        rows=[(k, u, d) for k, (u, d) in COLUMNS.items()], names=("name", "unit", "description")
+    )
 
 
 def atomic_write(hdulist, path: str | Path, *, overwrite: bool = False) -> None:

@@ -71,6 +71,26 @@ class Config:
     block_size: int = _f(128, "galaxies per block of matrix products")
     # --- Bayesian shear (paper sections 2.1 and 3) ---
     sensitivity: str = _f("exact", "shear sensitivity: 'exact' (DESIGN.md s.4) or 'paper'")
+    integration_refine: int = _f(
+        4, "the Bayesian integrals run on an e grid this many times finer (ln L interpolated)"
+    )
+    prior_method: str = _f("direct", "prior estimation: 'direct' (maximum marginal L) or 'em'")
+    # --- detection and photometry (sep; paper section 2.3) ---
+    detect_threshold: float = _f(1.5, "detection threshold in units of the background rms")
+    detect_min_area: int = _f(5, "minimum number of connected pixels of a detection")
+    background_box: int = _f(64, "mesh size (px) of the background and rms maps")
+    # --- stars and PSF (paper section 2.4) ---
+    star_min_peak_snr: float = _f(30.0, "stars used for the PSF have peak S/N above this")
+    psf_min_correlation: float = _f(
+        0.9, "stars whose normalised cross-correlation with the stack is below this are rejected"
+    )
+    psf_min_stars: int = _f(3, "fewest usable stars for a PSF from one source")
+    # --- postage stamps (paper section 2.3) ---
+    close_pair_faint_ratio: float = _f(
+        0.0,
+        "keep a galaxy whose neighbours inside its stamp are all fainter than this fraction "
+        "of its flux (0: reject every close pair)",
+    )
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -160,3 +180,12 @@ def _validate(c: Config) -> None:
     need(c.dtype in ("float32", "float64"), f"dtype must be float32 or float64, got {c.dtype!r}")
     need(c.block_size >= 1, "block_size must be >= 1")
     need(c.sensitivity in ("exact", "paper"), "sensitivity must be 'exact' or 'paper'")
+    need(c.integration_refine >= 1, "integration_refine must be >= 1")
+    need(c.prior_method in ("direct", "em"), "prior_method must be 'direct' or 'em'")
+    need(c.detect_threshold > 0, "detect_threshold must be > 0")
+    need(c.detect_min_area >= 1, "detect_min_area must be >= 1")
+    need(c.background_box >= 8, "background_box must be >= 8")
+    need(c.star_min_peak_snr > 0, "star_min_peak_snr must be > 0")
+    need(0 < c.psf_min_correlation < 1, "psf_min_correlation must be in (0, 1)")
+    need(c.psf_min_stars >= 1, "psf_min_stars must be >= 1")
+    need(0 <= c.close_pair_faint_ratio < 1, "close_pair_faint_ratio must be in [0, 1)")

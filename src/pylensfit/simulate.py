@@ -1,0 +1,214 @@
+"""Simulated fields with GalSim: sheared galaxies, stars, noise, weight maps and truth.
+
+The demo and the tests of the pipeline use these fields; the STEP-like validation sets
+(issue 5) build on them. Conventions: pixel coordinates are 0-based with pixel centres
+on integers (``x`` indexes columns); the ellipticity ``e = (a - b) / (a + b)`` is
+GalSim's reduced-shear ``g`` of the profile, and a shear ``g`` maps an intrinsic
+ellipticity ``e_s`` to ``(e_s + g) / (1 + g* e_s)`` exactly (GalSim composes the two
+shears).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from astropy.io import fits
+from astropy.table import Table
+from astropy.wcs import WCS
+
+from .catalogue import atomic_write
+from .prior import Prior
+
+__all__ = ["FieldSpec", "simulate_field", "write_field"]
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """What to put in a simulated field (pixels as units unless said otherwise).
+
+    Objects sit on a jittered square lattice of pitch ``spacing`` (so that close pairs
+    are the exception the pipeline flags, not the rule), a fraction ``star_fraction`` of
+    them stars.
+    """
+
+    size: int = 1024
+    spacing: float = 40.0
+    jitter: float = 6.0
+    g1: float = 0.0
+    g2: float = 0.0
+    rotate: bool = False
+    model: str = "exponential"
+    psf_fwhm: float = 3.0
+    psf_beta: float = 3.5
+    psf_e1: float = 0.03
+    psf_e2: float = -0.02
+    noise_sigma: float = 1.0
+    sky: float = 50.0
+    snr_range: tuple[float, float] = (15.0, 150.0)
+    size_range: tuple[float, float] = (1.2, 3.5)
+    star_fraction: float = 0.08
+    star_peak_snr: tuple[float, float] = (40.0, 1000.0)
+    prior_params: tuple[float, float, float] = (0.19, 0.58, 2.4)
+    max_e: float = 0.85
+    pixel_scale_arcsec: float = 0.2
+    extra: dict = field(default_factory=dict)
+
+
+def _psf(spec: FieldSpec):
+    import galsim
+
+    return galsim.Moffat(beta=spec.psf_beta, fwhm=spec.psf_fwhm).shear(
+        g1=spec.psf_e1, g2=spec.psf_e2
+    )
+
+
+def _galaxy(model: str, r: float):
+    import galsim
+
+    from .models import DEVAUC_TRUNCATION as T
+
+    if model == "exponential":
+        return galsim.Exponential(scale_radius=r)
+    if model == "devaucouleurs":
+        return galsim.DeVaucouleurs(half_light_radius=r, trunc=T * r)
+    if model == "bulge+disc":
+        rb = 0.6 * r
+        return galsim.Add(
+            galsim.DeVaucouleurs(half_light_radius=rb, trunc=T * rb).withFlux(0.5),
+            galsim.Exponential(scale_radius=r).withFlux(0.5),
+        )
+    raise ValueError(f"unknown model {model!r}")
+
+
+def simulate_field(
+    spec: FieldSpec, *, seed: int, noise_seed: int | None = None
+) -> tuple[np.ndarray, np.ndarray, Table]:
+    """Render a field of sheared galaxies and stars with GalSim.
+
+    Parameters
+    ----------
+    spec : FieldSpec
+        What to simulate.
+    seed : int
+        Seed of the objects (positions, shapes, sizes, fluxes). A field with the same
+        seed and ``spec.rotate=True`` is the 90-degree-rotated twin: the same objects,
+        each galaxy rotated before the shear.
+    noise_seed : int, optional
+        Seed of the noise (default: derived from ``seed``).
+
+    Returns
+    -------
+    image : numpy.ndarray
+        ``(size, size)`` float32, sky included (``spec.sky``), with Gaussian noise.
+    weight : numpy.ndarray
+        Inverse-variance map, ``1 / noise_sigma^2``.
+    truth : astropy.table.Table
+        One row per object: ``x, y`` (0-based pixels), ``is_star``, ``flux``, ``r`` (scale
+        length or half-light radius, px), ``e1_int, e2_int`` (intrinsic), ``e1, e2``
+        (sheared), ``snr`` (matched-filter S/N of the noise-free object).
+    """
+    import galsim
+
+    rng = np.random.default_rng(seed)
+    n = int(spec.size)
+    m = int((n - 2 * spec.spacing) // spec.spacing) + 1
+    grid = spec.spacing + spec.spacing * np.arange(m)
+    xx, yy = np.meshgrid(grid, grid)
+    x = xx.ravel() + rng.uniform(-spec.jitter, spec.jitter, xx.size)
+    y = yy.ravel() + rng.uniform(-spec.jitter, spec.jitter, yy.size)
+    n_obj = x.size
+    is_star = rng.random(n_obj) < spec.star_fraction
+    r = rng.uniform(*spec.size_range, n_obj)
+    snr = np.exp(rng.uniform(*np.log(spec.snr_range), n_obj))
+    star_snr = np.exp(rng.uniform(*np.log(spec.star_peak_snr), n_obj))
+    prior = Prior(B=spec.prior_params[0], C=spec.prior_params[1], D=spec.prior_params[2])
+    e_int = prior.sample(n_obj, rng=rng)
+    big = np.hypot(*e_int.T) > spec.max_e
+    while np.any(big):
+        e_int[big] = prior.sample(int(big.sum()), rng=rng)
+        big = np.hypot(*e_int.T) > spec.max_e
+    if spec.rotate:
+        e_int = -e_int  # a 90-degree rotation of an ellipse flips e
+    es = e_int[:, 0] + 1j * e_int[:, 1]
+    g = complex(spec.g1, spec.g2)
+    e_obs = (es + g) / (1 + np.conj(g) * es)
+    e_obs[is_star] = 0.0
+
+    psf = _psf(spec)
+    image = galsim.ImageF(n, n, scale=1.0)  # bounds 1..n: numpy (x, y) is galsim (x+1, y+1)
+    flux = np.empty(n_obj)
+    unit_psf = psf.drawImage(nx=64, ny=64, scale=1.0).array
+    psf_peak = unit_psf.max()
+    for i in range(n_obj):  # rendering is GalSim's, one object at a time
+        if is_star[i]:
+            obj = psf
+            flux[i] = star_snr[i] * spec.noise_sigma / psf_peak  # peak S/N as drawn
+        else:
+            gal = _galaxy(spec.model, r[i]).shear(g1=e_int[i, 0], g2=e_int[i, 1])
+            obj = galsim.Convolve(gal.shear(g1=spec.g1, g2=spec.g2), psf)
+            arr = obj.drawImage(nx=64, ny=64, scale=1.0).array
+            flux[i] = snr[i] * spec.noise_sigma / np.sqrt((arr**2).sum())
+        stamp = obj.withFlux(flux[i]).drawImage(
+            nx=64, ny=64, scale=1.0, center=galsim.PositionD(x[i] + 1.0, y[i] + 1.0)
+        )
+        b = stamp.bounds & image.bounds
+        if b.isDefined():
+            image[b] += stamp[b]
+    arr = image.array.astype(np.float64)
+    noise_rng = np.random.default_rng([seed, 1] if noise_seed is None else noise_seed)
+    arr += spec.sky + noise_rng.normal(scale=spec.noise_sigma, size=arr.shape)
+    weight = np.full(arr.shape, 1.0 / spec.noise_sigma**2, dtype=np.float32)
+    truth = Table()
+    truth["x"] = x
+    truth["y"] = y
+    truth["is_star"] = is_star
+    truth["flux"] = flux
+    truth["r"] = np.where(is_star, 0.0, r)
+    truth["e1_int"] = np.where(is_star, 0.0, e_int[:, 0])
+    truth["e2_int"] = np.where(is_star, 0.0, e_int[:, 1])
+    truth["e1"] = e_obs.real
+    truth["e2"] = e_obs.imag
+    truth["snr"] = np.where(is_star, np.nan, snr)
+    truth.meta.update(
+        {"g1": spec.g1, "g2": spec.g2, "model": spec.model, "noise": spec.noise_sigma,
+         "psf_fwhm": spec.psf_fwhm, "psf_e1": spec.psf_e1, "psf_e2": spec.psf_e2,
+         "seed": seed}
+    )  # fmt: skip
+    return arr.astype(np.float32), weight, truth
+
+
+def _wcs(spec: FieldSpec, ra0: float, dec0: float) -> WCS:
+    w = WCS(naxis=2)
+    w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
+    w.wcs.crval = [ra0, dec0]
+    w.wcs.crpix = [spec.size / 2 + 0.5, spec.size / 2 + 0.5]
+    s = spec.pixel_scale_arcsec / 3600.0
+    w.wcs.cd = [[-s, 0.0], [0.0, s]]
+    return w
+
+
+def write_field(
+    path,
+    image: np.ndarray,
+    weight: np.ndarray | None,
+    spec: FieldSpec,
+    *,
+    ra0: float = 150.0,
+    dec0: float = 2.0,
+    truth: Table | None = None,
+) -> None:
+    """Write a simulated field as FITS: the image (with a TAN WCS) and a ``WEIGHT`` HDU.
+
+    The truth table, if given, goes to a ``TRUTH`` extension, which the pipeline ignores.
+    """
+    hdr = _wcs(spec, ra0, dec0).to_header()
+    hdr["GAIN"] = (0.0, "no Poisson noise: background-limited simulation")
+    hdr["SIMG1"] = (spec.g1, "input reduced shear g1")
+    hdr["SIMG2"] = (spec.g2, "input reduced shear g2")
+    hdus = [fits.PrimaryHDU(image, header=hdr)]
+    if weight is not None:
+        hdus.append(fits.ImageHDU(weight, name="WEIGHT"))
+    if truth is not None:
+        hdus.append(fits.BinTableHDU(truth, name="TRUTH"))
+    atomic_write(fits.HDUList(hdus), path, overwrite=True)
