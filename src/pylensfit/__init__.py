@@ -9,20 +9,22 @@ The public API (see README.md and ``DESIGN.md`` section 6)::
     prior = plf.estimate_prior(fits.lnL, fits.egrid)
     shapes = plf.shapes(fits.lnL, fits.egrid, prior)
     g = plf.estimate_shear(shapes)
+    cat = plf.measure(["field.fits"], stars=["starfield.fits"], config=cfg, jobs=2)
 """
 
+from ._version import __version__
 from .config import Config, ConfigError
 from .grid import ellipticity_grid
 from .likelihood import StampFits, fit_stamps
+from .pipeline import InputError, measure, read_catalogue, write_catalogue
 from .prior import BinnedPrior, Prior, estimate_prior, estimate_prior_binned
 from .shear import ShearEstimate, estimate_shear, shapes
-
-__version__ = "0.1.0"
 
 __all__ = [
     "BinnedPrior",
     "Config",
     "ConfigError",
+    "InputError",
     "Prior",
     "ShearEstimate",
     "StampFits",
@@ -31,6 +33,9 @@ __all__ = [
     "estimate_prior_binned",
     "estimate_shear",
     "fit_stamps",
+    "measure",
+    "read_catalogue",
     "shapes",
+    "write_catalogue",
     "__version__",
 ]

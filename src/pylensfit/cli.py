@@ -1,10 +1,22 @@
-"""Command-line interface: a thin layer over the public API."""
+"""Command-line interface: a thin layer over the public API.
+
+::
+
+    pylensfit measure IMAGE... [--stars STARFIELD...] [--config FILE] -o OUT
+    pylensfit prior CATALOG... -o PRIOR
+    pylensfit shear CATALOG... [--prior PRIOR] [--bin-by COLUMN:EDGES]
+    pylensfit config [-o FILE]          # the default configuration as YAML
+    pylensfit demo                      # simulate, measure, prior, shear
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
 import sys
+import tempfile
+import time
+from pathlib import Path
 
 import numpy as np
 
@@ -13,51 +25,219 @@ __all__ = ["main"]
 log = logging.getLogger("pylensfit")
 
 
-def _demo(args: argparse.Namespace) -> int:
-    """Fit GalSim-rendered galaxies and print true against measured ellipticity."""
-    import galsim
+def _config(args: argparse.Namespace):
+    from .config import Config
 
-    from . import Config, fit_stamps
+    return Config.from_yaml(args.config) if getattr(args, "config", None) else Config()
 
-    rng = np.random.default_rng(args.seed)
-    cfg = Config(model="exponential")
-    n = cfg.stamp_size
-    psf = galsim.Moffat(beta=3.5, fwhm=3.0).shear(g1=0.03, g2=-0.02)
-    psf_img = psf.drawImage(nx=n, ny=n, scale=1.0, offset=(0.5, 0.5)).array
-    ngal = args.ngal
-    e_true = rng.uniform(-0.4, 0.4, size=(ngal, 2))
-    r_true = rng.uniform(1.5, 3.5, size=ngal)
-    sigma = 1.0
-    stamps = np.empty((ngal, n, n))
-    for i in range(ngal):
-        gal = galsim.Exponential(scale_radius=r_true[i]).shear(g1=e_true[i, 0], g2=e_true[i, 1])
-        img = galsim.Convolve(gal, psf).withFlux(args.flux)
-        off = rng.uniform(-0.5, 0.5, size=2) + 0.5
-        stamps[i] = img.drawImage(nx=n, ny=n, scale=1.0, offset=tuple(off)).array
-    stamps += rng.normal(scale=sigma, size=stamps.shape)
-    fits = fit_stamps(stamps, psf_img, sigma, config=cfg)
-    w = np.exp(fits.lnL.astype(float))
-    w /= w.sum(axis=1, keepdims=True)
-    e_mean = w @ fits.egrid
-    print(f"{'e1 true':>8} {'e1 meas':>8} {'e2 true':>8} {'e2 meas':>8} {'r true':>7} "
-          f"{'r best':>7} {'S/N':>6}")  # fmt: skip
-    for i in range(ngal):
-        print(f"{e_true[i, 0]:8.3f} {e_mean[i, 0]:8.3f} {e_true[i, 1]:8.3f} {e_mean[i, 1]:8.3f} "
-              f"{r_true[i]:7.2f} {fits.r_best[i]:7.2f} {fits.snr[i]:6.1f}")  # fmt: skip
-    rms = np.sqrt(np.mean((e_mean - e_true) ** 2))
-    print(f"rms(likelihood-mean e - true e) = {rms:.3f} over {ngal} galaxies "
-          "(no prior applied: this is L(e), not the posterior)")  # fmt: skip
+
+def _measure(args: argparse.Namespace) -> int:
+    from .pipeline import measure
+
+    cat = measure(
+        args.images, stars=args.stars, weights=args.weights, masks=args.masks,
+        catalogues=args.catalogues, star_column=args.star_column, config=_config(args),
+        prior=args.prior, output=args.output, overwrite=args.overwrite, jobs=args.jobs,
+        scheduler=args.scheduler, progress=not args.quiet,
+    )  # fmt: skip
+    n_ok = int(np.sum(np.asarray(cat["weight"]) > 0))
+    print(f"{args.output}: {len(cat)} objects, {n_ok} galaxies measured, "
+          f"{int(np.sum(cat['fitclass'] == 1))} stars; prior {cat.meta['prior']!r}")  # fmt: skip
     return 0
 
 
+def _read_catalogues(paths):
+    from astropy.table import vstack
+
+    from .pipeline import InputError, read_catalogue
+
+    cats = [read_catalogue(p) for p in paths]
+    egrid = cats[0].meta["egrid"]
+    for p, c in zip(paths, cats, strict=True):
+        if c.meta["egrid"].shape != egrid.shape or not np.allclose(c.meta["egrid"], egrid):
+            raise InputError(f"{p}: its ellipticity grid differs from {paths[0]}'s")
+    meta = dict(cats[0].meta)
+    cat = vstack(cats, metadata_conflicts="silent") if len(cats) > 1 else cats[0]
+    cat.meta.update(meta)
+    return cat
+
+
+def _usable_galaxies(cat) -> np.ndarray:
+    lnL = np.asarray(cat["lnL"])
+    return (
+        (np.asarray(cat["flags"]) == 0)
+        & (np.asarray(cat["fitclass"]) == 0)
+        & np.isfinite(lnL).all(axis=1)
+    )
+
+
+def _prior(args: argparse.Namespace) -> int:
+    from .prior import estimate_prior
+
+    cat = _read_catalogues(args.catalogs)
+    gal = _usable_galaxies(cat)
+    if not gal.any():
+        raise ValueError("no measured galaxy in the catalogue(s): cannot estimate a prior")
+    prior = estimate_prior(np.asarray(cat["lnL"])[gal], cat.meta["egrid"], method=args.method)
+    prior.save(args.output)
+    for h in prior.history[-3:]:
+        print(f"  step {h.get('iteration', '?')}: B={h['B']:.4f} C={h['C']:.4f} "
+              f"D={h['D']:.4f} marginal lnL={h.get('marginal_lnL', float('nan')):.3f}")  # fmt: skip
+    print(f"{args.output}: {prior!r} from {int(gal.sum())} galaxies")
+    return 0
+
+
+def _shear(args: argparse.Namespace) -> int:
+    from .prior import Prior
+    from .shear import shapes, shear_table
+
+    cat = _read_catalogues(args.catalogs)
+    cfg = cat.meta.get("config")
+    prior = Prior.load(args.prior) if args.prior else cat.meta.get("prior")
+    if prior is None:
+        raise ValueError("no prior: give --prior (see `pylensfit prior`)")
+    sens = args.sensitivity or (cfg.sensitivity if cfg is not None else "exact")
+    refine = cfg.integration_refine if cfg is not None else 4
+    gal = _usable_galaxies(cat)
+    if not gal.any():
+        raise ValueError("no measured galaxy in the catalogue(s)")
+    sh = shapes(np.asarray(cat["lnL"])[gal], cat.meta["egrid"], prior, sensitivity=sens,
+                refine=refine)  # fmt: skip
+    for c in ("image", *([args.bin_column] if args.bin_column else [])):
+        sh[c] = cat[c][gal]
+    tab = shear_table(sh, by=None if args.no_per_image else "image",
+                      column=args.bin_column, edges=args.bin_edges)  # fmt: skip
+    for c in ("g1", "g1_err", "g2", "g2_err"):
+        tab[c].format = ".5f"
+    tab.pprint_all()
+    if args.output:
+        tab.write(args.output, overwrite=True)
+    return 0
+
+
+def _dump_config(args: argparse.Namespace) -> int:
+    from .config import Config
+
+    cfg = Config()
+    if args.output:
+        cfg.to_yaml(args.output)
+        print(f"{args.output}: default configuration written")
+    else:
+        for name, (default, doc) in Config.describe().items():
+            print(f"# {doc}\n{name}: {default!r}")
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    """Simulate a small field with GalSim, measure it, estimate the prior and the shear."""
+    from .config import Config
+    from .pipeline import measure
+    from .shear import shear_table
+    from .simulate import FieldSpec, simulate_field, write_field
+
+    g1, g2 = args.g1, args.g2
+    cfg = Config(model="exponential")
+    work = Path(args.outdir) if args.outdir else Path(tempfile.mkdtemp(prefix="pylensfit-demo-"))
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    spec = FieldSpec(size=args.size, g1=g1, g2=g2, model="exponential")
+    paths = []
+    for k, rot in enumerate((False, True)):  # a field and its 90-degree-rotated twin
+        s = FieldSpec(**{**spec.__dict__, "rotate": rot})
+        img, w, truth = simulate_field(s, seed=args.seed, noise_seed=args.seed * 10 + k)
+        p = work / f"field_{'ab'[k]}.fits"
+        write_field(p, img, w, s, truth=truth)
+        paths.append(p)
+    stars_spec = FieldSpec(**{**spec.__dict__, "size": 512, "star_fraction": 1.0})
+    img, w, _ = simulate_field(stars_spec, seed=args.seed + 1000)
+    write_field(work / "stars.fits", img, w, stars_spec)
+    print(f"simulated 2 x {len(truth)} objects ({int(truth['is_star'].sum())} stars each) in "
+          f"{args.size}x{args.size} px fields with g = ({g1:+.4f}, {g2:+.4f}), and a star "
+          f"field, in {time.perf_counter() - t0:.1f} s -> {work}")  # fmt: skip
+    t1 = time.perf_counter()
+    cat = measure(paths, stars=[work / "stars.fits"], config=cfg, output=work / "catalog.fits",
+                  overwrite=True, jobs=args.jobs, progress=False)  # fmt: skip
+    dt = time.perf_counter() - t1
+    ngal = int(np.sum(cat["weight"] > 0))
+    nstar = int(np.sum(cat["fitclass"] == 1))
+    nflag = int(np.sum(cat["fitclass"] == -1))
+    print(f"measured {len(cat)} objects ({ngal} galaxies, {nstar} stars, {nflag} flagged) in "
+          f"{dt:.1f} s ({ngal / dt:.0f} galaxies/s from FITS to catalogue) -> "
+          f"{work / 'catalog.fits'}")  # fmt: skip
+    print(f"prior estimated from the galaxies: {cat.meta['prior']!r}")
+    tab = shear_table(cat, by="image")
+    for c in ("g1", "g1_err", "g2", "g2_err"):
+        tab[c].format = "+.4f"
+    tab.pprint_all()
+    row = tab[-1]
+    ok1 = abs(row["g1"] - g1) <= 2 * row["g1_err"]
+    ok2 = abs(row["g2"] - g2) <= 2 * row["g2_err"]
+    print(f"true g = ({g1:+.4f}, {g2:+.4f}); recovered g = ({row['g1']:+.4f} +- "
+          f"{row['g1_err']:.4f}, {row['g2']:+.4f} +- {row['g2_err']:.4f}): "
+          f"{'within' if ok1 and ok2 else 'NOT within'} 2 sigma")  # fmt: skip
+    return 0 if ok1 and ok2 else 2
+
+
+def _bin_by(text: str):
+    try:
+        col, edges = text.split(":", 1)
+        return col, [float(v) for v in edges.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--bin-by expects COLUMN:EDGE,EDGE,... (e.g. mag:20,22,24), got {text!r}"
+        ) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="pylensfit", description=__doc__)
+    p = argparse.ArgumentParser(prog="pylensfit", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
     sub = p.add_subparsers(dest="command", required=True)
-    d = sub.add_parser("demo", help="simulate galaxies with GalSim and measure them")
-    d.add_argument("--ngal", type=int, default=12, help="number of galaxies")
-    d.add_argument("--flux", type=float, default=600.0, help="galaxy flux (noise sigma 1)")
+
+    m = sub.add_parser("measure", help="FITS images in, shear catalogue out")
+    m.add_argument("images", nargs="+", help="FITS images (WEIGHT and MASK HDUs used if present)")
+    m.add_argument("--stars", nargs="+", default=[], help="separate star-field images")
+    m.add_argument("--weights", nargs="+", help="weight (inverse variance) maps, one per image")
+    m.add_argument("--masks", nargs="+", help="mask maps (non-zero = bad), one per image")
+    m.add_argument("--catalogues", nargs="+", help="input catalogues instead of detection")
+    m.add_argument("--star-column", help="catalogue column marking the PSF stars")
+    m.add_argument("--config", help="YAML configuration (see `pylensfit config`)")
+    m.add_argument("--prior", help="a saved prior (default: estimated from the run)")
+    m.add_argument("-o", "--output", required=True, help="output catalogue (FITS)")
+    m.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    m.add_argument("--jobs", type=int, default=1, help="local worker processes")
+    m.add_argument("--scheduler", help="dask.distributed scheduler address")
+    m.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    m.set_defaults(func=_measure)
+
+    pr = sub.add_parser("prior", help="estimate the ellipticity prior from catalogues")
+    pr.add_argument("catalogs", nargs="+", help="catalogues from `pylensfit measure`")
+    pr.add_argument("-o", "--output", required=True, help="prior file (JSON)")
+    pr.add_argument("--method", choices=("direct", "em"), default="direct",
+                    help="direct maximisation (default) or the paper's EM iteration")  # fmt: skip
+    pr.set_defaults(func=_prior)
+
+    sh = sub.add_parser("shear", help="shear per image and bin, with errors")
+    sh.add_argument("catalogs", nargs="+", help="catalogues from `pylensfit measure`")
+    sh.add_argument("--prior", help="prior file (default: the catalogue's own)")
+    sh.add_argument("--bin-by", type=_bin_by, metavar="COLUMN:EDGES",
+                    help="also bin by a column, e.g. mag:20,22,24")  # fmt: skip
+    sh.add_argument("--sensitivity", choices=("exact", "paper"), help="sensitivity formula")
+    sh.add_argument("--no-per-image", action="store_true", help="only bins and the total")
+    sh.add_argument("-o", "--output", help="write the table (format from the extension)")
+    sh.set_defaults(func=_shear)
+
+    c = sub.add_parser("config", help="print or write the default configuration (YAML)")
+    c.add_argument("-o", "--output", help="write to this file")
+    c.set_defaults(func=_dump_config)
+
+    d = sub.add_parser("demo", help="simulate a small field with GalSim and run everything")
+    d.add_argument("--size", type=int, default=1024, help="field side in pixels")
+    d.add_argument("--g1", type=float, default=0.04, help="true shear g1")
+    d.add_argument("--g2", type=float, default=-0.02, help="true shear g2")
     d.add_argument("--seed", type=int, default=1, help="random seed")
+    d.add_argument("--jobs", type=int, default=1, help="local worker processes")
+    d.add_argument("--outdir", help="keep the files here (default: a temporary folder)")
     d.set_defaults(func=_demo)
     return p
 
@@ -65,6 +245,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``pylensfit`` command."""
     args = build_parser().parse_args(argv)
+    if getattr(args, "bin_by", None):
+        args.bin_column, args.bin_edges = args.bin_by
+    else:
+        args.bin_column, args.bin_edges = None, None
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose, 2),
         format="%(asctime)s %(name)s %(levelname)s: %(message)s",

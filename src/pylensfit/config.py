@@ -76,7 +76,10 @@ class Config:
     )
     prior_method: str = _f("direct", "prior estimation: 'direct' (maximum marginal L) or 'em'")
     # --- detection and photometry (sep; paper section 2.3) ---
-    detect_threshold: float = _f(1.5, "detection threshold in units of the background rms")
+    detect_threshold: float = _f(
+        1.5, "detection threshold in noise sigmas per pixel, on the filtered image "
+        "(SExtractor's default; noise peaks detected have S/N ~1 and are measured as such)"
+    )
     detect_min_area: int = _f(5, "minimum number of connected pixels of a detection")
     background_box: int = _f(64, "mesh size (px) of the background and rms maps")
     # --- stars and PSF (paper section 2.4) ---
@@ -86,6 +89,9 @@ class Config:
     )
     psf_min_stars: int = _f(3, "fewest usable stars for a PSF from one source")
     # --- postage stamps (paper section 2.3) ---
+    close_pair_min_snr: float = _f(
+        5.0, "detections below this aperture S/N do not make a galaxy a close pair"
+    )
     close_pair_faint_ratio: float = _f(
         0.0,
         "keep a galaxy whose neighbours inside its stamp are all fainter than this fraction "
@@ -188,4 +194,5 @@ def _validate(c: Config) -> None:
     need(c.star_min_peak_snr > 0, "star_min_peak_snr must be > 0")
     need(0 < c.psf_min_correlation < 1, "psf_min_correlation must be in (0, 1)")
     need(c.psf_min_stars >= 1, "psf_min_stars must be >= 1")
+    need(c.close_pair_min_snr >= 0, "close_pair_min_snr must be >= 0")
     need(0 <= c.close_pair_faint_ratio < 1, "close_pair_faint_ratio must be in [0, 1)")

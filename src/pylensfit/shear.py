@@ -24,6 +24,7 @@ are one matrix product ``L (n_gal, n_e) @ K (n_e, 14)``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -46,6 +47,7 @@ __all__ = [
     "refine_lnL",
     "shapes",
     "shear_sensitivity",
+    "shear_table",
 ]
 
 #: Flag bit: the likelihood row is unusable (all ``-inf``, or contains NaN / ``+inf``);
@@ -682,3 +684,57 @@ def estimate_shear(
         err = float(np.std(e, ddof=1)) * math.sqrt(n) / ssum if n > 1 else math.nan
         out.append((g, err))
     return ShearEstimate(g1=out[0][0], g2=out[1][0], g1_err=out[0][1], g2_err=out[1][1], n=n)
+
+
+def shear_table(
+    shapes_table: Table,
+    *,
+    by: str | None = None,
+    column: str | None = None,
+    edges: Sequence[float] | None = None,
+) -> Table:
+    """Shear of every group of a catalogue, with errors (eq. ``key2`` per group).
+
+    Parameters
+    ----------
+    shapes_table : astropy.table.Table
+        A table with ``e1, e2, sens1, sens2`` and, optionally, ``flags`` (the output of
+        :func:`shapes` or :func:`pylensfit.measure`).
+    by : str, optional
+        Column whose distinct values define the groups (e.g. ``"image"``).
+    column, edges : str and sequence of float, optional
+        Bin the rows by ``column`` with bin ``edges`` (e.g. magnitude bins); rows
+        outside the edges are left out of the binned rows.
+
+    Returns
+    -------
+    astropy.table.Table
+        One row per group (then per bin) and a last row ``all``: ``group``, ``n``,
+        ``g1, g1_err, g2, g2_err``. A group with no usable row has ``n = 0`` and NaN.
+    """
+    keys: list[tuple[str, np.ndarray]] = []
+    n = len(shapes_table)
+    if by is not None:
+        if by not in shapes_table.colnames:
+            raise ValueError(f"the table has no column {by!r} to group by")
+        vals = np.asarray(shapes_table[by])
+        for v in np.unique(vals):
+            keys.append((f"{by}={v}", vals == v))
+    if column is not None:
+        if column not in shapes_table.colnames:
+            raise ValueError(f"the table has no column {column!r} to bin by")
+        e = np.asarray(edges, dtype=float)
+        if e.ndim != 1 or e.size < 2 or np.any(np.diff(e) <= 0):
+            raise ValueError(f"bin edges must increase, got {list(e)}")
+        v = np.asarray(shapes_table[column], dtype=float)
+        for lo, hi in zip(e[:-1], e[1:], strict=True):
+            keys.append((f"{lo:g}<={column}<{hi:g}", (v >= lo) & (v < hi)))
+    keys.append(("all", np.ones(n, dtype=bool)))
+    rows = []
+    for name, sel in keys:
+        try:
+            g = estimate_shear(shapes_table[sel])
+            rows.append((name, g.n, g.g1, g.g1_err, g.g2, g.g2_err))
+        except ValueError:
+            rows.append((name, 0, np.nan, np.nan, np.nan, np.nan))
+    return Table(rows=rows, names=("group", "n", "g1", "g1_err", "g2", "g2_err"))

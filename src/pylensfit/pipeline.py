@@ -1,0 +1,746 @@
+"""From FITS images to a shear catalogue (paper sections 2.3-2.4 and 4).
+
+:func:`measure` walks the whole path for each input image:
+
+1. read the image, its weight (inverse variance) and mask maps and its WCS;
+2. measure the background and its rms and detect the objects with ``sep``
+   (:mod:`pylensfit.detection`), or take the positions of an input catalogue;
+3. select stars on the stellar locus (peak S/N above ``star_min_peak_snr``), stack them
+   into a PSF (:func:`pylensfit.psf.stack_psf`) and co-add it with the PSFs of the
+   separate star-field images;
+4. cut a postage stamp about every object and flag those that cannot be fitted (edge,
+   masked or NaN pixels, close pairs: :mod:`pylensfit.stamps`);
+5. compute every object's ``ln L(e)`` grid (:func:`pylensfit.fit_stamps`).
+
+The images are independent and run in parallel: in a local process pool (``jobs``, one
+BLAS and numba thread per worker) or on a dask.distributed cluster (``scheduler``).
+Each finished image is written at once (atomically) to ``<output>.parts/``, so a run
+that is killed and restarted does only the images that are missing. When all are done,
+the prior is estimated from the galaxies of the run (unless one is given), the
+posterior means, covariances and sensitivities computed from the stored grids, and the
+catalogue written (:mod:`pylensfit.catalogue`). Every object that was detected has a
+row; the ``flags`` column says why an object was not measured.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from astropy.io import fits
+from astropy.table import Table, vstack
+
+from . import flags as _flags
+from ._version import __version__
+from .catalogue import COLUMNS, FITCLASS, atomic_write
+from .config import Config
+from .prior import Prior, estimate_prior
+from .psf import PSFError, PSFResult, combine_psfs, stack_psf
+from .shear import shapes as _shapes
+from .stamps import cut_stamps
+
+__all__ = ["InputError", "measure", "read_catalogue", "write_catalogue"]
+
+log = logging.getLogger(__name__)
+
+
+class InputError(ValueError):
+    """Bad input: a missing or unreadable file, an empty image, an empty catalogue."""
+
+
+# ----------------------------------------------------------------------------------------
+# Input
+# ----------------------------------------------------------------------------------------
+@dataclass
+class _Image:
+    path: str
+    data: np.ndarray
+    header: fits.Header
+    weight: np.ndarray | None
+    bad: np.ndarray  # masked, zero-weight or non-finite pixels
+
+
+@contextmanager
+def _open(path: str, what: str) -> Iterator[fits.HDUList]:
+    """Open a FITS file; a missing or unreadable file is an :class:`InputError`."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{path}: {what} not found")
+    with open(p, "rb") as fh:  # ours to close, whatever astropy makes of the content
+        try:
+            hdul = fits.open(fh, memmap=False)
+            hdul.verify("exception")
+        except Exception as err:  # astropy raises OSError, ValueError, VerifyError, ...
+            raise InputError(f"{path}: not a readable FITS file ({err})") from None
+        with hdul:
+            yield hdul
+
+
+def _first_image(hdul: fits.HDUList, path: str, name: str | None = None) -> tuple:
+    if name is not None:
+        if name not in hdul:
+            raise InputError(f"{path}: no HDU named {name}")
+        hdus = [hdul[name]]
+    else:
+        hdus = [h for h in hdul if isinstance(h, (fits.PrimaryHDU, fits.ImageHDU))]
+    for h in hdus:
+        try:
+            data = h.data
+        except Exception as err:
+            raise InputError(f"{path}: cannot read image data ({err})") from None
+        if data is not None and data.ndim == 2:
+            return np.asarray(data, dtype=np.float64), h.header
+    raise InputError(f"{path}: no 2-D image in the file")
+
+
+def _read_image(path: str, weight: str | None = None, mask: str | None = None) -> _Image:
+    """Read an image, its weight map and mask (HDUs ``WEIGHT`` / ``MASK`` or files)."""
+    with _open(path, "image") as hdul:
+        data, header = _first_image(hdul, path)
+        w = _first_image(hdul, path, "WEIGHT")[0] if "WEIGHT" in hdul else None
+        m = _first_image(hdul, path, "MASK")[0] if "MASK" in hdul else None
+    if weight is not None:
+        with _open(weight, "weight map") as h:
+            w = _first_image(h, weight)[0]
+    if mask is not None:
+        with _open(mask, "mask") as h:
+            m = _first_image(h, mask)[0]
+    for arr, what in ((w, "weight map"), (m, "mask")):
+        if arr is not None and arr.shape != data.shape:
+            raise InputError(f"{path}: {what} shape {arr.shape} differs from the image's "
+                             f"{data.shape}")  # fmt: skip
+    finite = np.isfinite(data)
+    if not finite.any():
+        raise InputError(f"{path}: empty image (no finite pixel)")
+    if np.nanmax(data) == np.nanmin(data):
+        raise InputError(f"{path}: empty image (all pixels equal {np.nanmax(data):g})")
+    bad = ~finite
+    if w is not None:
+        bad |= ~(np.isfinite(w) & (w > 0))
+    if m is not None:
+        bad |= np.nan_to_num(m) != 0
+    if bad.all():
+        raise InputError(f"{path}: every pixel is masked or has zero weight")
+    return _Image(path=path, data=data, header=header, weight=w, bad=bad)
+
+
+def _read_positions(path: str, image_path: str) -> Table:
+    """An input catalogue: ``x, y`` (0-based) or SExtractor's ``X_IMAGE, Y_IMAGE``."""
+    try:
+        t = Table.read(path)
+    except FileNotFoundError:
+        raise InputError(f"{path}: input catalogue not found") from None
+    except Exception as err:
+        raise InputError(f"{path}: cannot read the input catalogue ({err})") from None
+    if len(t) == 0:
+        raise InputError(f"{path}: empty input catalogue (for {image_path})")
+    names = {c.lower(): c for c in t.colnames}
+    if "x" in names and "y" in names:
+        x, y = t[names["x"]], t[names["y"]]
+    elif "x_image" in names and "y_image" in names:
+        x, y = t[names["x_image"]] - 1.0, t[names["y_image"]] - 1.0  # FITS 1-based
+    else:
+        raise InputError(f"{path}: input catalogue needs columns x, y (0-based) or "
+                         "X_IMAGE, Y_IMAGE (1-based)")  # fmt: skip
+    out = Table()
+    out["x"] = np.asarray(x, dtype=float)
+    out["y"] = np.asarray(y, dtype=float)
+    for c in t.colnames:
+        if c not in out.colnames:
+            out[c] = t[c]
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# One image
+# ----------------------------------------------------------------------------------------
+def _detect(img: _Image, cfg: Config, positions: Table | None):
+    """Background-subtracted image and the object table (detections or input positions)."""
+    from .detection import detect, measure_background
+
+    bkg = measure_background(img.data, mask=img.bad, weight=img.weight, box=cfg.background_box)
+    det = detect(
+        img.data, weight=img.weight, mask=img.bad, threshold=cfg.detect_threshold,
+        min_area=cfg.detect_min_area, background=bkg, stamp_size=cfg.stamp_size,
+    )  # fmt: skip
+    sub = bkg.subtract(img.data)
+    if positions is None:
+        return sub, det
+    # an input catalogue: its positions, with the detections' photometry where they match
+    from scipy.spatial import cKDTree
+
+    out = positions.copy()
+    out["id"] = np.arange(1, len(out) + 1)
+    for c in ("flux", "flux_err", "snr", "peak_snr", "r_half", "mag", "sep_flag"):
+        out[c] = np.nan if c != "sep_flag" else 0
+    rms = bkg.rms
+    if len(det):
+        d, j = cKDTree(np.column_stack([det["x"], det["y"]])).query(
+            np.column_stack([out["x"], out["y"]]), distance_upper_bound=2.0
+        )
+        hit = np.isfinite(d)
+        for c in ("flux", "flux_err", "snr", "peak_snr", "r_half", "mag", "sep_flag"):
+            out[c][hit] = det[c][j[hit]]
+    out["noise_sigma"] = _noise_at(img, out["x"], out["y"], bkg, rms)
+    return sub, out
+
+
+def _noise_at(img: _Image, x, y, bkg, rms_map) -> np.ndarray:
+    ix = np.clip(np.round(np.asarray(x)).astype(int), 0, img.data.shape[1] - 1)
+    iy = np.clip(np.round(np.asarray(y)).astype(int), 0, img.data.shape[0] - 1)
+    if img.weight is not None:
+        w = img.weight[iy, ix]
+        return np.where(w > 0, 1.0 / np.sqrt(np.where(w > 0, w, 1.0)), np.nan)
+    if rms_map is not None:
+        return np.asarray(rms_map)[iy, ix]
+    return np.full(ix.shape, float(bkg.global_rms))
+
+
+def _psf_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_col):
+    from .detection import select_stars
+
+    stars = select_stars(det, min_peak_snr=cfg.star_min_peak_snr, column=star_col)
+    if stars.sum() < cfg.psf_min_stars:
+        raise PSFError(f"{img.path}: {int(stars.sum())} star(s) pass the selection "
+                       f"(peak S/N > {cfg.star_min_peak_snr:g}), fewer than "
+                       f"psf_min_stars = {cfg.psf_min_stars}")  # fmt: skip
+    res = stack_psf(
+        sub, np.asarray(det["x"])[stars], np.asarray(det["y"])[stars],
+        noise_sigma=np.asarray(det["noise_sigma"])[stars],
+        size=cfg.stamp_size, weight=None if img.weight is None else img.weight,
+        min_correlation=cfg.psf_min_correlation, source=img.path,
+    )  # fmt: skip
+    if res.n_used < cfg.psf_min_stars:
+        raise PSFError(f"{img.path}: only {res.n_used} star(s) survive the PSF stacking, "
+                       f"fewer than psf_min_stars = {cfg.psf_min_stars}")  # fmt: skip
+    return res, stars
+
+
+def _starfield_task(task: dict[str, Any]) -> PSFResult:
+    """The PSF of a separate star-field image."""
+    _single_thread(task.get("single_thread", False))
+    cfg = Config.from_dict(task["config"])
+    img = _read_image(task["path"], task.get("weight"), task.get("mask"))
+    sub, det = _detect(img, cfg, None)
+    if len(det) == 0:
+        raise InputError(f"{img.path}: no object detected in the star field")
+    try:
+        return _psf_from_stars(sub, img, det, cfg, None)[0]
+    except PSFError as err:
+        raise InputError(f"{img.path}: no usable star for the PSF ({err})") from None
+
+
+def _single_thread(on: bool) -> None:
+    if not on:
+        return
+    import numba
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+    numba.set_num_threads(1)
+
+
+def _image_task(task: dict[str, Any]) -> dict[str, Any]:
+    """Measure one image: every detected object gets a row, measured or flagged."""
+    from .likelihood import fit_stamps
+    from .models import model_bank
+
+    t0 = time.perf_counter()
+    _single_thread(task.get("single_thread", False))
+    cfg = Config.from_dict(task["config"])
+    path = task["path"]
+    img = _read_image(path, task.get("weight"), task.get("mask"))
+    positions = _read_positions(task["catalogue"], path) if task.get("catalogue") else None
+    sub, det = _detect(img, cfg, positions)
+    t_detect = time.perf_counter()
+    n = len(det)
+    flags = np.zeros(n, dtype=np.int32)
+    # the PSF: this image's stars co-added with the star fields'
+    psfs = list(task.get("star_psfs", []))
+    own_stars = np.zeros(n, dtype=bool)
+    psf_note = ""
+    if n:
+        try:
+            own, own_stars = _psf_from_stars(sub, img, det, cfg, task.get("star_column"))
+            psfs.append(own)
+        except PSFError as err:
+            psf_note = str(err)
+            log.info("%s", err)
+    if psfs:
+        psf = combine_psfs(psfs) if len(psfs) > 1 else psfs[0]
+    else:
+        psf = None
+        flags[:] |= _flags.flag_value("PSF_FAILED")
+        if n:
+            log.error("%s: no usable star for the PSF in the image or the star fields (%s); "
+                      "its %d objects are flagged PSF_FAILED", path, psf_note, n)  # fmt: skip
+    t_psf = time.perf_counter()
+    x = np.asarray(det["x"], dtype=float)
+    y = np.asarray(det["y"], dtype=float)
+    noise = np.asarray(det["noise_sigma"], dtype=float)
+    stamps, cx, cy, sflags = cut_stamps(sub, x, y, cfg.stamp_size, bad=img.bad)
+    flags |= sflags
+    if n:
+        from .detection import close_pairs
+
+        # a galaxy is a close pair if a significant detection lies inside its stamp; a
+        # faint detection (often a noise peak) is one if anything does
+        fr = cfg.close_pair_faint_ratio or None
+        flux = np.asarray(det["flux"], dtype=float)
+        sig = np.nan_to_num(np.asarray(det["snr"], dtype=float)) >= cfg.close_pair_min_snr
+        pair = close_pairs(x, y, flux=flux, stamp_size=cfg.stamp_size)
+        pair[sig] = close_pairs(x[sig], y[sig], flux=flux[sig], stamp_size=cfg.stamp_size,
+                                faint_ratio=fr)  # fmt: skip
+        flags[pair] |= _flags.flag_value("CLOSE_PAIR")
+    flags[~(np.isfinite(noise) & (noise > 0))] |= _flags.flag_value("BAD_NOISE")
+    t_stamps = time.perf_counter()
+    egrid = model_bank(cfg).egrid
+    lnL = np.full((n, egrid.shape[0]), np.nan, dtype=np.float32)
+    cols = {k: np.full(n, np.nan) for k in ("model_flux", "model_SNratio", "scalelength",
+                                            "e1_best", "e2_best")}  # fmt: skip
+    xf, yf = x.copy(), y.copy()
+    is_star = np.zeros(n, dtype=bool)
+    todo = np.flatnonzero(flags == 0)
+    if todo.size:
+        fits_ = fit_stamps(stamps[todo], psf.image, noise[todo], config=cfg,
+                           centres=(cx[todo], cy[todo]))  # fmt: skip
+        lnL[todo] = fits_.lnL
+        flags[todo] |= fits_.flags
+        cols["model_flux"][todo] = fits_.flux
+        cols["model_SNratio"][todo] = fits_.snr
+        cols["scalelength"][todo] = fits_.r_best
+        cols["e1_best"][todo] = fits_.e1_best
+        cols["e2_best"][todo] = fits_.e2_best
+        ok = np.isfinite(fits_.x)
+        xf[todo[ok]] = fits_.x[ok] + (x[todo[ok]] - cx[todo[ok]])
+        yf[todo[ok]] = fits_.y[ok] + (y[todo[ok]] - cy[todo[ok]])
+        is_star[todo] = fits_.is_star
+    t_fit = time.perf_counter()
+    ra, dec = _sky(img.header, xf, yf)
+    measured = np.isfinite(lnL).all(axis=1)
+    fitclass = np.where(measured, np.where(is_star, FITCLASS["star"], FITCLASS["galaxy"]),
+                        FITCLASS["not_measured"])  # fmt: skip
+    rows = {
+        "image": np.full(n, os.path.basename(path)),
+        "image_index": np.full(n, task["index"], dtype=np.int32),
+        "object_id": np.asarray(det["id"], dtype=np.int64),
+        "x": xf, "y": yf, "ALPHA_J2000": ra, "DELTA_J2000": dec,
+        "x_detect": x, "y_detect": y,
+        "mag": np.asarray(det["mag"], dtype=float),
+        "pixel_SNratio": np.asarray(det["snr"], dtype=float),
+        "noise_sigma": noise,
+        **cols,
+        "fitclass": fitclass.astype(np.int16),
+        "is_star": is_star,
+        "psf_star": own_stars,
+        "PSF_e1": np.full(n, psf.e1 if psf is not None else np.nan),
+        "PSF_e2": np.full(n, psf.e2 if psf is not None else np.nan),
+        "flags": flags,
+    }  # fmt: skip
+    timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
+              "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
+    return {
+        "index": task["index"], "path": path, "rows": rows, "lnL": lnL, "egrid": egrid,
+        "psf": None if psf is None else _psf_summary(psf), "psf_note": psf_note,
+        "timing": timing,
+    }  # fmt: skip
+
+
+_PSF_KEYS = ("n_used", "n_rejected", "fwhm", "e1", "e2")
+
+
+def _psf_summary(psf: PSFResult) -> dict[str, Any]:
+    d = {k: float(getattr(psf, k)) for k in _PSF_KEYS}
+    d["n_used"], d["n_rejected"] = int(psf.n_used), int(psf.n_rejected)
+    d["image"] = np.asarray(psf.image, dtype=float)
+    return d
+
+
+def _sky(header: fits.Header, x: np.ndarray, y: np.ndarray):
+    import warnings
+
+    from astropy.wcs import WCS, FITSFixedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FITSFixedWarning)
+        try:
+            w = WCS(header, naxis=2)
+        except Exception:
+            w = None
+    if w is None or not w.has_celestial or x.size == 0:
+        return np.full(x.size, np.nan), np.full(x.size, np.nan)
+    ra, dec = w.all_pix2world(x, y, 0)
+    return np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
+
+
+# ----------------------------------------------------------------------------------------
+# Parts: one file per finished image, for restarts
+# ----------------------------------------------------------------------------------------
+def _task_key(task: dict[str, Any]) -> str:
+    """A digest of everything that determines an image's result."""
+    stamp = []
+    for k in ("path", "weight", "mask", "catalogue"):
+        p = task.get(k)
+        if p:
+            st = Path(p).stat()
+            stamp.append((k, os.path.abspath(p), st.st_size, st.st_mtime_ns))
+    blob = json.dumps(
+        [stamp, task["config"], task.get("star_column"),
+         [hashlib.sha1(np.ascontiguousarray(r.image).tobytes()).hexdigest()
+          for r in task.get("star_psfs", [])], __version__], sort_keys=True, default=str,
+    )  # fmt: skip
+    return hashlib.sha1(blob.encode()).hexdigest()[:16]
+
+
+def _part_path(parts: Path, task: dict[str, Any]) -> Path:
+    return parts / f"{task['index']:05d}_{Path(task['path']).stem}_{_task_key(task)}.fits"
+
+
+def _write_part(path: Path, res: dict[str, Any]) -> None:
+    t = Table(res["rows"])
+    hdr = fits.Header()
+    hdr["PATH"] = res["path"]
+    hdr["INDEX"] = res["index"]
+    hdr["PSFNOTE"] = res["psf_note"][:60]
+    hdr["TIMING"] = json.dumps(res["timing"])
+    hdus = [fits.PrimaryHDU(header=hdr), fits.table_to_hdu(t),
+            fits.ImageHDU(res["lnL"], name="LNL"),
+            fits.ImageHDU(res["egrid"], name="EGRID")]  # fmt: skip
+    hdus[1].name = "ROWS"
+    if res["psf"] is not None:
+        ph = fits.ImageHDU(res["psf"]["image"], name="PSF")
+        for k in _PSF_KEYS:
+            ph.header[k.upper()[:8]] = res["psf"][k]
+        hdus.append(ph)
+    atomic_write(fits.HDUList(hdus), path, overwrite=True)
+
+
+def _read_part(path: Path) -> dict[str, Any]:
+    with fits.open(path, memmap=False) as h:
+        rows = Table(h["ROWS"].data)
+        psf = None
+        if "PSF" in h:
+            psf = {k: h["PSF"].header[k.upper()[:8]] for k in _PSF_KEYS}
+            psf["image"] = np.array(h["PSF"].data, dtype=float)
+        return {
+            "index": int(h[0].header["INDEX"]), "path": h[0].header["PATH"],
+            "rows": {c: np.asarray(rows[c]) for c in rows.colnames},
+            "lnL": np.array(h["LNL"].data, dtype=np.float32),
+            "egrid": np.array(h["EGRID"].data, dtype=float), "psf": psf,
+            "psf_note": h[0].header["PSFNOTE"], "timing": json.loads(h[0].header["TIMING"]),
+        }  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------
+# Running tasks: in-process, local process pool, or dask.distributed
+# ----------------------------------------------------------------------------------------
+def _run(fn, tasks: Sequence[dict], jobs: int, scheduler: str | None, desc: str,
+         progress: bool) -> Iterator[tuple[dict, Any]]:  # fmt: skip
+    """Yield ``(task, result)`` as tasks finish; exceptions propagate."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(tasks), desc=desc, unit="image", disable=not progress or not tasks,
+               leave=False)  # fmt: skip
+    try:
+        if not tasks:
+            return
+        if scheduler:
+            from distributed import Client
+            from distributed import as_completed as dask_completed
+
+            with Client(scheduler) as client:
+                futs = {client.submit(fn, t, pure=False): t for t in tasks}
+                for f in dask_completed(futs):
+                    yield futs[f], f.result()
+                    bar.update()
+        elif jobs <= 1 or len(tasks) == 1:
+            for t in tasks:
+                yield t, fn(t)
+                bar.update()
+        else:
+            import multiprocessing as mp
+
+            with ProcessPoolExecutor(max_workers=min(jobs, len(tasks)),
+                                     mp_context=mp.get_context("spawn")) as ex:  # fmt: skip
+                futs = {ex.submit(fn, {**t, "single_thread": True}): t for t in tasks}
+                for f in as_completed(futs):
+                    yield futs[f], f.result()
+                    bar.update()
+    finally:
+        bar.close()
+
+
+# ----------------------------------------------------------------------------------------
+# The public entry point
+# ----------------------------------------------------------------------------------------
+def _as_list(v, n: int, name: str) -> list:
+    if v is None:
+        return [None] * n
+    if isinstance(v, (str, os.PathLike)):
+        v = [v]
+    v = [None if p is None else str(p) for p in v]
+    if len(v) != n:
+        raise InputError(f"{name}: {len(v)} given for {n} images")
+    return v
+
+
+def measure(
+    images: str | os.PathLike | Iterable[str | os.PathLike],
+    *,
+    stars: Iterable[str | os.PathLike] | None = None,
+    weights: Iterable[str | os.PathLike | None] | None = None,
+    masks: Iterable[str | os.PathLike | None] | None = None,
+    catalogues: Iterable[str | os.PathLike | None] | None = None,
+    star_column: str | None = None,
+    config: Config | None = None,
+    prior: Prior | str | os.PathLike | None = None,
+    output: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> Table:
+    """Measure the shapes of every object in FITS images: images in, catalogue out.
+
+    Parameters
+    ----------
+    images : str or list of str
+        FITS images (background need not be subtracted). A ``WEIGHT`` HDU (inverse
+        variance) and a ``MASK`` HDU (non-zero = bad) in the same file are used if present.
+    stars : list of str, optional
+        Separate star-field images; their PSFs are co-added with each image's own.
+    weights, masks : list of str, optional
+        Weight and mask files, one per image (``None`` entries allowed).
+    catalogues : list of str, optional
+        Input catalogues (FITS or any astropy-readable table with ``x, y`` 0-based or
+        ``X_IMAGE, Y_IMAGE`` 1-based), one per image, instead of detection.
+    star_column : str, optional
+        Column of the detection / input catalogue that marks the PSF stars (overrides
+        the stellar-locus selection).
+    config : Config, optional
+        Settings (the paper's by default).
+    prior : Prior or str, optional
+        The ellipticity prior, or the path of a saved one; by default it is estimated
+        from the run's galaxies (``config.prior_method``).
+    output : str, optional
+        Catalogue path (FITS). With an output, finished images are kept in
+        ``<output>.parts/`` until the catalogue is written, and a restarted run resumes.
+    overwrite : bool
+        Replace an existing output.
+    jobs : int
+        Local worker processes (one BLAS / numba thread each); 1 runs in this process.
+    scheduler : str, optional
+        Address of a dask.distributed scheduler to run the images on instead.
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    astropy.table.Table
+        The catalogue (columns: :data:`pylensfit.catalogue.COLUMNS`), with the
+        ``(n, n_e)`` ``lnL`` grids as a 2-D column and ``meta`` holding the ellipticity
+        grid, the prior and the per-image PSF diagnostics.
+
+    Raises
+    ------
+    InputError
+        A missing or unreadable file, an empty image, an empty input catalogue, a star
+        field without usable stars: one line naming the file and the problem.
+    """
+    cfg = config if config is not None else Config()
+    if isinstance(images, (str, os.PathLike)):
+        images = [images]
+    images = [str(p) for p in images]
+    if not images:
+        raise InputError("no input image")
+    stars = [str(p) for p in (stars or [])]
+    weights = _as_list(weights, len(images), "weights")
+    masks = _as_list(masks, len(images), "masks")
+    catalogues = _as_list(catalogues, len(images), "catalogues")
+    for p in [*images, *stars, *[q for q in (*weights, *masks, *catalogues) if q]]:
+        if not Path(p).exists():
+            raise InputError(f"{p}: file not found")
+    if isinstance(prior, (str, os.PathLike)):
+        prior = Prior.load(prior)
+    out = Path(output) if output is not None else None
+    if out is not None and out.exists() and not overwrite:
+        raise FileExistsError(f"{out}: output exists (use overwrite to replace it)")
+    parts = out.with_name(out.name + ".parts") if out is not None else None
+    cfgd = cfg.to_dict()
+
+    # star fields first: their PSFs go to every image
+    star_psfs = []
+    st_tasks = [{"path": p, "config": cfgd, "index": i} for i, p in enumerate(stars)]
+    for _, res in _run(_starfield_task, st_tasks, jobs, scheduler, "star fields", progress):
+        star_psfs.append(res)
+    star_psfs.sort(key=lambda r: stars.index(r.source))
+
+    tasks = [
+        {"path": p, "weight": w, "mask": m, "catalogue": c, "config": cfgd, "index": i,
+         "star_psfs": star_psfs, "star_column": star_column}
+        for i, (p, w, m, c) in enumerate(zip(images, weights, masks, catalogues, strict=True))
+    ]  # fmt: skip
+    results: dict[int, dict] = {}
+    todo = tasks
+    if parts is not None:
+        parts.mkdir(parents=True, exist_ok=True)
+        todo = []
+        for t in tasks:
+            pp = _part_path(parts, t)
+            if pp.exists():
+                try:
+                    results[t["index"]] = _read_part(pp)
+                    log.info("%s: resumed from %s", t["path"], pp)
+                    continue
+                except Exception as err:  # a damaged part is redone
+                    log.warning("%s: unreadable part file %s (%s); redoing", t["path"], pp, err)
+            todo.append(t)
+    for t, res in _run(_image_task, todo, jobs, scheduler, "images", progress):
+        if parts is not None:
+            _write_part(_part_path(parts, t), res)
+        results[t["index"]] = res
+        log.info("%s: %d objects, %s", t["path"], len(res["rows"]["x"]),
+                 ", ".join(f"{k} {v:.2f} s" for k, v in res["timing"].items()))  # fmt: skip
+    cat = _assemble([results[i] for i in range(len(tasks))], cfg, prior)
+    if out is not None:
+        write_catalogue(cat, out, overwrite=overwrite)
+        shutil.rmtree(parts, ignore_errors=True)
+    return cat
+
+
+def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
+    """Concatenate the images, estimate the prior, add the Bayesian shapes."""
+    egrid = results[0]["egrid"]
+    tabs = [Table(r["rows"]) for r in results]
+    cat = vstack(tabs, metadata_conflicts="silent") if tabs else Table()
+    lnL = np.concatenate([r["lnL"] for r in results], axis=0)
+    n = len(cat)
+    cat.add_column(np.arange(1, n + 1, dtype=np.int64), name="id", index=0)
+    usable = (np.asarray(cat["flags"]) == 0) & np.isfinite(lnL).all(axis=1)
+    gal = usable & (np.asarray(cat["fitclass"]) == FITCLASS["galaxy"])
+    if prior is None:
+        if gal.sum() < 50:
+            raise InputError(f"only {int(gal.sum())} measured galaxies in the run: too few to "
+                             "estimate the prior (give one with prior=)")  # fmt: skip
+        prior = estimate_prior(lnL[gal], egrid, method=cfg.prior_method)
+        log.info("prior estimated from %d galaxies: %r", int(gal.sum()), prior)
+    sh = _shapes(lnL, egrid, prior, sensitivity=cfg.sensitivity, refine=cfg.integration_refine)
+    for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
+        cat[c] = np.where(usable, np.asarray(sh[c]), np.nan)
+    cat["weight"] = np.where(gal, 1.0, 0.0)
+    cat["lnL"] = lnL
+    order = [c for c in COLUMNS if c in cat.colnames]
+    cat = cat[order + [c for c in cat.colnames if c not in order]]
+    for c in cat.colnames:
+        if c in COLUMNS:
+            unit, desc = COLUMNS[c]
+            cat[c].description = desc
+            if unit:
+                cat[c].unit = unit
+    psfs = Table()
+    psfs["image"] = [os.path.basename(r["path"]) for r in results]
+    for k in _PSF_KEYS:
+        psfs[f"psf_{k}"] = [np.nan if r["psf"] is None else r["psf"].get(k, np.nan)
+                            for r in results]  # fmt: skip
+    psfs["note"] = [r["psf_note"] for r in results]
+    cat.meta["egrid"] = egrid
+    cat.meta["prior"] = prior
+    cat.meta["psfs"] = psfs
+    cat.meta["psf_images"] = np.array([
+        np.zeros((cfg.stamp_size, cfg.stamp_size)) if r["psf"] is None
+        else np.asarray(r["psf"]["image"]) for r in results])  # fmt: skip
+    cat.meta["config"] = cfg
+    cat.meta["timing"] = {k: float(sum(r["timing"][k] for r in results))
+                          for k in results[0]["timing"]}  # fmt: skip
+    return cat
+
+
+# ----------------------------------------------------------------------------------------
+# Catalogue files
+# ----------------------------------------------------------------------------------------
+def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = False) -> None:
+    """Write a catalogue from :func:`measure` as FITS (see :mod:`pylensfit.catalogue`)."""
+    import datetime
+
+    from .catalogue import column_table
+
+    plain = cat.copy(copy_data=False)
+    lnL = np.asarray(plain["lnL"], dtype=np.float32)
+    plain.remove_column("lnL")
+    plain.meta.clear()
+    for c in plain.colnames:  # documented in the COLUMNS HDU (FITS comments are too short)
+        plain[c].description = None
+    prior = cat.meta.get("prior")
+    cfg = cat.meta.get("config")
+    hdr = fits.Header()
+    hdr["PLFVERS"] = (__version__, "pylensfit version")
+    hdr["DATE"] = (datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                   "UTC time the catalogue was written")  # fmt: skip
+    hdr["NOBJ"] = (len(cat), "objects (rows)")
+    if prior is not None:
+        hdr["PRIOR_B"] = (prior.B, "prior B, paper eq. funcprior")
+        hdr["PRIOR_C"] = (prior.C, "prior C")
+        hdr["PRIOR_D"] = (prior.D, "prior D")
+        hdr["PRIORMTH"] = (prior.method, "how the prior was obtained")
+    if cfg is not None:
+        hdr["SENSTVTY"] = (cfg.sensitivity, "shear sensitivity formula")
+        hdr["MODEL"] = (cfg.model, "galaxy model")
+    hdr["FLAGS"] = ("; ".join(f"{v}={k}" for k, (v, _) in _flags.FLAGS.items())[:68])
+    tab = fits.table_to_hdu(plain)
+    tab.name = "CATALOG"
+    hdus = [fits.PrimaryHDU(header=hdr), tab, fits.ImageHDU(lnL, name="LNL"),
+            fits.ImageHDU(np.asarray(cat.meta["egrid"]), name="EGRID")]  # fmt: skip
+    if "psfs" in cat.meta:
+        p = fits.table_to_hdu(cat.meta["psfs"])
+        p.name = "PSFS"
+        hdus += [p, fits.ImageHDU(np.asarray(cat.meta["psf_images"], dtype=np.float32),
+                                  name="PSFIMG")]  # fmt: skip
+    if cfg is not None:
+        d = cfg.to_dict()
+        c = fits.BinTableHDU(Table({"key": list(d), "value": [json.dumps(v) for v in d.values()]}))
+        c.name = "CONFIG"
+        hdus.append(c)
+    doc = fits.table_to_hdu(column_table())
+    doc.name = "COLUMNS"
+    hdus.append(doc)
+    atomic_write(fits.HDUList(hdus), path, overwrite=overwrite)
+
+
+def read_catalogue(path: str | os.PathLike) -> Table:
+    """Read a catalogue written by :func:`write_catalogue` (``lnL`` as a 2-D column)."""
+
+    with _open(str(path), "catalogue") as h:
+        for need in ("CATALOG", "LNL", "EGRID"):
+            if need not in h:
+                raise InputError(f"{path}: not a pylensfit catalogue (no {need} HDU)")
+        cat = Table(h["CATALOG"].data)
+        lnL = np.array(h["LNL"].data, dtype=np.float32)
+        if lnL.shape[0] != len(cat):
+            raise InputError(f"{path}: LNL has {lnL.shape[0]} rows for {len(cat)} objects")
+        cat["lnL"] = lnL
+        cat.meta["egrid"] = np.array(h["EGRID"].data, dtype=float)
+        hdr = h[0].header
+        if "PRIOR_B" in hdr:
+            cat.meta["prior"] = Prior(
+                B=hdr["PRIOR_B"], C=hdr["PRIOR_C"], D=hdr["PRIOR_D"], egrid=cat.meta["egrid"],
+                method=hdr.get("PRIORMTH", "fixed"),
+            )
+        if "PSFS" in h:
+            cat.meta["psfs"] = Table(h["PSFS"].data)
+        if "CONFIG" in h:
+            t = h["CONFIG"].data
+            cat.meta["config"] = Config.from_dict(
+                {str(k): json.loads(str(v)) for k, v in zip(t["key"], t["value"], strict=True)}
+            )
+    return cat

@@ -1,0 +1,276 @@
+"""FITS images in, catalogue out: counts, faults, restarts, parallel and dask runs, CLI."""
+
+import logging
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from astropy.table import Table
+
+import pylensfit.pipeline as pl
+from pylensfit import Config, Prior
+from pylensfit.cli import main
+from pylensfit.flags import flag_value
+from pylensfit.pipeline import InputError, measure, read_catalogue
+from pylensfit.simulate import FieldSpec, simulate_field, write_field
+
+CFG = Config(model="exponential", r_max=6.0, r_step=0.3)
+PRIOR = Prior()
+
+
+def _field(path, seed=1, size=512, **kw):
+    spec = FieldSpec(size=size, **kw)
+    img, w, truth = simulate_field(spec, seed=seed)
+    write_field(path, img, w, spec, truth=truth)
+    return img, w, truth
+
+
+@pytest.fixture(scope="module")
+def fields(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fields")
+    a = _field(d / "a.fits", seed=1, g1=0.03)
+    b = _field(d / "b.fits", seed=2, g1=0.03)
+    _field(d / "stars.fits", seed=3, star_fraction=1.0)
+    return d, a, b
+
+
+@pytest.fixture(scope="module")
+def reference(fields):
+    d, *_ = fields
+    return measure([d / "a.fits", d / "b.fits"], stars=[d / "stars.fits"], config=CFG,
+                   prior=PRIOR, progress=False)  # fmt: skip
+
+
+def test_objects_in_equal_objects_out(fields, reference):
+    d, (_, _, truth_a), (_, _, truth_b) = fields
+    cat = reference
+    # one row per detection, every object of the simulation detected, ids unique
+    assert len(np.unique(cat["id"])) == len(cat)
+    for k, truth in enumerate((truth_a, truth_b)):
+        rows = cat[cat["image_index"] == k]
+        dx = rows["x_detect"][:, None] - truth["x"][None]
+        dy = rows["y_detect"][:, None] - truth["y"][None]
+        dist = np.hypot(dx, dy)
+        bright = truth["is_star"] | (truth["snr"] > 30)
+        assert np.mean(dist.min(axis=0)[bright] < 1.5) > 0.97, "bright objects have rows"
+        spurious = dist.min(axis=1) > 3
+        assert spurious.mean() < 0.2 and np.all(rows["pixel_SNratio"][spurious] < 25)
+    # measured galaxies have finite shapes; flagged rows say why
+    gal = cat["fitclass"] == 0
+    assert gal.sum() > 0.8 * len(cat) * (1 - 0.08)
+    assert np.all(np.isfinite(cat["e1"][gal])) and np.all(cat["flags"][gal] == 0)
+    assert np.all(cat["flags"][cat["fitclass"] == -1] != 0)
+    # stars are found to be stars, galaxies galaxies, on the whole
+    for k, truth in enumerate((truth_a, truth_b)):
+        rows = cat[cat["image_index"] == k]
+        j = np.argmin(np.hypot(rows["x_detect"][:, None] - truth["x"][None],
+                               rows["y_detect"][:, None] - truth["y"][None]), axis=1)  # fmt: skip
+        meas = rows["fitclass"] >= 0
+        star_ok = rows["is_star"][meas] == truth["is_star"][j][meas]
+        assert star_ok.mean() > 0.95
+        # fitted positions match the truth
+        good = meas & (rows["fitclass"] == 0)
+        assert np.median(np.abs(rows["x"][good] - truth["x"][j][good])) < 0.1
+    # the world coordinates come from the WCS, in double precision
+    assert cat["ALPHA_J2000"].dtype == np.float64 and np.all(np.isfinite(cat["ALPHA_J2000"]))
+
+
+def test_input_catalogue_objects_in_equal_objects_out(fields, tmp_path):
+    d, (_, _, truth), _ = fields
+    c = tmp_path / "input.fits"
+    Table({"X_IMAGE": truth["x"] + 1.0, "Y_IMAGE": truth["y"] + 1.0}).write(c)  # 1-based
+    cat = measure([d / "a.fits"], catalogues=[c], stars=[d / "stars.fits"], config=CFG,
+                  prior=PRIOR, progress=False)  # fmt: skip
+    assert len(cat) == len(truth)
+    np.testing.assert_array_equal(cat["object_id"], np.arange(1, len(truth) + 1))
+    np.testing.assert_allclose(cat["x_detect"], truth["x"])
+    ok = cat["fitclass"] >= 0
+    assert ok.mean() > 0.8
+    assert np.median(np.abs(cat["x"][ok] - truth["x"][ok])) < 0.1
+
+
+def test_psf_diagnostics(reference):
+    psfs = reference.meta["psfs"]
+    assert len(psfs) == 2
+    # the simulated Moffat has e = (0.03, -0.02) before pixelisation
+    assert np.allclose(psfs["psf_e1"], 0.03, atol=0.01)
+    assert np.allclose(psfs["psf_e2"], -0.02, atol=0.01)
+    assert np.all(psfs["psf_n_used"] >= 20)
+
+
+def test_catalogue_file_roundtrip_and_columns(fields, reference, tmp_path):
+    out = tmp_path / "cat.fits"
+    pl.write_catalogue(reference, out)
+    back = read_catalogue(out)
+    assert len(back) == len(reference)
+    np.testing.assert_array_equal(back["lnL"], reference["lnL"])
+    np.testing.assert_array_equal(back["e1"], reference["e1"])
+    with fits.open(out) as h:
+        assert {"CATALOG", "LNL", "EGRID", "PSFS", "PSFIMG", "CONFIG"} <= {x.name for x in h}
+        assert h[0].header["PLFVERS"]
+        cols = set(h["CATALOG"].columns.names)
+    assert {"e1", "e2", "weight", "fitclass", "model_SNratio", "PSF_e1", "PSF_e2",
+            "ALPHA_J2000", "DELTA_J2000", "sens1", "sens2", "flags"} <= cols  # fmt: skip
+    assert back.meta["config"] == CFG
+
+
+def test_parallel_run_equals_serial(fields, reference):
+    d, *_ = fields
+    cat = measure([d / "a.fits", d / "b.fits"], stars=[d / "stars.fits"], config=CFG,
+                  prior=PRIOR, jobs=2, progress=False)  # fmt: skip
+    assert len(cat) == len(reference)
+    np.testing.assert_array_equal(cat["flags"], reference["flags"])
+    np.testing.assert_allclose(cat["e1"], reference["e1"], atol=1e-4)
+    # float32 matrix products summed in another order (BLAS threads): within the 0.01 that
+    # test_likelihood allows float32 against float64
+    a, b = np.asarray(cat["lnL"]), np.asarray(reference["lnL"])
+    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+    near = b > -50
+    np.testing.assert_allclose(a[near], b[near], atol=1e-2)
+    np.testing.assert_allclose(a[~near], b[~near], rtol=3e-4)
+
+
+def test_dask_local_cluster_equals_local_run(fields, reference):
+    distributed = pytest.importorskip("distributed")
+    d, *_ = fields
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  host="127.0.0.1", dashboard_address=None) as cluster:  # fmt: skip
+        cat = measure([d / "a.fits", d / "b.fits"], stars=[d / "stars.fits"], config=CFG,
+                      prior=PRIOR, scheduler=cluster.scheduler_address, progress=False)  # fmt: skip
+    assert len(cat) == len(reference)
+    np.testing.assert_array_equal(cat["flags"], reference["flags"])
+    np.testing.assert_allclose(cat["e1"], reference["e1"], atol=1e-4)
+
+
+def test_missing_and_corrupt_files(fields, tmp_path):
+    d, *_ = fields
+    with pytest.raises(InputError, match="nope.fits: file not found"):
+        measure([tmp_path / "nope.fits"], config=CFG, prior=PRIOR, progress=False)
+    bad = tmp_path / "corrupt.fits"
+    bad.write_bytes(b"SIMPLE  = T\x00garbage" * 10)
+    out = tmp_path / "out.fits"
+    with pytest.raises(InputError, match="corrupt.fits: not a readable FITS file"):
+        measure([d / "a.fits", bad], config=CFG, prior=PRIOR, output=out, progress=False)
+    assert not out.exists(), "no catalogue is left behind as if it were complete"
+    # a truncated file
+    raw = (d / "a.fits").read_bytes()
+    cut = tmp_path / "truncated.fits"
+    cut.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(InputError, match="truncated.fits"):
+        measure([cut], config=CFG, prior=PRIOR, progress=False)
+
+
+def test_empty_image_and_empty_catalogue(tmp_path):
+    p = tmp_path / "zeros.fits"
+    fits.PrimaryHDU(np.zeros((256, 256), dtype=np.float32)).writeto(p)
+    with pytest.raises(InputError, match="zeros.fits: empty image"):
+        measure([p], config=CFG, prior=PRIOR, progress=False)
+    q = tmp_path / "nan.fits"
+    fits.PrimaryHDU(np.full((64, 64), np.nan, dtype=np.float32)).writeto(q)
+    with pytest.raises(InputError, match="nan.fits: empty image"):
+        measure([q], config=CFG, prior=PRIOR, progress=False)
+    img = tmp_path / "img.fits"
+    _field(img, seed=5, size=256)
+    c = tmp_path / "cat.fits"
+    Table({"x": np.zeros(0), "y": np.zeros(0)}).write(c)
+    with pytest.raises(InputError, match="cat.fits: empty input catalogue"):
+        measure([img], catalogues=[c], config=CFG, prior=PRIOR, progress=False)
+
+
+def test_nan_region_and_mask_give_flagged_rows(fields, tmp_path):
+    d, (img, w, truth), _ = fields
+    img = img.copy()
+    img[100:180, 100:180] = np.nan  # a NaN region
+    mask = np.zeros(img.shape, dtype=np.int16)
+    mask[300:360, 300:360] = 1
+    p = tmp_path / "holes.fits"
+    fits.HDUList([fits.PrimaryHDU(img), fits.ImageHDU(w, name="WEIGHT"),
+                  fits.ImageHDU(mask, name="MASK")]).writeto(p)  # fmt: skip
+    cat = measure([p], stars=[d / "stars.fits"], config=CFG, prior=PRIOR, progress=False)
+    ix0 = np.floor(cat["x_detect"] + 0.5) - 16  # the stamp's first column and row
+    iy0 = np.floor(cat["y_detect"] + 0.5) - 16
+    near_nan = (ix0 < 180) & (ix0 + 32 > 100) & (iy0 < 180) & (iy0 + 32 > 100)
+    assert near_nan.any()
+    bad = flag_value("BAD_PIXELS", "MASKED")
+    assert np.all(cat["flags"][near_nan] & bad)
+    assert np.all(cat["fitclass"][near_nan] == -1)
+    inside_mask = ((cat["x_detect"] > 300) & (cat["x_detect"] < 360)
+                   & (cat["y_detect"] > 300) & (cat["y_detect"] < 360))  # fmt: skip
+    assert not inside_mask.any(), "masked pixels are not detected"
+    # objects far from the holes are measured as usual
+    far = ~near_nan & (cat["flags"] == 0)
+    assert far.sum() > 50
+
+
+def test_edge_objects_are_flagged(reference):
+    edge = (reference["flags"] & flag_value("EDGE")) != 0
+    x, y = reference["x_detect"], reference["y_detect"]
+    near = (x < 15.5) | (y < 15.5) | (x > 512 - 16.5) | (y > 512 - 16.5)
+    np.testing.assert_array_equal(edge, near)
+
+
+def test_no_usable_star(tmp_path, caplog):
+    p = tmp_path / "nostars.fits"
+    _field(p, seed=7, size=256, star_fraction=0.0)
+    with caplog.at_level(logging.ERROR, logger="pylensfit.pipeline"):
+        cat = measure([p], config=CFG, prior=PRIOR, progress=False)
+    assert len(cat) > 0 and np.all(cat["flags"] & flag_value("PSF_FAILED"))
+    assert "nostars.fits: no usable star" in caplog.text
+    # a star field without stars is an error naming it
+    with pytest.raises(InputError, match="nostars.fits: no usable star"):
+        measure([p], stars=[p], config=CFG, prior=PRIOR, progress=False)
+
+
+def test_resume_after_a_killed_run(fields, tmp_path, monkeypatch):
+    d, *_ = fields
+    out = tmp_path / "run.fits"
+    calls = []
+    real = pl._image_task
+
+    def crashing(task):
+        calls.append(task["path"])
+        if task["path"].endswith("b.fits"):
+            raise KeyboardInterrupt("killed")
+        return real(task)
+
+    monkeypatch.setattr(pl, "_image_task", crashing)
+    args = dict(stars=[d / "stars.fits"], config=CFG, prior=PRIOR, output=out, progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        measure([d / "a.fits", d / "b.fits"], **args)
+    assert not out.exists()
+    parts = list((tmp_path / "run.fits.parts").glob("*.fits"))
+    assert len(parts) == 1 and "_a_" in parts[0].name
+    calls.clear()
+    monkeypatch.setattr(pl, "_image_task", lambda t: (calls.append(t["path"]), real(t))[1])
+    cat = measure([d / "a.fits", d / "b.fits"], **args)
+    assert [c.rsplit("/", 1)[-1] for c in calls] == ["b.fits"], "finished images not redone"
+    assert out.exists() and not (tmp_path / "run.fits.parts").exists()
+    ref = measure([d / "a.fits", d / "b.fits"], stars=[d / "stars.fits"], config=CFG,
+                  prior=PRIOR, progress=False)  # fmt: skip
+    assert len(cat) == len(ref) and len(np.unique(cat["id"])) == len(cat)
+    np.testing.assert_array_equal(cat["e1"], ref["e1"])
+    with pytest.raises(FileExistsError):
+        measure([d / "a.fits"], **args)
+
+
+def test_cli_measure_prior_shear(fields, tmp_path, capsys):
+    d, *_ = fields
+    cfg = tmp_path / "cfg.yaml"
+    CFG.to_yaml(cfg)
+    out = tmp_path / "cat.fits"
+    args = ["measure", str(d / "a.fits"), str(d / "b.fits"), "--stars", str(d / "stars.fits"),
+            "--config", str(cfg), "-o", str(out), "-q"]  # fmt: skip
+    assert main(args) == 0
+    assert main(["prior", str(out), "-o", str(tmp_path / "prior.json")]) == 0
+    p = Prior.load(tmp_path / "prior.json")
+    assert p.method == "direct"
+    assert main(["shear", str(out), "--prior", str(tmp_path / "prior.json"),
+                 "--bin-by", "mag:-20,-5,0", "-o", str(tmp_path / "g.ecsv")]) == 0  # fmt: skip
+    g = Table.read(tmp_path / "g.ecsv")
+    assert list(g["group"])[-1] == "all"
+    assert {"image=a.fits", "image=b.fits"} <= set(g["group"])
+    # bad input: one line on stderr, exit status 1
+    capsys.readouterr()
+    assert main(["measure", str(tmp_path / "missing.fits"), "-o", str(tmp_path / "x.fits")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing.fits: file not found" in err
