@@ -29,7 +29,7 @@ __all__ = ["COLUMNS", "FITCLASS", "atomic_write", "column_table"]
 #: name -> (unit, description) of every column of the output catalogue.
 COLUMNS: dict[str, tuple[str, str]] = {
     "id": ("", "running object number in the catalogue (1-based)"),
-    "image": ("", "input image file name (as given)"),
+    "image": ("", "input image file name (base name)"),
     "image_index": ("", "index of the input image in the run (0-based)"),
     "object_id": ("", "detection number within its image (1-based; input catalogue row)"),
     "x": ("pix", "x position in the image, 0-based (pixel centres at integers); fitted "
@@ -61,6 +61,7 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "is_star": ("", "most likely model size is 0 (a point source)"),
     "e1_best": ("", "e1 of the single most likely model (grid cell)"),
     "e2_best": ("", "e2 of the single most likely model (grid cell)"),
+    "psf_star": ("", "selected on the stellar locus as a PSF star of its image"),
     "PSF_e1": ("", "ellipticity e1 of the PSF used for this object"),
     "PSF_e2": ("", "ellipticity e2 of the PSF used for this object"),
     "flags": ("", "bit mask of reasons, see pylensfit.flags.FLAGS (0: measured, usable)"),

@@ -62,9 +62,10 @@ class Config:
         1.0, "largest Newton step (px) from the centre before the model Hessian is used"
     )
     cubic_snr: float = _f(
-        40.0,
+        20.0,
         "galaxies below this S/N get the third-order expansion of the cross-correlation "
-        "in position (4 more matrix products; 0 never, inf always)",
+        "in position (4 more matrix products; 0 never, inf always). Measured max error in "
+        "ln L against brute force without it: 0.19 at S/N 10, 0.027 at 14, 0.006 at 20",
     )
     # --- numerics ---
     dtype: str = _f("float32", "precision of the matrix products: 'float32' or 'float64'")
