@@ -40,6 +40,11 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "x_detect": ("pix", "detection (catalogue) x position, 0-based"),
     "y_detect": ("pix", "detection (catalogue) y position, 0-based"),
     "mag": ("mag", "-2.5 log10(detection flux) + zeropoint (zeropoint 0 unless configured)"),
+    "flux_aper": ("adu", "detection flux in a circular aperture of 5 r_half (sep)"),
+    "flux_aper_err": ("adu", "its error"),
+    "r_half": ("pix", "half-flux radius (sep)"),
+    "sep_flag": ("", "sep extraction flags (deblended, blended, truncated, ...; see "
+                 "pylensfit.detection.SEP_FLAGS)"),
     "pixel_SNratio": ("", "detection S/N: aperture flux over its error"),
     "noise_sigma": ("adu", "per-pixel noise standard deviation used in the fit"),
     "model_flux": ("adu", "amplitude of the most likely model (total flux)"),
