@@ -335,7 +335,7 @@ def _stamp_windows(arr: np.ndarray, ix: np.ndarray, iy: np.ndarray, n: int, fill
 
 def _half_radius(sub, x, y, rmax) -> np.ndarray:
     """Radius holding half of the flux inside ``rmax``; ``rmax / 3`` where undefined."""
-    r, _ = sep.flux_radius(sub, x, y, rmax, 0.5, subpix=5)
+    r, _ = sep.flux_radius(sub, x, y, rmax, 0.5, subpix=1)  # a first guess: no sub-pixels
     return np.where(np.isfinite(r) & (r > 0) & (r <= rmax), r, rmax / 3.0)
 
 
@@ -528,7 +528,9 @@ def detect(
     rmax0 = np.clip(np.nan_to_num(6.0 * a, nan=min_aperture), min_aperture, max_aperture)
     r0 = _half_radius(sub, x, y, rmax0)
     if windowed:
-        sig = np.maximum(2.0 * r0 / 2.35, 0.5)
+        # the window's cost grows as its area: capped at 3 px, past which the position
+        # gains little (the likelihood fit re-centres every object anyway)
+        sig = np.clip(2.0 * r0 / 2.35, 0.5, 3.0)
         xw, yw, wflag = sep.winpos(sub, x, y, sig, mask=bad_det)
         ok = (wflag == 0) & np.isfinite(xw) & np.isfinite(yw)
         # a window that runs off (towards a neighbour, typically) is not used
