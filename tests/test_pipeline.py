@@ -54,7 +54,10 @@ def test_objects_in_equal_objects_out(fields, reference):
         bright = truth["is_star"] | (truth["snr"] > 30)
         assert np.mean(dist.min(axis=0)[bright] < 1.5) > 0.97, "bright objects have rows"
         spurious = dist.min(axis=1) > 3
-        assert spurious.mean() < 0.2 and np.all(rows["pixel_SNratio"][spurious] < 25)
+        # noise peaks (S/N ~ 1), or fragments of a deblended large galaxy (sep flag 1)
+        fragment = (rows["sep_flag"] & 1) != 0
+        assert spurious.mean() < 0.2
+        assert np.all(((rows["pixel_SNratio"] < 5) | fragment)[spurious])
     # measured galaxies have finite shapes; flagged rows say why
     gal = cat["fitclass"] == 0
     assert gal.sum() > 0.8 * len(cat) * (1 - 0.08)

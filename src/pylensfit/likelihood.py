@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from . import flags as _flags
+from ._util import newton_peak, per_object
 from .config import Config
 from .models import fourier_profile, model_bank, rfft_frequencies
 from .psf import psf_transform
@@ -152,15 +153,6 @@ def _psf_bank(psf: np.ndarray, config: Config, bank) -> _PSFBank:
     return _PSFBank(P=P.ravel(), S=S, mxx=mxx, mxy=mxy, myy=myy)
 
 
-def _as_per_stamp(value, n: int, name: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
-    if arr.ndim == 0:
-        return np.full(n, float(arr))
-    if arr.shape != (n,):
-        raise ValueError(f"{name} must be a scalar or have shape ({n},), got {arr.shape}")
-    return arr.copy()
-
-
 def _cut_stamps(stamps: np.ndarray, n: int, cx: np.ndarray, cy: np.ndarray):
     """Cut ``n x n`` windows centred on round(c) (zero padded); return them and new centres."""
     k, ny, nx = stamps.shape
@@ -224,26 +216,7 @@ def _centre(D: np.ndarray, P: np.ndarray, config: Config, x0: np.ndarray, y0: np
     yc = off[iy] + dy
     # Newton iterations on the exact (Fourier-interpolated) cross-correlation: every
     # model's Laplace step then starts from a fraction of its own peak width
-    _, _, w = rfft_frequencies(n)
-    wr = (w / n**2) * np.conj(ref)
-    for _ in range(3):
-        ramp = np.exp(1j * (kx[None] * xc[:, None, None] + ky[None] * yc[:, None, None]))
-        Dp = D * wr[None] * ramp
-        re, im = Dp.real, Dp.imag
-        gx = -(kx * im).sum(axis=(1, 2))
-        gy = -(ky * im).sum(axis=(1, 2))
-        hxx = -(kx * kx * re).sum(axis=(1, 2))
-        hxy = -(kx * ky * re).sum(axis=(1, 2))
-        hyy = -(ky * ky * re).sum(axis=(1, 2))
-        det = hxx * hyy - hxy * hxy
-        good = (hxx < 0) & (det > 0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sx = np.where(good, (hxy * gy - hyy * gx) / det, 0.0)
-            sy = np.where(good, (hxy * gx - hxx * gy) / det, 0.0)
-        step = np.hypot(sx, sy)
-        ok = good & (step < 1.0)
-        xc = np.where(ok, xc + sx, xc)
-        yc = np.where(ok, yc + sy, yc)
+    xc, yc, _ = newton_peak(D, ref, xc, yc, n_steps=3)
     no_peak = ~(v0 > 0)
     xc = np.where(no_peak, x0, xc)
     yc = np.where(no_peak, y0, yc)
@@ -294,13 +267,13 @@ def fit_stamps(
     n = cfg.stamp_size
     bank = model_bank(cfg)
     pb = _psf_bank(psf, cfg, bank)
-    sigma = _as_per_stamp(noise_sigma, n_gal, "noise_sigma")
+    sigma = per_object(noise_sigma, n_gal, "noise_sigma")
     if centres is None:
         cx = np.full(n_gal, stamps.shape[2] // 2, dtype=float)
         cy = np.full(n_gal, stamps.shape[1] // 2, dtype=float)
     else:
-        cx = _as_per_stamp(centres[0], n_gal, "centres[0]")
-        cy = _as_per_stamp(centres[1], n_gal, "centres[1]")
+        cx = per_object(centres[0], n_gal, "centres[0]")
+        cy = per_object(centres[1], n_gal, "centres[1]")
     stamps, cx, cy = _cut_stamps(stamps, n, cx, cy)
 
     flags = np.zeros(n_gal, dtype=np.int32)

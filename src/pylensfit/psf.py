@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._util import newton_peak, per_object
 from .models import rfft_frequencies
 
 __all__ = [
@@ -251,15 +252,6 @@ class PSFResult:
         )
 
 
-def _per_star(value, n: int, name: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
-    if arr.ndim == 0:
-        return np.full(n, float(arr))
-    if arr.shape != (n,):
-        raise ValueError(f"{name} must be a scalar or have shape ({n},), got {arr.shape}")
-    return arr.copy()
-
-
 def _pad_to(images: np.ndarray, n: int) -> np.ndarray:
     """Zero-pad (or crop) a ``(m, s, s)`` stack to ``(m, n, n)`` keeping ``[s//2, s//2]``."""
     s = images.shape[-1]
@@ -284,38 +276,6 @@ def _shift(F0: np.ndarray, X: np.ndarray, Y: np.ndarray, big: int, size: int) ->
     return img[:, lo : lo + size, lo : lo + size]
 
 
-def _newton(D: np.ndarray, R: np.ndarray, X: np.ndarray, Y: np.ndarray, n_steps: int = 6):
-    """Maximise ``h(X) = sum_x s(x + X) r(x)`` by Newton steps on its Fourier series.
-
-    ``D`` and ``R`` are ``rfft2`` transforms phase-referenced to the centre of the
-    (odd) ``big x big`` frame. Steps longer than a pixel or at a point of non-negative
-    curvature are refused. Returns the peak and whether the curvature there is negative.
-    """
-    big = D.shape[-2]
-    kx, ky, w = rfft_frequencies(big)
-    base = D * np.conj(R) * (w / big**2)
-    X = X.astype(float)
-    Y = Y.astype(float)
-    for _ in range(n_steps):
-        ramp = np.exp(1j * (kx[None] * X[:, None, None] + ky[None] * Y[:, None, None]))
-        Dp = base * ramp
-        re, im = Dp.real, Dp.imag
-        gx = -(kx * im).sum(axis=(1, 2))
-        gy = -(ky * im).sum(axis=(1, 2))
-        hxx = -(kx * kx * re).sum(axis=(1, 2))
-        hxy = -(kx * ky * re).sum(axis=(1, 2))
-        hyy = -(ky * ky * re).sum(axis=(1, 2))
-        det = hxx * hyy - hxy * hxy
-        good = (hxx < 0) & (det > 0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sx = np.where(good, (hxy * gy - hyy * gx) / det, 0.0)
-            sy = np.where(good, (hxy * gx - hxx * gy) / det, 0.0)
-        ok = good & (np.hypot(sx, sy) < 1.0)
-        X = np.where(ok, X + sx, X)
-        Y = np.where(ok, Y + sy, Y)
-    return X, Y, good
-
-
 def _gaussian_ft(big: int, sigma: float) -> np.ndarray:
     kx, ky, _ = rfft_frequencies(big)
     return np.exp(-0.5 * (kx * kx + ky * ky) * sigma**2)
@@ -338,7 +298,7 @@ def _gaussian_peak(D: np.ndarray, sigma: float, x0: np.ndarray, y0: np.ndarray, 
     flat = masked.reshape(len(D), -1).argmax(axis=1)
     iy, ix = np.unravel_index(flat, (big, big))
     peak = cc[np.arange(len(D)), iy, ix]
-    X, Y, ok = _newton(D, np.broadcast_to(R, D.shape[1:])[None], off[ix], off[iy])
+    X, Y, ok = newton_peak(D, np.broadcast_to(R, D.shape[1:])[None], off[ix], off[iy])
     return X, Y, ok & (peak > 0)
 
 
@@ -547,7 +507,7 @@ def stack_psf(
     if not (centroid_sigma > 0 and max_shift > 0 and margin >= 0 and n_iter >= 0):
         raise ValueError("centroid_sigma and max_shift must be positive, margin and n_iter >= 0")
     n = x.size
-    sigma_all = _per_star(noise_sigma, n, "noise_sigma")
+    sigma_all = per_object(noise_sigma, n, "noise_sigma")
     big = size + 2 * margin + 1
     npix = size * size
 
@@ -632,7 +592,7 @@ def stack_psf(
         var_ref = var_ref / tot**2
         # re-centre each star on its cross-correlation with the reference
         R = np.fft.rfft2(_pad_to(refs, big)) * phase[None]
-        Xn, Yn, okn = _newton(D, R, X, Y)
+        Xn, Yn, okn = newton_peak(D, R, X, Y)
         Xn = np.where(okn, Xn, X)
         Yn = np.where(okn, Yn, Y)
         st = _shift(F0, Xn, Yn, big, size)
