@@ -50,7 +50,7 @@ class FieldSpec:
     star_fraction: float = 0.08
     star_peak_snr: tuple[float, float] = (40.0, 1000.0)
     prior_params: tuple[float, float, float] = (0.19, 0.58, 2.4)
-    max_e: float = 0.85
+    max_e: float = 0.99  # a cut below ~0.95 takes the truth out of the functional form
     pixel_scale_arcsec: float = 0.2
     extra: dict = field(default_factory=dict)
 
