@@ -262,8 +262,16 @@ def test_cli_measure_prior_shear(fields, tmp_path, capsys):
     CFG.to_yaml(cfg)
     out = tmp_path / "cat.fits"
     args = ["measure", str(d / "a.fits"), str(d / "b.fits"), "--stars", str(d / "stars.fits"),
-            "--config", str(cfg), "-o", str(out), "-q"]  # fmt: skip
+            "--config", str(cfg), "-o", str(out), "--psf-dir", str(tmp_path / "psf"),
+            "-q"]  # fmt: skip
     assert main(args) == 0
+    # the PSF of each image, with every star candidate used or rejected and why
+    from pylensfit.psf import PSFResult
+
+    psf = PSFResult.read(tmp_path / "psf" / "a.psf.fits")
+    assert psf.n_used >= 20 and abs(psf.e1 - 0.03) < 0.01
+    stars = psf.stars()
+    assert np.all((stars["reason"] == "") == stars["used"])
     assert main(["prior", str(out), "-o", str(tmp_path / "prior.json")]) == 0
     p = Prior.load(tmp_path / "prior.json")
     assert p.method == "direct"

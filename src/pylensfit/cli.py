@@ -37,7 +37,8 @@ def _measure(args: argparse.Namespace) -> int:
     cat = measure(
         args.images, stars=args.stars, weights=args.weights, masks=args.masks,
         catalogues=args.catalogues, star_column=args.star_column, config=_config(args),
-        prior=args.prior, output=args.output, overwrite=args.overwrite, jobs=args.jobs,
+        prior=args.prior, output=args.output, psf_dir=args.psf_dir, overwrite=args.overwrite,
+        jobs=args.jobs,
         scheduler=args.scheduler, progress=not args.quiet,
     )  # fmt: skip
     n_ok = int(np.sum(np.asarray(cat["weight"]) > 0))
@@ -204,6 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--config", help="YAML configuration (see `pylensfit config`)")
     m.add_argument("--prior", help="a saved prior (default: estimated from the run)")
     m.add_argument("-o", "--output", required=True, help="output catalogue (FITS)")
+    m.add_argument("--psf-dir", help="write each image's PSF and star diagnostics here")
     m.add_argument("--overwrite", action="store_true", help="replace an existing output")
     m.add_argument("--jobs", type=int, default=1, help="local worker processes")
     m.add_argument("--scheduler", help="dask.distributed scheduler address")

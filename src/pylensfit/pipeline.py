@@ -285,6 +285,8 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         if n:
             log.error("%s: no usable star for the PSF in the image or the star fields (%s); "
                       "its %d objects are flagged PSF_FAILED", path, psf_note, n)  # fmt: skip
+    if psf is not None and task.get("psf_dir"):
+        psf.write(Path(task["psf_dir"]) / f"{Path(path).stem}.psf.fits", overwrite=True)
     t_psf = time.perf_counter()
     x = np.asarray(det["x"], dtype=float)
     y = np.asarray(det["y"], dtype=float)
@@ -510,6 +512,7 @@ def measure(
     config: Config | None = None,
     prior: Prior | str | os.PathLike | None = None,
     output: str | os.PathLike | None = None,
+    psf_dir: str | os.PathLike | None = None,
     overwrite: bool = False,
     jobs: int = 1,
     scheduler: str | None = None,
@@ -540,6 +543,11 @@ def measure(
     output : str, optional
         Catalogue path (FITS). With an output, finished images are kept in
         ``<output>.parts/`` until the catalogue is written, and a restarted run resumes.
+    psf_dir : str, optional
+        Write each image's PSF here as ``<image stem>.psf.fits`` (the image, its size and
+        ellipticity in the header, and a ``STARS`` table of every star candidate: used or
+        rejected, and why; :meth:`pylensfit.psf.PSFResult.write`). With a dask scheduler
+        the workers write it, so the folder must be shared with them.
     overwrite : bool
         Replace an existing output.
     jobs : int
@@ -582,6 +590,8 @@ def measure(
         raise FileExistsError(f"{out}: output exists (use overwrite to replace it)")
     parts = out.with_name(out.name + ".parts") if out is not None else None
     cfgd = cfg.to_dict()
+    if psf_dir is not None:
+        Path(psf_dir).mkdir(parents=True, exist_ok=True)
 
     # star fields first: their PSFs go to every image
     star_psfs = []
@@ -592,7 +602,8 @@ def measure(
 
     tasks = [
         {"path": p, "weight": w, "mask": m, "catalogue": c, "config": cfgd, "index": i,
-         "star_psfs": star_psfs, "star_column": star_column}
+         "star_psfs": star_psfs, "star_column": star_column,
+         "psf_dir": None if psf_dir is None else str(psf_dir)}
         for i, (p, w, m, c) in enumerate(zip(images, weights, masks, catalogues, strict=True))
     ]  # fmt: skip
     results: dict[int, dict] = {}
