@@ -366,3 +366,43 @@ def test_shear_bias_exact_vs_paper_vs_none():
         assert report["exact", 1, comp][0] > m
         # without a sensitivity the shear is badly underestimated
         assert report["none", DEFAULT_REFINE, comp][0] < -0.1
+
+
+def test_fixed_point_shear_removes_the_second_order_bias():
+    """At g = 0.1 with narrow likelihoods, eq. key2 with the exact sensitivity is high by
+    ~g^2 (the sensitivity is evaluated at g = 0 on sheared data); the fixed point
+    ``sum <e>(P_g) = N g`` with the sheared prior is not (m at g = 0.02 and 0.1 agree)."""
+    from pylensfit.shear import shear_fixed_point
+
+    rng = np.random.default_rng(5)
+    n_p = 20_000
+    e_p = PRIOR.sample(n_p, rng=rng)
+    s_p = rng.uniform(0.05, 0.1, n_p)
+    prior = estimate_prior(
+        gaussian_lnL(e_p + s_p[:, None] * rng.standard_normal((n_p, 2)), s_p), EGRID
+    )
+    n_ring = 5000
+    base = PRIOR.sample(n_ring, rng=rng)
+    s0 = rng.uniform(0.05, 0.1, n_ring)
+    n0 = s0 * (rng.standard_normal(n_ring) + 1j * rng.standard_normal(n_ring))
+    rot = np.array([1, 1j, -1, -1j])
+    es = ((base[:, 0] + 1j * base[:, 1])[:, None] * rot).ravel()
+    noise = (n0[:, None] * rot).ravel()
+    s = np.repeat(s0, 4)
+
+    def estimates(g1):
+        e1, e2 = apply_shear(es.real, es.imag, g1, 0.0)
+        lnL = gaussian_lnL(np.column_stack([e1 + noise.real, e2 + noise.imag]), s)
+        fp = shear_fixed_point(lnL, EGRID, prior)
+        key2 = estimate_shear(shapes(lnL, EGRID, prior))
+        return np.array([fp.g1, key2.g1]), fp
+
+    m = {}
+    for g in (0.02, 0.1):
+        (p, fp), (q, _) = estimates(g), estimates(-g)
+        m[g] = (p - q) / (2 * g) - 1
+        assert abs(fp.g2) < 1e-4 and fp.n == 4 * n_ring and fp.g1_err > 0
+    print("m (fixed point, key2 exact) at g=0.02:", m[0.02], "at g=0.1:", m[0.1])
+    assert abs(m[0.1][0]) <= 0.003 and abs(m[0.02][0]) <= 0.003
+    assert abs(m[0.1][0] - m[0.02][0]) < 1e-3  # no g^2 term
+    assert m[0.1][1] - m[0.02][1] > 0.004  # key2's grows as ~0.6 g^2

@@ -18,7 +18,7 @@ from .grid import ellipticity_grid
 from .likelihood import StampFits, fit_stamps
 from .pipeline import InputError, measure, read_catalogue, write_catalogue
 from .prior import BinnedPrior, Prior, estimate_prior, estimate_prior_binned
-from .shear import ShearEstimate, estimate_shear, shapes
+from .shear import ShearEstimate, estimate_shear, shapes, shear_fixed_point
 
 __all__ = [
     "BinnedPrior",
@@ -36,6 +36,7 @@ __all__ = [
     "measure",
     "read_catalogue",
     "shapes",
+    "shear_fixed_point",
     "write_catalogue",
     "__version__",
 ]
