@@ -280,6 +280,12 @@ def test_cli_measure_prior_shear(fields, tmp_path, capsys):
     g = Table.read(tmp_path / "g.ecsv")
     assert list(g["group"])[-1] == "all"
     assert {"image=a.fits", "image=b.fits"} <= set(g["group"])
+    assert main(["shear", str(out), "--estimator", "fixed-point", "-o",
+                 str(tmp_path / "gfp.ecsv")]) == 0  # fmt: skip
+    gfp = Table.read(tmp_path / "gfp.ecsv")
+    # the two estimators agree to well within the error at these small shears
+    assert abs(gfp["g1"][-1] - g["g1"][-1]) < 0.2 * g["g1_err"][-1]
+    assert gfp["n"][-1] == g["n"][-1]
     # bad input: one line on stderr, exit status 1
     capsys.readouterr()
     assert main(["measure", str(tmp_path / "missing.fits"), "-o", str(tmp_path / "x.fits")]) == 1

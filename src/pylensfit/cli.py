@@ -106,8 +106,11 @@ def _shear(args: argparse.Namespace) -> int:
                 refine=refine)  # fmt: skip
     for c in ("image", *([args.bin_column] if args.bin_column else [])):
         sh[c] = cat[c][gal]
+    if args.estimator == "fixed-point":
+        sh["lnL"] = np.asarray(cat["lnL"])[gal]
     tab = shear_table(sh, by=None if args.no_per_image else "image",
-                      column=args.bin_column, edges=args.bin_edges)  # fmt: skip
+                      column=args.bin_column, edges=args.bin_edges, estimator=args.estimator,
+                      prior=prior, egrid=cat.meta["egrid"], refine=refine)  # fmt: skip
     for c in ("g1", "g1_err", "g2", "g2_err"):
         tab[c].format = ".5f"
     tab.pprint_all()
@@ -225,6 +228,9 @@ def build_parser() -> argparse.ArgumentParser:
     sh.add_argument("--bin-by", type=_bin_by, metavar="COLUMN:EDGES",
                     help="also bin by a column, e.g. mag:20,22,24")  # fmt: skip
     sh.add_argument("--sensitivity", choices=("exact", "paper"), help="sensitivity formula")
+    sh.add_argument("--estimator", choices=("key2", "fixed-point"), default="key2",
+                    help="paper eq. key2 (default) or the sheared-prior fixed point, which "
+                    "has no g^2 bias")  # fmt: skip
     sh.add_argument("--no-per-image", action="store_true", help="only bins and the total")
     sh.add_argument("-o", "--output", help="write the table (format from the extension)")
     sh.set_defaults(func=_shear)

@@ -693,6 +693,10 @@ def shear_table(
     by: str | None = None,
     column: str | None = None,
     edges: Sequence[float] | None = None,
+    estimator: str = "key2",
+    prior: Prior | None = None,
+    egrid: np.ndarray | None = None,
+    refine: int = DEFAULT_REFINE,
 ) -> Table:
     """Shear of every group of a catalogue, with errors (eq. ``key2`` per group).
 
@@ -706,6 +710,14 @@ def shear_table(
     column, edges : str and sequence of float, optional
         Bin the rows by ``column`` with bin ``edges`` (e.g. magnitude bins); rows
         outside the edges are left out of the binned rows.
+
+    estimator : {"key2", "fixed-point"}
+        ``"key2"``: :func:`estimate_shear` on the table's ``e1, e2, sens1, sens2``;
+        ``"fixed-point"``: :func:`shear_fixed_point` on its ``lnL`` column (a 2-D column
+        of ln L grids, as in :func:`pylensfit.measure`'s catalogue) with ``prior`` and
+        ``egrid``, rows with ``flags != 0`` left out.
+    prior, egrid, refine
+        For ``"fixed-point"``.
 
     Returns
     -------
@@ -731,10 +743,23 @@ def shear_table(
         for lo, hi in zip(e[:-1], e[1:], strict=True):
             keys.append((f"{lo:g}<={column}<{hi:g}", (v >= lo) & (v < hi)))
     keys.append(("all", np.ones(n, dtype=bool)))
+    if estimator not in ("key2", "fixed-point"):
+        raise ValueError(f"estimator must be 'key2' or 'fixed-point', got {estimator!r}")
+    if estimator == "fixed-point":
+        if prior is None or egrid is None or "lnL" not in shapes_table.colnames:
+            raise ValueError("the fixed-point estimator needs the table's lnL column, "
+                             "prior= and egrid=")  # fmt: skip
+        lnL = np.asarray(shapes_table["lnL"])
+        usable = np.ones(n, dtype=bool)
+        if "flags" in shapes_table.colnames:
+            usable = np.asarray(shapes_table["flags"]) == 0
     rows = []
     for name, sel in keys:
         try:
-            g = estimate_shear(shapes_table[sel])
+            if estimator == "fixed-point":
+                g = shear_fixed_point(lnL[sel & usable], egrid, prior, refine=refine)
+            else:
+                g = estimate_shear(shapes_table[sel])
             rows.append((name, g.n, g.g1, g.g1_err, g.g2, g.g2_err))
         except ValueError:
             rows.append((name, 0, np.nan, np.nan, np.nan, np.nan))
