@@ -5,6 +5,7 @@
     pylensfit measure IMAGE... [--stars STARFIELD...] [--config FILE] -o OUT
     pylensfit prior CATALOG... -o PRIOR
     pylensfit shear CATALOG... [--prior PRIOR] [--bin-by COLUMN:EDGES]
+    pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S]
     pylensfit config [-o FILE]          # the default configuration as YAML
     pylensfit demo                      # simulate, measure, prior, shear
 """
@@ -117,6 +118,12 @@ def _shear(args: argparse.Namespace) -> int:
     if args.output:
         tab.write(args.output, overwrite=True)
     return 0
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from .validation import main as simulate_main
+
+    return simulate_main([a for a in args.args if a != "--"])
 
 
 def _dump_config(args: argparse.Namespace) -> int:
@@ -235,6 +242,12 @@ def build_parser() -> argparse.ArgumentParser:
     sh.add_argument("-o", "--output", help="write the table (format from the extension)")
     sh.set_defaults(func=_shear)
 
+    si = sub.add_parser(
+        "simulate", add_help=False, help="simulate a STEP-like set (simulate -h for more)"
+    )
+    si.add_argument("args", nargs=argparse.REMAINDER)
+    si.set_defaults(func=_simulate)
+
     c = sub.add_parser("config", help="print or write the default configuration (YAML)")
     c.add_argument("-o", "--output", help="write to this file")
     c.set_defaults(func=_dump_config)
@@ -252,6 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``pylensfit`` command."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["simulate"]:  # its own parser (pylensfit.validation.main)
+        argv = ["simulate", "--", *argv[1:]]
     args = build_parser().parse_args(argv)
     if getattr(args, "bin_by", None):
         args.bin_column, args.bin_edges = args.bin_by

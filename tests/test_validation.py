@@ -1,0 +1,182 @@
+"""STEP1/STEP2-like validation sets: manifest, twins, WCS, truth conventions, star fields."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from astropy.table import Table
+from astropy.wcs import WCS
+from astropy.wcs.utils import proj_plane_pixel_scales
+
+from pylensfit.validation import (
+    STEP1_SHEARS,
+    main,
+    read_manifest,
+    simulate_step,
+)
+
+galsim = pytest.importorskip("galsim")
+
+
+@pytest.fixture(scope="module")
+def step1(tmp_path_factory):
+    d = simulate_step("step1", tmp_path_factory.mktemp("step1"), ngal=400, seed=3)
+    return read_manifest(d)
+
+
+@pytest.fixture(scope="module")
+def step2(tmp_path_factory):
+    d = simulate_step("step2", tmp_path_factory.mktemp("step2"), ngal=400, seed=5, n_shear=3)
+    return read_manifest(d)
+
+
+def _truth(path) -> Table:
+    return Table.read(path, hdu="TRUTH")
+
+
+def _shape_from_jac(jac: np.ndarray) -> complex:
+    """e = (a - b) / (a + b) of a round profile transformed by ``jac``."""
+    q = jac @ jac.T
+    chi = complex(q[0, 0] - q[1, 1], 2 * q[0, 1]) / (q[0, 0] + q[1, 1])
+    return chi / (1 + np.sqrt(1 - abs(chi) ** 2))
+
+
+def test_step1_manifest(step1):
+    man = step1
+    assert man["kind"] == "step1" and len(man["psfs"]) >= 5
+    shear = [f for f in man["fields"] if f["role"] == "shear"]
+    prior = [f for f in man["fields"] if f["role"] == "prior"]
+    assert sorted({f["g1"] for f in shear}) == sorted(STEP1_SHEARS)
+    assert all(f["g2"] == 0.0 and not f["twin"] for f in shear)
+    assert len(shear) == len(man["psfs"]) * len(STEP1_SHEARS)
+    assert sorted(f["psf"] for f in prior) == list(range(len(man["psfs"])))
+    assert all(f["g1"] == 0 and f["g2"] == 0 for f in prior)
+    assert len(man["star_fields"]) == len(man["psfs"])
+    # round, elliptical along e1, along e2, larger
+    p = man["psfs"]
+    assert any(q["e1"] == 0 and q["e2"] == 0 for q in p)
+    assert any(q["e1"] != 0 and q["e2"] == 0 for q in p)
+    assert any(q["e1"] == 0 and q["e2"] != 0 for q in p)
+    assert max(q["fwhm"] for q in p) > min(q["fwhm"] for q in p)
+    # ngal is roughly the number of galaxies over the shear fields
+    assert 0.5 * 400 < man["ngal_shear_fields"] < 2 * 400
+
+
+@pytest.mark.parametrize("which,scale", [("step1", 0.206), ("step2", 0.2)])
+def test_fits_wcs_and_truth(which, scale, request):
+    man = request.getfixturevalue(which)
+    for f in man["fields"][:3] + man["star_fields"][:1]:
+        with fits.open(f["path"]) as hdul:
+            w = WCS(hdul[0].header)
+            assert np.allclose(proj_plane_pixel_scales(w) * 3600, scale)
+            assert hdul[0].data.shape == (man["field_size"],) * 2
+            assert "WEIGHT" in hdul and "TRUTH" in hdul
+
+
+@pytest.mark.parametrize("which", ["step1", "step2"])
+def test_truth_sheared_ellipticity(which, request):
+    """Truth e = (e_s + g) / (1 + g* e_s), checked against GalSim's own composition."""
+    man = request.getfixturevalue(which)
+    f = max(man["fields"], key=lambda f: np.hypot(f["g1"], f["g2"]))
+    t = _truth(f["path"])
+    gal = t[~t["is_star"]]
+    assert len(gal) > 0
+    for row in gal[:10]:
+        ei = (row["e1_int"], row["e2_int"])
+        obj = galsim.Gaussian(sigma=1.0).shear(g1=ei[0], g2=ei[1]).shear(g1=f["g1"], g2=f["g2"])
+        e = _shape_from_jac(obj.jac)
+        assert e.real == pytest.approx(row["e1"], abs=1e-9)
+        assert e.imag == pytest.approx(row["e2"], abs=1e-9)
+    es = gal["e1_int"] + 1j * gal["e2_int"]
+    g = complex(f["g1"], f["g2"])
+    e = (es + g) / (1 + np.conj(g) * es)
+    assert np.allclose(e.real, gal["e1"]) and np.allclose(e.imag, gal["e2"])
+
+
+def test_step2_shears_and_twins(step2):
+    man = step2
+    assert man["kind"] == "step2" and len(man["psfs"]) >= 5
+    assert sum(np.hypot(p["e1"], p["e2"]) >= 0.1 for p in man["psfs"]) >= 2
+    shear = [f for f in man["fields"] if f["role"] == "shear"]
+    prior = [f for f in man["fields"] if f["role"] == "prior"]
+    assert sorted(f["psf"] for f in prior) == list(range(len(man["psfs"])))
+    for f in shear:
+        assert np.hypot(f["g1"], f["g2"]) <= 0.06 + 1e-12
+        assert f["g1"] != 0 and f["g2"] != 0
+    orig = {(f["psf"], f["shear_index"]): f for f in shear if not f["twin"]}
+    twins = {(f["psf"], f["shear_index"]): f for f in shear if f["twin"]}
+    assert orig.keys() == twins.keys() and len(orig) == 3 * len(man["psfs"])
+    a, b = orig[(0, 0)], twins[(0, 0)]
+    assert b["file"].endswith("_rot.fits") and (a["g1"], a["g2"]) == (b["g1"], b["g2"])
+    ta, tb = _truth(a["path"]), _truth(b["path"])
+    assert np.array_equal(ta["x"], tb["x"]) and np.array_equal(ta["y"], tb["y"])
+    assert np.array_equal(ta["is_star"], tb["is_star"])
+    assert np.allclose(tb["e1_int"], -ta["e1_int"]) and np.allclose(tb["e2_int"], -ta["e2_int"])
+    assert np.allclose(ta["flux"], tb["flux"])
+    assert set(ta["kind"][~ta["is_star"]]) <= {"sersic", "bulge+disc", "knots"}
+    # the twin's galaxy really is the rotated one: shape from GalSim's transformation
+    row = tb[~tb["is_star"]][0]
+    e0 = (-row["e1_int"], -row["e2_int"])
+    obj = (
+        galsim.Gaussian(sigma=1.0)
+        .shear(g1=e0[0], g2=e0[1])
+        .rotate(90 * galsim.degrees)
+        .shear(g1=b["g1"], g2=b["g2"])
+    )
+    e = _shape_from_jac(obj.jac)
+    assert (e.real, e.imag) == pytest.approx((row["e1"], row["e2"]), abs=1e-9)
+    # independent noise in the twins
+    with fits.open(a["path"]) as ha, fits.open(b["path"]) as hb:
+        assert not np.allclose(ha[0].data, hb[0].data)
+
+
+def _star_shape(path) -> complex:
+    """HSM shape (reduced-shear convention) of the brightest star away from the edges."""
+    t = _truth(path)
+    with fits.open(path) as hdul:
+        img = hdul[0].data.astype(np.float64) - 50.0  # sky of FieldSpec
+    n = img.shape[0]
+    ok = (t["x"] > 20) & (t["x"] < n - 21) & (t["y"] > 20) & (t["y"] < n - 21)
+    row = t[ok][np.argmax(t["flux"][ok])]
+    ix, iy = int(round(row["x"])), int(round(row["y"]))
+    cut = img[iy - 16 : iy + 16, ix - 16 : ix + 16]
+    m = galsim.hsm.FindAdaptiveMom(galsim.ImageD(cut, scale=1.0)).observed_shape
+    return complex(m.g1, m.g2)
+
+
+@pytest.mark.parametrize("which", ["step1", "step2"])
+def test_star_fields_are_the_psf(which, request):
+    man = request.getfixturevalue(which)
+    for sf in man["star_fields"]:
+        t = _truth(sf["path"])
+        assert np.all(t["is_star"]) and np.all(t["e1"] == 0)
+        p = sf["psf_params"]
+        psf = galsim.Moffat(beta=p["beta"], fwhm=p["fwhm"]).shear(g1=p["e1"], g2=p["e2"])
+        ref = galsim.hsm.FindAdaptiveMom(psf.drawImage(nx=32, ny=32, scale=1.0)).observed_shape
+        e = _star_shape(sf["path"])
+        assert abs(e - complex(ref.g1, ref.g2)) < 0.01
+        assert abs(e - complex(p["e1"], p["e2"])) < 0.02  # pixel dilution aside
+
+
+def test_cli_main(tmp_path, capsys):
+    rc = main(
+        ["step1", "--out", str(tmp_path / "s"), "--ngal", "25", "--size", "120", "--nshear", "2"]
+    )
+    assert rc == 0
+    man = read_manifest(tmp_path / "s")
+    assert man["field_size"] == 120 and len(man["fields"]) == 5 * 3
+    assert "step1" in capsys.readouterr().out
+
+
+def test_bad_kind(tmp_path):
+    with pytest.raises(ValueError):
+        simulate_step("step3", tmp_path)
+
+
+def test_pylensfit_simulate_command(tmp_path):
+    from pylensfit.cli import main as cli_main
+
+    assert cli_main(["simulate", "step1", "--out", str(tmp_path / "s1"), "--ngal", "200"]) == 0
+    man = read_manifest(tmp_path / "s1")
+    assert man["kind"] == "step1" and len(man["fields"]) >= 5 * 6
