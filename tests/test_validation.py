@@ -180,3 +180,46 @@ def test_pylensfit_simulate_command(tmp_path):
     assert cli_main(["simulate", "step1", "--out", str(tmp_path / "s1"), "--ngal", "200"]) == 0
     man = read_manifest(tmp_path / "s1")
     assert man["kind"] == "step1" and len(man["fields"]) >= 5 * 6
+
+
+def test_fit_m_c_and_quality_factor():
+    from pylensfit.validation import fit_m_c, quality_factor
+
+    rng = np.random.default_rng(3)
+    gt = np.repeat([0.0, 0.005, 0.01, 0.05, 0.1], 40)
+    err = np.full(gt.size, 2e-3)
+    # exact line: recovered exactly; errors are the analytic weighted-least-squares ones
+    m, m_err, c, c_err = fit_m_c(gt, gt * 1.02 + 3e-4, err)
+    assert m == pytest.approx(0.02, abs=1e-12) and c == pytest.approx(3e-4, abs=1e-12)
+    S, Sx, Sxx = gt.size / 4e-6, gt.sum() / 4e-6, (gt**2).sum() / 4e-6
+    assert m_err == pytest.approx(np.sqrt(S / (S * Sxx - Sx**2)))
+    assert c_err == pytest.approx(np.sqrt(Sxx / (S * Sxx - Sx**2)))
+    # with noise, the pulls of many fits have unit spread
+    pulls = []
+    for _ in range(300):
+        m, m_err, c, c_err = fit_m_c(gt, gt + err * rng.standard_normal(gt.size), err)
+        pulls.append((m / m_err, c / c_err))
+    assert np.std(pulls, axis=0) == pytest.approx([1, 1], abs=0.12)
+    # only c when every true shear is the same
+    m, _, c, c_err = fit_m_c(np.zeros(4), [1e-3, 3e-3, 1e-3, 3e-3], np.full(4, 1e-3))
+    assert np.isnan(m) and c == pytest.approx(2e-3) and c_err == pytest.approx(5e-4)
+    # Q: 1000 when the scatter is purely statistical, 250 when twice as large
+    g_t = np.zeros((20000, 2))
+    g_m = 1e-3 * rng.standard_normal((20000, 2))
+    assert quality_factor(g_t, g_m, np.full((20000, 2), 1e-3)) == pytest.approx(1000, rel=0.03)
+    assert quality_factor(g_t, 2 * g_m, np.full((20000, 2), 1e-3)) == pytest.approx(250, rel=0.03)
+
+
+def test_validate_end_to_end(tmp_path):
+    from pylensfit.validation import simulate_step, validate
+
+    d = simulate_step("step1", tmp_path / "s1", ngal=1500, seed=4)
+    res = validate(d, report=tmp_path / "report.md", progress=False)
+    assert list(res["psf"]) == ["0", "1", "2", "3", "4", "all"]
+    assert res["n_gal"][-1] > 1000
+    # a small set: m is known only to ~0.3, but it must be consistent with no bias
+    assert abs(res["m1"][-1]) < 4 * res["m1_err"][-1]
+    assert np.isnan(res["m2"][-1])  # step1 has g2 = 0: only c2 is measured
+    assert abs(res["c2"][-1]) < 4 * res["c2_err"][-1]
+    assert (tmp_path / "report.md").read_text().count("| ") > 5
+    assert (tmp_path / "report.png").stat().st_size > 1000

@@ -6,6 +6,7 @@
     pylensfit prior CATALOG... -o PRIOR
     pylensfit shear CATALOG... [--prior PRIOR] [--bin-by COLUMN:EDGES]
     pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S]
+    pylensfit validate DIR [--report FILE]   # m, c, sigma_c, Q per PSF
     pylensfit config [-o FILE]          # the default configuration as YAML
     pylensfit demo                      # simulate, measure, prior, shear
 """
@@ -124,6 +125,23 @@ def _simulate(args: argparse.Namespace) -> int:
     from .validation import main as simulate_main
 
     return simulate_main([a for a in args.args if a != "--"])
+
+
+def _validate(args: argparse.Namespace) -> int:
+    from .validation import validate
+
+    res = validate(args.directory, config=_config(args) if args.config else None,
+                   jobs=args.jobs, estimator=args.estimator, report=args.report,
+                   progress=not args.quiet)  # fmt: skip
+    for c in res.colnames[1:-2]:
+        res[c].format = "+.5f"
+    res["Q"].format = ".0f"
+    res.pprint_all()
+    print(f"<m> = {res.meta['mean_m']:+.4f}, sigma_c = {res.meta['sigma_c']:.2e}, "
+          f"Q = {res['Q'][-1]:.0f}; prior {res.meta['prior']!r}")  # fmt: skip
+    if args.report:
+        print(f"report: {args.report}")
+    return 0
 
 
 def _dump_config(args: argparse.Namespace) -> int:
@@ -247,6 +265,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     si.add_argument("args", nargs=argparse.REMAINDER)
     si.set_defaults(func=_simulate)
+
+    v = sub.add_parser("validate", help="m, c, sigma_c and Q on a simulated set")
+    v.add_argument("directory", help="a set from `pylensfit simulate`")
+    v.add_argument("--config", help="YAML configuration (default: bulge+disc model)")
+    v.add_argument("--jobs", type=int, default=1, help="local worker processes")
+    v.add_argument("--estimator", choices=("key2", "fixed-point"), default="key2")
+    v.add_argument("--report", help="write a Markdown report (and a PNG beside it)")
+    v.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    v.set_defaults(func=_validate)
 
     c = sub.add_parser("config", help="print or write the default configuration (YAML)")
     c.add_argument("-o", "--output", help="write to this file")

@@ -492,3 +492,159 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":  # pragma: no cover
     raise SystemExit(main())
+
+
+# ----------------------------------------------------------------------------------------
+# Validation: m, c, sigma_c and Q (paper section 5, DESIGN.md section 5)
+# ----------------------------------------------------------------------------------------
+def fit_m_c(g_true, g_meas, g_err) -> tuple[float, float, float, float]:
+    """Chi-square fit of ``g_meas - g_true = m g_true + c``: ``(m, m_err, c, c_err)``.
+
+    The model is linear, so the 1-sigma errors projected from the (m, c) chi-square grid
+    (``delta chi^2 = 1``) are the square roots of the diagonal of the fit covariance.
+    """
+    gt = np.asarray(g_true, dtype=float)
+    d = np.asarray(g_meas, dtype=float) - gt
+    w = 1.0 / np.asarray(g_err, dtype=float) ** 2
+    A = np.column_stack([gt, np.ones_like(gt)])
+    F = A.T @ (A * w[:, None])
+    if np.linalg.cond(F) > 1e12:  # all g_true equal: only c is measured
+        c = float(np.sum(w * d) / np.sum(w))
+        return math.nan, math.nan, c, float(1.0 / math.sqrt(np.sum(w)))
+    cov = np.linalg.inv(F)
+    m, c = cov @ (A.T @ (w * d))
+    return float(m), float(math.sqrt(cov[0, 0])), float(c), float(math.sqrt(cov[1, 1]))
+
+
+def quality_factor(g_true: np.ndarray, g_meas: np.ndarray, g_err: np.ndarray) -> float:
+    """Paper's ``Q = 1000 sigma_stat^2 / <(g_meas - g_true)^2>`` over images and components.
+
+    ``g_*`` are ``(n_images, 2)``; ``sigma_stat^2`` is the mean statistical variance of
+    the images' estimates (``g_err^2``), the spread an unbiased method would show.
+    """
+    d2 = (np.asarray(g_meas) - np.asarray(g_true)) ** 2
+    return float(1000.0 * np.mean(np.asarray(g_err) ** 2) / np.mean(d2))
+
+
+def validate(
+    directory: str | Path,
+    *,
+    config=None,
+    jobs: int = 1,
+    estimator: str = "key2",
+    report: str | Path | None = None,
+    progress: bool = True,
+):
+    """Run the pipeline on a simulated set and measure m, c, sigma_c and Q per PSF.
+
+    The prior is estimated from the zero-shear fields of all PSFs (as in the paper), then
+    each PSF's shear fields are measured with its own star field, the shear of every
+    image estimated (``estimator``: eq. ``key2`` or the sheared-prior fixed point), and
+    ``g_meas - g_true = m g_true + c`` fitted per PSF and component.
+
+    Returns
+    -------
+    astropy.table.Table
+        One row per PSF and a last row ``all``: ``m1, m1_err, c1, c1_err, m2, m2_err, c2,
+        c2_err, Q, n_gal``; ``meta`` holds ``<m>``, ``sigma_c``, the global Q, the prior,
+        and the per-image table.
+    """
+    from astropy.table import Table
+
+    from .config import Config
+    from .pipeline import measure
+    from .prior import Prior, estimate_prior
+    from .shear import shear_table
+
+    man = read_manifest(directory)
+    cfg = config if config is not None else Config(model="bulge+disc")
+    by_psf: dict[int, list] = {}
+    for f in man["fields"]:
+        by_psf.setdefault(int(f["psf"]), []).append(f)
+    stars = {int(s["psf"]): s["path"] for s in man["star_fields"]}
+    # the prior, from the zero-shear fields
+    lnls = []
+    for k, fields in sorted(by_psf.items()):
+        pf = [f["path"] for f in fields if f["role"] == "prior"]
+        if not pf:
+            continue
+        cat = measure(pf, stars=[stars[k]], config=cfg, prior=Prior(), jobs=jobs,
+                      progress=progress)  # fmt: skip
+        gal = (np.asarray(cat["flags"]) == 0) & (np.asarray(cat["fitclass"]) == 0)
+        lnls.append(np.asarray(cat["lnL"])[gal])
+        egrid = cat.meta["egrid"]
+    prior = estimate_prior(np.concatenate(lnls), egrid, method=cfg.prior_method)
+    per_image = []
+    for k, fields in sorted(by_psf.items()):
+        sf = [f for f in fields if f["role"] == "shear"]
+        cat = measure([f["path"] for f in sf], stars=[stars[k]], config=cfg, prior=prior,
+                      jobs=jobs, progress=progress)  # fmt: skip
+        tab = shear_table(cat, by="image", estimator=estimator, prior=prior,
+                          egrid=cat.meta["egrid"], refine=cfg.integration_refine)  # fmt: skip
+        truth = {Path(f["path"]).name: f for f in sf}
+        for row in tab[:-1]:
+            f = truth[str(row["group"]).split("=", 1)[1]]
+            per_image.append((k, f["file"], f["g1"], f["g2"], row["g1"], row["g1_err"],
+                              row["g2"], row["g2_err"], row["n"]))  # fmt: skip
+    img = Table(rows=per_image, names=("psf", "file", "g1_true", "g2_true", "g1", "g1_err",
+                                       "g2", "g2_err", "n"))  # fmt: skip
+    rows = []
+    for k in [*sorted(by_psf), "all"]:
+        sel = np.ones(len(img), bool) if k == "all" else np.asarray(img["psf"]) == k
+        t = img[sel]
+        res = []
+        for i in (1, 2):
+            res += fit_m_c(t[f"g{i}_true"], t[f"g{i}"], t[f"g{i}_err"])
+        gt = np.column_stack([t["g1_true"], t["g2_true"]])
+        gm = np.column_stack([t["g1"], t["g2"]])
+        ge = np.column_stack([t["g1_err"], t["g2_err"]])
+        rows.append((str(k), *res, quality_factor(gt, gm, ge), int(np.sum(t["n"]))))
+    out = Table(rows=rows, names=("psf", "m1", "m1_err", "c1", "c1_err", "m2", "m2_err",
+                                  "c2", "c2_err", "Q", "n_gal"))  # fmt: skip
+    per = out[:-1]
+    ms = np.concatenate([per["m1"], per["m2"]])
+    out.meta["mean_m"] = float(np.nanmean(ms))
+    out.meta["sigma_c"] = float(math.hypot(np.std(per["c1"]), np.std(per["c2"])))
+    out.meta["prior"] = prior
+    out.meta["images"] = img
+    if report is not None:
+        _write_report(out, img, man, Path(report))
+    return out
+
+
+def _write_report(res, img, man, path: Path) -> None:
+    """A Markdown report with a plot of g_meas - g_true against g_true per PSF."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for i, ax in zip((1, 2), axes, strict=True):
+        for k in np.unique(img["psf"]):
+            t = img[img["psf"] == k]
+            ax.errorbar(t[f"g{i}_true"], t[f"g{i}"] - t[f"g{i}_true"], yerr=t[f"g{i}_err"],
+                        fmt="o", ms=3, label=f"PSF {k}")  # fmt: skip
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel(f"g{i} true")
+        ax.set_title(f"component {i}")
+    axes[0].set_ylabel("g measured - g true")
+    axes[1].legend(fontsize=7)
+    png = path.with_suffix(".png")
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    lines = [f"# pylensfit validation: {man['kind']} ({man['dir']})", "",
+             f"<m> = {res.meta['mean_m']:+.4f}, sigma_c = {res.meta['sigma_c']:.2e}, "
+             f"prior {res.meta['prior']!r}", "",
+             "| PSF | m1 | c1 | m2 | c2 | Q | galaxies |",
+             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for r in res:
+        lines.append(
+            f"| {r['psf']} | {r['m1']:+.4f} +- {r['m1_err']:.4f} | {r['c1']:+.5f} +- "
+            f"{r['c1_err']:.5f} | {r['m2']:+.4f} +- {r['m2_err']:.4f} | {r['c2']:+.5f} +- "
+            f"{r['c2_err']:.5f} | {r['Q']:.0f} | {r['n_gal']} |"
+        )
+    lines += ["", f"![g_meas - g_true]({png.name})", ""]
+    path.write_text("\n".join(lines))
