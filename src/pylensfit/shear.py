@@ -367,23 +367,8 @@ def _posterior_sums(
     lattice, then a compiled kernel (parallel over galaxies) interpolates, exponentiates
     and accumulates, without storing the fine grids.
     """
-    n = lnL.shape[0]
-    S = np.empty((n, 14))
-    if refine == 1:
-        K = _kernel_columns(prior, egrid)
-        nb = block_size or max(1, _BLOCK_ELEMENTS // egrid.shape[0])
-        for i in range(0, n, nb):
-            x = _relative_lnL(lnL[i : i + nb])
-            np.exp(x, out=x)
-            S[i : i + nb] = x @ K
-        return S
-    r = _refiner(egrid, refine)
-    K = np.ascontiguousarray(_kernel_columns(prior, r.fine))
-    nb = block_size or max(1, _BLOCK_ELEMENTS // r.F.shape[0])
-    for i in range(0, n, nb):
-        X = _relative_lnL(lnL[i : i + nb]) @ r.F.T
-        _fine_sums_kernel(X, r.m, r.j0, r.w, r.row_y, r.row_lo, r.row_hi, K, S[i : i + nb])
-    return S
+    grid = egrid if refine == 1 else _refiner(egrid, refine).fine
+    return _sums_with(lnL, egrid, _kernel_columns(prior, grid), refine, block_size)
 
 
 def _moments_from_sums(S: np.ndarray) -> dict[str, np.ndarray]:

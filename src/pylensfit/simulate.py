@@ -20,7 +20,7 @@ from astropy.wcs import WCS
 from .catalogue import atomic_write
 from .prior import Prior
 
-__all__ = ["FieldSpec", "simulate_field", "write_field"]
+__all__ = ["FieldSpec", "draw_population", "simulate_field", "write_field"]
 
 
 @dataclass(frozen=True)
@@ -81,6 +81,32 @@ def _galaxy(model: str, r: float):
     raise ValueError(f"unknown model {model!r}")
 
 
+def draw_population(spec: FieldSpec, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """Positions on the jittered lattice, star flags, sizes, S/N and intrinsic shapes.
+
+    Returns ``x, y, is_star, r, snr, star_peak_snr, e_int`` (``e_int`` drawn from the
+    functional prior with ``spec.prior_params``, ``|e| <= spec.max_e``).
+    """
+    n = int(spec.size)
+    m = int((n - 2 * spec.spacing) // spec.spacing) + 1
+    grid = spec.spacing + spec.spacing * np.arange(m)
+    xx, yy = np.meshgrid(grid, grid)
+    x = xx.ravel() + rng.uniform(-spec.jitter, spec.jitter, xx.size)
+    y = yy.ravel() + rng.uniform(-spec.jitter, spec.jitter, yy.size)
+    n_obj = x.size
+    is_star = rng.random(n_obj) < spec.star_fraction
+    r = rng.uniform(*spec.size_range, n_obj)
+    snr = np.exp(rng.uniform(*np.log(spec.snr_range), n_obj))
+    star_snr = np.exp(rng.uniform(*np.log(spec.star_peak_snr), n_obj))
+    prior = Prior(B=spec.prior_params[0], C=spec.prior_params[1], D=spec.prior_params[2])
+    e_int = prior.sample(n_obj, rng=rng)
+    big = np.hypot(*e_int.T) > spec.max_e
+    while np.any(big):
+        e_int[big] = prior.sample(int(big.sum()), rng=rng)
+        big = np.hypot(*e_int.T) > spec.max_e
+    return x, y, is_star, r, snr, star_snr, e_int
+
+
 def simulate_field(
     spec: FieldSpec, *, seed: int, noise_seed: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, Table]:
@@ -112,22 +138,8 @@ def simulate_field(
 
     rng = np.random.default_rng(seed)
     n = int(spec.size)
-    m = int((n - 2 * spec.spacing) // spec.spacing) + 1
-    grid = spec.spacing + spec.spacing * np.arange(m)
-    xx, yy = np.meshgrid(grid, grid)
-    x = xx.ravel() + rng.uniform(-spec.jitter, spec.jitter, xx.size)
-    y = yy.ravel() + rng.uniform(-spec.jitter, spec.jitter, yy.size)
+    x, y, is_star, r, snr, star_snr, e_int = draw_population(spec, rng)
     n_obj = x.size
-    is_star = rng.random(n_obj) < spec.star_fraction
-    r = rng.uniform(*spec.size_range, n_obj)
-    snr = np.exp(rng.uniform(*np.log(spec.snr_range), n_obj))
-    star_snr = np.exp(rng.uniform(*np.log(spec.star_peak_snr), n_obj))
-    prior = Prior(B=spec.prior_params[0], C=spec.prior_params[1], D=spec.prior_params[2])
-    e_int = prior.sample(n_obj, rng=rng)
-    big = np.hypot(*e_int.T) > spec.max_e
-    while np.any(big):
-        e_int[big] = prior.sample(int(big.sum()), rng=rng)
-        big = np.hypot(*e_int.T) > spec.max_e
     if spec.rotate:
         e_int = -e_int  # a 90-degree rotation of an ellipse flips e
     es = e_int[:, 0] + 1j * e_int[:, 1]

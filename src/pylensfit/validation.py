@@ -32,7 +32,7 @@ import numpy as np
 from astropy.table import Table
 
 from .prior import Prior
-from .simulate import FieldSpec, _psf, simulate_field, write_field
+from .simulate import FieldSpec, _psf, draw_population, simulate_field, write_field
 
 __all__ = [
     "STEP1_PSFS",
@@ -139,22 +139,8 @@ def render_step2_field(
 
     rng = np.random.default_rng(seed)
     n = int(spec.size)
-    m = int((n - 2 * spec.spacing) // spec.spacing) + 1
-    grid = spec.spacing + spec.spacing * np.arange(m)
-    xx, yy = np.meshgrid(grid, grid)
-    x = xx.ravel() + rng.uniform(-spec.jitter, spec.jitter, xx.size)
-    y = yy.ravel() + rng.uniform(-spec.jitter, spec.jitter, yy.size)
+    x, y, is_star, r, snr, star_snr, e_int = draw_population(spec, rng)
     n_obj = x.size
-    is_star = rng.random(n_obj) < spec.star_fraction
-    r = rng.uniform(*spec.size_range, n_obj)
-    snr = np.exp(rng.uniform(*np.log(spec.snr_range), n_obj))
-    star_snr = np.exp(rng.uniform(*np.log(spec.star_peak_snr), n_obj))
-    prior = Prior(B=spec.prior_params[0], C=spec.prior_params[1], D=spec.prior_params[2])
-    e_int = prior.sample(n_obj, rng=rng)
-    big = np.hypot(*e_int.T) > spec.max_e
-    while np.any(big):
-        e_int[big] = prior.sample(int(big.sum()), rng=rng)
-        big = np.hypot(*e_int.T) > spec.max_e
     kinds = rng.choice(np.array(["sersic", "bulge+disc", "knots"]), n_obj, p=[0.4, 0.3, 0.3])
     sersic_n = np.round(rng.uniform(0.5, 4.0, n_obj), 1)  # quantised: GalSim caches by n
     bulge_frac = rng.uniform(0.0, 0.5, n_obj)
@@ -553,7 +539,7 @@ def validate(
 
     from .config import Config
     from .pipeline import measure
-    from .prior import Prior, estimate_prior
+    from .prior import estimate_prior
     from .shear import shear_table
 
     man = read_manifest(directory)
