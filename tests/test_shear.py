@@ -295,6 +295,26 @@ def test_binned_prior_in_shapes():
 # ------------------------------------------------------------------------------------
 # Shear bias on a sheared synthetic population
 # ------------------------------------------------------------------------------------
+def ring_population(rng, n_prior, n_ring, smin, smax):
+    """A prior estimated from ``n_prior`` unsheared galaxies, and a population in rings.
+
+    Rings of four (``e_s``, ``i e_s``, ``-e_s``, ``-i e_s``) with their noise rotated
+    alike; likelihood widths uniform in ``[smin, smax]``. Returns ``prior, e_s, noise, s``
+    (complex intrinsic shapes and noise, and the widths), the draws in a fixed order.
+    """
+    e_p = PRIOR.sample(n_prior, rng=rng)
+    s_p = rng.uniform(smin, smax, n_prior)
+    prior = estimate_prior(
+        gaussian_lnL(e_p + s_p[:, None] * rng.standard_normal((n_prior, 2)), s_p), EGRID
+    )
+    base = PRIOR.sample(n_ring, rng=rng)
+    s0 = rng.uniform(smin, smax, n_ring)
+    n0 = s0 * (rng.standard_normal(n_ring) + 1j * rng.standard_normal(n_ring))
+    rot = np.array([1, 1j, -1, -1j])
+    es = ((base[:, 0] + 1j * base[:, 1])[:, None] * rot).ravel()
+    return prior, es, (n0[:, None] * rot).ravel(), np.repeat(s0, 4)
+
+
 def test_shear_bias_exact_vs_paper_vs_none():
     """m and c on synthetic likelihoods of a sheared population (widths 0.05-0.3).
 
@@ -307,22 +327,7 @@ def test_shear_bias_exact_vs_paper_vs_none():
     with 200,000.
     """
     rng = np.random.default_rng(2024)
-    # the prior, from an unsheared sample
-    n_p = 30_000
-    e_p = PRIOR.sample(n_p, rng=rng)
-    s_p = rng.uniform(0.05, 0.3, n_p)
-    prior = estimate_prior(
-        gaussian_lnL(e_p + s_p[:, None] * rng.standard_normal((n_p, 2)), s_p), EGRID
-    )
-    # the sheared population
-    n_ring = 10_000
-    base = PRIOR.sample(n_ring, rng=rng)
-    s0 = rng.uniform(0.05, 0.3, n_ring)
-    n0 = s0 * (rng.standard_normal(n_ring) + 1j * rng.standard_normal(n_ring))
-    rot = np.array([1, 1j, -1, -1j])
-    es = ((base[:, 0] + 1j * base[:, 1])[:, None] * rot).ravel()
-    noise = (n0[:, None] * rot).ravel()
-    s = np.repeat(s0, 4)
+    prior, es, noise, s = ring_population(rng, 30_000, 10_000, 0.05, 0.3)
 
     def g_hat(g1, g2, refine):
         """g_hat for each sensitivity from one pass over the population, (3, 2)."""
@@ -348,7 +353,7 @@ def test_shear_bias_exact_vs_paper_vs_none():
                 m = (gp[j, comp] - gm[j, comp]) / (2 * g) - 1
                 c = 0.5 * (gp[j, comp] + gm[j, comp])
                 report[label, refine, comp] = (m, c, gp[j, 1 - comp], gm[j, 1 - comp])
-    print(f"\nprior estimated from {n_p} unsheared galaxies: {prior!r}")
+    print(f"\nprior estimated from 30,000 unsheared galaxies: {prior!r}")
     for (label, refine, comp), (m, c, x1, x2) in report.items():
         print(
             f"{label:>5} refine={refine}: m{comp + 1} = {m:+.4f}  c{comp + 1} = {c:+.1e}  "
@@ -375,20 +380,8 @@ def test_fixed_point_shear_removes_the_second_order_bias():
     from pylensfit.shear import shear_fixed_point
 
     rng = np.random.default_rng(5)
-    n_p = 20_000
-    e_p = PRIOR.sample(n_p, rng=rng)
-    s_p = rng.uniform(0.05, 0.1, n_p)
-    prior = estimate_prior(
-        gaussian_lnL(e_p + s_p[:, None] * rng.standard_normal((n_p, 2)), s_p), EGRID
-    )
     n_ring = 5000
-    base = PRIOR.sample(n_ring, rng=rng)
-    s0 = rng.uniform(0.05, 0.1, n_ring)
-    n0 = s0 * (rng.standard_normal(n_ring) + 1j * rng.standard_normal(n_ring))
-    rot = np.array([1, 1j, -1, -1j])
-    es = ((base[:, 0] + 1j * base[:, 1])[:, None] * rot).ravel()
-    noise = (n0[:, None] * rot).ravel()
-    s = np.repeat(s0, 4)
+    prior, es, noise, s = ring_population(rng, 20_000, n_ring, 0.05, 0.1)
 
     def estimates(g1):
         e1, e2 = apply_shear(es.real, es.imag, g1, 0.0)

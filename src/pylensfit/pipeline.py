@@ -182,7 +182,8 @@ def _detect(img: _Image, cfg: Config, positions: Table | None):
 
     out = positions.copy()
     out["id"] = np.arange(1, len(out) + 1)
-    for c in ("flux", "flux_err", "snr", "peak_snr", "r_half", "mag", "sep_flag"):
+    photometry = ("flux", "flux_err", "snr", "peak_snr", "r_half", "mag", "sep_flag")
+    for c in photometry:
         out[c] = np.nan if c != "sep_flag" else 0
     rms = bkg.rms
     if len(det):
@@ -190,7 +191,7 @@ def _detect(img: _Image, cfg: Config, positions: Table | None):
             np.column_stack([out["x"], out["y"]]), distance_upper_bound=2.0
         )
         hit = np.isfinite(d)
-        for c in ("flux", "flux_err", "snr", "peak_snr", "r_half", "mag", "sep_flag"):
+        for c in photometry:
             out[c][hit] = det[c][j[hit]]
     out["noise_sigma"] = _noise_at(img, out["x"], out["y"], bkg, rms)
     return sub, out

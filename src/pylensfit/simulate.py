@@ -107,6 +107,43 @@ def draw_population(spec: FieldSpec, rng: np.random.Generator) -> tuple[np.ndarr
     return x, y, is_star, r, snr, star_snr, e_int
 
 
+def _add_object(image, obj, flux: float, x: float, y: float, size: int = 64) -> None:
+    """Draw ``obj`` with ``flux`` centred at 0-based ``(x, y)`` and add it to ``image``."""
+    import galsim
+
+    stamp = obj.withFlux(flux).drawImage(
+        nx=size, ny=size, scale=1.0, center=galsim.PositionD(x + 1.0, y + 1.0)
+    )
+    b = stamp.bounds & image.bounds
+    if b.isDefined():
+        image[b] += stamp[b]
+
+
+def _add_sky_and_noise(image, spec: FieldSpec, seed: int, noise_seed: int | None):
+    """The rendered image plus sky and Gaussian noise (float32), and its weight map."""
+    arr = image.array.astype(np.float64)
+    noise_rng = np.random.default_rng([seed, 1] if noise_seed is None else noise_seed)
+    arr += spec.sky + noise_rng.normal(scale=spec.noise_sigma, size=arr.shape)
+    weight = np.full(arr.shape, 1.0 / spec.noise_sigma**2, dtype=np.float32)
+    return arr.astype(np.float32), weight
+
+
+def _truth_table(x, y, is_star, flux, r, e_int, e_obs, snr) -> Table:
+    """The truth columns shared by every simulated field (stars have e = 0, r = 0)."""
+    truth = Table()
+    truth["x"] = x
+    truth["y"] = y
+    truth["is_star"] = is_star
+    truth["flux"] = flux
+    truth["r"] = np.where(is_star, 0.0, r)
+    truth["e1_int"] = np.where(is_star, 0.0, e_int[:, 0])
+    truth["e2_int"] = np.where(is_star, 0.0, e_int[:, 1])
+    truth["e1"] = e_obs.real
+    truth["e2"] = e_obs.imag
+    truth["snr"] = np.where(is_star, np.nan, snr)
+    return truth
+
+
 def simulate_field(
     spec: FieldSpec, *, seed: int, noise_seed: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, Table]:
@@ -161,33 +198,15 @@ def simulate_field(
             obj = galsim.Convolve(gal.shear(g1=spec.g1, g2=spec.g2), psf)
             arr = obj.drawImage(nx=64, ny=64, scale=1.0).array
             flux[i] = snr[i] * spec.noise_sigma / np.sqrt((arr**2).sum())
-        stamp = obj.withFlux(flux[i]).drawImage(
-            nx=64, ny=64, scale=1.0, center=galsim.PositionD(x[i] + 1.0, y[i] + 1.0)
-        )
-        b = stamp.bounds & image.bounds
-        if b.isDefined():
-            image[b] += stamp[b]
-    arr = image.array.astype(np.float64)
-    noise_rng = np.random.default_rng([seed, 1] if noise_seed is None else noise_seed)
-    arr += spec.sky + noise_rng.normal(scale=spec.noise_sigma, size=arr.shape)
-    weight = np.full(arr.shape, 1.0 / spec.noise_sigma**2, dtype=np.float32)
-    truth = Table()
-    truth["x"] = x
-    truth["y"] = y
-    truth["is_star"] = is_star
-    truth["flux"] = flux
-    truth["r"] = np.where(is_star, 0.0, r)
-    truth["e1_int"] = np.where(is_star, 0.0, e_int[:, 0])
-    truth["e2_int"] = np.where(is_star, 0.0, e_int[:, 1])
-    truth["e1"] = e_obs.real
-    truth["e2"] = e_obs.imag
-    truth["snr"] = np.where(is_star, np.nan, snr)
+        _add_object(image, obj, flux[i], x[i], y[i])
+    image, weight = _add_sky_and_noise(image, spec, seed, noise_seed)
+    truth = _truth_table(x, y, is_star, flux, r, e_int, e_obs, snr)
     truth.meta.update(
         {"g1": spec.g1, "g2": spec.g2, "model": spec.model, "noise": spec.noise_sigma,
          "psf_fwhm": spec.psf_fwhm, "psf_e1": spec.psf_e1, "psf_e2": spec.psf_e2,
          "seed": seed}
     )  # fmt: skip
-    return arr.astype(np.float32), weight, truth
+    return image, weight, truth
 
 
 def _wcs(spec: FieldSpec, ra0: float, dec0: float) -> WCS:

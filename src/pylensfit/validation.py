@@ -32,7 +32,16 @@ import numpy as np
 from astropy.table import Table
 
 from .prior import Prior
-from .simulate import FieldSpec, _psf, draw_population, simulate_field, write_field
+from .simulate import (
+    FieldSpec,
+    _add_object,
+    _add_sky_and_noise,
+    _psf,
+    _truth_table,
+    draw_population,
+    simulate_field,
+    write_field,
+)
 
 __all__ = [
     "STEP1_PSFS",
@@ -181,27 +190,9 @@ def render_step2_field(
             if spec.rotate:
                 gal = gal.rotate(90 * galsim.degrees)
             obj = galsim.Convolve(gal.shear(g1=spec.g1, g2=spec.g2), psf)
-        stamp = obj.withFlux(flux[i]).drawImage(
-            nx=_STAMP, ny=_STAMP, scale=1.0, center=galsim.PositionD(x[i] + 1.0, y[i] + 1.0)
-        )
-        b = stamp.bounds & image.bounds
-        if b.isDefined():
-            image[b] += stamp[b]
-    arr = image.array.astype(np.float64)
-    noise_rng = np.random.default_rng([seed, 1] if noise_seed is None else noise_seed)
-    arr += spec.sky + noise_rng.normal(scale=spec.noise_sigma, size=arr.shape)
-    weight = np.full(arr.shape, 1.0 / spec.noise_sigma**2, dtype=np.float32)
-    truth = Table()
-    truth["x"] = x
-    truth["y"] = y
-    truth["is_star"] = is_star
-    truth["flux"] = flux
-    truth["r"] = np.where(is_star, 0.0, r)
-    truth["e1_int"] = np.where(is_star, 0.0, e_int[:, 0])
-    truth["e2_int"] = np.where(is_star, 0.0, e_int[:, 1])
-    truth["e1"] = e_obs.real
-    truth["e2"] = e_obs.imag
-    truth["snr"] = np.where(is_star, np.nan, snr)
+        _add_object(image, obj, flux[i], x[i], y[i], _STAMP)
+    arr, weight = _add_sky_and_noise(image, spec, seed, noise_seed)
+    truth = _truth_table(x, y, is_star, flux, r, e_int, e_obs, snr)
     truth["kind"] = np.where(is_star, "star", kinds)
     truth["sersic_n"] = np.where(is_star | (kinds != "sersic"), np.nan, sersic_n)
     truth["bulge_frac"] = np.where(is_star | (kinds == "sersic"), np.nan, bulge_frac)
@@ -219,7 +210,7 @@ def render_step2_field(
             "rotate": spec.rotate,
         }
     )
-    return arr.astype(np.float32), weight, truth
+    return arr, weight, truth
 
 
 def _field_size(ngal: int, n_fields: int, spacing: float, star_fraction: float) -> int:
