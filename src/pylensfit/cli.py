@@ -7,6 +7,7 @@
     pylensfit shear CATALOG... [--prior PRIOR] [--bin-by COLUMN:EDGES]
     pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S]
     pylensfit validate DIR [--report FILE]   # m, c, sigma_c, Q per PSF
+    pylensfit validate --precision [--ngal N] [--psf NAME...]   # paired +-g: m to 1e-3
     pylensfit config [-o FILE]          # the default configuration as YAML
     pylensfit demo                      # simulate, measure, prior, shear
 """
@@ -127,9 +128,32 @@ def _simulate(args: argparse.Namespace) -> int:
     return simulate_main([a for a in args.args if a != "--"])
 
 
+def _precision(args: argparse.Namespace) -> int:
+    from .precision import precision, spec_with
+
+    spec = spec_with(ngal=args.ngal, seed=args.seed, psfs=args.psf, g=args.g, ncal=args.ncal,
+                     block_size=args.block_size)  # fmt: skip
+    report = args.report or "precision/report.md"
+    res = precision(spec, config=_config(args) if args.config else None, jobs=args.jobs,
+                    scheduler=args.scheduler, report=report, progress=not args.quiet)  # fmt: skip
+    show = res[(res["breakdown"] == "all") | (res["breakdown"] == "psf")]
+    show = show[show["estimator"] == "fixed-point"]
+    for c in ("m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2", "c2_err"):
+        show[c].format = "+.5f"
+    show.pprint_all()
+    tim = res.meta["timing"]
+    print(f"{spec.ngal} galaxies in {tim['total_s']:.0f} s ({tim['galaxies_per_s']:.0f} "
+          f"galaxies/s in the main pass); report: {report}")  # fmt: skip
+    return 0
+
+
 def _validate(args: argparse.Namespace) -> int:
     from .validation import validate
 
+    if args.precision:
+        return _precision(args)
+    if args.directory is None:
+        raise SystemExit("pylensfit validate: give a simulated set's directory (or --precision)")
     res = validate(args.directory, config=_config(args) if args.config else None,
                    jobs=args.jobs, estimator=args.estimator, report=args.report,
                    progress=not args.quiet)  # fmt: skip
@@ -267,12 +291,25 @@ def build_parser() -> argparse.ArgumentParser:
     si.set_defaults(func=_simulate)
 
     v = sub.add_parser("validate", help="m, c, sigma_c and Q on a simulated set")
-    v.add_argument("directory", help="a set from `pylensfit simulate`")
+    v.add_argument("directory", nargs="?", help="a set from `pylensfit simulate`")
     v.add_argument("--config", help="YAML configuration (default: bulge+disc model)")
     v.add_argument("--jobs", type=int, default=1, help="local worker processes")
     v.add_argument("--estimator", choices=("key2", "fixed-point"), default="key2")
     v.add_argument("--report", help="write a Markdown report (and a PNG beside it)")
     v.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    pv = v.add_argument_group("precision mode: paired +-g renderings, no directory needed")
+    pv.add_argument("--precision", action="store_true",
+                    help="measure m and c from GalSim galaxies rendered at +g and -g, each "
+                         "with a 90-degree twin (report to --report, default "
+                         "precision/report.md)")  # fmt: skip
+    pv.add_argument("--ngal", type=int, default=200_000, help="galaxies (x4 renderings)")
+    pv.add_argument("--psf", nargs="+", help="PSFs by name: round, e=0.10, kolmogorov, "
+                    "asymmetric (default all)")  # fmt: skip
+    pv.add_argument("--seed", type=int, default=1, help="random seed")
+    pv.add_argument("--g", type=float, default=0.02, help="shear per component")
+    pv.add_argument("--ncal", type=int, default=20_000, help="calibration galaxies (prior)")
+    pv.add_argument("--block-size", type=int, default=500, help="galaxies per block")
+    pv.add_argument("--scheduler", help="dask.distributed scheduler address")
     v.set_defaults(func=_validate)
 
     c = sub.add_parser("config", help="print or write the default configuration (YAML)")

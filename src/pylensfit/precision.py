@@ -1,0 +1,795 @@
+"""Paired precision measurement of the shear bias: ``pylensfit validate --precision``.
+
+Independent simulated images cannot resolve ``|m| ~ 1e-3``: the intrinsic shapes of the
+galaxies scatter the measured shear by ``~0.3 / sqrt(N)``. This mode follows the design
+of the metacalibration papers (Sheldon & Huff 2017, Pujol et al. 2019) and cancels that
+scatter by construction. Every galaxy is rendered with GalSim four times:
+
+====  ==========  ==========  ====================
+ k     shear       rotated     noise field
+====  ==========  ==========  ====================
+ 0     ``+g``      no          ``n_a``
+ 1     ``+g``      90 deg      ``n_b``
+ 2     ``-g``      no          ``n_a``
+ 3     ``-g``      90 deg      ``n_b``
+====  ==========  ==========  ====================
+
+with ``g = (g0, g0)`` (``g0 = 0.02`` by default): the rotation cancels the intrinsic
+ellipticity in the mean, the shared noise at ``+g`` and ``-g`` cancels the noise in the
+difference. Per sample (a PSF, a bin of S/N, size, morphology or bulge fraction)
+
+    m_i = (g_hat_i(+g) - g_hat_i(-g)) / (2 g0) - 1,    c_i = (g_hat_i(+g) + g_hat_i(-g)) / 2,
+
+where ``g_hat(+-g)`` is the shear of renderings 0-1 (2-3) measured as a user would: the
+ellipticity prior comes from a separate *unsheared* calibration sample of the same
+population (:func:`pylensfit.prior.estimate_prior`), never from the sheared renderings;
+the PSF is the true one (this mode measures the shape measurement, not the PSF model).
+Both components are sheared together, so ``m_1`` includes the cross term
+``m_12 g_2 / g_1`` (zero by symmetry for a round PSF, second order otherwise).
+
+Three shear estimators are reported side by side:
+
+- ``exact``: paper eq. ``key2``, ``sum <e> / sum s``, with the exact sensitivity
+  (DESIGN.md section 4). Its known second-order bias is ``m ~ +|g|^2`` (noise-free,
+  ``sum s = N (1 - |g|^2)``), ``+8e-4`` at ``g = (0.02, 0.02)``.
+- ``paper``: eq. ``key2`` with the paper's eq. ``partial``.
+- ``fixed-point``: the sheared-prior fixed point of
+  :func:`pylensfit.shear.shear_fixed_point`, exact to all orders in ``g``. Streaming
+  keeps per galaxy the posterior mean and its derivative under the prior sheared by the
+  nominal shear ``g_n`` of the rendering (``+g`` or ``-g``), so the estimate is one
+  Newton step from ``g_n``: its error is second order in ``g_hat - g_n`` (a few 1e-3:
+  ``<1e-6``; ``tests/test_precision.py`` checks it against the iterated estimator).
+
+Errors are delete-one-block jackknife over the blocks of galaxies that are the unit of
+work. A galaxy is used only if all four renderings are measured (``paired`` selection,
+the default and the reported numbers); the ``independent`` selection, where each
+rendering's own flags decide, is reported too: the difference is the bias that a
+selection responding to the shear adds (stars, failed fits).
+
+The work streams: each block is rendered, fitted and reduced to 12 numbers per
+rendering in a worker; nothing is written to disk and memory grows by ~0.3 kB per
+galaxy. Blocks run on the project's runner (local processes or dask.distributed).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from astropy.table import Table
+
+from .config import Config
+from .prior import Prior
+
+__all__ = [
+    "PRECISION_PSFS",
+    "MORPHOLOGIES",
+    "PrecisionSpec",
+    "render_block",
+    "precision",
+    "bias_table",
+]
+
+#: PSFs of the precision mode (pixel units): a round Moffat, a Moffat of ellipticity
+#: 0.10, a larger Kolmogorov, and an asymmetric (coma-like) PSF: a Moffat core with a
+#: fainter, broader lobe displaced along x.
+PRECISION_PSFS: tuple[dict, ...] = (
+    {"name": "round", "kind": "moffat", "fwhm": 3.0, "beta": 3.5, "e1": 0.0, "e2": 0.0},
+    {"name": "e=0.10", "kind": "moffat", "fwhm": 3.0, "beta": 3.5, "e1": 0.10, "e2": 0.0},
+    {"name": "kolmogorov", "kind": "kolmogorov", "fwhm": 4.0, "e1": 0.0, "e2": 0.03},
+    {"name": "asymmetric", "kind": "asymmetric", "fwhm": 3.0, "beta": 3.5, "e1": 0.02,
+     "e2": -0.02, "lobe_flux": 0.2, "lobe_shift": 1.0},
+)  # fmt: skip
+
+#: Galaxy morphologies of the precision population (codes are the indices).
+MORPHOLOGIES: tuple[str, ...] = ("exponential", "devaucouleurs", "bulge+disc", "sersic", "knots")
+
+_ESTIMATORS = ("fixed-point", "exact", "paper")
+# per-rendering quantities kept by the workers
+_Q = ("e1", "e2", "sx1", "sx2", "sp1", "sp2", "fe1", "fe2", "J11", "J12", "J21", "J22")
+_NQ = len(_Q)
+
+
+@dataclass(frozen=True)
+class PrecisionSpec:
+    """What the precision mode simulates.
+
+    Attributes
+    ----------
+    ngal : int
+        Galaxies (each rendered four times).
+    g : float
+        Shear per component: renderings at ``+(g, g)`` and ``-(g, g)``.
+    psfs : tuple of dict
+        PSFs (see :data:`PRECISION_PSFS`); galaxies are shared out among them by block.
+    snr_range : tuple of float
+        S/N range, ``sqrt(sum I^2) / sigma`` of the noise-free rendering at ``+g``.
+    snr_slope : float
+        ``dN/dS ~ S^-snr_slope`` (2: the faint end of galaxy counts dominates).
+    size_ratio_range : tuple of float
+        Half-light radius over the PSF's half-light radius, log-uniform (the bulge+disc
+        and knotty galaxies use their disc's half-light radius).
+    morphology_weights : tuple of float
+        Fractions of :data:`MORPHOLOGIES`.
+    prior_params : tuple of float
+        ``(B, C, D)`` of the functional prior of the intrinsic ellipticities.
+    max_e : float
+        Largest intrinsic ``|e|``.
+    noise_sigma : float
+        Pixel noise.
+    block_size : int
+        Galaxies per block (unit of work and of the jackknife).
+    ncal : int
+        Galaxies of the unsheared calibration sample for the prior.
+    seed : int
+        Seed: everything is a function of it.
+    """
+
+    ngal: int = 200_000
+    g: float = 0.02
+    psfs: tuple[dict, ...] = PRECISION_PSFS
+    snr_range: tuple[float, float] = (10.0, 200.0)
+    snr_slope: float = 2.0
+    size_ratio_range: tuple[float, float] = (0.5, 2.5)
+    morphology_weights: tuple[float, ...] = (0.25, 0.15, 0.25, 0.2, 0.15)
+    prior_params: tuple[float, float, float] = (0.19, 0.58, 2.4)
+    max_e: float = 0.99
+    noise_sigma: float = 1.0
+    block_size: int = 500
+    ncal: int = 20_000
+    seed: int = 1
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.ngal < 2 * len(self.psfs) or self.block_size < 1:
+            raise ValueError("precision needs at least two galaxies per PSF and block_size >= 1")
+        if not 0 < self.g < 0.2:
+            raise ValueError(f"g must be in (0, 0.2), got {self.g}")
+        if len(self.morphology_weights) != len(MORPHOLOGIES):
+            raise ValueError(f"morphology_weights needs {len(MORPHOLOGIES)} values")
+
+
+# ----------------------------------------------------------------------------------------
+# Rendering
+# ----------------------------------------------------------------------------------------
+def _galsim_psf(p: dict):
+    import galsim
+
+    if p["kind"] == "moffat":
+        psf = galsim.Moffat(beta=p["beta"], fwhm=p["fwhm"])
+    elif p["kind"] == "kolmogorov":
+        psf = galsim.Kolmogorov(fwhm=p["fwhm"])
+    elif p["kind"] == "asymmetric":
+        core = galsim.Moffat(beta=p["beta"], fwhm=p["fwhm"]).withFlux(1.0 - p["lobe_flux"])
+        lobe = galsim.Moffat(beta=p["beta"], fwhm=1.5 * p["fwhm"]).withFlux(p["lobe_flux"])
+        psf = galsim.Add(core, lobe.shift(p["lobe_shift"], 0.0))
+    else:
+        raise ValueError(f"unknown PSF kind {p['kind']!r}")
+    return psf.shear(g1=p["e1"], g2=p["e2"])
+
+
+def _draw(obj, n: int, offset=(0.0, 0.0)) -> np.ndarray:
+    """``obj`` with the pixel response on ``n x n``, its centre at element ``[n//2, n//2]``."""
+    half = 0.5 if n % 2 == 0 else 0.0
+    return obj.drawImage(nx=n, ny=n, scale=1.0, offset=(offset[0] + half, offset[1] + half)).array
+
+
+def _psf_image(p: dict, n: int) -> tuple[np.ndarray, float]:
+    """The PSF image on the stamp grid and its half-light radius (pixels)."""
+    import galsim
+
+    psf = _galsim_psf(p)
+    img = _draw(psf, n)
+    hlr = galsim.Image(_draw(psf, 4 * n), scale=1.0).calculateHLR()
+    return img / img.sum(), float(hlr)
+
+
+def _profile(morph: str, r: float, bulge_frac: float, sersic_n: float, n_knots: int,
+             knot_frac: float, knot_seed: int):  # fmt: skip
+    """Round unit-flux galaxy of half-light radius ``r`` (pixels)."""
+    import galsim
+
+    from .models import DEVAUC_TRUNCATION as T
+
+    if morph == "exponential":
+        return galsim.Exponential(half_light_radius=r)
+    if morph == "devaucouleurs":
+        return galsim.DeVaucouleurs(half_light_radius=r, trunc=T * r)
+    if morph == "sersic":
+        return galsim.Sersic(n=sersic_n, half_light_radius=r, trunc=T * r if sersic_n > 2 else 0.0)
+    rb = 0.5 * r
+    bulge = galsim.DeVaucouleurs(half_light_radius=rb, trunc=T * rb).withFlux(bulge_frac)
+    disc_flux = 1.0 - bulge_frac
+    if morph == "bulge+disc":
+        return galsim.Add(bulge, galsim.Exponential(half_light_radius=r).withFlux(disc_flux))
+    if morph == "knots":
+        knots = galsim.RandomKnots(n_knots, half_light_radius=r, flux=knot_frac * disc_flux,
+                                   rng=galsim.BaseDeviate(knot_seed))  # fmt: skip
+        disc = galsim.Exponential(half_light_radius=r).withFlux((1 - knot_frac) * disc_flux)
+        return galsim.Add(bulge, disc, knots)
+    raise ValueError(f"unknown morphology {morph!r}")
+
+
+def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Generator) -> Table:
+    """Per-galaxy parameters of one block (all drawn from ``rng``)."""
+    w = np.asarray(spec.morphology_weights, float)
+    morph = rng.choice(len(MORPHOLOGIES), n, p=w / w.sum())
+    lo, hi = spec.snr_range
+    u = rng.random(n)
+    a = spec.snr_slope
+    if abs(a - 1.0) < 1e-9:
+        snr = lo * (hi / lo) ** u
+    else:  # inverse CDF of S^-a on [lo, hi]
+        snr = (lo ** (1 - a) + u * (hi ** (1 - a) - lo ** (1 - a))) ** (1 / (1 - a))
+    ratio = np.exp(rng.uniform(*np.log(spec.size_ratio_range), n))
+    prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
+    e = prior.sample(n, rng=rng)
+    big = np.hypot(*e.T) > spec.max_e
+    while np.any(big):
+        e[big] = prior.sample(int(big.sum()), rng=rng)
+        big = np.hypot(*e.T) > spec.max_e
+    name = np.asarray(MORPHOLOGIES)[morph]
+    bf = np.select([name == "exponential", name == "devaucouleurs", name == "bulge+disc",
+                    name == "knots"],
+                   [0.0, 1.0, rng.uniform(0, 1, n), rng.uniform(0, 0.3, n)], np.nan)  # fmt: skip
+    t = Table()
+    t["morph"] = morph.astype(np.int16)
+    t["snr"] = snr
+    t["size_ratio"] = ratio
+    t["r"] = ratio * psf_hlr
+    t["e1_int"], t["e2_int"] = e[:, 0], e[:, 1]
+    t["bulge_frac"] = bf
+    t["sersic_n"] = np.where(name == "sersic", np.round(rng.uniform(0.5, 4.0, n), 1), np.nan)
+    t["n_knots"] = np.where(name == "knots", rng.integers(10, 30, n), 0)
+    t["knot_frac"] = rng.uniform(0.2, 0.5, n)
+    t["knot_seed"] = rng.integers(1, 2**31 - 1, n)
+    t["dx"] = rng.uniform(-0.5, 0.5, n)
+    t["dy"] = rng.uniform(-0.5, 0.5, n)
+    return t
+
+
+def render_block(
+    spec: PrecisionSpec,
+    psf_index: int,
+    block: int,
+    *,
+    stamp_size: int = 32,
+    calibration: bool = False,
+    noise: bool = True,
+) -> tuple[np.ndarray, np.ndarray, Table]:
+    """Render one block of the precision set (or of its calibration sample).
+
+    Parameters
+    ----------
+    spec : PrecisionSpec
+        The set.
+    psf_index : int
+        Which of ``spec.psfs``.
+    block : int
+        Block number (its galaxies and noise are a function of ``spec.seed`` and it).
+    stamp_size : int
+        Stamp side in pixels.
+    calibration : bool
+        Render the unsheared calibration sample instead: one rendering per galaxy.
+    noise : bool
+        Add the noise (``False``: the noise-free renderings, for tests).
+
+    Returns
+    -------
+    stamps : numpy.ndarray
+        ``(n, 4, N, N)`` renderings in the order of the module table (``(n, 1, N, N)``
+        for the calibration sample), indexed ``[.., y, x]``.
+    psf : numpy.ndarray
+        ``(N, N)`` the PSF image (pixel response included, unit sum).
+    truth : astropy.table.Table
+        The galaxies' parameters (:func:`_population`).
+    """
+    import galsim
+
+    p = spec.psfs[psf_index]
+    n_stamp = int(stamp_size)
+    psf_img, psf_hlr = _psf_image(p, n_stamp)
+    nblocks = _n_blocks(spec.ncal if calibration else spec.ngal, spec.block_size)
+    ntot = spec.ncal if calibration else spec.ngal
+    n = min(spec.block_size, ntot - block * spec.block_size)
+    if n <= 0 or block >= nblocks:
+        raise ValueError(f"block {block} is outside the set ({nblocks} blocks)")
+    rng = np.random.default_rng([spec.seed, int(calibration), block])
+    t = _population(spec, n, psf_hlr, rng)
+    psf = _galsim_psf(p)
+    sig = spec.noise_sigma
+    if calibration:
+        shears = [(0.0, False)]
+    else:
+        shears = [(+spec.g, False), (+spec.g, True), (-spec.g, False), (-spec.g, True)]
+    out = np.empty((n, len(shears), n_stamp, n_stamp), dtype=np.float32)
+    flux = np.empty(n)
+    for a in range(n):  # GalSim renders one profile at a time
+        gal = _profile(MORPHOLOGIES[t["morph"][a]], float(t["r"][a]), float(t["bulge_frac"][a]),
+                       float(t["sersic_n"][a]), int(t["n_knots"][a]), float(t["knot_frac"][a]),
+                       int(t["knot_seed"][a]))  # fmt: skip
+        gal = gal.shear(g1=float(t["e1_int"][a]), g2=float(t["e2_int"][a]))
+        off = (float(t["dx"][a]), float(t["dy"][a]))
+        for k, (g, rot) in enumerate(shears):
+            obj = gal.rotate(90 * galsim.degrees) if rot else gal
+            out[a, k] = _draw(galsim.Convolve(obj.shear(g1=g, g2=g), psf), n_stamp, off)
+        flux[a] = t["snr"][a] * sig / math.sqrt(float(np.sum(out[a, 0].astype(float) ** 2)))
+    out *= flux[:, None, None, None].astype(np.float32)
+    t["flux"] = flux
+    if noise:
+        nrng = np.random.default_rng([spec.seed, int(calibration), block, 1])
+        if calibration:
+            out += nrng.normal(scale=sig, size=out.shape).astype(np.float32)
+        else:
+            na = nrng.normal(scale=sig, size=(n, n_stamp, n_stamp)).astype(np.float32)
+            nb = nrng.normal(scale=sig, size=(n, n_stamp, n_stamp)).astype(np.float32)
+            out[:, 0] += na
+            out[:, 2] += na  # the same noise at +g and -g
+            out[:, 1] += nb
+            out[:, 3] += nb
+    return out, psf_img, t
+
+
+def _n_blocks(n: int, size: int) -> int:
+    return -(-int(n) // int(size))
+
+
+# ----------------------------------------------------------------------------------------
+# Per-rendering reduction: the 12 numbers the estimators need
+# ----------------------------------------------------------------------------------------
+def reduce_likelihoods(
+    lnL: np.ndarray, egrid: np.ndarray, prior: Prior, g_nominal, *, refine: int = 4
+) -> np.ndarray:
+    """The per-rendering quantities of every estimator, one pass over the posteriors.
+
+    Parameters
+    ----------
+    lnL : numpy.ndarray
+        ``(n, n_e)`` likelihoods on ``egrid`` (usable rows only).
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` ellipticity grid.
+    prior : Prior
+        The (unsheared) prior.
+    g_nominal : sequence of float
+        ``(g1, g2)`` about which the fixed-point estimator is linearised.
+    refine : int
+        Integration refinement (as :func:`pylensfit.shear.shapes`).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, 12)``: ``<e1>, <e2>`` under ``P``; exact sensitivities ``sx1, sx2``; the
+        paper's ``sp1, sp2``; ``<e1>, <e2>`` under ``P_gn`` (the prior sheared by
+        ``g_nominal``) and their derivatives ``d<e_i>/dg_j`` there (``J11, J12, J21,
+        J22``).
+    """
+    from .shear import (
+        _kernel_columns,
+        _moments_from_sums,
+        _refiner,
+        _sensitivity_from_sums,
+        _sheared_prior_columns,
+        _sums_with,
+    )
+
+    grid = egrid if refine == 1 else _refiner(egrid, refine).fine
+    K0 = _kernel_columns(prior, grid)
+    P, d1, d2 = _sheared_prior_columns(prior, grid, np.asarray(g_nominal, float))
+    e1, e2 = grid[:, 0], grid[:, 1]
+    K1 = np.column_stack([P, e1 * P, e2 * P, d1, e1 * d1, e2 * d1, d2, e1 * d2, e2 * d2])
+    S = _sums_with(lnL, egrid, np.hstack([K0, K1]), refine, None)
+    S0, S1 = S[:, :14], S[:, 14:]
+    mom = _moments_from_sums(S0)
+    sx = _sensitivity_from_sums(S0, "exact")
+    sp = _sensitivity_from_sums(S0, "paper")
+    s0 = S1[:, 0]
+    f1, f2 = S1[:, 1] / s0, S1[:, 2] / s0
+    return np.column_stack([
+        mom["e1"], mom["e2"], sx[0], sx[1], sp[0], sp[1], f1, f2,
+        (S1[:, 4] - f1 * S1[:, 3]) / s0, (S1[:, 7] - f1 * S1[:, 6]) / s0,
+        (S1[:, 5] - f2 * S1[:, 3]) / s0, (S1[:, 8] - f2 * S1[:, 6]) / s0,
+    ])  # fmt: skip
+
+
+def _usable(fits) -> np.ndarray:
+    """Measured galaxies: no flag and not classified as a point source."""
+    return (np.asarray(fits.flags) == 0) & ~np.asarray(fits.is_star)
+
+
+def _block_task(task: dict[str, Any]) -> dict[str, Any]:
+    """Render, fit and reduce one block (runs in a worker)."""
+    from .likelihood import fit_stamps
+    from .pipeline import _single_thread
+
+    _single_thread(task.get("single_thread", False))
+    spec: PrecisionSpec = task["spec"]
+    cfg: Config = task["config"]
+    t0 = time.perf_counter()
+    stamps, psf, truth = render_block(spec, task["psf"], task["block"],
+                                      stamp_size=cfg.stamp_size,
+                                      calibration=task["calibration"])  # fmt: skip
+    t1 = time.perf_counter()
+    n, nr = stamps.shape[:2]
+    fits = fit_stamps(stamps.reshape(n * nr, *stamps.shape[2:]), psf, spec.noise_sigma,
+                      config=cfg)  # fmt: skip
+    t2 = time.perf_counter()
+    ok = _usable(fits)
+    res: dict[str, Any] = {"block": task["block"], "psf": task["psf"], "truth": truth,
+                           "render_s": t1 - t0, "fit_s": t2 - t1}  # fmt: skip
+    if task["calibration"]:
+        res["lnL"] = fits.lnL[ok]
+        res["egrid"] = fits.egrid
+        res["n_usable"] = int(ok.sum())
+        return res
+    Q = np.full((n * nr, _NQ), np.nan)
+    g = spec.g
+    for k in range(nr):  # four renderings: the nominal shear differs
+        sel = np.zeros(n * nr, bool)
+        sel[k::nr] = True
+        sel &= ok
+        if np.any(sel):
+            gn = (g, g) if k < 2 else (-g, -g)
+            Q[sel] = reduce_likelihoods(fits.lnL[sel], fits.egrid, task["prior"], gn,
+                                        refine=cfg.integration_refine)  # fmt: skip
+    res["Q"] = Q.reshape(n, nr, _NQ).astype(np.float32)
+    res["usable"] = ok.reshape(n, nr)
+    res["r_best"] = fits.r_best.reshape(n, nr)[:, 0].astype(np.float32)
+    res["snr_meas"] = fits.snr.reshape(n, nr)[:, 0].astype(np.float32)
+    res["reduce_s"] = time.perf_counter() - t2
+    return res
+
+
+# ----------------------------------------------------------------------------------------
+# Estimators and the jackknife
+# ----------------------------------------------------------------------------------------
+def _shear_from_sums(T: np.ndarray, N: np.ndarray, gn: np.ndarray, estimator: str):
+    """``(..., 2)`` shear from summed quantities ``T (..., 12)`` of ``N (...)`` renderings."""
+    ix = {q: i for i, q in enumerate(_Q)}
+    if estimator in ("exact", "paper"):
+        s = "sx" if estimator == "exact" else "sp"
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.stack([T[..., ix["e1"]] / T[..., ix[f"{s}1"]],
+                             T[..., ix["e2"]] / T[..., ix[f"{s}2"]]], axis=-1)  # fmt: skip
+    # one Newton step of f(g) = sum <e>(P_g) - N g from g_nominal
+    f1 = T[..., ix["fe1"]] - N * gn[0]
+    f2 = T[..., ix["fe2"]] - N * gn[1]
+    a, b = T[..., ix["J11"]] - N, T[..., ix["J12"]]
+    c, d = T[..., ix["J21"]], T[..., ix["J22"]] - N
+    with np.errstate(invalid="ignore", divide="ignore"):
+        det = a * d - b * c
+        return np.stack([gn[0] - (d * f1 - b * f2) / det, gn[1] - (a * f2 - c * f1) / det],
+                        axis=-1)  # fmt: skip
+
+
+def bias_table(
+    Q: np.ndarray,
+    usable: np.ndarray,
+    blocks: np.ndarray,
+    g: float,
+    *,
+    groups: dict[str, np.ndarray] | None = None,
+    selection: str = "paired",
+) -> Table:
+    """m and c with jackknife errors for every estimator and group of galaxies.
+
+    Parameters
+    ----------
+    Q : numpy.ndarray
+        ``(n_gal, 4, 12)`` per-rendering quantities (:func:`reduce_likelihoods`), in the
+        rendering order of the module table.
+    usable : numpy.ndarray
+        ``(n_gal, 4)`` measured renderings.
+    blocks : numpy.ndarray
+        ``(n_gal,)`` jackknife block of each galaxy.
+    g : float
+        The applied shear per component (``+-(g, g)``).
+    groups : dict of str to numpy.ndarray, optional
+        Named boolean ``(n_gal,)`` masks; default one group ``all``.
+    selection : {"paired", "independent"}
+        ``paired``: a galaxy counts only if all four renderings are measured;
+        ``independent``: each rendering counts on its own.
+
+    Returns
+    -------
+    astropy.table.Table
+        One row per group and estimator: ``group, estimator, m1, m1_err, m2, m2_err, c1,
+        c1_err, c2, c2_err, n_gal, n_blocks``; errors are delete-one-block jackknife.
+    """
+    Q = np.nan_to_num(np.asarray(Q, float))
+    usable = np.asarray(usable, bool)
+    if selection == "paired":
+        w = np.repeat(usable.all(axis=1, keepdims=True), 4, axis=1)
+    elif selection == "independent":
+        w = usable
+    else:
+        raise ValueError(f"selection must be 'paired' or 'independent', got {selection!r}")
+    ub, bidx = np.unique(np.asarray(blocks), return_inverse=True)
+    nb = ub.size
+    groups = groups if groups is not None else {"all": np.ones(len(Q), bool)}
+    rows = []
+    gvec = np.array([g, g])
+    for name, mask in groups.items():
+        mask = np.asarray(mask, bool)
+        n_gal = int((mask & w.any(axis=1)).sum())
+        # per block sums of the + and - renderings: (2, nb, 12) and (2, nb)
+        T = np.zeros((2, nb, _NQ))
+        N = np.zeros((2, nb))
+        for s, ks in enumerate(((0, 1), (2, 3))):
+            ww = w[:, ks] & mask[:, None]
+            qs = np.einsum("ak,akq->aq", ww, Q[:, ks])
+            for q in range(_NQ):
+                T[s, :, q] = np.bincount(bidx, weights=qs[:, q], minlength=nb)
+            N[s] = np.bincount(bidx, weights=ww.sum(axis=1), minlength=nb)
+        used = N.sum(axis=0) > 0
+        tot_T, tot_N = T.sum(axis=1), N.sum(axis=1)
+        # full sample first, then leave-one-block-out (only blocks with galaxies)
+        TT = np.concatenate([tot_T[:, None], tot_T[:, None] - T[:, used]], axis=1)
+        NN = np.concatenate([tot_N[:, None], tot_N[:, None] - N[:, used]], axis=1)
+        k = int(used.sum())
+        for est in _ESTIMATORS:
+            gp = _shear_from_sums(TT[0], NN[0], gvec, est)
+            gm = _shear_from_sums(TT[1], NN[1], -gvec, est)
+            m = (gp - gm) / (2 * g) - 1.0
+            c = (gp + gm) / 2.0
+            row: dict[str, Any] = {"group": name, "estimator": est}
+            for i in (0, 1):
+                for key, v in (("m", m[:, i]), ("c", c[:, i])):
+                    row[f"{key}{i + 1}"] = float(v[0])
+                    jk = v[1:]
+                    row[f"{key}{i + 1}_err"] = (
+                        float(math.sqrt((k - 1) / k * np.sum((jk - jk.mean()) ** 2)))
+                        if k > 1 else math.nan
+                    )  # fmt: skip
+            row["n_gal"] = n_gal
+            row["n_blocks"] = k
+            rows.append(row)
+    names = ["group", "estimator", "m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2",
+             "c2_err", "n_gal", "n_blocks"]  # fmt: skip
+    return Table(rows=[[r[k] for k in names] for r in rows], names=names)
+
+
+# ----------------------------------------------------------------------------------------
+# The run
+# ----------------------------------------------------------------------------------------
+#: Bin edges of the breakdowns (true S/N, size over PSF size, bulge fraction).
+SNR_EDGES = (10.0, 12.5, 15.0, 20.0, 30.0, 50.0, 100.0, 200.0)
+SIZE_EDGES = (0.5, 0.7, 1.0, 1.4, 2.0, 2.5)
+BULGE_EDGES = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
+
+
+def _breakdowns(gal: Table, psfs: tuple[dict, ...]) -> dict[str, dict[str, np.ndarray]]:
+    def binned(col, edges):
+        v = np.asarray(gal[col], float)
+        out = {}
+        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+            sel = (v >= lo) & ((v < hi) | ((hi == edges[-1]) & (v <= hi)))
+            out[f"{lo:g}-{hi:g}"] = sel
+        return out
+
+    psf = np.asarray(gal["psf"])
+    morph = np.asarray(gal["morph"])
+    return {
+        "psf": {p["name"]: psf == i for i, p in enumerate(psfs)},
+        "snr": binned("snr", SNR_EDGES),
+        "size": binned("size_ratio", SIZE_EDGES),
+        "morphology": {m: morph == i for i, m in enumerate(MORPHOLOGIES)},
+        "bulge_frac": binned("bulge_frac", BULGE_EDGES),
+    }
+
+
+def precision(
+    spec: PrecisionSpec | None = None,
+    *,
+    config: Config | None = None,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    report: str | Path | None = None,
+    progress: bool = True,
+) -> Table:
+    """Run the paired precision measurement of m and c (see the module docstring).
+
+    Parameters
+    ----------
+    spec : PrecisionSpec, optional
+        The simulated set (default :class:`PrecisionSpec()`: 200,000 galaxies, four PSFs).
+    config : Config, optional
+        Measurement settings (default: the bulge+disc model, as ``pylensfit validate``).
+    jobs : int
+        Local worker processes.
+    scheduler : str, optional
+        A dask.distributed scheduler address to run the blocks on instead.
+    report : str or pathlib.Path, optional
+        Write a Markdown report here, with one PNG per breakdown beside it and the table
+        as ECSV.
+    progress : bool
+        Progress bars.
+
+    Returns
+    -------
+    astropy.table.Table
+        :func:`bias_table` rows for the breakdowns ``all``, per PSF, S/N, size,
+        morphology and bulge fraction (column ``breakdown``), paired selection, plus the
+        ``all`` rows with independent selection (``breakdown = "selection"``). ``meta``:
+        ``prior``, ``spec``, ``timing`` (seconds and galaxies per second), the largest
+        fixed-point Newton step ``fp_step`` and ``galaxies`` (per-galaxy truth).
+    """
+    from .pipeline import _run
+    from .prior import estimate_prior
+
+    spec = spec if spec is not None else PrecisionSpec()
+    cfg = config if config is not None else Config(model="bulge+disc")
+    npsf = len(spec.psfs)
+    t_start = time.perf_counter()
+    # 1. the prior, from an unsheared calibration sample of the same population
+    ncb = _n_blocks(spec.ncal, spec.block_size)
+    tasks = [{"spec": spec, "config": cfg, "psf": b % npsf, "block": b, "calibration": True}
+             for b in range(ncb)]  # fmt: skip
+    lnls, egrid, render_s, fit_s = [], None, 0.0, 0.0
+    for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, "calibration", progress),
+                       key=lambda tr: tr[0]["block"]):  # fmt: skip
+        lnls.append(r["lnL"])
+        egrid = r["egrid"]
+        render_s += r["render_s"]
+        fit_s += r["fit_s"]
+    prior = estimate_prior(np.concatenate(lnls), egrid, method=cfg.prior_method)
+    t_cal = time.perf_counter() - t_start
+    # 2. the four renderings of every galaxy, streamed block by block
+    nb = _n_blocks(spec.ngal, spec.block_size)
+    tasks = [{"spec": spec, "config": cfg, "prior": prior, "psf": b % npsf, "block": b,
+              "calibration": False} for b in range(nb)]  # fmt: skip
+    parts: dict[int, dict] = {}
+    for t, r in _run(_block_task, tasks, jobs, scheduler, "precision", progress):
+        parts[t["block"]] = r
+    res = [parts[b] for b in range(nb)]
+    t_main = time.perf_counter() - t_start - t_cal
+    Q = np.concatenate([r["Q"] for r in res])
+    usable = np.concatenate([r["usable"] for r in res])
+    gal = Table(np.hstack([np.asarray(r["truth"]) for r in res]))
+    gal["psf"] = np.concatenate([np.full(len(r["truth"]), r["psf"]) for r in res])
+    gal["block"] = np.concatenate([np.full(len(r["truth"]), r["block"]) for r in res])
+    gal["r_best"] = np.concatenate([r["r_best"] for r in res])
+    gal["snr_meas"] = np.concatenate([r["snr_meas"] for r in res])
+    gal["n_usable"] = usable.sum(axis=1)
+    # 3. m and c
+    tabs = [bias_table(Q, usable, gal["block"], spec.g)]
+    tabs[0]["breakdown"] = "all"
+    for name, groups in _breakdowns(gal, spec.psfs).items():
+        t = bias_table(Q, usable, gal["block"], spec.g, groups=groups)
+        t["breakdown"] = name
+        tabs.append(t)
+    t = bias_table(Q, usable, gal["block"], spec.g, selection="independent")
+    t["breakdown"] = "selection"
+    t.replace_column("group", np.full(len(t), "independent"))
+    tabs.append(t)
+    from astropy.table import vstack
+
+    out = vstack(tabs)
+    out = out[["breakdown", *[c for c in out.colnames if c != "breakdown"]]]
+    # the fixed-point linearisation: distance of the estimate from the nominal shear
+    step = 0.0
+    for s, ks in enumerate(((0, 1), (2, 3))):
+        w = usable.all(axis=1)
+        T = np.nan_to_num(Q[w][:, ks].astype(float)).sum(axis=(0, 1))
+        gn = np.array([spec.g, spec.g]) * (1 if s == 0 else -1)
+        gh = _shear_from_sums(T, np.asarray(2.0 * w.sum()), gn, "fixed-point")
+        step = max(step, float(np.max(np.abs(gh - gn))))
+    render_s += sum(r["render_s"] for r in res)
+    fit_s += sum(r["fit_s"] + r["reduce_s"] for r in res)
+    total = time.perf_counter() - t_start
+    out.meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D}
+    out.meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
+    out.meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
+    out.meta["config"] = {"model": cfg.model, "e_step": cfg.e_step, "r_step": cfg.r_step,
+                          "stamp_size": cfg.stamp_size,
+                          "integration_refine": cfg.integration_refine}  # fmt: skip
+    out.meta["fp_step"] = step
+    out.meta["timing"] = {
+        "total_s": total, "calibration_s": t_cal, "main_s": t_main,
+        "render_cpu_s": render_s, "fit_cpu_s": fit_s, "jobs": jobs,
+        "galaxies_per_s": spec.ngal / t_main, "renderings_per_s": 4 * spec.ngal / t_main,
+    }  # fmt: skip
+    out.meta["galaxies"] = gal
+    if report is not None:
+        write_report(out, report)
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# Report
+# ----------------------------------------------------------------------------------------
+def _fmt(v: float, e: float, digits: int = 4) -> str:
+    return f"{v:+.{digits}f} ± {e:.{digits}f}"
+
+
+def write_report(res: Table, path: str | Path) -> None:
+    """Markdown report of :func:`precision`: tables, one PNG per breakdown, the ECSV table.
+
+    Parameters
+    ----------
+    res : astropy.table.Table
+        The result of :func:`precision`.
+    path : str or pathlib.Path
+        The Markdown file; ``<stem>_<breakdown>.png`` and ``<stem>.ecsv`` go beside it.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    spec, tim = res.meta["spec"], res.meta["timing"]
+    lines = [
+        "# pylensfit precision run: paired ±g renderings with rotated twins", "",
+        f"{spec['ngal']} galaxies × 4 renderings, g = ±({spec['g']}, {spec['g']}), "
+        f"{len(spec['psfs'])} PSFs, S/N {spec['snr_range'][0]:g}-{spec['snr_range'][1]:g} "
+        f"(dN/dS ∝ S^-{spec['snr_slope']:g}), size/PSF size "
+        f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g}, seed {spec['seed']}; "
+        f"model {res.meta['config']['model']}. ", "",
+        f"Prior from {spec['ncal']} unsheared calibration galaxies: "
+        f"B={res.meta['prior']['B']:.3f}, C={res.meta['prior']['C']:.3f}, "
+        f"D={res.meta['prior']['D']:.3f} (true {tuple(spec['prior_params'])}). "
+        f"Largest fixed-point Newton step {res.meta['fp_step']:.1e}.", "",
+        f"Time {tim['total_s']:.0f} s with {tim['jobs']} job(s): {tim['galaxies_per_s']:.0f} "
+        f"galaxies/s ({tim['renderings_per_s']:.0f} renderings/s) in the main pass; CPU "
+        f"{tim['render_cpu_s']:.0f} s rendering, {tim['fit_cpu_s']:.0f} s fitting.", "",
+        "Errors are delete-one-block jackknife (1 sigma).", "",
+    ]  # fmt: skip
+    for bd in dict.fromkeys(res["breakdown"]):
+        t = res[res["breakdown"] == bd]
+        lines += [f"## {bd}", "", "| group | estimator | m1 | m2 | c1 | c2 | galaxies |",
+                  "|---|---|---|---|---|---|---|"]  # fmt: skip
+        for r in t:
+            lines.append(
+                f"| {r['group']} | {r['estimator']} | {_fmt(r['m1'], r['m1_err'])} | "
+                f"{_fmt(r['m2'], r['m2_err'])} | {_fmt(r['c1'], r['c1_err'], 5)} | "
+                f"{_fmt(r['c2'], r['c2_err'], 5)} | {r['n_gal']} |"
+            )
+        if bd not in ("all", "selection"):
+            png = path.with_name(f"{path.stem}_{bd}.png")
+            fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
+            labels = list(dict.fromkeys(t["group"]))
+            x = np.arange(len(labels))
+            for i, ax in zip((1, 2), axes, strict=True):
+                for j, est in enumerate(_ESTIMATORS):
+                    s = t[t["estimator"] == est]
+                    ax.errorbar(x + (j - 1) * 0.12, s[f"m{i}"], yerr=s[f"m{i}_err"], fmt="o",
+                                ms=3, label=est)  # fmt: skip
+                ax.axhspan(-1e-3, 1e-3, color="0.85")
+                ax.axhline(0, color="k", lw=0.5)
+                ax.set_xticks(x, labels, rotation=30, fontsize=7)
+                ax.set_title(f"m{i} by {bd}")
+            axes[0].set_ylabel("m")
+            axes[1].legend(fontsize=7)
+            fig.tight_layout()
+            fig.savefig(png, dpi=100)
+            plt.close(fig)
+            lines += ["", f"![m by {bd}]({png.name})"]
+        lines.append("")
+    path.write_text("\n".join(lines))
+    tab = res.copy(copy_data=True)
+    tab.meta = {k: v for k, v in res.meta.items() if k not in ("galaxies",)}
+    tab.write(path.with_suffix(".ecsv"), overwrite=True)
+
+
+def spec_with(spec: PrecisionSpec | None = None, **kw) -> PrecisionSpec:
+    """``spec`` (default :class:`PrecisionSpec`) with fields replaced (``psfs`` by names)."""
+    spec = spec if spec is not None else PrecisionSpec()
+    if "psfs" in kw and kw["psfs"] is not None:
+        names = {p["name"]: p for p in PRECISION_PSFS}
+        chosen = []
+        for p in kw["psfs"]:
+            if isinstance(p, dict):
+                chosen.append(p)
+            elif str(p) in names:
+                chosen.append(names[str(p)])
+            elif str(p).isdigit() and int(p) < len(PRECISION_PSFS):
+                chosen.append(PRECISION_PSFS[int(p)])
+            else:
+                raise ValueError(f"unknown PSF {p!r}: choose from {', '.join(names)}")
+        kw["psfs"] = tuple(chosen)
+    return replace(spec, **{k: v for k, v in kw.items() if v is not None})
