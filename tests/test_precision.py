@@ -172,3 +172,25 @@ def test_small_precision_run_bright_exponentials():
                 assert abs(r[f"c{i}"]) < 4 * r[f"c{i}_err"] + 1e-3, r
     assert res.meta["fp_step"] < 0.01
     assert set(res["breakdown"]) >= {"psf", "snr", "size", "morphology", "bulge_frac"}
+
+
+def test_cli_precision_writes_report(tmp_path, capsys):
+    from astropy.table import Table
+
+    from pylensfit.cli import main
+
+    rep = tmp_path / "prec" / "report.md"
+    args = ["validate", "--precision", "--ngal", "16", "--ncal", "80", "--block-size", "4",
+            "--psf", "round", "e=0.10", "--seed", "3", "--report", str(rep), "-q"]  # fmt: skip
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "fixed-point" in out and "e=0.10" in out
+    text = rep.read_text()
+    assert "## psf" in text and "## snr" in text and "report_snr.png" in text
+    assert (tmp_path / "prec" / "report_morphology.png").stat().st_size > 0
+    tab = Table.read(rep.with_suffix(".ecsv"))
+    assert set(tab["breakdown"]) >= {"all", "psf", "snr", "size", "selection"}
+    assert tab.meta["spec"]["ngal"] == 16
+    # a directory or a mode is required
+    with pytest.raises(SystemExit):
+        main(["validate"])

@@ -8,6 +8,7 @@
     pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S]
     pylensfit validate DIR [--report FILE]   # m, c, sigma_c, Q per PSF
     pylensfit validate --precision [--ngal N] [--psf NAME...]   # paired +-g: m to 1e-3
+    pylensfit validate --convergence [--out DIR]   # grid convergence (paper Figure 2)
     pylensfit config [-o FILE]          # the default configuration as YAML
     pylensfit demo                      # simulate, measure, prior, shear
 """
@@ -131,8 +132,8 @@ def _simulate(args: argparse.Namespace) -> int:
 def _precision(args: argparse.Namespace) -> int:
     from .precision import precision, spec_with
 
-    spec = spec_with(ngal=args.ngal, seed=args.seed, psfs=args.psf, g=args.g, ncal=args.ncal,
-                     block_size=args.block_size)  # fmt: skip
+    spec = spec_with(ngal=args.ngal or 200_000, seed=args.seed, psfs=args.psf, g=args.g,
+                     ncal=args.ncal, block_size=args.block_size)  # fmt: skip
     report = args.report or "precision/report.md"
     res = precision(spec, config=_config(args) if args.config else None, jobs=args.jobs,
                     scheduler=args.scheduler, report=report, progress=not args.quiet)  # fmt: skip
@@ -147,13 +148,32 @@ def _precision(args: argparse.Namespace) -> int:
     return 0
 
 
+def _convergence(args: argparse.Namespace) -> int:
+    from .convergence import convergence
+
+    cfg = _config(args) if args.config else None
+    tab = convergence(args.out, ngal=args.ngal or 1000, seed=args.seed, config=cfg,
+                      progress=not args.quiet)  # fmt: skip
+    cols = ["parameter", "value", "n_used", "e1", "e2", "e1sq", "e2sq", "sens1", "sens2",
+            "d_e1", "d_e1_err", "rel_e1sq", "rel_sens1"]  # fmt: skip
+    for c in cols[3:]:
+        tab[c].format = "+.4f"
+    tab[cols].pprint_all()
+    if args.out:
+        print(f"written: {args.out}/convergence.png, .ecsv, .md")
+    return 0
+
+
 def _validate(args: argparse.Namespace) -> int:
     from .validation import validate
 
     if args.precision:
         return _precision(args)
+    if args.convergence:
+        return _convergence(args)
     if args.directory is None:
-        raise SystemExit("pylensfit validate: give a simulated set's directory (or --precision)")
+        raise SystemExit("pylensfit validate: give a simulated set's directory (or "
+                         "--precision, --convergence)")  # fmt: skip
     res = validate(args.directory, config=_config(args) if args.config else None,
                    jobs=args.jobs, estimator=args.estimator, report=args.report,
                    progress=not args.quiet)  # fmt: skip
@@ -302,7 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="measure m and c from GalSim galaxies rendered at +g and -g, each "
                          "with a 90-degree twin (report to --report, default "
                          "precision/report.md)")  # fmt: skip
-    pv.add_argument("--ngal", type=int, default=200_000, help="galaxies (x4 renderings)")
+    pv.add_argument("--ngal", type=int, help="galaxies: x4 renderings with --precision "
+                    "(default 200,000); with --convergence (default 1000)")  # fmt: skip
     pv.add_argument("--psf", nargs="+", help="PSFs by name: round, e=0.10, kolmogorov, "
                     "asymmetric (default all)")  # fmt: skip
     pv.add_argument("--seed", type=int, default=1, help="random seed")
@@ -310,6 +331,11 @@ def build_parser() -> argparse.ArgumentParser:
     pv.add_argument("--ncal", type=int, default=20_000, help="calibration galaxies (prior)")
     pv.add_argument("--block-size", type=int, default=500, help="galaxies per block")
     pv.add_argument("--scheduler", help="dask.distributed scheduler address")
+    cv = v.add_argument_group("convergence study (paper Figure 2), no directory needed")
+    cv.add_argument("--convergence", action="store_true",
+                    help="<e>, <e^2> and sensitivity against de, dr, r_max and a catalogue "
+                         "offset on a GalSim sample (--ngal, --seed)")  # fmt: skip
+    cv.add_argument("--out", help="with --convergence: directory for convergence.png/.ecsv/.md")
     v.set_defaults(func=_validate)
 
     c = sub.add_parser("config", help="print or write the default configuration (YAML)")
