@@ -221,5 +221,175 @@ def test_validate_end_to_end(tmp_path):
     assert abs(res["m1"][-1]) < 4 * res["m1_err"][-1]
     assert np.isnan(res["m2"][-1])  # step1 has g2 = 0: only c2 is measured
     assert abs(res["c2"][-1]) < 4 * res["c2_err"][-1]
-    assert (tmp_path / "report.md").read_text().count("| ") > 5
-    assert (tmp_path / "report.png").stat().st_size > 1000
+    text = (tmp_path / "report.md").read_text()
+    assert text.count("| ") > 5 and "## Diagnosis" in text
+    for png in ("report.png", "report_mc.png", "report_bins.png", "report_prior.png"):
+        assert (tmp_path / png).stat().st_size > 1000
+        assert f"]({png})" in text
+    # step1 has no twins: the fits use the single images
+    assert res.meta["mode"] == "images" and res.meta["pairs"] is None
+    assert res["n_gal"][-1] == res.meta["images"]["n"].sum()
+    # bins of equal counts partition the galaxies (every usable galaxy has a magnitude, S/N)
+    b = res.meta["bins"]
+    for kind in ("mag", "snr"):
+        a = b[(b["kind"] == kind) & (b["psf"] == "all")]
+        assert len(a) == 4 and a["n_gal"].sum() == res["n_gal"][-1]
+        assert np.all(np.abs(a["n_gal"] - a["n_gal"].mean()) <= 0.05 * a["n_gal"].mean())
+    # the recovered prior is compared with the truth's intrinsic ellipticities
+    pc = res.meta["prior_check"]
+    assert pc["n"] > 100 and np.isfinite(pc["rms_true"])
+    assert set(res.meta["diagnosis"]) >= {"m", "sigma_c", "Q", "all_met"}
+
+
+# ----------------------------------------------------------------------------------------
+# Twins, bins, kept catalogues, report (issue: per-bin m/c, twins, quick tier)
+# ----------------------------------------------------------------------------------------
+def test_twin_shear_cancels_shape_noise():
+    from pylensfit.validation import twin_shear
+
+    rng = np.random.default_rng(11)
+    n, g = 500, np.array([0.031, -0.017])
+    e_int = 0.3 * rng.standard_normal((n, 2))
+    ones = np.ones((n, 2))
+    # noise-free twins: e_b = -e_a + 2 g exactly -> the exact shear, zero error
+    est = twin_shear(e_int + g, -e_int + g, ones, ones)
+    assert (est.g1, est.g2) == pytest.approx(tuple(g), abs=1e-15)
+    assert est.g1_err < 1e-14 and est.g2_err < 1e-14 and est.n == n
+    # sensitivities divide as in eq. key2: responses of 0.8 scale e and s together
+    est = twin_shear(0.8 * (e_int + g), 0.8 * (-e_int + g), 0.8 * ones, 0.8 * ones)
+    assert (est.g1, est.g2) == pytest.approx(tuple(g), abs=1e-15)
+    # with measurement noise: the error is that of the noise alone (pulls of unit spread),
+    # far below the single-image error set by the shape noise
+    pulls, ratio = [], []
+    for _ in range(300):
+        ea = e_int + g + 0.05 * rng.standard_normal((n, 2))
+        eb = -e_int + g + 0.05 * rng.standard_normal((n, 2))
+        est = twin_shear(ea, eb, ones, ones)
+        pulls.append(((est.g1 - g[0]) / est.g1_err, (est.g2 - g[1]) / est.g2_err))
+        single = np.std(ea[:, 0], ddof=1) / np.sqrt(n)
+        ratio.append(est.g1_err / single)
+    assert np.std(pulls, axis=0) == pytest.approx([1, 1], abs=0.12)
+    assert np.mean(pulls, axis=0) == pytest.approx([0, 0], abs=0.2)
+    # sigma_pair / sigma_single = (0.05 sqrt(2) / 2) / sqrt(0.3^2 + 0.05^2) ~ 0.116
+    assert np.mean(ratio) == pytest.approx(0.05 / np.sqrt(2) / np.hypot(0.3, 0.05), rel=0.05)
+    # non-finite rows are skipped; bad input raises
+    ea = e_int + g
+    ea[0] = np.nan
+    assert twin_shear(ea, -e_int + g, ones, ones).n == n - 1
+    with pytest.raises(ValueError):
+        twin_shear(ea[:3], ea[:4], ones[:3], ones[:3])
+    with pytest.raises(ValueError):
+        twin_shear(e_int, -e_int, -ones, ones)
+
+
+def test_bins_partition():
+    from pylensfit.validation import _bin_edges, bin_index
+
+    rng = np.random.default_rng(2)
+    v = rng.normal(size=1001)
+    extra = rng.normal(size=300) * 2  # the prior fields' values widen the outer edges
+    edges = _bin_edges(v, 4, extra)
+    assert edges.size == 5 and np.all(np.diff(edges) > 0)
+    assert edges[0] <= min(v.min(), extra.min()) and edges[-1] >= max(v.max(), extra.max())
+    for x in (v, extra):
+        idx = bin_index(x, edges)
+        assert np.all(idx >= 0) and np.all(idx < 4)  # every value in exactly one bin
+        for i in range(4):
+            assert np.all((x[idx == i] >= edges[i]) & (x[idx == i] <= edges[i + 1]))
+    assert np.bincount(bin_index(v, edges)) == pytest.approx([250, 250, 250, 251], abs=2)
+    # the convention of BinnedPrior: half-open bins, the last one closed; NaN / outside -> -1
+    e = np.array([0.0, 1.0, 2.0])
+    assert list(bin_index(np.array([0.0, 0.5, 1.0, 2.0, 2.1, -1, np.nan]), e)) == [
+        0, 0, 1, 1, -1, -1, -1,
+    ]  # fmt: skip
+    with pytest.raises(ValueError):
+        _bin_edges(v, [0.0, 0.0, 1.0], extra)
+
+
+def test_diagnosis_states():
+    from astropy.table import Table
+
+    from pylensfit.validation import _diagnose, _summary
+
+    def res(m, m_err, c, c_err, q):
+        rows = [(str(k), m, m_err, c[k], c_err, m, m_err, -c[k], c_err, q, 100) for k in range(3)]
+        rows.append(("all", m, m_err, 0.0, c_err, m, m_err, 0.0, c_err, q, 300))
+        t = Table(rows=rows, names=("psf", "m1", "m1_err", "c1", "c1_err", "m2", "m2_err",
+                                    "c2", "c2_err", "Q", "n_gal"))  # fmt: skip
+        t.meta.update(_summary(t[:-1]))
+        return t
+
+    d = _diagnose(res(0.002, 0.001, [1e-5, -1e-5, 0.0], 1e-5, 500))
+    assert d["all_met"] and d["m"][0] == "met" and d["Q"][0] == "met"
+    # <m> = 0.008 +- 0.01 / sqrt(6) = 0.0041: within 1 sigma of the target
+    d = _diagnose(res(0.008, 0.01, [1e-5, -1e-5, 0.0], 1e-5, 500))
+    assert d["m"][0] == "met within error" and d["all_met"]
+    d = _diagnose(res(0.008, 0.004, [1e-5, -1e-5, 0.0], 1e-5, 500))  # 0.008 +- 0.0016
+    assert d["m"][0] == "not met" and not d["all_met"]
+    d = _diagnose(res(0.02, 0.002, [3e-4, -3e-4, 0.0], 1e-5, 50))
+    assert d["m"][0] == "not met" and d["Q"][0] == "not met" and not d["all_met"]
+    assert d["sigma_c"][0] == "not met" and "more than noise" in d["sigma_c"][1]
+    d = _diagnose(res(0.0, 0.05, [3e-4, -3e-4, 0.0], 5e-4, 500))
+    assert "too small" in d["m"][1] and "consistent with noise" in d["sigma_c"][1]
+
+
+@pytest.fixture(scope="module")
+def step2_validated(step2):
+    from pylensfit.validation import validate
+
+    return validate(step2["dir"], progress=False, bins={"mag": 2, "size": 2})
+
+
+def test_validate_step2_twins_and_bins(step2, step2_validated):
+    res = step2_validated
+    m = res.meta
+    assert m["mode"] == "pairs" and list(res["psf"]) == ["0", "1", "2", "3", "4", "all"]
+    pairs, img = m["pairs"], m["images"]
+    assert m["estimates"] is pairs
+    n_psf, n_shear = len(step2["psfs"]), len(step2["shears"])
+    assert len(pairs) == n_psf * n_shear and len(img) == 2 * n_psf * n_shear
+    assert np.all(pairs["n"] == 2 * pairs["n_pair"]) and pairs["n_pair"].sum() > 50
+    # a pair is made of galaxies measured in both images
+    n_img = {str(r["file"]): r["n"] for r in img}
+    for r in pairs:
+        rot = str(r["file"]).replace(".fits", "_rot.fits")
+        assert r["n_pair"] <= min(n_img[str(r["file"])], n_img[rot])
+    # shape noise cancels: the pairs' errors are well below the single images'
+    assert np.median(pairs["g1_err"]) < 0.7 * np.median(img["g1_err"])
+    assert np.median(pairs["g2_err"]) < 0.7 * np.median(img["g2_err"])
+    assert len(m["single"]) == len(res) and res["n_gal"][-1] == pairs["n"].sum()
+    # bins partition the paired galaxies; the per-PSF rows add up to the "all" rows
+    b = m["bins"]
+    for kind in ("mag", "size"):
+        t = b[b["kind"] == kind]
+        a = t[t["psf"] == "all"]
+        assert list(a["bin"]) == [0, 1]
+        tot = a["n_gal"].sum()
+        assert tot <= pairs["n"].sum() and (kind == "size" or tot == pairs["n"].sum())
+        for i in (0, 1):
+            assert t[(t["bin"] == i) & (t["psf"] != "all")]["n_gal"].sum() == a["n_gal"][i]
+        assert np.all(a["n_prior"] > 0)
+    assert m["bin_edges"]["size"][0] > 0  # r / FWHM
+    assert set(m["measured"]) == {f"psf{k}_{r}" for k in range(n_psf) for r in ("prior", "shear")}
+    assert not any(v["reused"] for v in m["measured"].values())
+
+
+def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
+    from pylensfit import pipeline
+    from pylensfit.config import Config
+    from pylensfit.validation import validate
+
+    def boom(*a, **k):
+        raise AssertionError("measure called")
+
+    monkeypatch.setattr(pipeline, "measure", boom)
+    again = validate(step2["dir"], progress=False, bins={"mag": 2, "size": 2})
+    assert all(v["reused"] for v in again.meta["measured"].values())
+    for c in ("m1", "c1", "m2", "c2", "Q", "n_gal"):
+        assert np.array_equal(np.asarray(again[c]), np.asarray(step2_validated[c]), equal_nan=True)
+    # a different configuration, or remeasure=True, measures again
+    with pytest.raises(AssertionError, match="measure called"):
+        validate(step2["dir"], progress=False, bins={},
+                 config=Config(model="bulge+disc", integration_refine=2))  # fmt: skip
+    with pytest.raises(AssertionError, match="measure called"):
+        validate(step2["dir"], progress=False, bins={}, remeasure=True)

@@ -9,6 +9,7 @@
     pylensfit validate DIR [--report FILE]   # m, c, sigma_c, Q per PSF
     pylensfit validate --precision [--ngal N] [--psf NAME...]   # paired +-g: m to 1e-3
     pylensfit validate --convergence [--out DIR]   # grid convergence (paper Figure 2)
+    pylensfit validate --quick [--out DIR] [--jobs 2]   # small STEP1+STEP2, < 10 min
     pylensfit config [-o FILE]          # the default configuration as YAML
     pylensfit demo                      # simulate, measure, prior, shear
 """
@@ -171,12 +172,26 @@ def _validate(args: argparse.Namespace) -> int:
         return _precision(args)
     if args.convergence:
         return _convergence(args)
+    cfg = _config(args) if args.config else None
+    bins = {k: args.bins for k in ("mag", "snr", "size")} if args.bins > 0 else {}
+    if args.quick:
+        from .validation import quick_validation
+
+        out_dir = args.out or "quick_validation"
+        out = quick_validation(out_dir, jobs=args.jobs, seed=args.seed, progress=not args.quiet,
+                               config=cfg, estimator=args.estimator)  # fmt: skip
+        for kind, res in out.items():
+            m = res.meta
+            print(f"{kind}: <m> = {m['mean_m']:+.4f} +- {m['mean_m_err']:.4f}, sigma_c = "
+                  f"{m['sigma_c']:.2e}, Q = {res['Q'][-1]:.0f}; report "
+                  f"{out_dir}/{kind}/report.md")  # fmt: skip
+        return 0
     if args.directory is None:
-        raise SystemExit("pylensfit validate: give a simulated set's directory (or "
+        raise SystemExit("pylensfit validate: give a simulated set's directory (or --quick, "
                          "--precision, --convergence)")  # fmt: skip
-    res = validate(args.directory, config=_config(args) if args.config else None,
-                   jobs=args.jobs, estimator=args.estimator, report=args.report,
-                   progress=not args.quiet)  # fmt: skip
+    res = validate(args.directory, config=cfg, jobs=args.jobs, estimator=args.estimator,
+                   report=args.report, progress=not args.quiet, remeasure=args.remeasure,
+                   bins=bins)  # fmt: skip
     for c in res.colnames[1:-2]:
         res[c].format = "+.5f"
     res["Q"].format = ".0f"
@@ -317,6 +332,14 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--estimator", choices=("key2", "fixed-point"), default="key2")
     v.add_argument("--report", help="write a Markdown report (and a PNG beside it)")
     v.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    v.add_argument("--remeasure", action="store_true",
+                   help="measure again even if DIR/measured/ holds catalogues made with this "
+                        "configuration")  # fmt: skip
+    v.add_argument("--bins", type=int, default=4,
+                   help="equal-count bins of magnitude, S/N and size (0: none)")
+    v.add_argument("--quick", action="store_true",
+                   help="simulate small STEP1 and STEP2 sets and validate both (< 10 min with "
+                        "--jobs 2; output in --out, default quick_validation)")  # fmt: skip
     pv = v.add_argument_group("precision mode: paired +-g renderings, no directory needed")
     pv.add_argument("--precision", action="store_true",
                     help="measure m and c from GalSim galaxies rendered at +g and -g, each "
@@ -326,7 +349,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "(default 200,000); with --convergence (default 1000)")  # fmt: skip
     pv.add_argument("--psf", nargs="+", help="PSFs by name: round, e=0.10, kolmogorov, "
                     "asymmetric (default all)")  # fmt: skip
-    pv.add_argument("--seed", type=int, default=1, help="random seed")
+    pv.add_argument("--seed", type=int, default=1, help="random seed (also --quick, "
+                    "--convergence)")  # fmt: skip
     pv.add_argument("--g", type=float, default=0.02, help="shear per component")
     pv.add_argument("--ncal", type=int, default=20_000, help="calibration galaxies (prior)")
     pv.add_argument("--block-size", type=int, default=500, help="galaxies per block")
@@ -335,7 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     cv.add_argument("--convergence", action="store_true",
                     help="<e>, <e^2> and sensitivity against de, dr, r_max and a catalogue "
                          "offset on a GalSim sample (--ngal, --seed)")  # fmt: skip
-    cv.add_argument("--out", help="with --convergence: directory for convergence.png/.ecsv/.md")
+    cv.add_argument("--out", help="with --convergence (convergence.png/.ecsv/.md) or --quick: "
+                    "output directory")  # fmt: skip
     v.set_defaults(func=_validate)
 
     c = sub.add_parser("config", help="print or write the default configuration (YAML)")
