@@ -290,3 +290,39 @@ def test_r_quadrature_exact_for_gaussian_peaks(width):
         plain.append(np.exp(lnl).sum() / exact)
     if width <= 0.3:  # the uncorrected sum is visibly wrong there
         assert np.ptp(plain) > 0.05
+
+
+def test_marginal_bulge_fraction_is_the_sum_of_fixed_fraction_fits():
+    """With n bulge fractions, L(e) = sum over the fractions of the fixed-fraction L(e).
+
+    A bright, resolved galaxy (the point-source term negligible) so that the three
+    fixed-fraction fits and the marginal one see the same models; ln L is compared in
+    absolute terms (``lnL + lnL_peak``) over the region where L > 1e-3 of its peak.
+    """
+    from scipy.special import logsumexp
+
+    psf = PSFS["moffat_e1"]
+    img = draw(galsim.Convolve(galsim_model("bulge+disc", 2.5, 0.2, -0.1, bulge_fraction=0.3),
+                               psf))  # fmt: skip
+    d = img * 30.0 / np.sqrt((img**2).sum()) + np.random.default_rng(2).normal(size=img.shape)
+    base = Config(model="bulge+disc", e_step=0.1, r_step=0.25, r_max=6.0, dtype="float64")
+    marg = fit_stamps(d, draw(psf), 1.0, config=base.replace(n_bulge_fractions=3))
+    fixed = [fit_stamps(d, draw(psf), 1.0, config=base.replace(bulge_fraction=b))
+             for b in (0.0, 0.5, 1.0)]  # fmt: skip
+    ab = np.array([f.lnL[0].astype(float) + f.lnL_peak[0] for f in fixed])
+    total = logsumexp(ab, axis=0)
+    mine = marg.lnL[0].astype(float) + marg.lnL_peak[0]
+    region = mine - mine.max() > np.log(1e-3)
+    assert region.sum() >= 4
+    assert np.max(np.abs(mine[region] - total[region])) < 0.01, np.abs(mine - total)[region]
+    # the bank: three runs of the radius grid per e cell, the fractions in order
+    bank = model_bank(base.replace(n_bulge_fractions=3))
+    assert bank.n_sizes * 3 == bank.n_r and bank.n_models == bank.n_e * bank.n_r + 1
+    np.testing.assert_allclose(np.unique(bank.bulge), [0.0, 0.5, 1.0])
+    # the best model of a disc-dominated galaxy is not the pure bulge
+    assert marg.r_best[0] > 0
+
+
+def test_n_bulge_fractions_needs_the_bulge_disc_model():
+    with pytest.raises(ValueError, match="bulge"):
+        Config(model="exponential", n_bulge_fractions=3)

@@ -159,8 +159,8 @@ _UNDERFLOW = 700.0
 
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
-    prod, n_gal, n_e, n_r, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step, ln_dr, cubic,
-    out_lnle, out_lnlr, out_best, out_h, out_x, out_y,
+    prod, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step, ln_dr,
+    cubic, out_lnle, out_lnlr, out_best, out_h, out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 
@@ -178,12 +178,17 @@ def laplace_grid(
         Rows ``q * n_gal + g`` hold, for ``q = 0..5``: ``h``, ``dh/dx``, ``dh/dy``,
         ``d2h/dx2``, ``d2h/dxdy``, ``d2h/dy2`` at the re-centred origin, and with
         ``cubic`` for ``q = 6..9`` the third derivatives ``xxx, xxy, xyy, yyy``.
+    n_sub : int
+        The r axis of an e cell is ``n_r // n_sub`` runs of ``n_sub`` increasing radii
+        (one per bulge fraction); the sum over r is corrected run by run
+        (:func:`_narrow_peak_factor`).
     s_m, mxx, mxy, myy : (n_models,) arrays
         ``sum m^2`` and the Hessian of the model autocorrelation per model.
     sigma, x0, y0 : (n_gal,) arrays
         Noise per pixel and catalogue position relative to the re-centred origin.
     """
     n_mod = n_e * n_r + 1
+    n_blk = n_r // n_sub
     max_step2 = max_step * max_step
     star = n_mod - 1
     sq_m = np.sqrt(s_m)
@@ -221,24 +226,27 @@ def laplace_grid(
         ex_star = math.exp(buf[star] - best)
         rsum = np.zeros(n_r)
         for ie in range(n_e):
-            acc = 0.0
+            acc = ex_star
             emax = buf[star]
-            rmax = -np.inf
-            km = 0
-            for ir in range(n_r):
-                l = buf[ie * n_r + ir]
-                ex = math.exp(l - best)
-                acc += ex
-                rsum[ir] += ex
-                if l > rmax:
-                    rmax = l
-                    km = ir
-            if rmax > emax:
-                emax = rmax
-            if 0 < km < n_r - 1:
-                j0 = ie * n_r + km
-                acc *= _narrow_peak_factor(buf[j0 - 1], buf[j0], buf[j0 + 1])
-            acc += ex_star
+            for ib in range(n_blk):  # runs of increasing r, one per bulge fraction
+                bacc = 0.0
+                rmax = -np.inf
+                km = 0
+                for irr in range(n_sub):
+                    ir = ib * n_sub + irr
+                    l = buf[ie * n_r + ir]
+                    ex = math.exp(l - best)
+                    bacc += ex
+                    rsum[ir] += ex
+                    if l > rmax:
+                        rmax = l
+                        km = irr
+                if rmax > emax:
+                    emax = rmax
+                if 0 < km < n_sub - 1:
+                    j0 = ie * n_r + ib * n_sub + km
+                    bacc *= _narrow_peak_factor(buf[j0 - 1], buf[j0], buf[j0 + 1])
+                acc += bacc
             if emax > best - _UNDERFLOW:
                 out_lnle[g, ie] = best + math.log(acc) + ln_dr
             else:

@@ -48,6 +48,13 @@ class Config:
     bulge_size_ratio: float = _f(
         0.6, "bulge half-light radius / disc scale length of the bulge+disc model"
     )
+    n_bulge_fractions: int = _f(
+        1,
+        "bulge+disc model: marginalise over this many bulge fractions, evenly spaced on "
+        "[0, 1] with a uniform prior (1: the fixed bulge_fraction). A fixed fraction biases "
+        "m by about +0.09 for discs and -0.07 for bulges (validate --precision); 3 values "
+        "cost 3x the models",
+    )
     # --- marginalisation over position (paper eq. eq:likelihood) ---
     position_prior_sigma: float = _f(
         2.0, "width b of the Gaussian prior on position about the catalogue position, px"
@@ -179,6 +186,14 @@ def _validate(c: Config) -> None:
     )
     need(0 <= c.bulge_fraction <= 1, f"bulge_fraction must be in [0, 1], got {c.bulge_fraction}")
     need(c.bulge_size_ratio > 0, f"bulge_size_ratio must be > 0, got {c.bulge_size_ratio}")
+    need(
+        int(c.n_bulge_fractions) == c.n_bulge_fractions and c.n_bulge_fractions >= 1,
+        f"n_bulge_fractions must be a positive integer, got {c.n_bulge_fractions}",
+    )
+    need(
+        c.n_bulge_fractions == 1 or c.model == "bulge+disc",
+        "n_bulge_fractions > 1 needs model 'bulge+disc'",
+    )
     need(c.position_prior_sigma > 0, "position_prior_sigma must be > 0")
     need(c.max_offset >= 0, "max_offset must be >= 0")
     need(c.centring_scale > 0, "centring_scale must be > 0")

@@ -332,7 +332,8 @@ def fit_stamps(
         tmp = (np.empty((m, coarse.n_e)), np.empty((m, coarse.n_r + 1)),
                np.empty(m, dtype=np.int64), np.empty(m), np.empty(m), np.empty(m))  # fmt: skip
         laplace_grid(
-            products(sl, Gc), m, coarse.n_e, coarse.n_r, pb.S[coarse.cols], pb.mxx[coarse.cols],
+            products(sl, Gc), m, coarse.n_e, coarse.n_r, coarse.n_r, pb.S[coarse.cols],
+            pb.mxx[coarse.cols],
             pb.mxy[coarse.cols], pb.myy[coarse.cols], sigma[sl], x0[sl] - xc[sl],
             y0[sl] - yc[sl], b2, cfg.max_newton_step, ln_dr, False, *tmp,
         )  # fmt: skip
@@ -352,7 +353,8 @@ def fit_stamps(
                    np.empty(sel.size, dtype=np.int64), np.empty(sel.size), np.empty(sel.size),
                    np.empty(sel.size))  # fmt: skip
             laplace_grid(
-                products(idx, G, cubic), sel.size, n_e, n_r, pb.S, pb.mxx, pb.mxy, pb.myy,
+                products(idx, G, cubic), sel.size, n_e, n_r, bank.n_sizes, pb.S, pb.mxx,
+                pb.mxy, pb.myy,
                 sigma[idx], x0[idx] - xc[idx], y0[idx] - yc[idx], b2, cfg.max_newton_step,
                 ln_dr, cubic, *out,
             )  # fmt: skip

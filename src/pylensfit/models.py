@@ -152,11 +152,14 @@ class ModelBank:
     G : numpy.ndarray
         ``(n_freq, n_models)`` real transforms on the ``rfft2`` frequencies (flattened
         row-major from ``(n, n // 2 + 1)``). Column ``ie * n_r + ir`` is ellipticity
-        ``egrid[ie]`` and radius ``radii[ir]``; the last column is the point source (r = 0).
+        ``egrid[ie]``, radius ``radii[ir]`` and bulge fraction ``bulge[ir]``; the last
+        column is the point source (r = 0).
     egrid : numpy.ndarray
         ``(n_e, 2)`` ellipticity cell centres.
     radii : numpy.ndarray
-        ``(n_r,)`` model sizes in pixels, all > 0.
+        ``(n_r,)`` model size in pixels of each column within an e cell, all > 0: the
+        radius grid, repeated once per bulge fraction when those are marginalised
+        (``n_sub`` consecutive sizes per fraction).
     n : int
         Stamp side in pixels.
     model : str
@@ -168,6 +171,13 @@ class ModelBank:
     radii: np.ndarray
     n: int
     model: str
+    bulge: np.ndarray | None = None
+    n_sub: int = 0
+
+    @property
+    def n_sizes(self) -> int:
+        """Length of one run of increasing radii (the r grid)."""
+        return self.n_sub or self.radii.size
 
     @property
     def n_e(self) -> int:
@@ -203,23 +213,30 @@ def _cached_bank(
     bulge_fraction: float,
     bulge_size_ratio: float,
     dtype: str,
+    n_bulge: int = 1,
 ) -> ModelBank:
     egrid = ellipticity_grid(e_step, emax=e_max)
     radii = radius_grid(r_min, r_max, r_step)
+    fracs = np.array([bulge_fraction]) if n_bulge == 1 else np.linspace(0.0, 1.0, n_bulge)
+    n_sub = radii.size
     kx, ky, _ = rfft_frequencies(n)
     kx = kx.ravel()
     ky = ky.ravel()
     n_freq = kx.size
-    G = np.empty((n_freq, egrid.shape[0] * radii.size + 1), dtype=dtype)
-    for ie, (e1, e2) in enumerate(egrid):  # one vectorised (freq x r) block per e
+    per_e = n_sub * fracs.size
+    G = np.empty((n_freq, egrid.shape[0] * per_e + 1), dtype=dtype)
+    for ie, (e1, e2) in enumerate(egrid):  # one vectorised (freq x r) block per e and B/T
         ks = sheared_k(kx, ky, e1, e2)
         q = ks[:, None] * radii[None, :]
-        G[:, ie * radii.size : (ie + 1) * radii.size] = fourier_profile(
-            q, model, bulge_fraction=bulge_fraction, bulge_size_ratio=bulge_size_ratio
-        )
+        for ib, bf in enumerate(fracs):
+            c0 = ie * per_e + ib * n_sub
+            G[:, c0 : c0 + n_sub] = fourier_profile(
+                q, model, bulge_fraction=float(bf), bulge_size_ratio=bulge_size_ratio
+            )
     G[:, -1] = 1.0
     G.setflags(write=False)
-    return ModelBank(G=G, egrid=egrid, radii=radii, n=n, model=model)
+    return ModelBank(G=G, egrid=egrid, radii=np.tile(radii, fracs.size), n=n, model=model,
+                     bulge=np.repeat(fracs, n_sub), n_sub=n_sub)  # fmt: skip
 
 
 def model_bank(config=None) -> ModelBank:
@@ -244,4 +261,5 @@ def model_bank(config=None) -> ModelBank:
         cfg.bulge_fraction,
         cfg.bulge_size_ratio,
         cfg.dtype,
+        int(cfg.n_bulge_fractions),
     )
