@@ -597,7 +597,8 @@ def precision(
     spec : PrecisionSpec, optional
         The simulated set (default :class:`PrecisionSpec()`: 200,000 galaxies, four PSFs).
     config : Config, optional
-        Measurement settings (default: the bulge+disc model, as ``pylensfit validate``).
+        Measurement settings (default: the bulge+disc model with the bulge fraction
+        marginalised over 0, 0.5 and 1, as ``pylensfit validate``).
     jobs : int
         Local worker processes.
     scheduler : str, optional
@@ -621,7 +622,7 @@ def precision(
     from .prior import estimate_prior
 
     spec = spec if spec is not None else PrecisionSpec()
-    cfg = config if config is not None else Config(model="bulge+disc")
+    cfg = config if config is not None else Config(model="bulge+disc", n_bulge_fractions=3)
     npsf = len(spec.psfs)
     t_start = time.perf_counter()
     # 1. the prior, from an unsheared calibration sample of the same population
@@ -683,7 +684,8 @@ def precision(
     out.meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D}
     out.meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
     out.meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
-    out.meta["config"] = {"model": cfg.model, "e_step": cfg.e_step, "r_step": cfg.r_step,
+    out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
+                          "e_step": cfg.e_step, "r_step": cfg.r_step,
                           "stamp_size": cfg.stamp_size,
                           "integration_refine": cfg.integration_refine}  # fmt: skip
     out.meta["fp_step"] = step
@@ -729,7 +731,8 @@ def write_report(res: Table, path: str | Path) -> None:
         f"{len(spec['psfs'])} PSFs, S/N {spec['snr_range'][0]:g}-{spec['snr_range'][1]:g} "
         f"(dN/dS ∝ S^-{spec['snr_slope']:g}), size/PSF size "
         f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g}, seed {spec['seed']}; "
-        f"model {res.meta['config']['model']}. ", "",
+        f"model {res.meta['config']['model']} "
+        f"({res.meta['config'].get('n_bulge_fractions', 1)} bulge fraction(s)). ", "",
         f"Prior from {spec['ncal']} unsheared calibration galaxies: "
         f"B={res.meta['prior']['B']:.3f}, C={res.meta['prior']['C']:.3f}, "
         f"D={res.meta['prior']['D']:.3f} (true {tuple(spec['prior_params'])}). "

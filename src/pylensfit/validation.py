@@ -1008,7 +1008,8 @@ def validate(
     directory : str or pathlib.Path
         A set written by :func:`simulate_step`.
     config : Config, optional
-        Pipeline settings (default ``Config(model="bulge+disc")``).
+        Pipeline settings (default ``Config(model="bulge+disc", n_bulge_fractions=3)``: the
+        bulge fraction marginalised over 0, 0.5 and 1).
     jobs : int
         Local worker processes of :func:`pylensfit.measure`.
     estimator : {"key2", "fixed-point"}
@@ -1059,7 +1060,7 @@ def validate(
         if k not in _BIN_LABEL:
             raise ValueError(f"unknown bin quantity {k!r}; use {sorted(_BIN_LABEL)}")
     man = read_manifest(directory)
-    cfg = config if config is not None else Config(model="bulge+disc")
+    cfg = config if config is not None else Config(model="bulge+disc", n_bulge_fractions=3)
     fields = {f["file"]: f for f in man["fields"]}
     by_psf: dict[int, list] = {}
     for f in man["fields"]:
