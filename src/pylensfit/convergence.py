@@ -49,6 +49,7 @@ from .flags import BAD, flag_value
 from .likelihood import fit_stamps
 from .prior import Prior
 from .shear import shapes, shear_sensitivity
+from .simulate import draw_shapes
 
 __all__ = [
     "DEFAULT_DES",
@@ -144,16 +145,6 @@ class ConvergenceSample:
         return self.stamps.shape[0]
 
 
-def _draw_shapes(prior: Prior, n: int, rng: np.random.Generator, e_max: float) -> np.ndarray:
-    """Ellipticities from ``prior``, redrawn where ``|e| > e_max`` (vectorised)."""
-    e = prior.sample(n, rng=rng)
-    big = np.hypot(*e.T) > e_max
-    while np.any(big):
-        e[big] = prior.sample(int(big.sum()), rng=rng)
-        big = np.hypot(*e.T) > e_max
-    return e
-
-
 def render_sample(
     ngal: int = 1000,
     *,
@@ -217,7 +208,7 @@ def render_sample(
     prior = Prior() if prior is None else prior
     rng = np.random.default_rng(seed)
     if e is None:
-        e = _draw_shapes(prior, ngal, rng, 0.99)
+        e = draw_shapes(prior, ngal, rng, 0.99)
     else:
         e = np.asarray(e, dtype=float).reshape(ngal, 2)
         if np.any(np.hypot(*e.T) >= 1.0):

@@ -64,6 +64,7 @@ from astropy.table import Table
 
 from .config import Config
 from .prior import Prior
+from .simulate import draw_shapes
 
 __all__ = [
     "PRECISION_PSFS",
@@ -227,11 +228,7 @@ def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Gene
         snr = (lo ** (1 - a) + u * (hi ** (1 - a) - lo ** (1 - a))) ** (1 / (1 - a))
     ratio = np.exp(rng.uniform(*np.log(spec.size_ratio_range), n))
     prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
-    e = prior.sample(n, rng=rng)
-    big = np.hypot(*e.T) > spec.max_e
-    while np.any(big):
-        e[big] = prior.sample(int(big.sum()), rng=rng)
-        big = np.hypot(*e.T) > spec.max_e
+    e = draw_shapes(prior, n, rng, spec.max_e)
     name = np.asarray(MORPHOLOGIES)[morph]
     bf = np.select([name == "exponential", name == "devaucouleurs", name == "bulge+disc",
                     name == "knots"],

@@ -20,7 +20,7 @@ from astropy.wcs import WCS
 from .catalogue import atomic_write
 from .prior import Prior
 
-__all__ = ["FieldSpec", "draw_population", "simulate_field", "write_field"]
+__all__ = ["FieldSpec", "draw_population", "draw_shapes", "simulate_field", "write_field"]
 
 
 @dataclass(frozen=True)
@@ -99,12 +99,18 @@ def draw_population(spec: FieldSpec, rng: np.random.Generator) -> tuple[np.ndarr
     snr = np.exp(rng.uniform(*np.log(spec.snr_range), n_obj))
     star_snr = np.exp(rng.uniform(*np.log(spec.star_peak_snr), n_obj))
     prior = Prior(B=spec.prior_params[0], C=spec.prior_params[1], D=spec.prior_params[2])
-    e_int = prior.sample(n_obj, rng=rng)
-    big = np.hypot(*e_int.T) > spec.max_e
-    while np.any(big):
-        e_int[big] = prior.sample(int(big.sum()), rng=rng)
-        big = np.hypot(*e_int.T) > spec.max_e
+    e_int = draw_shapes(prior, n_obj, rng, spec.max_e)
     return x, y, is_star, r, snr, star_snr, e_int
+
+
+def draw_shapes(prior: Prior, n: int, rng: np.random.Generator, e_max: float) -> np.ndarray:
+    """``(n, 2)`` ellipticities from ``prior``, redrawn where ``|e| > e_max``."""
+    e = prior.sample(n, rng=rng)
+    big = np.hypot(*e.T) > e_max
+    while np.any(big):
+        e[big] = prior.sample(int(big.sum()), rng=rng)
+        big = np.hypot(*e.T) > e_max
+    return e
 
 
 def _add_object(image, obj, flux: float, x: float, y: float, size: int = 64) -> None:
