@@ -181,7 +181,8 @@ def test_cli_precision_writes_report(tmp_path, capsys):
 
     rep = tmp_path / "prec" / "report.md"
     args = ["validate", "--precision", "--ngal", "16", "--ncal", "80", "--block-size", "4",
-            "--psf", "round", "e=0.10", "--seed", "3", "--report", str(rep), "-q"]  # fmt: skip
+            "--psf", "round", "e=0.10", "--seed", "3", "--report", str(rep), "-q",
+            "--true-prior"]  # fmt: skip
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "fixed-point" in out and "e=0.10" in out
@@ -191,6 +192,8 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     tab = Table.read(rep.with_suffix(".ecsv"))
     assert set(tab["breakdown"]) >= {"all", "psf", "snr", "size", "selection"}
     assert tab.meta["spec"]["ngal"] == 16
+    # --true-prior: no calibration sample, the population's own prior
+    assert "Prior given: B=0.190, C=0.580, D=2.400" in text and tab.meta["prior"]["given"]
     # a directory or a mode is required
     with pytest.raises(SystemExit):
         main(["validate"])

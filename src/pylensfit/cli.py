@@ -136,8 +136,14 @@ def _precision(args: argparse.Namespace) -> int:
     spec = spec_with(ngal=args.ngal or 200_000, seed=args.seed, psfs=args.psf, g=args.g,
                      ncal=args.ncal, block_size=args.block_size)  # fmt: skip
     report = args.report or "precision/report.md"
+    prior = None
+    if args.true_prior:
+        from .prior import Prior
+
+        prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
     res = precision(spec, config=_config(args) if args.config else None, jobs=args.jobs,
-                    scheduler=args.scheduler, report=report, progress=not args.quiet)  # fmt: skip
+                    scheduler=args.scheduler, report=report, prior=prior,
+                    progress=not args.quiet)  # fmt: skip
     show = res[(res["breakdown"] == "all") | (res["breakdown"] == "psf")]
     show = show[show["estimator"] == "fixed-point"]
     for c in ("m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2", "c2_err"):
@@ -355,6 +361,9 @@ def build_parser() -> argparse.ArgumentParser:
     pv.add_argument("--ncal", type=int, default=20_000, help="calibration galaxies (prior)")
     pv.add_argument("--block-size", type=int, default=500, help="galaxies per block")
     pv.add_argument("--scheduler", help="dask.distributed scheduler address")
+    pv.add_argument("--true-prior", action="store_true",
+                    help="diagnostic: use the population's true prior instead of estimating "
+                         "it from the calibration sample")  # fmt: skip
     cv = v.add_argument_group("convergence study (paper Figure 2), no directory needed")
     cv.add_argument("--convergence", action="store_true",
                     help="<e>, <e^2> and sensitivity against de, dr, r_max and a catalogue "

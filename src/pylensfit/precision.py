@@ -585,6 +585,7 @@ def precision(
     jobs: int = 1,
     scheduler: str | None = None,
     report: str | Path | None = None,
+    prior: Prior | None = None,
     progress: bool = True,
 ) -> Table:
     """Run the paired precision measurement of m and c (see the module docstring).
@@ -603,6 +604,10 @@ def precision(
     report : str or pathlib.Path, optional
         Write a Markdown report here, with one PNG per breakdown beside it and the table
         as ECSV.
+    prior : Prior, optional
+        Use this prior instead of estimating it from the calibration sample (a
+        diagnostic: with the true population's prior, ``PrecisionSpec.prior_params``, the
+        difference in m is the share of the prior's estimation).
     progress : bool
         Progress bars.
 
@@ -623,7 +628,7 @@ def precision(
     npsf = len(spec.psfs)
     t_start = time.perf_counter()
     # 1. the prior, from an unsheared calibration sample of the same population
-    ncb = _n_blocks(spec.ncal, spec.block_size)
+    ncb = _n_blocks(spec.ncal, spec.block_size) if prior is None else 0
     tasks = [{"spec": spec, "config": cfg, "psf": b % npsf, "block": b, "calibration": True}
              for b in range(ncb)]  # fmt: skip
     lnls, egrid, render_s, fit_s = [], None, 0.0, 0.0
@@ -633,7 +638,8 @@ def precision(
         egrid = r["egrid"]
         render_s += r["render_s"]
         fit_s += r["fit_s"]
-    prior = estimate_prior(np.concatenate(lnls), egrid, method=cfg.prior_method)
+    if prior is None:
+        prior = estimate_prior(np.concatenate(lnls), egrid, method=cfg.prior_method)
     t_cal = time.perf_counter() - t_start
     # 2. the four renderings of every galaxy, streamed block by block
     nb = _n_blocks(spec.ngal, spec.block_size)
@@ -678,7 +684,8 @@ def precision(
     render_s += sum(r["render_s"] for r in res)
     fit_s += sum(r["fit_s"] + r["reduce_s"] for r in res)
     total = time.perf_counter() - t_start
-    out.meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D}
+    out.meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D,
+                         "given": ncb == 0}  # fmt: skip
     out.meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
     out.meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
     out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
@@ -730,7 +737,8 @@ def write_report(res: Table, path: str | Path) -> None:
         f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g}, seed {spec['seed']}; "
         f"model {res.meta['config']['model']} "
         f"({res.meta['config'].get('n_bulge_fractions', 1)} bulge fraction(s)). ", "",
-        f"Prior from {spec['ncal']} unsheared calibration galaxies: "
+        ("Prior given: " if res.meta["prior"].get("given") else
+         f"Prior from {spec['ncal']} unsheared calibration galaxies: ") +
         f"B={res.meta['prior']['B']:.3f}, C={res.meta['prior']['C']:.3f}, "
         f"D={res.meta['prior']['D']:.3f} (true {tuple(spec['prior_params'])}). "
         f"Largest fixed-point Newton step {res.meta['fp_step']:.1e}.", "",
