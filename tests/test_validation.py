@@ -238,6 +238,12 @@ def test_validate_end_to_end(tmp_path):
     # the recovered prior is compared with the truth's intrinsic ellipticities
     pc = res.meta["prior_check"]
     assert pc["n"] > 100 and np.isfinite(pc["rms_true"])
+    # the stacked PSFs against GalSim's pixelised input PSFs, measured alike
+    ps = res.meta["psf_check"]
+    assert len(ps) == 5
+    np.testing.assert_allclose(ps["fwhm_meas"], ps["fwhm_true"], rtol=0.02)
+    assert np.max(np.abs(ps["e1_meas"] - ps["e1_true"])) < 0.005
+    assert np.max(np.abs(ps["e2_meas"] - ps["e2_true"])) < 0.005
     assert set(res.meta["diagnosis"]) >= {"m", "sigma_c", "Q", "all_met"}
 
 
