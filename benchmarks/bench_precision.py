@@ -92,7 +92,7 @@ def main() -> None:
     from pylensfit.precision import (
         _usable,
         bias_table,
-        reduce_likelihoods,
+        reduce_renderings,
         render_block,
         spec_with,
     )
@@ -136,23 +136,15 @@ def main() -> None:
             n = len(st)
             flat = st.reshape(n * 4, *st.shape[2:])
             f = fit_stamps(flat, psf, spec.noise_sigma, config=cfg)
-            ok = _usable(f)
-            Q = np.full((n * 4, 12), np.nan)
-            for k in range(4):
-                sel = np.zeros(n * 4, bool)
-                sel[k::4] = True
-                sel &= ok
-                gn = (spec.g, spec.g) if k < 2 else (-spec.g, -spec.g)
-                if sel.any():
-                    Q[sel] = reduce_likelihoods(f.lnL[sel], egrid, prior, gn)
+            Q, ok = reduce_renderings(f, prior, spec.g, refine=cfg.integration_refine)
             t2 = time.perf_counter()
             H = hsm_shapes(flat, psf)
             t3 = time.perf_counter()
             t_render += t1 - t0
             t_fit += t2 - t1
             t_hsm += t3 - t2
-            Qs.append(Q.reshape(n, 4, 12))
-            Us.append(ok.reshape(n, 4))
+            Qs.append(Q)
+            Us.append(ok)
             Bs.append(np.full(n, b))
             Hs.append(H.reshape(n, 4, 2))
         Q, U, B, H = map(np.concatenate, (Qs, Us, Bs, Hs))

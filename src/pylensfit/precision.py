@@ -73,6 +73,8 @@ __all__ = [
     "render_block",
     "precision",
     "bias_table",
+    "reduce_likelihoods",
+    "reduce_renderings",
 ]
 
 #: PSFs of the precision mode (pixel units): a round Moffat, a Moffat of ellipticity
@@ -392,6 +394,41 @@ def reduce_likelihoods(
     ])  # fmt: skip
 
 
+def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4):
+    """:func:`reduce_likelihoods` of the fits of ``n`` galaxies' four renderings.
+
+    Parameters
+    ----------
+    fits : StampFits
+        Fits of the ``4 n`` stamps, galaxy by galaxy in the module's rendering order.
+    prior : Prior
+        The prior.
+    g : float
+        The applied shear per component (nominal shears ``+(g, g)`` for renderings 0-1,
+        ``-(g, g)`` for 2-3).
+    refine : int
+        Integration refinement.
+
+    Returns
+    -------
+    Q : numpy.ndarray
+        ``(n, 4, 12)`` per-rendering quantities (NaN where not measured).
+    usable : numpy.ndarray
+        ``(n, 4)`` measured renderings.
+    """
+    ok = _usable(fits)
+    n = ok.size // 4
+    Q = np.full((4 * n, _NQ), np.nan)
+    for k in range(4):  # the nominal shear differs between the renderings
+        sel = np.zeros(4 * n, bool)
+        sel[k::4] = True
+        sel &= ok
+        if np.any(sel):
+            gn = (g, g) if k < 2 else (-g, -g)
+            Q[sel] = reduce_likelihoods(fits.lnL[sel], fits.egrid, prior, gn, refine=refine)
+    return Q.reshape(n, 4, _NQ), ok.reshape(n, 4)
+
+
 def _usable(fits) -> np.ndarray:
     """Measured galaxies: no flag and not classified as a point source."""
     return (np.asarray(fits.flags) == 0) & ~np.asarray(fits.is_star)
@@ -422,18 +459,9 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
         res["egrid"] = fits.egrid
         res["n_usable"] = int(ok.sum())
         return res
-    Q = np.full((n * nr, _NQ), np.nan)
-    g = spec.g
-    for k in range(nr):  # four renderings: the nominal shear differs
-        sel = np.zeros(n * nr, bool)
-        sel[k::nr] = True
-        sel &= ok
-        if np.any(sel):
-            gn = (g, g) if k < 2 else (-g, -g)
-            Q[sel] = reduce_likelihoods(fits.lnL[sel], fits.egrid, task["prior"], gn,
-                                        refine=cfg.integration_refine)  # fmt: skip
-    res["Q"] = Q.reshape(n, nr, _NQ).astype(np.float32)
-    res["usable"] = ok.reshape(n, nr)
+    Q, usable = reduce_renderings(fits, task["prior"], spec.g, refine=cfg.integration_refine)
+    res["Q"] = Q.astype(np.float32)
+    res["usable"] = usable
     res["r_best"] = fits.r_best.reshape(n, nr)[:, 0].astype(np.float32)
     res["snr_meas"] = fits.snr.reshape(n, nr)[:, 0].astype(np.float32)
     res["reduce_s"] = time.perf_counter() - t2

@@ -113,6 +113,21 @@ def draw_shapes(prior: Prior, n: int, rng: np.random.Generator, e_max: float) ->
     return e
 
 
+def _lensed_shapes(spec: FieldSpec, e_int: np.ndarray, is_star: np.ndarray):
+    """Intrinsic shapes (flipped for a 90-degree twin) and their sheared values (complex).
+
+    Stars get ``e_obs = 0``.
+    """
+    from .shear import apply_shear
+
+    if spec.rotate:
+        e_int = -e_int  # a 90-degree rotation of an ellipse flips e
+    e1, e2 = apply_shear(e_int[:, 0], e_int[:, 1], spec.g1, spec.g2)
+    e_obs = e1 + 1j * e2
+    e_obs[is_star] = 0.0
+    return e_int, e_obs
+
+
 def _add_object(image, obj, flux: float, x: float, y: float, size: int = 64) -> None:
     """Draw ``obj`` with ``flux`` centred at 0-based ``(x, y)`` and add it to ``image``."""
     import galsim
@@ -183,12 +198,7 @@ def simulate_field(
     n = int(spec.size)
     x, y, is_star, r, snr, star_snr, e_int = draw_population(spec, rng)
     n_obj = x.size
-    if spec.rotate:
-        e_int = -e_int  # a 90-degree rotation of an ellipse flips e
-    es = e_int[:, 0] + 1j * e_int[:, 1]
-    g = complex(spec.g1, spec.g2)
-    e_obs = (es + g) / (1 + np.conj(g) * es)
-    e_obs[is_star] = 0.0
+    e_int, e_obs = _lensed_shapes(spec, e_int, is_star)
 
     psf = _psf(spec)
     image = galsim.ImageF(n, n, scale=1.0)  # bounds 1..n: numpy (x, y) is galsim (x+1, y+1)

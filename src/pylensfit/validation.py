@@ -41,6 +41,7 @@ from .simulate import (
     FieldSpec,
     _add_object,
     _add_sky_and_noise,
+    _lensed_shapes,
     _psf,
     _truth_table,
     draw_population,
@@ -174,12 +175,7 @@ def render_step2_field(
     knot_frac = rng.uniform(0.2, 0.5, n_obj)
     n_knots = rng.integers(10, 60, n_obj)
     knot_seed = rng.integers(1, 2**31 - 1, n_obj)
-    if spec.rotate:
-        e_int = -e_int  # a 90-degree rotation of an ellipse flips e
-    es = e_int[:, 0] + 1j * e_int[:, 1]
-    g = complex(spec.g1, spec.g2)
-    e_obs = (es + g) / (1 + np.conj(g) * es)
-    e_obs[is_star] = 0.0
+    e_int, e_obs = _lensed_shapes(spec, e_int, is_star)
 
     psf = _psf(spec)
     image = galsim.ImageF(n, n, scale=1.0)  # bounds 1..n: numpy (x, y) is galsim (x+1, y+1)
