@@ -98,6 +98,29 @@ def test_shapes_match_brute_force_on_the_grid():
     assert np.allclose(s1, ref[:, 5]) and np.allclose(s2, ref[:, 6])
 
 
+def test_refinement_survives_a_cliff_in_lnL():
+    """A bright galaxy's ln L falls off a cliff where the models degenerate (|e| -> 1).
+
+    Without the cap of ``_Refiner.excess`` the cubic kernel's negative lobes turn a cell
+    250 e-folds under its neighbours into a spurious peak (ln L +7 above the real one),
+    and the posterior mean jumps to it; with it, the mean is that of the likelihood
+    without the cliff to 1e-6.
+    """
+    e_obs = np.array([[0.35, -0.14]])
+    lnL = gaussian_lnL(e_obs, np.array([0.08]))
+    clean = shapes(lnL, EGRID, PRIOR)
+    far = np.argmin(np.hypot(EGRID[:, 0] - 0.75, EGRID[:, 1] + 0.65))
+    assert lnL[0, far] - lnL.max() > -40  # the quadratic there: about -33
+    cliff = lnL.copy()
+    cliff[0, far] -= 250.0
+    lf, fine = refine_lnL(cliff, EGRID, refine=DEFAULT_REFINE)
+    near = np.hypot(fine[:, 0] - 0.8, fine[:, 1] + 0.55) < 0.1
+    assert lf[0, near].max() < -10  # the quadratic: -20 to -60; spurious: +3.6
+    t = shapes(cliff, EGRID, PRIOR)
+    for c in ("e1", "e2", "sens1", "sens2"):
+        assert abs(t[c][0] - clean[c][0]) < 1e-6, c
+
+
 def test_refined_integration_equals_direct_evaluation_on_the_fine_grid():
     # ln L of a Gaussian is quadratic: the interpolation from de = 0.1 is then exact, so
     # refine=4 must equal evaluating the likelihood directly on the de = 0.025 grid.
