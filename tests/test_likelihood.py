@@ -82,14 +82,14 @@ def brute_force_lnL(cfg, d, sigma, psf_img, x0, cells):
         f = (np.exp(la - m) * prior).reshape(len(cols), len(g), len(g))
         return np.log(np.trapezoid(np.trapezoid(f, g, axis=2), g, axis=1)) + m[:, 0]
 
-    star = ln_marg([bank.n_models - 1])[0]
+    star = ln_marg([bank.n_models - 1])[0] + np.log(bank.star_weight)
     out = np.full(bank.n_e, np.nan)
     for ie in cells:
-        lr = ln_marg(list(range(ie * n_r, (ie + 1) * n_r)))
-        # the engine's quadrature over r: the grid sum, corrected for sub-step peaks
+        lr = ln_marg(list(range(ie * n_r, (ie + 1) * n_r))) + np.log(bank.r_weights)
+        # the engine's quadrature over r: the weighted grid sum, corrected for sub-step peaks
         k = int(np.argmax(lr))
         f = _narrow_peak_factor(*lr[k - 1 : k + 2]) if 0 < k < n_r - 1 else 1.0
-        out[ie] = np.logaddexp(np.logaddexp.reduce(lr) + np.log(f), star) + np.log(cfg.r_step)
+        out[ie] = np.logaddexp(np.logaddexp.reduce(lr) + np.log(f), star)
     return out
 
 

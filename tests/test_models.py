@@ -6,7 +6,14 @@ import pytest
 
 from conftest import PSFS, N, draw, galsim_model
 from pylensfit.config import Config
-from pylensfit.models import fourier_profile, model_bank, rfft_frequencies, sheared_k
+from pylensfit.models import (
+    fourier_profile,
+    model_bank,
+    radius_grid,
+    radius_weights,
+    rfft_frequencies,
+    sheared_k,
+)
 from pylensfit.psf import psf_transform
 
 
@@ -97,7 +104,41 @@ def test_bank_layout_and_point_source():
 
 
 def test_paper_grid_size():
-    bank = model_bank(Config(model="exponential"))
+    bank = model_bank(Config(model="exponential", r_rel_step=0.0))
     assert bank.n_r == 50 and bank.radii[0] == pytest.approx(0.2)
     assert bank.radii[-1] == pytest.approx(10.0)
     assert bank.n_models == 316 * 50 + 1
+    np.testing.assert_allclose(bank.r_weights, 0.2)  # the paper's sum times dr
+    assert bank.star_weight == pytest.approx(0.2)
+
+
+def test_relative_size_grid():
+    """No step exceeds r_rel_step * r or r_step; uniform (the paper's) above r_step / r_rel_step."""
+    r = radius_grid(0.0, 10.0, 0.2, 0.1)
+    steps = np.diff(r)
+    assert np.all(steps <= 0.2 + 1e-9) and np.all(steps <= 0.1 * r[1:] + 1e-9)
+    assert 0.1 <= r[0] < 0.11 and r[-1] == pytest.approx(10.0)
+    np.testing.assert_allclose(r[r >= 2.0 - 1e-9], np.arange(2.0, 10.0 + 1e-9, 0.2))
+    assert radius_grid(0.5, 10.0, 0.2, 0.1)[0] >= 0.5
+
+
+@pytest.mark.parametrize("r_rel_step", [0.0, 0.1])
+def test_radius_weights_integrate(r_rel_step):
+    """sum_j w_j f(r_j) + w_star f(0) is the integral over r, on either grid."""
+    r = radius_grid(0.0, 10.0, 0.2, r_rel_step)
+    w, w_star = radius_weights(r, 0.0)
+    # integral 1 (5e-4 beyond 10 px); the trapezoid rule's error, (dr^2/12) f'(0), is 3.3e-3
+    f = lambda x: x * np.exp(-x)  # noqa: E731
+    total = w_star * f(0.0) + np.sum(w * f(r))
+    assert total == pytest.approx(1.0 - 11 * np.exp(-10), rel=4e-3 if r_rel_step == 0 else 1e-3)
+    # a peak at a small size, as narrow as the galaxy is small: the uniform grid's sum
+    # swings by tens of per cent with the peak's position between two sizes, the relative
+    # grid's by 1e-6 (its offset, 1.5e-3, is dr/dj's central difference, q^2 / 6)
+    errs = []
+    for d in np.linspace(0.0, 0.2, 9):
+        g = np.exp(-0.5 * ((r - 0.5 - d) / 0.08) ** 2)
+        errs.append(np.sum(w * g) / (0.08 * np.sqrt(2 * np.pi)) - 1)
+    if r_rel_step:
+        assert np.max(np.abs(errs)) < 2.5e-3 and np.ptp(errs) < 1e-4
+    else:
+        assert np.ptp(errs) > 0.05

@@ -159,8 +159,8 @@ _UNDERFLOW = 700.0
 
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
-    prod, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step, ln_dr,
-    cubic, out_lnle, out_lnlr, out_best, out_h, out_x, out_y,
+    prod, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step, r_w,
+    w_star, cubic, out_lnle, out_lnlr, out_best, out_h, out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 
@@ -168,9 +168,9 @@ def laplace_grid(
     buffer and finds the peak ``M``; the second takes one ``exp(ln L - M)`` per model and
     accumulates both the sum over r (for ``L(e)``) and the mean over e (for ``L(r)``).
     Where a whole e cell lies more than 700 e-folds under the peak (bright galaxies far
-    from their ellipticity) its sum underflows and ``ln L(e)`` is replaced by the
-    largest term plus ``ln dr``: exact to within ``ln n_r`` at a point whose posterior
-    weight is ``exp(-700)``.
+    from their ellipticity) its sum underflows and ``ln L(e)`` is replaced by its
+    largest weighted term: exact to within ``ln n_r`` at a point whose posterior weight
+    is ``exp(-700)``.
 
     Parameters
     ----------
@@ -181,11 +181,15 @@ def laplace_grid(
     n_sub : int
         The r axis of an e cell is ``n_r // n_sub`` runs of ``n_sub`` increasing radii
         (one per bulge fraction); the sum over r is corrected run by run
-        (:func:`_narrow_peak_factor`).
+        (:func:`_narrow_peak_factor`, applied to ``ln(w_j L_j)``: the trapezoid rule in
+        the grid index).
     s_m, mxx, mxy, myy : (n_models,) arrays
         ``sum m^2`` and the Hessian of the model autocorrelation per model.
     sigma, x0, y0 : (n_gal,) arrays
         Noise per pixel and catalogue position relative to the re-centred origin.
+    r_w, w_star : (n_sub,) array and float
+        Quadrature weights of the sizes of a run and of the point source
+        (:func:`pylensfit.models.radius_weights`).
     """
     n_mod = n_e * n_r + 1
     n_blk = n_r // n_sub
@@ -194,6 +198,7 @@ def laplace_grid(
     sq_m = np.sqrt(s_m)
     ln_m = np.log(s_m)
     lne = math.log(n_e)
+    ln_w = np.log(r_w)
     for g in prange(n_gal):
         sig = sigma[g]
         gx0 = x0[g]
@@ -223,11 +228,13 @@ def laplace_grid(
                 out_x[g] = xx
                 out_y[g] = yy
         out_best[g] = jb
-        ex_star = math.exp(buf[star] - best)
+        lw_star = buf[star] + math.log(w_star)
+        ex_star = math.exp(lw_star - best)
         rsum = np.zeros(n_r)
+        lwr = np.empty(n_sub)
         for ie in range(n_e):
             acc = ex_star
-            emax = buf[star]
+            emax = lw_star
             for ib in range(n_blk):  # runs of increasing r, one per bulge fraction
                 bacc = 0.0
                 rmax = -np.inf
@@ -236,21 +243,22 @@ def laplace_grid(
                     ir = ib * n_sub + irr
                     l = buf[ie * n_r + ir]
                     ex = math.exp(l - best)
-                    bacc += ex
+                    bacc += ex * r_w[irr]
                     rsum[ir] += ex
-                    if l > rmax:
-                        rmax = l
+                    lw = l + ln_w[irr]
+                    lwr[irr] = lw
+                    if lw > rmax:
+                        rmax = lw
                         km = irr
                 if rmax > emax:
                     emax = rmax
                 if 0 < km < n_sub - 1:
-                    j0 = ie * n_r + ib * n_sub + km
-                    bacc *= _narrow_peak_factor(buf[j0 - 1], buf[j0], buf[j0 + 1])
+                    bacc *= _narrow_peak_factor(lwr[km - 1], lwr[km], lwr[km + 1])
                 acc += bacc
             if emax > best - _UNDERFLOW:
-                out_lnle[g, ie] = best + math.log(acc) + ln_dr
+                out_lnle[g, ie] = best + math.log(acc)
             else:
-                out_lnle[g, ie] = emax + ln_dr
+                out_lnle[g, ie] = emax
         for ir in range(n_r):
             if rsum[ir] > 0.0:
                 out_lnlr[g, ir] = best + math.log(rsum[ir]) - lne

@@ -40,7 +40,14 @@ class Config:
     e_max: float = _f(1.0, "largest |e| of the ellipticity grid")
     r_min: float = _f(0.0, "smallest model size in pixels (0: the point-source model)")
     r_max: float = _f(10.0, "largest model size in pixels")
-    r_step: float = _f(0.2, "model size step Delta r in pixels")
+    r_step: float = _f(0.2, "model size step Delta r in pixels (the largest step)")
+    r_rel_step: float = _f(
+        0.1,
+        "largest size step relative to the size: below r_step / r_rel_step the sizes are "
+        "geometric (ratio 1 + r_rel_step). 0: the paper's uniform grid, which samples small "
+        "galaxies' narrow likelihood in r too coarsely (m ~ +0.2 for exponentials of half "
+        "the PSF's size, validate --precision)",
+    )
     model: str = _f(
         "devaucouleurs", "galaxy model: 'devaucouleurs', 'exponential' or 'bulge+disc'"
     )
@@ -179,6 +186,7 @@ def _validate(c: Config) -> None:
     need(0 < c.e_step <= 0.5, f"e_step must be in (0, 0.5], got {c.e_step}")
     need(0 < c.e_max <= 1, f"e_max must be in (0, 1], got {c.e_max}")
     need(c.r_step > 0, f"r_step must be > 0, got {c.r_step}")
+    need(0 <= c.r_rel_step < 1, f"r_rel_step must be in [0, 1), got {c.r_rel_step}")
     need(0 <= c.r_min < c.r_max, f"need 0 <= r_min < r_max, got {c.r_min}, {c.r_max}")
     need(
         c.model in ("exponential", "devaucouleurs", "bulge+disc"),

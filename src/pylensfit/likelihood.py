@@ -23,7 +23,8 @@ For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of un
       ln L(e, r) = l* - ln det(I + b^2 F) / 2 - (X* - X0)^T (F^-1 + b^2 I)^-1 (X* - X0) / 2
 
   with ``F = -(dl/dh) Hess h`` the curvature of ``l = ln L(e, r, X)`` in position;
-* **size**: ``L(e) = sum_r L(e, r) dr`` over ``r = r_min ... r_max`` (uniform prior);
+* **size**: ``L(e) = int L(e, r) dr`` over ``r = r_min ... r_max`` (uniform prior), by
+  the trapezoid rule on the size grid (:func:`pylensfit.models.radius_weights`);
   ``r = 0`` is the point source. An object whose most likely ``r`` (marginal over
   the e grid) is 0 is flagged as a star.
 """
@@ -322,7 +323,8 @@ def fit_stamps(
     hbest = np.empty(n_gal)
     xb = np.empty(n_gal)
     yb = np.empty(n_gal)
-    ln_dr = float(np.log(cfg.r_step))
+    r_w = np.asarray(bank.r_weights, dtype=float)
+    rw_c = np.tile(r_w, bank.n_r // bank.n_sizes)[coarse.cols[:-1] % n_r][: coarse.n_r]
     b2 = cfg.position_prior_sigma**2
     for s0 in range(0, n_gal, cfg.block_size):
         sl = slice(s0, min(s0 + cfg.block_size, n_gal))
@@ -335,7 +337,7 @@ def fit_stamps(
             products(sl, Gc), m, coarse.n_e, coarse.n_r, coarse.n_r, pb.S[coarse.cols],
             pb.mxx[coarse.cols],
             pb.mxy[coarse.cols], pb.myy[coarse.cols], sigma[sl], x0[sl] - xc[sl],
-            y0[sl] - yc[sl], b2, cfg.max_newton_step, ln_dr, False, *tmp,
+            y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, False, *tmp,
         )  # fmt: skip
         step_x, step_y = tmp[4], tmp[5]
         move = np.isfinite(step_x) & np.isfinite(step_y) & ~no_peak[sl]
@@ -356,7 +358,7 @@ def fit_stamps(
                 products(idx, G, cubic), sel.size, n_e, n_r, bank.n_sizes, pb.S, pb.mxx,
                 pb.mxy, pb.myy,
                 sigma[idx], x0[idx] - xc[idx], y0[idx] - yc[idx], b2, cfg.max_newton_step,
-                ln_dr, cubic, *out,
+                r_w, bank.star_weight, cubic, *out,
             )  # fmt: skip
             lnle[idx], lnlr[idx], best[idx], hbest[idx], xb[idx], yb[idx] = out
 

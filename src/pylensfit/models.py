@@ -43,6 +43,8 @@ __all__ = [
     "ModelBank",
     "fourier_profile",
     "model_bank",
+    "radius_grid",
+    "radius_weights",
     "rfft_frequencies",
     "sheared_k",
 ]
@@ -164,6 +166,14 @@ class ModelBank:
         Stamp side in pixels.
     model : str
         Model family.
+    bulge : numpy.ndarray or None
+        Bulge fraction of each column within an e cell (``None``: one fixed fraction).
+    n_sub : int
+        Sizes per bulge fraction (0: all of ``radii``).
+    r_weights : numpy.ndarray or None
+        Quadrature weight of each size of one run (:func:`radius_weights`).
+    star_weight : float
+        Quadrature weight of the point source.
     """
 
     G: np.ndarray
@@ -173,6 +183,8 @@ class ModelBank:
     model: str
     bulge: np.ndarray | None = None
     n_sub: int = 0
+    r_weights: np.ndarray | None = None
+    star_weight: float = 1.0
 
     @property
     def n_sizes(self) -> int:
@@ -192,13 +204,57 @@ class ModelBank:
         return self.G.shape[1]
 
 
-def radius_grid(r_min: float, r_max: float, r_step: float) -> np.ndarray:
-    """Model sizes ``r_min, r_min + dr, ..., r_max`` excluding 0 (the point source)."""
-    if r_step <= 0 or r_max <= 0 or r_min < 0 or r_max < r_min:
-        raise ValueError(f"bad radius grid r_min={r_min}, r_max={r_max}, r_step={r_step}")
-    n = int(np.floor((r_max - r_min) / r_step + 1e-9)) + 1
-    r = r_min + r_step * np.arange(n)
-    return r[r > 0]
+def radius_grid(r_min: float, r_max: float, r_step: float, r_rel_step: float = 0.0) -> np.ndarray:
+    """Model sizes from ``r_min`` to ``r_max``, excluding 0 (the point source).
+
+    With ``r_rel_step = 0`` the paper's uniform grid ``r_min, r_min + dr, ..., r_max``.
+    With ``r_rel_step > 0`` no step exceeds ``r_rel_step * r`` either: below
+    ``r_c = r_step / r_rel_step`` the sizes are geometric, ``r_c / (1 + r_rel_step)^k``,
+    down to ``max(r_min, r_step / 2)``; above it, uniform with step ``r_step``. A small
+    galaxy's likelihood in ``r`` is as narrow in ``r`` as its size, so a uniform step
+    samples it too coarsely (``DESIGN.md``, section 1; ``validate --precision``).
+    """
+    if r_step <= 0 or r_max <= 0 or r_min < 0 or r_max < r_min or r_rel_step < 0:
+        raise ValueError(f"bad radius grid r_min={r_min}, r_max={r_max}, r_step={r_step}, "
+                         f"r_rel_step={r_rel_step}")  # fmt: skip
+    if r_rel_step == 0:
+        n = int(np.floor((r_max - r_min) / r_step + 1e-9)) + 1
+        r = r_min + r_step * np.arange(n)
+        return r[r > 0]
+    r_c = r_step / r_rel_step
+    floor = max(r_min, 0.5 * r_step)
+    start = max(r_c, r_min)
+    n_up = int(np.floor((r_max - start) / r_step + 1e-9)) + 1
+    upper = start + r_step * np.arange(max(n_up, 0))
+    n_down = 0
+    if start > floor:
+        n_down = int(np.floor(np.log(start / floor) / np.log1p(r_rel_step) + 1e-9))
+    lower = start / (1.0 + r_rel_step) ** np.arange(n_down, 0, -1)
+    r = np.concatenate([lower, upper])
+    return r[(r > 0) & (r <= r_max * (1 + 1e-12))]
+
+
+def radius_weights(radii: np.ndarray, r_min: float) -> tuple[np.ndarray, float]:
+    """Quadrature weights of ``L(e) = int L(e, r) dr`` on the size grid.
+
+    The weight of ``r_j`` is ``(r_{j+1} - r_{j-1}) / 2`` (``dr/dj`` by central
+    differences, with ``r_0 = 0`` when the point source closes the grid and one-sided at
+    the ends), so the sum is the trapezoid rule in the grid index ``j``; the point
+    source gets ``r_1``. On the uniform grid every weight is ``dr``, as in the paper.
+
+    Returns
+    -------
+    w : numpy.ndarray
+        Weight of each size.
+    w_star : float
+        Weight of the point source (``r = 0``).
+    """
+    r = np.asarray(radii, dtype=float)
+    if r.size == 1:
+        return np.array([r[0] if r_min == 0 else 1.0]), float(r[0])
+    ext = np.concatenate([[0.0 if r_min == 0 else 2 * r[0] - r[1]], r, [2 * r[-1] - r[-2]]])
+    w = 0.5 * (ext[2:] - ext[:-2])
+    return w, float(r[0])
 
 
 @lru_cache(maxsize=8)
@@ -214,9 +270,11 @@ def _cached_bank(
     bulge_size_ratio: float,
     dtype: str,
     n_bulge: int = 1,
+    r_rel_step: float = 0.0,
 ) -> ModelBank:
     egrid = ellipticity_grid(e_step, emax=e_max)
-    radii = radius_grid(r_min, r_max, r_step)
+    radii = radius_grid(r_min, r_max, r_step, r_rel_step)
+    r_w, w_star = radius_weights(radii, r_min)
     fracs = np.array([bulge_fraction]) if n_bulge == 1 else np.linspace(0.0, 1.0, n_bulge)
     n_sub = radii.size
     kx, ky, _ = rfft_frequencies(n)
@@ -236,7 +294,8 @@ def _cached_bank(
     G[:, -1] = 1.0
     G.setflags(write=False)
     return ModelBank(G=G, egrid=egrid, radii=np.tile(radii, fracs.size), n=n, model=model,
-                     bulge=np.repeat(fracs, n_sub), n_sub=n_sub)  # fmt: skip
+                     bulge=np.repeat(fracs, n_sub), n_sub=n_sub, r_weights=r_w,
+                     star_weight=w_star)  # fmt: skip
 
 
 def model_bank(config=None) -> ModelBank:
@@ -262,4 +321,5 @@ def model_bank(config=None) -> ModelBank:
         cfg.bulge_size_ratio,
         cfg.dtype,
         int(cfg.n_bulge_fractions),
+        float(cfg.r_rel_step),
     )
