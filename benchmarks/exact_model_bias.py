@@ -19,9 +19,8 @@ from pylensfit.config import Config
 from pylensfit.likelihood import fit_stamps
 from pylensfit.precision import (
     MORPHOLOGIES,
-    _usable,
     bias_table,
-    reduce_likelihoods,
+    reduce_renderings,
     render_block,
     spec_with,
 )
@@ -53,16 +52,9 @@ def main() -> None:
         st, psf, t = render_block(spec, 0, b, stamp_size=a.stamp)
         n = len(st)
         f = fit_stamps(st.reshape(n * 4, a.stamp, a.stamp), psf, 1.0, config=cfg)
-        u = _usable(f)
-        q = np.full((n * 4, 12), np.nan)
-        for k in range(4):
-            sel = np.zeros(n * 4, bool)
-            sel[k::4] = True
-            sel &= u
-            gn = (spec.g, spec.g) if k < 2 else (-spec.g, -spec.g)
-            q[sel] = reduce_likelihoods(f.lnL[sel], f.egrid, prior, gn)
-        Q.append(q.reshape(n, 4, 12))
-        U.append(u.reshape(n, 4))
+        q, u = reduce_renderings(f, prior, spec.g)
+        Q.append(q)
+        U.append(u)
         B.append(np.full(n, b))
         S.append(np.asarray(t["size_ratio"]))
     Q, U, B, S = map(np.concatenate, (Q, U, B, S))
