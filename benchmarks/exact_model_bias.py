@@ -24,35 +24,55 @@ from pylensfit.precision import (
     render_block,
     spec_with,
 )
-from pylensfit.prior import Prior
+from pylensfit.prior import Prior, estimate_bulge_weights
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("morphology", choices=["exponential", "devaucouleurs"])
+    ap.add_argument("morphology", choices=[*MORPHOLOGIES, "mix"],
+                    help="galaxies of one morphology, or 'mix': the precision mode's mixture")
     ap.add_argument("--ngal", type=int, default=2000)
     ap.add_argument("--snr", type=float, nargs=2, default=(40.0, 200.0))
     ap.add_argument("--size", type=float, nargs=2, default=(0.5, 2.5))
     ap.add_argument("--psf", default="round")
     ap.add_argument("--stamp", type=int, default=32)
     ap.add_argument("--seed", type=int, default=41)
+    ap.add_argument("--model", default=None, help="model family (default: the morphology)")
+    ap.add_argument("--bulge-prior", choices=["uniform", "estimate"], default="uniform",
+                    help="bulge-fraction prior: uniform, or estimated from an unsheared "
+                         "calibration sample of --ngal galaxies (true e prior)")
     ap.add_argument("--config", nargs="*", default=[], help="Config overrides KEY=VALUE")
     a = ap.parse_args()
     over = {k: float(v) for k, v in (s.split("=", 1) for s in a.config)}
+    exact = a.morphology in ("exponential", "devaucouleurs")
+    over.update(model=a.model or (a.morphology if exact else "bulge+disc"))
     weights = tuple(1.0 if m == a.morphology else 0.0 for m in MORPHOLOGIES)
+    if a.morphology == "mix":
+        weights = spec_with().morphology_weights
     spec = spec_with(
-        ngal=a.ngal, block_size=500, seed=a.seed, snr_range=tuple(a.snr), psfs=[a.psf],
+        ngal=a.ngal, ncal=a.ngal, block_size=500, seed=a.seed, snr_range=tuple(a.snr), psfs=[a.psf],
         morphology_weights=weights, size_ratio_range=tuple(a.size),
     )
-    cfg = Config(model=a.morphology, stamp_size=a.stamp, **over)
+    cfg = Config(stamp_size=a.stamp, **over)
     prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
     t0 = time.time()
+    bw = None
+    if a.bulge_prior == "estimate" and cfg.n_bulge_fractions > 1:
+        lb, ls = [], []
+        for b in range(-(-spec.ncal // spec.block_size)):
+            st, psf, _ = render_block(spec, 0, b, stamp_size=a.stamp, calibration=True)
+            f = fit_stamps(st[:, 0], psf, 1.0, config=cfg)
+            ok = (f.flags == 0) & ~f.is_star
+            lb.append(f.lnL_bulge[ok])
+            ls.append(f.lnL_star[ok])
+        bw = estimate_bulge_weights(np.concatenate(lb), np.concatenate(ls), prior)
+        print(f"bulge-fraction prior {np.round(bw, 4).tolist()} from {spec.ncal} galaxies")
     Q, U, B, S = [], [], [], []
     for b in range(-(-a.ngal // spec.block_size)):
         st, psf, t = render_block(spec, 0, b, stamp_size=a.stamp)
         n = len(st)
         f = fit_stamps(st.reshape(n * 4, a.stamp, a.stamp), psf, 1.0, config=cfg)
-        q, u = reduce_renderings(f, prior, spec.g)
+        q, u = reduce_renderings(f, prior, spec.g, bulge_weights=bw)
         Q.append(q)
         U.append(u)
         B.append(np.full(n, b))

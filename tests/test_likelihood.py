@@ -8,7 +8,7 @@ from conftest import PSFS, N, draw, galsim_model
 from pylensfit import Config, fit_stamps
 from pylensfit._kernels_nb import _narrow_peak_factor
 from pylensfit.flags import flag_value
-from pylensfit.models import model_bank
+from pylensfit.models import half_light_radius, model_bank
 from pylensfit.psf import psf_transform
 
 
@@ -264,6 +264,14 @@ def test_stampfits_roundtrip(tmp_path, rng):
     fits.write(path)
     back = type(fits).read(path)
     assert np.array_equal(back.lnL, fits.lnL)
+    assert back.lnL_bulge is None and fits.lnL_bulge is None
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, r_max=6.0)
+    fb = fit_stamps(gal[None] + rng.normal(size=(2, N, N)), draw(psf), 1.0, config=cfg)
+    fb.write(tmp_path / "fb.fits")
+    bb = type(fb).read(tmp_path / "fb.fits")
+    assert np.array_equal(bb.lnL_bulge, fb.lnL_bulge) and bb.lnL_bulge.shape[1] == 3
+    assert np.array_equal(bb.lnL_star, fb.lnL_star)
+    np.testing.assert_allclose(bb.bulge_fractions, [0.0, 0.5, 1.0])
     assert np.allclose(back.egrid, fits.egrid)
     assert np.array_equal(back.flags, fits.flags)
     with pytest.raises(FileExistsError):
@@ -292,14 +300,20 @@ def test_r_quadrature_exact_for_gaussian_peaks(width):
         assert np.ptp(plain) > 0.05
 
 
-def test_marginal_bulge_fraction_is_the_sum_of_fixed_fraction_fits():
-    """With n bulge fractions, L(e) = sum over the fractions of the fixed-fraction L(e).
+def test_marginal_bulge_fraction_is_the_mean_of_fixed_fraction_fits():
+    """With n bulge fractions, L(e) = the mean over the fractions of the fixed-fraction L(e),
+    each weighted by its half-light radius per unit r (a size prior uniform in half-light
+    radius whatever the fraction).
 
     A bright, resolved galaxy (the point-source term negligible) so that the three
     fixed-fraction fits and the marginal one see the same models; ln L is compared in
-    absolute terms (``lnL + lnL_peak``) over the region where L > 1e-3 of its peak.
+    absolute terms (``lnL + lnL_peak``) over the region where L > 1e-3 of its peak. The
+    per-fraction grids ``lnL_bulge`` are the fixed-fraction fits themselves, and
+    re-mixing them with one-hot weights gives each fixed-fraction ``lnL``.
     """
     from scipy.special import logsumexp
+
+    from pylensfit.prior import mix_bulge_fractions
 
     psf = PSFS["moffat_e1"]
     img = draw(galsim.Convolve(galsim_model("bulge+disc", 2.5, 0.2, -0.1, bulge_fraction=0.3),
@@ -310,11 +324,25 @@ def test_marginal_bulge_fraction_is_the_sum_of_fixed_fraction_fits():
     fixed = [fit_stamps(d, draw(psf), 1.0, config=base.replace(bulge_fraction=b))
              for b in (0.0, 0.5, 1.0)]  # fmt: skip
     ab = np.array([f.lnL[0].astype(float) + f.lnL_peak[0] for f in fixed])
-    total = logsumexp(ab, axis=0)
+    jac = np.array([half_light_radius("bulge+disc", bulge_fraction=b) for b in (0.0, 0.5, 1.0)])
+    jac /= jac[0]
+    np.testing.assert_allclose(jac, [1.0, 0.6729, 0.3575], atol=2e-4)  # GalSim: 1.12935/1.678
+    ab += np.log(jac)[:, None]
+    total = logsumexp(ab, axis=0) - np.log(3.0)
     mine = marg.lnL[0].astype(float) + marg.lnL_peak[0]
     region = mine - mine.max() > np.log(1e-3)
     assert region.sum() >= 4
     assert np.max(np.abs(mine[region] - total[region])) < 0.01, np.abs(mine - total)[region]
+    np.testing.assert_allclose(marg.bulge_fractions, [0.0, 0.5, 1.0])
+    per = marg.lnL_bulge[0].astype(float) + marg.lnL_peak[0]
+    for k in range(3):
+        near = ab[k] - ab[k].max() > np.log(1e-3)
+        assert near.sum() >= 4
+        assert np.max(np.abs(per[k][near] - ab[k][near])) < 0.01
+        one_hot = mix_bulge_fractions(marg.lnL_bulge, marg.lnL_star, np.eye(3)[k])[0]
+        assert np.max(np.abs(one_hot[near] - fixed[k].lnL[0][near])) < 0.01
+    uniform = mix_bulge_fractions(marg.lnL_bulge, marg.lnL_star)
+    np.testing.assert_allclose(uniform[0][region], marg.lnL[0][region], atol=1e-4)
     # the bank: three runs of the radius grid per e cell, the fractions in order
     bank = model_bank(base.replace(n_bulge_fractions=3))
     assert bank.n_sizes * 3 == bank.n_r and bank.n_models == bank.n_e * bank.n_r + 1

@@ -174,6 +174,29 @@ def test_small_precision_run_bright_exponentials():
     assert set(res["breakdown"]) >= {"psf", "snr", "size", "morphology", "bulge_frac"}
 
 
+def test_estimated_bulge_prior_finds_a_disc_population():
+    """Exponential discs fitted with the bulge+disc model, fractions 0, 0.5, 1 marginalised.
+
+    The bulge-fraction prior estimated from the calibration sample puts nearly all its
+    weight on the pure disc (with the size prior uniform in half-light radius for every
+    fraction), and m is then as for the exact model. (Uniform weights give m ~ +0.02 on
+    such a population at S/N 10-200, ``benchmarks/exact_model_bias.py``.)
+    """
+    spec = spec_with(ngal=200, block_size=20, ncal=600, seed=11, psfs=["round"],
+                     snr_range=(40.0, 80.0), size_ratio_range=(1.0, 2.5),
+                     morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3)
+    res = precision(spec, config=cfg, progress=False, prior=Prior(B=0.19, C=0.58, D=2.4))
+    bp = res.meta["bulge_prior"]
+    assert bp["method"] == "estimated" and bp["fractions"] == [0.0, 0.5, 1.0]
+    assert abs(sum(bp["weights"]) - 1) < 1e-9 and bp["weights"][0] > 0.9, bp
+    r = res[(res["breakdown"] == "all") & (res["estimator"] == "fixed-point")][0]
+    for i in (1, 2):
+        assert abs(r[f"m{i}"]) < 4 * r[f"m{i}_err"] + 0.01, r
+    with pytest.raises(ValueError, match="bulge_prior"):
+        precision(spec, config=cfg, progress=False, bulge_prior="flat")
+
+
 def test_cli_precision_writes_report(tmp_path, capsys):
     from astropy.table import Table
 
@@ -194,6 +217,9 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     assert tab.meta["spec"]["ngal"] == 16
     # --true-prior: no calibration sample, the population's own prior
     assert "Prior given: B=0.190, C=0.580, D=2.400" in text and tab.meta["prior"]["given"]
+    # the default model marginalises the bulge fraction, its prior from the calibration set
+    assert "Bulge-fraction prior estimated from the calibration sample: 0: " in text
+    assert abs(sum(tab.meta["bulge_prior"]["weights"]) - 1) < 1e-9
     # a directory or a mode is required
     with pytest.raises(SystemExit):
         main(["validate"])

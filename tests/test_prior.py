@@ -341,3 +341,60 @@ def test_binned_prior_with_fallback(caplog):
         estimate_prior_binned(lnL, EGRID, mag, [22, 21])
     with pytest.raises(ValueError, match="values"):
         estimate_prior_binned(lnL, EGRID, mag[:5], [21, 25])
+
+
+def _fraction_sample(n, pi_true, seed, egrid):
+    """Per-fraction likelihoods of galaxies whose fraction k is drawn from ``pi_true``.
+
+    Each galaxy has a datum ``x ~ N(mu_k, 1)`` about its class mean, so that its evidence
+    for fraction ``j`` is ``N(x; mu_j, 1)`` (the classes overlap: a galaxy's fraction is
+    only partly known), times a Gaussian likelihood in e common to all fractions.
+    """
+    rng = np.random.default_rng(seed)
+    mu = np.array([0.0, 1.5, 3.0])
+    k = rng.choice(3, n, p=pi_true)
+    x = rng.normal(mu[k], 1.0)
+    ln_z = -0.5 * (x[:, None] - mu[None]) ** 2
+    e0 = rng.normal(0.0, 0.2, (n, 2))
+    ln_e = -0.5 * np.sum((egrid[None] - e0[:, None]) ** 2, axis=2) / 0.15**2
+    lb = ln_z[:, :, None] + ln_e[:, None, :]
+    return lb.astype(np.float32), np.full(n, -1e3)
+
+
+def test_bulge_weights_recover_the_population():
+    """EM on the fraction evidences recovers the mixture weights, from any start."""
+    from pylensfit.prior import estimate_bulge_weights
+
+    egrid = ellipticity_grid(0.1)
+    prior = Prior(egrid=egrid)
+    pi_true = np.array([0.6, 0.3, 0.1])
+    lb, ls = _fraction_sample(20000, pi_true, 5, egrid)
+    w = estimate_bulge_weights(lb, ls, prior)
+    assert w.shape == (3,) and abs(w.sum() - 1) < 1e-12
+    # sigma of each weight ~ 0.01 for 20000 overlapping members
+    np.testing.assert_allclose(w, pi_true, atol=0.03)
+    w2 = estimate_bulge_weights(lb, ls, prior, start=np.array([0.1, 0.1, 0.8]))
+    np.testing.assert_allclose(w2, w, atol=1e-4)
+    # a sample of pure discs puts (almost) all the weight on fraction 0
+    lb0, ls0 = _fraction_sample(5000, np.array([1.0, 0.0, 0.0]), 6, egrid)
+    assert estimate_bulge_weights(lb0, ls0, prior)[0] > 0.95
+    with pytest.raises(ValueError, match="n_b"):
+        estimate_bulge_weights(lb[:, 0], ls, prior)
+
+
+def test_mix_bulge_fractions_is_the_weighted_sum():
+    from pylensfit.prior import mix_bulge_fractions
+
+    rng = np.random.default_rng(1)
+    lb = rng.normal(size=(4, 3, 7)) * 3
+    ls = rng.normal(size=4) * 3 - 2
+    w = np.array([0.5, 0.2, 0.3])
+    direct = np.log(np.einsum("k,gke->ge", w, np.exp(lb)) + np.exp(ls)[:, None])
+    direct -= direct.max(axis=1, keepdims=True)
+    np.testing.assert_allclose(mix_bulge_fractions(lb, ls, 2 * w), direct, atol=1e-5)
+    np.testing.assert_allclose(mix_bulge_fractions(lb, ls, [1, 0, 0]),
+                               np.log(np.exp(lb[:, 0]) + np.exp(ls)[:, None])
+                               - np.log(np.exp(lb[:, 0]) + np.exp(ls)[:, None]).max(1)[:, None],
+                               atol=1e-5)  # fmt: skip
+    with pytest.raises(ValueError, match="weights"):
+        mix_bulge_fractions(lb, ls, [1.0, -1.0, 0.5])

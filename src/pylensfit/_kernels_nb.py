@@ -160,7 +160,7 @@ _UNDERFLOW = 700.0
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
     prod, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step, r_w,
-    w_star, cubic, out_lnle, out_lnlr, out_best, out_h, out_x, out_y,
+    w_star, ln_run, ln_pi, cubic, out_lnle, out_lnlb, out_lnlr, out_best, out_h, out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 
@@ -190,6 +190,16 @@ def laplace_grid(
     r_w, w_star : (n_sub,) array and float
         Quadrature weights of the sizes of a run and of the point source
         (:func:`pylensfit.models.radius_weights`).
+    ln_run : (n_r // n_sub,) array
+        Log weight of each run's sum over sizes: the Jacobian ``d h / d r`` of the
+        run's half-light radius ``h`` (relative to the first run's), so that the size
+        prior is the same, uniform in ``h``, for every bulge fraction.
+    ln_pi : (n_r // n_sub,) array
+        Log prior weight of each bulge fraction (summing to 1): ``L(e) = sum_k pi_k
+        L_k(e) + w_star L_star``, where ``L_k(e)`` is the weighted sum over the sizes of
+        run ``k`` and the point source, common to all fractions, is counted once.
+    out_lnlb : (n_gal, n_e, n_r // n_sub) array
+        ``ln L_k(e)`` of each run (bulge fraction) alone, without the point source.
     """
     n_mod = n_e * n_r + 1
     n_blk = n_r // n_sub
@@ -250,11 +260,17 @@ def laplace_grid(
                     if lw > rmax:
                         rmax = lw
                         km = irr
-                if rmax > emax:
-                    emax = rmax
                 if 0 < km < n_sub - 1:
                     bacc *= _narrow_peak_factor(lwr[km - 1], lwr[km], lwr[km + 1])
-                acc += bacc
+                bacc *= math.exp(ln_run[ib])
+                rmax += ln_run[ib]
+                if rmax > best - _UNDERFLOW and bacc > 0.0:
+                    out_lnlb[g, ie, ib] = best + math.log(bacc)
+                else:
+                    out_lnlb[g, ie, ib] = rmax
+                acc += bacc * math.exp(ln_pi[ib])
+                if rmax + ln_pi[ib] > emax:
+                    emax = rmax + ln_pi[ib]
             if emax > best - _UNDERFLOW:
                 out_lnle[g, ie] = best + math.log(acc)
             else:

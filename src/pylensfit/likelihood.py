@@ -73,6 +73,16 @@ class StampFits:
         Bit mask, see :data:`pylensfit.flags.FLAGS`.
     e1_best, e2_best : numpy.ndarray
         Ellipticity of the most likely model (the maximum of ``L(e, r)``).
+    lnL_bulge : numpy.ndarray or None
+        With the bulge fraction marginalised (``n_bulge_fractions = n_b > 1``): ``(n, n_b,
+        n_e)`` float32 ``ln L_k(e)`` of each fraction alone (sizes > 0), shifted like
+        ``lnL``. ``lnL`` is ``ln(sum_k L_k / n_b + L_star)``, a uniform prior over the
+        fractions; :func:`pylensfit.prior.mix_bulge_fractions` gives it for any other.
+    lnL_star : numpy.ndarray or None
+        ``(n,)`` the point source's ``ln L`` (weighted as the ``r = 0`` end of the size
+        integral), shifted like ``lnL``; ``None`` with one fraction.
+    bulge_fractions : numpy.ndarray or None
+        ``(n_b,)`` the bulge fractions of ``lnL_bulge``.
     """
 
     egrid: np.ndarray
@@ -88,6 +98,9 @@ class StampFits:
     e1_best: np.ndarray
     e2_best: np.ndarray
     meta: dict = field(default_factory=dict)
+    lnL_bulge: np.ndarray | None = None
+    lnL_star: np.ndarray | None = None
+    bulge_fractions: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.lnL.shape[0]
@@ -101,6 +114,10 @@ class StampFits:
 
         t = Table({name: getattr(self, name) for name in self._COLUMNS})
         t["lnL"] = self.lnL
+        if self.lnL_bulge is not None:
+            t["lnL_bulge"] = self.lnL_bulge
+            t["lnL_star"] = self.lnL_star
+            t.meta["BULGEFR"] = ",".join(f"{f:.6g}" for f in self.bulge_fractions)
         t.meta.update({k.upper()[:8]: v for k, v in self.meta.items()})
         return t
 
@@ -123,8 +140,13 @@ class StampFits:
 
         with fits.open(path) as hdul:
             t = Table(hdul["FITS"].data)
+            fracs = hdul["FITS"].header.get("BULGEFR")
             egrid = np.array(hdul["EGRID"].data, dtype=float)
         kw = {name: np.asarray(t[name]) for name in cls._COLUMNS}
+        if "lnL_bulge" in t.colnames:
+            kw["lnL_bulge"] = np.asarray(t["lnL_bulge"], dtype=np.float32)
+            kw["lnL_star"] = np.asarray(t["lnL_star"], dtype=float)
+            kw["bulge_fractions"] = np.array(str(fracs).split(","), dtype=float)
         return cls(egrid=egrid, lnL=np.asarray(t["lnL"], dtype=np.float32), **kw)
 
 
@@ -317,7 +339,12 @@ def fit_stamps(
             rows += [kxf**3 * i, kxf**2 * kyf * i, kxf * kyf**2 * i, kyf**3 * i]
         return np.concatenate(rows, axis=0).astype(dtype, copy=False) @ Gm
 
+    n_b = bank.n_r // bank.n_sizes  # bulge fractions, a uniform prior over them here
+    ln_pi = np.full(n_b, -np.log(n_b))
+    ln_pi1 = np.zeros(1)
+    ln_run = np.log(bank.run_weights) if bank.run_weights is not None else np.zeros(n_b)
     lnle = np.empty((n_gal, n_e))
+    lnleb = np.empty((n_gal, n_e, n_b))
     lnlr = np.empty((n_gal, n_r + 1))
     best = np.empty(n_gal, dtype=np.int64)
     hbest = np.empty(n_gal)
@@ -331,36 +358,38 @@ def fit_stamps(
         m = sl.stop - sl.start
         # pass 1, on a coarse subset of models: move the origin to the peak of the most
         # likely model, so that the Laplace step of every model near it is short
-        tmp = (np.empty((m, coarse.n_e)), np.empty((m, coarse.n_r + 1)),
-               np.empty(m, dtype=np.int64), np.empty(m), np.empty(m), np.empty(m))  # fmt: skip
+        tmp = (np.empty((m, coarse.n_e)), np.empty((m, coarse.n_e, 1)),
+               np.empty((m, coarse.n_r + 1)), np.empty(m, dtype=np.int64), np.empty(m),
+               np.empty(m), np.empty(m))  # fmt: skip
         laplace_grid(
             products(sl, Gc), m, coarse.n_e, coarse.n_r, coarse.n_r, pb.S[coarse.cols],
             pb.mxx[coarse.cols],
             pb.mxy[coarse.cols], pb.myy[coarse.cols], sigma[sl], x0[sl] - xc[sl],
-            y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, False, *tmp,
+            y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, ln_pi1, False,
+            *tmp,
         )  # fmt: skip
-        step_x, step_y = tmp[4], tmp[5]
+        step_x, step_y = tmp[5], tmp[6]
         move = np.isfinite(step_x) & np.isfinite(step_y) & ~no_peak[sl]
         xc[sl] += np.where(move, step_x, 0.0)
         yc[sl] += np.where(move, step_y, 0.0)
         # pass 2, every model; faint galaxies, whose models' peaks spread over a good
         # fraction of a pixel, with the third-order expansion in position
-        snr_c = tmp[3] / (sigma[sl] * np.sqrt(pb.S[coarse.cols][tmp[2]]))
+        snr_c = tmp[4] / (sigma[sl] * np.sqrt(pb.S[coarse.cols][tmp[3]]))
         low = snr_c < cfg.cubic_snr
         for sel, cubic in ((np.flatnonzero(low), True), (np.flatnonzero(~low), False)):
             if sel.size == 0:
                 continue
             idx = sel + s0
-            out = (np.empty((sel.size, n_e)), np.empty((sel.size, n_r + 1)),
-                   np.empty(sel.size, dtype=np.int64), np.empty(sel.size), np.empty(sel.size),
-                   np.empty(sel.size))  # fmt: skip
+            out = (np.empty((sel.size, n_e)), np.empty((sel.size, n_e, n_b)),
+                   np.empty((sel.size, n_r + 1)), np.empty(sel.size, dtype=np.int64),
+                   np.empty(sel.size), np.empty(sel.size), np.empty(sel.size))  # fmt: skip
             laplace_grid(
                 products(idx, G, cubic), sel.size, n_e, n_r, bank.n_sizes, pb.S, pb.mxx,
                 pb.mxy, pb.myy,
                 sigma[idx], x0[idx] - xc[idx], y0[idx] - yc[idx], b2, cfg.max_newton_step,
-                r_w, bank.star_weight, cubic, *out,
+                r_w, bank.star_weight, ln_run, ln_pi, cubic, *out,
             )  # fmt: skip
-            lnle[idx], lnlr[idx], best[idx], hbest[idx], xb[idx], yb[idx] = out
+            lnle[idx], lnleb[idx], lnlr[idx], best[idx], hbest[idx], xb[idx], yb[idx] = out
 
     peak = lnle.max(axis=1)
     failed = ~np.isfinite(peak) | ~np.isfinite(lnle).all(axis=1)
@@ -368,6 +397,11 @@ def fit_stamps(
     dead = bad | failed
     lnL = (lnle - peak[:, None]).astype(np.float32)
     lnL[dead] = np.nan
+    lnL_bulge = lnL_star = None
+    if n_b > 1:  # per bulge fraction, for a population prior over them (mix_bulge_fractions)
+        lnL_bulge = np.moveaxis(lnleb - peak[:, None, None], 2, 1).astype(np.float32)
+        lnL_bulge[dead] = np.nan
+        lnL_star = np.where(dead, np.nan, lnlr[:, n_r] + np.log(bank.star_weight) - peak)
 
     ir_best = lnlr.argmax(axis=1)
     radii = np.append(bank.radii, 0.0)
@@ -393,4 +427,7 @@ def fit_stamps(
         e2_best=e_best[:, 1] * nanif,
         meta={"model": cfg.model, "e_step": cfg.e_step, "r_step": cfg.r_step,
               "r_max": cfg.r_max},  # fmt: skip
+        lnL_bulge=lnL_bulge,
+        lnL_star=lnL_star,
+        bulge_fractions=None if n_b == 1 else np.unique(bank.bulge),
     )

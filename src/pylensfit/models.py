@@ -42,6 +42,7 @@ __all__ = [
     "MODEL_TYPES",
     "ModelBank",
     "fourier_profile",
+    "half_light_radius",
     "model_bank",
     "radius_grid",
     "radius_weights",
@@ -174,6 +175,11 @@ class ModelBank:
         Quadrature weight of each size of one run (:func:`radius_weights`).
     star_weight : float
         Quadrature weight of the point source.
+    run_weights : numpy.ndarray or None
+        Weight of each bulge fraction's sum over sizes: its half-light radius per unit
+        ``r`` over that of the first fraction (:func:`half_light_radius`), so that the
+        size prior is uniform in half-light radius whatever the fraction (``None``:
+        one fraction).
     """
 
     G: np.ndarray
@@ -185,6 +191,7 @@ class ModelBank:
     n_sub: int = 0
     r_weights: np.ndarray | None = None
     star_weight: float = 1.0
+    run_weights: np.ndarray | None = None
 
     @property
     def n_sizes(self) -> int:
@@ -202,6 +209,44 @@ class ModelBank:
     @property
     def n_models(self) -> int:
         return self.G.shape[1]
+
+
+@lru_cache(maxsize=64)
+def half_light_radius(
+    model: str = "devaucouleurs", *, bulge_fraction: float = 0.5, bulge_size_ratio: float = 0.6
+) -> float:
+    """Half-light radius of a model of unit size ``r`` (see the module docstring).
+
+    1 for ``"devaucouleurs"`` (``r`` is its half-light radius, of the truncated profile as
+    GalSim defines it), 1.678 for ``"exponential"`` (``r`` the scale length); for
+    ``"bulge+disc"`` the radius enclosing half the light of the sum, found by root finding
+    on the two enclosed-flux curves.
+    """
+    from scipy.optimize import brentq
+    from scipy.special import gammainc
+
+    t = DEVAUC_TRUNCATION
+
+    def disc(x):  # x = R / scale length
+        return 1.0 - (1.0 + x) * np.exp(-x)
+
+    # the truncated de Vaucouleurs profile, its Sersic b chosen so that its half-light
+    # radius is 1 (as GalSim's trunc with flux_untruncated=False)
+    b = brentq(lambda bb: gammainc(8, bb) / gammainc(8, bb * t**0.25) - 0.5, 5.0, 10.0)
+
+    def bulge(x):  # x = R / half-light radius
+        return gammainc(8, b * np.minimum(x, t) ** 0.25) / gammainc(8, b * t**0.25)
+
+    if model == "exponential":
+        frac = disc
+    elif model == "devaucouleurs":
+        return 1.0
+    elif model == "bulge+disc":
+        def frac(x):
+            return bulge_fraction * bulge(x / bulge_size_ratio) + (1 - bulge_fraction) * disc(x)
+    else:
+        raise ValueError(f"unknown model {model!r}; choose one of {MODEL_TYPES}")
+    return float(brentq(lambda x: frac(x) - 0.5, 1e-9, 1e3))
 
 
 def radius_grid(r_min: float, r_max: float, r_step: float, r_rel_step: float = 0.0) -> np.ndarray:
@@ -293,9 +338,12 @@ def _cached_bank(
             )
     G[:, -1] = 1.0
     G.setflags(write=False)
+    hlr = np.array([half_light_radius(model, bulge_fraction=float(bf),
+                                      bulge_size_ratio=bulge_size_ratio) for bf in fracs])
     return ModelBank(G=G, egrid=egrid, radii=np.tile(radii, fracs.size), n=n, model=model,
                      bulge=np.repeat(fracs, n_sub), n_sub=n_sub, r_weights=r_w,
-                     star_weight=w_star)  # fmt: skip
+                     star_weight=w_star, run_weights=None if fracs.size == 1 else hlr / hlr[0])
+    # fmt: skip
 
 
 def model_bank(config=None) -> ModelBank:

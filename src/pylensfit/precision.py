@@ -63,7 +63,7 @@ import numpy as np
 from astropy.table import Table
 
 from .config import Config
-from .prior import Prior
+from .prior import Prior, mix_bulge_fractions
 from .simulate import draw_shapes
 
 __all__ = [
@@ -394,7 +394,8 @@ def reduce_likelihoods(
     ])  # fmt: skip
 
 
-def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4):
+def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4,
+                      bulge_weights: np.ndarray | None = None):  # fmt: skip
     """:func:`reduce_likelihoods` of the fits of ``n`` galaxies' four renderings.
 
     Parameters
@@ -408,6 +409,9 @@ def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4):
         ``-(g, g)`` for 2-3).
     refine : int
         Integration refinement.
+    bulge_weights : numpy.ndarray, optional
+        Prior probabilities of the bulge fractions (:func:`~pylensfit.prior.
+        estimate_bulge_weights`); the fits' uniform mixture if ``None``.
 
     Returns
     -------
@@ -418,6 +422,9 @@ def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4):
     """
     ok = _usable(fits)
     n = ok.size // 4
+    lnL = fits.lnL
+    if bulge_weights is not None and fits.lnL_bulge is not None:
+        lnL = mix_bulge_fractions(fits.lnL_bulge, fits.lnL_star, bulge_weights)
     Q = np.full((4 * n, _NQ), np.nan)
     for k in range(4):  # the nominal shear differs between the renderings
         sel = np.zeros(4 * n, bool)
@@ -425,7 +432,7 @@ def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4):
         sel &= ok
         if np.any(sel):
             gn = (g, g) if k < 2 else (-g, -g)
-            Q[sel] = reduce_likelihoods(fits.lnL[sel], fits.egrid, prior, gn, refine=refine)
+            Q[sel] = reduce_likelihoods(lnL[sel], fits.egrid, prior, gn, refine=refine)
     return Q.reshape(n, 4, _NQ), ok.reshape(n, 4)
 
 
@@ -458,8 +465,12 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
         res["lnL"] = fits.lnL[ok]
         res["egrid"] = fits.egrid
         res["n_usable"] = int(ok.sum())
+        if fits.lnL_bulge is not None:
+            res["lnL_bulge"] = fits.lnL_bulge[ok]
+            res["lnL_star"] = fits.lnL_star[ok]
         return res
-    Q, usable = reduce_renderings(fits, task["prior"], spec.g, refine=cfg.integration_refine)
+    Q, usable = reduce_renderings(fits, task["prior"], spec.g, refine=cfg.integration_refine,
+                                  bulge_weights=task.get("bulge_weights"))  # fmt: skip
     res["Q"] = Q.astype(np.float32)
     res["usable"] = usable
     res["r_best"] = fits.r_best.reshape(n, nr)[:, 0].astype(np.float32)
@@ -615,6 +626,7 @@ def precision(
     report: str | Path | None = None,
     prior: Prior | None = None,
     progress: bool = True,
+    bulge_prior: str = "estimated",
 ) -> Table:
     """Run the paired precision measurement of m and c (see the module docstring).
 
@@ -638,6 +650,11 @@ def precision(
         difference in m is the share of the prior's estimation).
     progress : bool
         Progress bars.
+    bulge_prior : {"estimated", "uniform"}
+        With the bulge fraction marginalised (``config.n_bulge_fractions > 1``): its
+        population prior estimated from the calibration sample together with the
+        ellipticity prior (:func:`~pylensfit.prior.estimate_prior_and_bulge`; with a
+        given ``prior``, the weights alone under it), or uniform over the fractions.
 
     Returns
     -------
@@ -649,30 +666,44 @@ def precision(
         fixed-point Newton step ``fp_step`` and ``galaxies`` (per-galaxy truth).
     """
     from .pipeline import _run
-    from .prior import estimate_prior
+    from .prior import estimate_bulge_weights, estimate_prior, estimate_prior_and_bulge
 
+    if bulge_prior not in ("estimated", "uniform"):
+        raise ValueError(f"bulge_prior must be 'estimated' or 'uniform', not {bulge_prior!r}")
     spec = spec if spec is not None else PrecisionSpec()
     cfg = config if config is not None else Config(model="bulge+disc", n_bulge_fractions=3)
     npsf = len(spec.psfs)
     t_start = time.perf_counter()
     # 1. the prior, from an unsheared calibration sample of the same population
-    ncb = _n_blocks(spec.ncal, spec.block_size) if prior is None else 0
+    fit_bulge = bulge_prior == "estimated" and cfg.n_bulge_fractions > 1
+    prior_given = prior is not None
+    ncb = _n_blocks(spec.ncal, spec.block_size) if (prior is None or fit_bulge) else 0
     tasks = [{"spec": spec, "config": cfg, "psf": b % npsf, "block": b, "calibration": True}
              for b in range(ncb)]  # fmt: skip
-    lnls, egrid, render_s, fit_s = [], None, 0.0, 0.0
+    lnls, lnlb, lnls_star, egrid, render_s, fit_s = [], [], [], None, 0.0, 0.0
     for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, "calibration", progress),
                        key=lambda tr: tr[0]["block"]):  # fmt: skip
         lnls.append(r["lnL"])
+        lnlb.append(r.get("lnL_bulge"))
+        lnls_star.append(r.get("lnL_star"))
         egrid = r["egrid"]
         render_s += r["render_s"]
         fit_s += r["fit_s"]
-    if prior is None:
+    bulge_weights = None
+    if fit_bulge and prior is None:
+        prior, bulge_weights = estimate_prior_and_bulge(
+            np.concatenate(lnlb), np.concatenate(lnls_star), egrid, method=cfg.prior_method)
+    elif fit_bulge:
+        bulge_weights = estimate_bulge_weights(np.concatenate(lnlb), np.concatenate(lnls_star),
+                                               prior)  # fmt: skip
+    elif prior is None:
         prior = estimate_prior(np.concatenate(lnls), egrid, method=cfg.prior_method)
     t_cal = time.perf_counter() - t_start
     # 2. the four renderings of every galaxy, streamed block by block
     nb = _n_blocks(spec.ngal, spec.block_size)
-    tasks = [{"spec": spec, "config": cfg, "prior": prior, "psf": b % npsf, "block": b,
-              "calibration": False} for b in range(nb)]  # fmt: skip
+    tasks = [{"spec": spec, "config": cfg, "prior": prior, "bulge_weights": bulge_weights,
+              "psf": b % npsf, "block": b, "calibration": False}
+             for b in range(nb)]  # fmt: skip
     parts: dict[int, dict] = {}
     for t, r in _run(_block_task, tasks, jobs, scheduler, "precision", progress):
         parts[t["block"]] = r
@@ -713,7 +744,12 @@ def precision(
     fit_s += sum(r["fit_s"] + r["reduce_s"] for r in res)
     total = time.perf_counter() - t_start
     out.meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D,
-                         "given": ncb == 0}  # fmt: skip
+                         "given": prior_given}  # fmt: skip
+    out.meta["bulge_prior"] = {
+        "method": bulge_prior if cfg.n_bulge_fractions > 1 else "none",
+        "fractions": [float(f) for f in np.linspace(0.0, 1.0, int(cfg.n_bulge_fractions))],
+        "weights": None if bulge_weights is None else [float(w) for w in bulge_weights],
+    }
     out.meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
     out.meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
     out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
@@ -737,6 +773,17 @@ def precision(
 # ----------------------------------------------------------------------------------------
 def _fmt(v: float, e: float, digits: int = 4) -> str:
     return f"{v:+.{digits}f} ± {e:.{digits}f}"
+
+
+def _bulge_line(bp: dict | None) -> str:
+    if not bp or bp.get("method") == "none":
+        return ""
+    if bp.get("weights") is None:
+        return "Bulge-fraction prior: uniform over " + ", ".join(
+            f"{f:g}" for f in bp["fractions"]) + ".\n"
+    pairs = ", ".join(f"{f:g}: {w:.3f}" for f, w in zip(bp["fractions"], bp["weights"],
+                                                         strict=True))
+    return f"Bulge-fraction prior estimated from the calibration sample: {pairs}.\n"
 
 
 def write_report(res: Table, path: str | Path) -> None:
@@ -770,6 +817,7 @@ def write_report(res: Table, path: str | Path) -> None:
         f"B={res.meta['prior']['B']:.3f}, C={res.meta['prior']['C']:.3f}, "
         f"D={res.meta['prior']['D']:.3f} (true {tuple(spec['prior_params'])}). "
         f"Largest fixed-point Newton step {res.meta['fp_step']:.1e}.", "",
+        _bulge_line(res.meta.get("bulge_prior")),
         f"Time {tim['total_s']:.0f} s with {tim['jobs']} job(s): {tim['galaxies_per_s']:.0f} "
         f"galaxies/s ({tim['renderings_per_s']:.0f} renderings/s) in the main pass; CPU "
         f"{tim['render_cpu_s']:.0f} s rendering, {tim['fit_cpu_s']:.0f} s fitting.", "",
