@@ -75,9 +75,11 @@ class StampFits:
         Ellipticity of the most likely model (the maximum of ``L(e, r)``).
     lnL_bulge : numpy.ndarray or None
         With the bulge fraction marginalised (``n_bulge_fractions = n_b > 1``): ``(n, n_b,
-        n_e)`` float32 ``ln L_k(e)`` of each fraction alone (sizes > 0), shifted like
-        ``lnL``. ``lnL`` is ``ln(sum_k L_k / n_b + L_star)``, a uniform prior over the
-        fractions; :func:`pylensfit.prior.mix_bulge_fractions` gives it for any other.
+        n_e)`` float32 ``ln L_k(e)`` of each fraction alone (sizes > 0, the sum over r
+        weighted by the fraction's half-light radius per unit r relative to the pure
+        disc's, ``ModelBank.run_weights``), shifted like ``lnL``. ``lnL`` is
+        ``ln(sum_k L_k / n_b + L_star)``, a uniform prior over the fractions;
+        :func:`pylensfit.prior.mix_bulge_fractions` gives it for any other.
     lnL_star : numpy.ndarray or None
         ``(n,)`` the point source's ``ln L`` (weighted as the ``r = 0`` end of the size
         integral), shifted like ``lnL``; ``None`` with one fraction.
