@@ -209,6 +209,8 @@ def laplace_grid(
     ln_m = np.log(s_m)
     lne = math.log(n_e)
     ln_w = np.log(r_w)
+    run_w = np.exp(ln_run)
+    pi = np.exp(ln_pi)
     for g in prange(n_gal):
         sig = sigma[g]
         gx0 = x0[g]
@@ -262,13 +264,13 @@ def laplace_grid(
                         km = irr
                 if 0 < km < n_sub - 1:
                     bacc *= _narrow_peak_factor(lwr[km - 1], lwr[km], lwr[km + 1])
-                bacc *= math.exp(ln_run[ib])
+                bacc *= run_w[ib]
                 rmax += ln_run[ib]
                 if rmax > best - _UNDERFLOW and bacc > 0.0:
                     out_lnlb[g, ie, ib] = best + math.log(bacc)
                 else:
                     out_lnlb[g, ie, ib] = rmax
-                acc += bacc * math.exp(ln_pi[ib])
+                acc += bacc * pi[ib]
                 if rmax + ln_pi[ib] > emax:
                     emax = rmax + ln_pi[ib]
             if emax > best - _UNDERFLOW:

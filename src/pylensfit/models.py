@@ -338,12 +338,14 @@ def _cached_bank(
             )
     G[:, -1] = 1.0
     G.setflags(write=False)
-    hlr = np.array([half_light_radius(model, bulge_fraction=float(bf),
-                                      bulge_size_ratio=bulge_size_ratio) for bf in fracs])
+    run_w = None
+    if fracs.size > 1:
+        hlr = np.array([half_light_radius(model, bulge_fraction=float(bf),
+                                          bulge_size_ratio=bulge_size_ratio) for bf in fracs])
+        run_w = hlr / hlr[0]
     return ModelBank(G=G, egrid=egrid, radii=np.tile(radii, fracs.size), n=n, model=model,
                      bulge=np.repeat(fracs, n_sub), n_sub=n_sub, r_weights=r_w,
-                     star_weight=w_star, run_weights=None if fracs.size == 1 else hlr / hlr[0])
-    # fmt: skip
+                     star_weight=w_star, run_weights=run_w)  # fmt: skip
 
 
 def model_bank(config=None) -> ModelBank:

@@ -839,17 +839,11 @@ def mix_bulge_fractions(
     w = np.full(n_b, 1.0 / n_b) if weights is None else np.asarray(weights, dtype=float)
     if w.shape != (n_b,) or np.any(w < 0) or not w.sum() > 0:
         raise ValueError(f"weights must be {n_b} non-negative numbers, not {weights!r}")
-    w = w / w.sum()
-    with np.errstate(divide="ignore"):
-        terms = np.concatenate(
-            [lb + np.log(w)[None, :, None],
-             np.broadcast_to(np.asarray(lnL_star, float)[:, None, None], (lb.shape[0], 1,
-                                                                          lb.shape[2]))],
-            axis=1,
-        )  # fmt: skip
-    top = np.max(terms, axis=1)
+    from scipy.special import logsumexp
+
+    galaxy = logsumexp(lb, axis=1, b=(w / w.sum())[None, :, None])
+    out = np.logaddexp(galaxy, np.asarray(lnL_star, dtype=float)[:, None])
     with np.errstate(invalid="ignore"):
-        out = top + np.log(np.sum(np.exp(terms - top[:, None, :]), axis=1))
         out -= np.max(out, axis=1, keepdims=True)
     return out.astype(np.float32)
 
