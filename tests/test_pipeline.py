@@ -291,3 +291,35 @@ def test_cli_measure_prior_shear(fields, tmp_path, capsys):
     assert main(["measure", str(tmp_path / "missing.fits"), "-o", str(tmp_path / "x.fits")]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "missing.fits: file not found" in err
+
+
+def test_bulge_fraction_prior_estimated_and_kept(fields, tmp_path):
+    """Bulge fraction marginalised, prior estimated: the weights come from the data (the
+    fields hold exponential discs, so the pure disc takes most of the weight), lnL is
+    the mixture with them, and the per-fraction grids survive the catalogue file."""
+    from pylensfit.prior import mix_bulge_fractions
+
+    d, *_ = fields
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, r_max=6.0, r_step=0.3)
+    out = tmp_path / "bd.fits"
+    cat = measure([d / "a.fits", d / "b.fits"], stars=[d / "stars.fits"], config=cfg,
+                  output=out, progress=False)  # fmt: skip
+    w = cat.meta["bulge_weights"]
+    assert w.shape == (3,) and abs(w.sum() - 1) < 1e-9 and w[0] > 0.8, w
+    ok = np.isfinite(cat["lnL"]).all(axis=1)
+    assert ok.sum() > 100
+    mixed = mix_bulge_fractions(cat["lnL_bulge"][ok], cat["lnL_star"][ok], w)
+    np.testing.assert_allclose(cat["lnL"][ok], mixed, atol=1e-5)
+    back = read_catalogue(out)
+    np.testing.assert_array_equal(back["lnL_bulge"], cat["lnL_bulge"])
+    np.testing.assert_allclose(back.meta["bulge_weights"], w, rtol=1e-5)
+    np.testing.assert_allclose(back.meta["bulge_fractions"], [0.0, 0.5, 1.0])
+    # uniform weights: lnL is the fits' own uniform mixture
+    cu = measure([d / "a.fits"], stars=[d / "stars.fits"], progress=False,
+                 config=cfg.replace(bulge_prior="uniform"))  # fmt: skip
+    assert cu.meta["bulge_weights"] is None
+    oku = np.isfinite(cu["lnL"]).all(axis=1)
+    mine = cu["lnL"][oku]
+    near = mine > -50.0  # deeper, the kernel keeps the largest term (700 e-folds down)
+    np.testing.assert_allclose(mine[near], mix_bulge_fractions(
+        cu["lnL_bulge"][oku], cu["lnL_star"][oku])[near], atol=1e-4)  # fmt: skip

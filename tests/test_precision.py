@@ -194,7 +194,7 @@ def test_estimated_bulge_prior_finds_a_disc_population():
     for i in (1, 2):
         assert abs(r[f"m{i}"]) < 4 * r[f"m{i}_err"] + 0.01, r
     with pytest.raises(ValueError, match="bulge_prior"):
-        precision(spec, config=cfg, progress=False, bulge_prior="flat")
+        Config(model="bulge+disc", n_bulge_fractions=3, bulge_prior="flat")
 
 
 def test_cli_precision_writes_report(tmp_path, capsys):

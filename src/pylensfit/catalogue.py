@@ -6,6 +6,10 @@ The output catalogue is a FITS file:
 * HDU ``LNL``: ``(n_objects, n_e)`` float32 ``ln L(e)`` grids, row ``i`` for catalogue row
   ``i`` (each row's maximum is 0; NaN rows for objects not measured), so that the prior
   can be re-estimated, or estimated per bin, without refitting;
+* HDU ``LNLB`` (bulge fraction marginalised): ``(n_objects, n_b, n_e)`` float32, each
+  fraction's ``ln L(e)`` on the scale of the ``lnL_star`` column, so that the prior over
+  the fractions can be (re-)estimated; header ``BULGEFR`` (the fractions) and ``BULGEW``
+  (their weights in ``LNL``, when estimated);
 * HDU ``EGRID``: the ``(n_e, 2)`` ellipticity cell centres;
 * HDU ``PSFS``: one row per input image with its PSF diagnostics, and ``PSFIMG``, the
   ``(n_images, N, N)`` PSF images;
@@ -70,6 +74,9 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "PSF_e1": ("", "ellipticity e1 of the PSF used for this object"),
     "PSF_e2": ("", "ellipticity e2 of the PSF used for this object"),
     "flags": ("", "bit mask of reasons, see pylensfit.flags.FLAGS (0: measured, usable)"),
+    "lnL_star": ("", "bulge fraction marginalised: the point source's ln L on the scale of "
+                 "the LNLB planes (each fraction's ln L(e), HDU LNLB), which lnL mixes with "
+                 "the bulge-fraction prior (header BULGEW; uniform if absent)"),
 }
 
 #: fitclass codes (KiDS-like)

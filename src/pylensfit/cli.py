@@ -143,7 +143,7 @@ def _precision(args: argparse.Namespace) -> int:
         prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
     res = precision(spec, config=_config(args) if args.config else None, jobs=args.jobs,
                     scheduler=args.scheduler, report=report, prior=prior,
-                    progress=not args.quiet, bulge_prior=args.bulge_prior)  # fmt: skip
+                    progress=not args.quiet)  # fmt: skip
     show = res[(res["breakdown"] == "all") | (res["breakdown"] == "psf")]
     show = show[show["estimator"] == "fixed-point"]
     for c in ("m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2", "c2_err"):
@@ -364,10 +364,6 @@ def build_parser() -> argparse.ArgumentParser:
     pv.add_argument("--true-prior", action="store_true",
                     help="diagnostic: use the population's true prior instead of estimating "
                          "it from the calibration sample")  # fmt: skip
-    pv.add_argument("--bulge-prior", choices=["estimated", "uniform"], default="estimated",
-                    help="prior over the marginalised bulge fractions: estimated from the "
-                         "calibration sample with the ellipticity prior (default), or "
-                         "uniform")  # fmt: skip
     cv = v.add_argument_group("convergence study (paper Figure 2), no directory needed")
     cv.add_argument("--convergence", action="store_true",
                     help="<e>, <e^2> and sensitivity against de, dr, r_max and a catalogue "

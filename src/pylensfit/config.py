@@ -62,6 +62,12 @@ class Config:
         "m by about +0.09 for discs and -0.07 for bulges (validate --precision); 3 values "
         "cost 3x the models",
     )
+    bulge_prior: str = _f(
+        "estimated",
+        "prior over the marginalised bulge fractions: 'estimated' from the data with the "
+        "ellipticity prior (prior.estimate_prior_and_bulge), or 'uniform'. Uniform weights "
+        "bias discs by m ~ +0.02 (benchmarks/exact_model_bias.py)",
+    )
     # --- marginalisation over position (paper eq. eq:likelihood) ---
     position_prior_sigma: float = _f(
         2.0, "width b of the Gaussian prior on position about the catalogue position, px"
@@ -202,6 +208,8 @@ def _validate(c: Config) -> None:
         c.n_bulge_fractions == 1 or c.model == "bulge+disc",
         "n_bulge_fractions > 1 needs model 'bulge+disc'",
     )
+    need(c.bulge_prior in ("estimated", "uniform"),
+         f"bulge_prior must be 'estimated' or 'uniform', got {c.bulge_prior!r}")
     need(c.position_prior_sigma > 0, "position_prior_sigma must be > 0")
     need(c.max_offset >= 0, "max_offset must be >= 0")
     need(c.centring_scale > 0, "centring_scale must be > 0")

@@ -45,7 +45,7 @@ from . import flags as _flags
 from ._version import __version__
 from .catalogue import COLUMNS, FITCLASS, atomic_write
 from .config import Config
-from .prior import Prior, estimate_prior
+from .prior import Prior, estimate_prior, estimate_prior_and_bulge, mix_bulge_fractions
 from .psf import PSFError, PSFResult, combine_psfs, stack_psf
 from .shear import shapes as _shapes
 from .stamps import cut_stamps
@@ -308,8 +308,12 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         flags[pair] |= _flags.flag_value("CLOSE_PAIR")
     flags[~(np.isfinite(noise) & (noise > 0))] |= _flags.flag_value("BAD_NOISE")
     t_stamps = time.perf_counter()
-    egrid = model_bank(cfg).egrid
+    bank = model_bank(cfg)
+    egrid = bank.egrid
+    n_b = bank.n_r // bank.n_sizes
     lnL = np.full((n, egrid.shape[0]), np.nan, dtype=np.float32)
+    lnL_bulge = None if n_b == 1 else np.full((n, n_b, egrid.shape[0]), np.nan, np.float32)
+    lnL_star = np.full(n, np.nan)
     cols = {k: np.full(n, np.nan) for k in ("model_flux", "model_SNratio", "scalelength",
                                             "e1_best", "e2_best")}  # fmt: skip
     xf, yf = x.copy(), y.copy()
@@ -319,6 +323,9 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         fits_ = fit_stamps(stamps[todo], psf.image, noise[todo], config=cfg,
                            centres=(cx[todo], cy[todo]))  # fmt: skip
         lnL[todo] = fits_.lnL
+        if lnL_bulge is not None:
+            lnL_bulge[todo] = fits_.lnL_bulge
+            lnL_star[todo] = fits_.lnL_star
         flags[todo] |= fits_.flags
         cols["model_flux"][todo] = fits_.flux
         cols["model_SNratio"][todo] = fits_.snr
@@ -355,10 +362,13 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         "PSF_e2": np.full(n, psf.e2 if psf is not None else np.nan),
         "flags": flags,
     }  # fmt: skip
+    if lnL_bulge is not None:
+        rows["lnL_star"] = lnL_star
     timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
               "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
     return {
-        "index": task["index"], "path": path, "rows": rows, "lnL": lnL, "egrid": egrid,
+        "index": task["index"], "path": path, "rows": rows, "lnL": lnL,
+        "lnL_bulge": lnL_bulge, "egrid": egrid,
         "psf": None if psf is None else _psf_summary(psf), "psf_note": psf_note,
         "timing": timing,
     }  # fmt: skip
@@ -425,6 +435,8 @@ def _write_part(path: Path, res: dict[str, Any]) -> None:
             fits.ImageHDU(res["lnL"], name="LNL"),
             fits.ImageHDU(res["egrid"], name="EGRID")]  # fmt: skip
     hdus[1].name = "ROWS"
+    if res.get("lnL_bulge") is not None:
+        hdus.append(fits.ImageHDU(res["lnL_bulge"], name="LNLB"))
     if res["psf"] is not None:
         ph = fits.ImageHDU(res["psf"]["image"], name="PSF")
         for k in _PSF_KEYS:
@@ -444,6 +456,7 @@ def _read_part(path: Path) -> dict[str, Any]:
             "index": int(h[0].header["INDEX"]), "path": h[0].header["PATH"],
             "rows": {c: np.asarray(rows[c]) for c in rows.colnames},
             "lnL": np.array(h["LNL"].data, dtype=np.float32),
+            "lnL_bulge": np.array(h["LNLB"].data, dtype=np.float32) if "LNLB" in h else None,
             "egrid": np.array(h["EGRID"].data, dtype=float), "psf": psf,
             "psf_note": h[0].header["PSFNOTE"], "timing": json.loads(h[0].header["TIMING"]),
         }  # fmt: skip
@@ -641,21 +654,34 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
     tabs = [Table(r["rows"]) for r in results]
     cat = vstack(tabs, metadata_conflicts="silent") if tabs else Table()
     lnL = np.concatenate([r["lnL"] for r in results], axis=0)
+    lnL_bulge = None
+    if all(r.get("lnL_bulge") is not None for r in results):
+        lnL_bulge = np.concatenate([r["lnL_bulge"] for r in results], axis=0)
     n = len(cat)
     cat.add_column(np.arange(1, n + 1, dtype=np.int64), name="id", index=0)
     usable = (np.asarray(cat["flags"]) == 0) & np.isfinite(lnL).all(axis=1)
     gal = usable & (np.asarray(cat["fitclass"]) == FITCLASS["galaxy"])
+    bulge_weights = None
     if prior is None:
         if gal.sum() < 50:
             raise InputError(f"only {int(gal.sum())} measured galaxies in the run: too few to "
                              "estimate the prior (give one with prior=)")  # fmt: skip
-        prior = estimate_prior(lnL[gal], egrid, method=cfg.prior_method)
+        if lnL_bulge is not None and cfg.bulge_prior == "estimated":
+            lnL_star = np.asarray(cat["lnL_star"], dtype=float)
+            prior, bulge_weights = estimate_prior_and_bulge(
+                lnL_bulge[gal], lnL_star[gal], egrid, method=cfg.prior_method)
+            lnL = np.where(usable[:, None], mix_bulge_fractions(lnL_bulge, lnL_star,
+                                                                bulge_weights), np.nan)
+        else:
+            prior = estimate_prior(lnL[gal], egrid, method=cfg.prior_method)
         log.info("prior estimated from %d galaxies: %r", int(gal.sum()), prior)
     sh = _shapes(lnL, egrid, prior, sensitivity=cfg.sensitivity, refine=cfg.integration_refine)
     for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
         cat[c] = np.where(usable, np.asarray(sh[c]), np.nan)
     cat["weight"] = np.where(gal, 1.0, 0.0)
     cat["lnL"] = lnL
+    if lnL_bulge is not None:
+        cat["lnL_bulge"] = lnL_bulge
     order = [c for c in COLUMNS if c in cat.colnames]
     cat = cat[order + [c for c in cat.colnames if c not in order]]
     for c in cat.colnames:
@@ -672,6 +698,9 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
     psfs["note"] = [r["psf_note"] for r in results]
     cat.meta["egrid"] = egrid
     cat.meta["prior"] = prior
+    if lnL_bulge is not None:
+        cat.meta["bulge_fractions"] = np.linspace(0.0, 1.0, lnL_bulge.shape[1])
+        cat.meta["bulge_weights"] = bulge_weights
     cat.meta["psfs"] = psfs
     cat.meta["psf_images"] = np.array([
         np.zeros((cfg.stamp_size, cfg.stamp_size)) if r["psf"] is None
@@ -694,6 +723,10 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
     plain = cat.copy(copy_data=False)
     lnL = np.asarray(plain["lnL"], dtype=np.float32)
     plain.remove_column("lnL")
+    lnL_bulge = None
+    if "lnL_bulge" in plain.colnames:
+        lnL_bulge = np.asarray(plain["lnL_bulge"], dtype=np.float32)
+        plain.remove_column("lnL_bulge")
     plain.meta.clear()
     for c in plain.colnames:  # documented in the COLUMNS HDU (FITS comments are too short)
         plain[c].description = None
@@ -717,6 +750,14 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
     tab.name = "CATALOG"
     hdus = [fits.PrimaryHDU(header=hdr), tab, fits.ImageHDU(lnL, name="LNL"),
             fits.ImageHDU(np.asarray(cat.meta["egrid"]), name="EGRID")]  # fmt: skip
+    if lnL_bulge is not None:
+        hb = fits.ImageHDU(lnL_bulge, name="LNLB")
+        hb.header["BULGEFR"] = (",".join(f"{f:g}" for f in cat.meta["bulge_fractions"]),
+                         "bulge fractions of the LNLB planes")  # fmt: skip
+        w = cat.meta.get("bulge_weights")
+        if w is not None:
+            hb.header["BULGEW"] = (",".join(f"{v:.6g}" for v in w), "their estimated prior weights")
+        hdus.append(hb)
     if "psfs" in cat.meta:
         p = fits.table_to_hdu(cat.meta["psfs"])
         p.name = "PSFS"
@@ -746,6 +787,12 @@ def read_catalogue(path: str | os.PathLike) -> Table:
             raise InputError(f"{path}: LNL has {lnL.shape[0]} rows for {len(cat)} objects")
         cat["lnL"] = lnL
         cat.meta["egrid"] = np.array(h["EGRID"].data, dtype=float)
+        if "LNLB" in h:
+            hb = h["LNLB"]
+            cat["lnL_bulge"] = np.array(hb.data, dtype=np.float32)
+            cat.meta["bulge_fractions"] = np.array(hb.header["BULGEFR"].split(","), float)
+            w = hb.header.get("BULGEW")
+            cat.meta["bulge_weights"] = None if w is None else np.array(w.split(","), float)
         hdr = h[0].header
         if "PRIOR_B" in hdr:
             cat.meta["prior"] = Prior(

@@ -626,7 +626,6 @@ def precision(
     report: str | Path | None = None,
     prior: Prior | None = None,
     progress: bool = True,
-    bulge_prior: str = "estimated",
 ) -> Table:
     """Run the paired precision measurement of m and c (see the module docstring).
 
@@ -636,7 +635,11 @@ def precision(
         The simulated set (default :class:`PrecisionSpec()`: 200,000 galaxies, four PSFs).
     config : Config, optional
         Measurement settings (default: the bulge+disc model with the bulge fraction
-        marginalised over 0, 0.5 and 1, as ``pylensfit validate``).
+        marginalised over 0, 0.5 and 1, as ``pylensfit validate``). With
+        ``bulge_prior="estimated"`` the prior over the fractions comes from the
+        calibration sample with the ellipticity prior
+        (:func:`~pylensfit.prior.estimate_prior_and_bulge`; with a given ``prior``, the
+        weights alone under it).
     jobs : int
         Local worker processes.
     scheduler : str, optional
@@ -650,11 +653,6 @@ def precision(
         difference in m is the share of the prior's estimation).
     progress : bool
         Progress bars.
-    bulge_prior : {"estimated", "uniform"}
-        With the bulge fraction marginalised (``config.n_bulge_fractions > 1``): its
-        population prior estimated from the calibration sample together with the
-        ellipticity prior (:func:`~pylensfit.prior.estimate_prior_and_bulge`; with a
-        given ``prior``, the weights alone under it), or uniform over the fractions.
 
     Returns
     -------
@@ -668,10 +666,9 @@ def precision(
     from .pipeline import _run
     from .prior import estimate_bulge_weights, estimate_prior, estimate_prior_and_bulge
 
-    if bulge_prior not in ("estimated", "uniform"):
-        raise ValueError(f"bulge_prior must be 'estimated' or 'uniform', not {bulge_prior!r}")
     spec = spec if spec is not None else PrecisionSpec()
     cfg = config if config is not None else Config(model="bulge+disc", n_bulge_fractions=3)
+    bulge_prior = cfg.bulge_prior
     npsf = len(spec.psfs)
     t_start = time.perf_counter()
     # 1. the prior, from an unsheared calibration sample of the same population

@@ -842,8 +842,8 @@ def mix_bulge_fractions(
     from scipy.special import logsumexp
 
     galaxy = logsumexp(lb, axis=1, b=(w / w.sum())[None, :, None])
-    out = np.logaddexp(galaxy, np.asarray(lnL_star, dtype=float)[:, None])
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"):  # NaN rows (objects not measured) stay NaN
+        out = np.logaddexp(galaxy, np.asarray(lnL_star, dtype=float)[:, None])
         out -= np.max(out, axis=1, keepdims=True)
     return out.astype(np.float32)
 

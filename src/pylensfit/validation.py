@@ -689,6 +689,9 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
     out["mag"] = np.asarray(g["mag"], dtype=float)
     out["snr"] = np.asarray(g["model_SNratio"], dtype=float)
     out["lnL"] = np.asarray(g["lnL"], dtype=np.float32)
+    if "lnL_bulge" in g.colnames:  # each bulge fraction's L(e), for their prior
+        out["lnL_bulge"] = np.asarray(g["lnL_bulge"], dtype=np.float32)
+        out["lnL_star"] = np.asarray(g["lnL_star"], dtype=float)
     return out
 
 
@@ -1046,7 +1049,7 @@ def validate(
         paths and whether each was reused).
     """
     from .config import Config
-    from .prior import estimate_prior
+    from .prior import estimate_prior, estimate_prior_and_bulge, mix_bulge_fractions
     from .shear import shapes
 
     if estimator not in ("key2", "fixed-point"):
@@ -1086,7 +1089,18 @@ def validate(
     if not pgs:
         raise ValueError(f"{man['dir']}: no zero-shear (prior) field in the manifest")
     pg, sg = vstack(pgs), vstack(sgs)
-    prior = estimate_prior(np.asarray(pg["lnL"]), egrid, method=cfg.prior_method)
+    bulge_weights = None
+    if cfg.bulge_prior == "estimated" and all("lnL_bulge" in t.colnames for t in (pg, sg)):
+        # the prior over the bulge fractions with the ellipticity prior, from the prior
+        # fields; both samples' L(e) mixed with it
+        prior, bulge_weights = estimate_prior_and_bulge(
+            np.asarray(pg["lnL_bulge"]), np.asarray(pg["lnL_star"]), egrid,
+            method=cfg.prior_method)  # fmt: skip
+        for t in (pg, sg):
+            t["lnL"] = mix_bulge_fractions(np.asarray(t["lnL_bulge"]),
+                                           np.asarray(t["lnL_star"]), bulge_weights)
+    else:
+        prior = estimate_prior(np.asarray(pg["lnL"]), egrid, method=cfg.prior_method)
     refine = cfg.integration_refine
 
     def e_s_of(t: Table, p: Prior) -> tuple[np.ndarray, np.ndarray]:
@@ -1109,6 +1123,7 @@ def validate(
     out = Table(rows=mc, names=_MC_NAMES)
     out.meta.update(_summary(out[:-1]))
     out.meta["prior"] = prior
+    out.meta["bulge_weights"] = None if bulge_weights is None else bulge_weights.tolist()
     out.meta["mode"] = "pairs" if pairs else "images"
     out.meta["estimator"] = estimator
     out.meta["estimates"] = pair_tab if pairs else img
@@ -1402,7 +1417,12 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
              f"Estimator `{meta['estimator']}`; shear per "
              + ("image + rotated twin (pairs matched galaxy by galaxy; shape noise cancels)"
                 if meta["mode"] == "pairs" else "image")
-             + f", {n_est} estimates. Prior from the zero-shear fields: {meta['prior']!r}.", "",
+             + f", {n_est} estimates. Prior from the zero-shear fields: {meta['prior']!r}"
+             + ("" if meta.get("bulge_weights") is None else
+                "; bulge-fraction prior " + ", ".join(
+                    f"{f:g}: {w:.3f}" for f, w in zip(
+                        np.linspace(0, 1, len(meta["bulge_weights"])), meta["bulge_weights"],
+                        strict=True))) + ".", "",
              f"<m> = {meta['mean_m']:+.4f} +- {meta['mean_m_err']:.4f} (paper eq. averror: "
              f"+- {meta['mean_m_err_paper']:.4f}), sigma_c = {meta['sigma_c']:.2e} "
              f"(from the errors alone {meta['sigma_c_stat']:.2e}), Q = {res['Q'][-1]:.0f}", "",
