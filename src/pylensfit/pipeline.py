@@ -553,7 +553,10 @@ def measure(
         Settings (the paper's by default).
     prior : Prior or str, optional
         The ellipticity prior, or the path of a saved one; by default it is estimated
-        from the run's galaxies (``config.prior_method``).
+        from the run's galaxies (``config.prior_method``), together with the prior over
+        the bulge fractions when those are marginalised and ``config.bulge_prior`` is
+        ``"estimated"`` (a given prior leaves that one uniform; the catalogue keeps each
+        fraction's ``ln L`` to re-mix, :func:`pylensfit.prior.mix_bulge_fractions`).
     output : str, optional
         Catalogue path (FITS). With an output, finished images are kept in
         ``<output>.parts/`` until the catalogue is written, and a restarted run resumes.
