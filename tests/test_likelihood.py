@@ -8,7 +8,8 @@ from conftest import PSFS, N, draw, galsim_model
 from pylensfit import Config, fit_stamps
 from pylensfit._kernels_nb import _narrow_peak_factor
 from pylensfit.flags import flag_value
-from pylensfit.models import half_light_radius, model_bank
+from pylensfit.likelihood import _CHI, _folded_bank, _interior
+from pylensfit.models import half_light_radius, model_bank, rfft_frequencies
 from pylensfit.psf import psf_transform
 
 
@@ -354,3 +355,36 @@ def test_marginal_bulge_fraction_is_the_mean_of_fixed_fraction_fits():
 def test_n_bulge_fractions_needs_the_bulge_disc_model():
     with pytest.raises(ValueError, match="bulge"):
         Config(model="exponential", n_bulge_fractions=3)
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [Config(), Config(model="bulge+disc", n_bulge_fractions=3),
+     Config(stamp_size=33, e_step=0.2, r_max=5.0, model="exponential")],  # fmt: skip
+)
+def test_folded_products_equal_the_direct_products(cfg):
+    """The symmetry-folded products give every model's sum over frequencies exactly."""
+    bank = model_bank(cfg)
+    fb = _folded_bank(cfg, bank)
+    n = cfg.stamp_size
+    kx, ky, w = rfft_frequencies(n)
+    rng = np.random.default_rng(1)
+    # rows of even functions of k on the rfft half-plane (the kx = 0 column even in ky)
+    R = rng.normal(size=(5, *kx.shape))
+    R[:, :, 0] = 0.5 * (R[:, :, 0] + R[:, (-np.arange(n)) % n, 0])
+    R = R.reshape(5, -1)
+    direct = (R * (w / n**2).ravel() * _interior(n)) @ bank.G.astype(float)
+    Rf = R[:, fb.idx]
+    A = np.stack([
+        (np.einsum("h,rhk->rk", _CHI[c], Rf[:, :, fb.keep[c]]) * fb.coef[fb.keep[c]])
+        @ fb.G[c].astype(float) for c in range(4)
+    ])  # fmt: skip
+    folded = np.full_like(direct, np.nan)
+    for h in range(4):
+        ok = fb.members[:, h] >= 0
+        folded[:, fb.members[ok, h]] = np.einsum("c,crj->rj", _CHI[:, h], A[:, :, ok])
+    assert not np.isnan(folded).any()  # every model is some column's image
+    assert np.abs(folded - direct).max() < 1e-6 * np.abs(direct).max()
+    # a quarter of the operations: the octant's characters against the half-plane
+    n_ops = sum(g.size for g in fb.G)
+    assert n_ops < 0.3 * _interior(n).sum() * bank.n_models

@@ -159,8 +159,9 @@ _UNDERFLOW = 700.0
 
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
-    prod, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step, r_w,
-    w_star, ln_run, ln_pi, cubic, out_lnle, out_lnlb, out_lnlr, out_best, out_h, out_x, out_y,
+    prod, members, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step,
+    r_w, w_star, ln_run, ln_pi, cubic, out_lnle, out_lnlb, out_lnlr, out_best, out_h, out_x,
+    out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 
@@ -174,10 +175,16 @@ def laplace_grid(
 
     Parameters
     ----------
-    prod : (6 * n_gal or 10 * n_gal, n_models) array
-        Rows ``q * n_gal + g`` hold, for ``q = 0..5``: ``h``, ``dh/dx``, ``dh/dy``,
-        ``d2h/dx2``, ``d2h/dxdy``, ``d2h/dy2`` at the re-centred origin, and with
-        ``cubic`` for ``q = 6..9`` the third derivatives ``xxx, xxy, xyy, yyy``.
+    prod : (n_chi, 6 * n_gal or 10 * n_gal, n_cols) array
+        The matrix products. Rows ``q * n_gal + g`` hold, for ``q = 0..5``: ``h``,
+        ``dh/dx``, ``dh/dy``, ``d2h/dx2``, ``d2h/dxdy``, ``d2h/dy2`` at the re-centred
+        origin, and with ``cubic`` for ``q = 6..9`` the third derivatives ``xxx, xxy,
+        xyy, yyy``. With ``n_chi = 1`` column ``c`` is model ``members[c, 0]``; with
+        ``n_chi = 4`` the products are folded by the square's symmetries
+        (:func:`pylensfit.likelihood._folded_bank`) and model ``members[c, h]`` (``h``
+        = 1, s1, s2, s1 s2) has ``sum_chi chi(h) prod[chi, :, c]``.
+    members : (n_cols, 1 or 4) int array
+        The models of each column (-1: none).
     n_sub : int
         The r axis of an e cell is ``n_r // n_sub`` runs of ``n_sub`` increasing radii
         (one per bulge fraction); the sum over r is corrected run by run
@@ -211,34 +218,52 @@ def laplace_grid(
     ln_w = np.log(r_w)
     run_w = np.exp(ln_run)
     pi = np.exp(ln_pi)
+    n_chi = prod.shape[0]
+    n_cols = prod.shape[2]
+    n_memb = members.shape[1]
+    n_q = 10 if cubic else 6
     for g in prange(n_gal):
+        vals = np.zeros((4, 10))
         sig = sigma[g]
         gx0 = x0[g]
         gy0 = y0[g]
         buf = np.empty(n_mod)
         best = -np.inf
         jb = 0
-        for j in range(n_mod):
-            if cubic:
-                t0 = prod[6 * n_gal + g, j]
-                t1 = prod[7 * n_gal + g, j]
-                t2 = prod[8 * n_gal + g, j]
-                t3 = prod[9 * n_gal + g, j]
+        for c in range(n_cols):
+            # the rows of every model of column c: the column's own values (n_chi = 1)
+            # or the four sign combinations of the four characters (n_chi = 4)
+            if n_chi == 4:
+                for q in range(n_q):
+                    row = q * n_gal + g
+                    s02 = prod[0, row, c] + prod[2, row, c]
+                    s13 = prod[1, row, c] + prod[3, row, c]
+                    d02 = prod[0, row, c] - prod[2, row, c]
+                    d13 = prod[1, row, c] - prod[3, row, c]
+                    vals[0, q] = s02 + s13
+                    vals[1, q] = s02 - s13
+                    vals[2, q] = d02 + d13
+                    vals[3, q] = d02 - d13
             else:
-                t0 = t1 = t2 = t3 = 0.0
-            l, hh, xx, yy = _laplace_lnl(
-                prod[g, j], prod[n_gal + g, j], prod[2 * n_gal + g, j],
-                prod[3 * n_gal + g, j], prod[4 * n_gal + g, j], prod[5 * n_gal + g, j],
-                t0, t1, t2, t3, cubic, s_m[j], sq_m[j], ln_m[j], mxx[j], mxy[j], myy[j],
-                sig, gx0, gy0, b2, max_step2,
-            )  # fmt: skip
-            buf[j] = l
-            if l > best:
-                best = l
-                jb = j
-                out_h[g] = hh
-                out_x[g] = xx
-                out_y[g] = yy
+                for q in range(n_q):
+                    vals[0, q] = prod[0, q * n_gal + g, c]
+            for hm in range(n_memb):
+                j = members[c, hm]
+                if j < 0:
+                    continue
+                l, hh, xx, yy = _laplace_lnl(
+                    vals[hm, 0], vals[hm, 1], vals[hm, 2], vals[hm, 3], vals[hm, 4],
+                    vals[hm, 5], vals[hm, 6], vals[hm, 7], vals[hm, 8], vals[hm, 9], cubic,
+                    s_m[j], sq_m[j], ln_m[j], mxx[j], mxy[j], myy[j], sig, gx0, gy0, b2,
+                    max_step2,
+                )  # fmt: skip
+                buf[j] = l
+                if l > best:
+                    best = l
+                    jb = j
+                    out_h[g] = hh
+                    out_x[g] = xx
+                    out_y[g] = yy
         out_best[g] = jb
         lw_star = buf[star] + math.log(w_star)
         ex_star = math.exp(lw_star - best)

@@ -15,7 +15,10 @@ For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of un
   cross-correlation with a round model (found by FFT and refined by a parabola,
   then applied exactly by a Fourier phase ramp). ``h``, its gradient and Hessian at
   the re-centred origin are sums over frequencies, which for all galaxies and all
-  models are six matrix products. One Newton step gives the peak ``X*``, ``h*``, and
+  models are six matrix products (folded by the symmetries of the square pixel grid
+  into four products over an octant of frequencies for each orbit ``(+-e1, +-e2)`` of
+  four models, a quarter of the operations: :class:`_FoldedBank`; Nyquist
+  frequencies are left out, :func:`_interior`). One Newton step gives the peak ``X*``, ``h*``, and
   the Laplace approximation of the integral over ``X`` with a Gaussian prior of width
   ``b`` about the catalogue position ``X0`` is the 2-D form of paper eq.
   ``eq:likelihood``::
@@ -163,11 +166,102 @@ class _PSFBank:
     myy: np.ndarray
 
 
+def _interior(n: int) -> np.ndarray:
+    """``rfft2`` frequencies of an ``n x n`` stamp that are not Nyquist (``|j| < n/2``).
+
+    The engine sums over these only. A Nyquist frequency stands for both ``+pi`` and
+    ``-pi``, where neither an elliptical model nor a shift in position has one value:
+    without it the likelihood is exactly covariant under the square's symmetries (a
+    90-degree rotation of the data maps ``L(e)`` to ``L(-e)``), which
+    :func:`_folded_bank` uses. With the PSF at least Nyquist sampled the dropped
+    frequencies carry a negligible part of the signal.
+    """
+    kx, ky, _ = rfft_frequencies(n)
+    jmax = (n - 1) // 2
+    jx = np.rint(kx * n / (2 * np.pi)).astype(int)
+    jy = np.rint(ky * n / (2 * np.pi)).astype(int)
+    return ((np.abs(jx) <= jmax) & (np.abs(jy) <= jmax)).ravel()
+
+
+@dataclass(frozen=True)
+class _FoldedBank:
+    """The model bank folded by the symmetries of the square pixel grid.
+
+    The reflections ``s1: (kx, ky) -> (kx, -ky)`` and ``s2: (kx, ky) -> (ky, kx)`` map
+    a model of ellipticity ``(e1, e2)`` to ``(e1, -e2)`` and ``(-e1, e2)``:
+    ``G_{s e}(k) = G_e(s k)``. On the frequencies modulo these and ``k -> -k`` (an
+    octant, ``0 <= jy <= jx < n/2``), the four characters ``chi`` of the group
+    ``{1, s1, s2, s1 s2}`` split every sum ``h_e = sum_k f(k) G_e(k)`` of the engine
+    into ``h_{g e} = sum_chi chi(g) A_chi[e]`` with ``A_chi = sum_k0 c(k0)/4 fhat_chi(k0)
+    Ghat_chi,e(k0)``: four products over an octant for the four models ``(+-e1, +-e2)``
+    instead of one product over the half-plane per model, a quarter of the operations,
+    exactly (``DESIGN.md`` section 3).
+    """
+
+    idx: np.ndarray  # (4, n_k0) half-plane index of h k0 for h = 1, s1, s2, s1 s2
+    coef: np.ndarray  # (n_k0,) orbit weight c(k0) / 4 / n^2
+    keep: tuple  # per character, the octant points where it can be non-zero
+    G: tuple  # per character, (len(keep), n_cols) folded model transforms
+    members: np.ndarray  # (n_cols, 4) model with h . (representative) in column c, or -1
+
+
+#: characters chi[c, h] of the group h = (1, s1, s2, s1 s2): (+-1)^(a i + b j)
+_CHI = np.array([[1, 1, 1, 1], [1, -1, 1, -1], [1, 1, -1, -1], [1, -1, -1, 1]], dtype=float)
+
+_FOLDED: dict = {}
+
+
+def _folded_bank(config: Config, bank) -> _FoldedBank:
+    key = (config.stamp_size, config.e_step, config.e_max, config.r_min, config.r_max,
+           config.r_step, config.model, config.bulge_fraction, config.bulge_size_ratio,
+           config.dtype, int(config.n_bulge_fractions), float(config.r_rel_step))  # fmt: skip
+    fb = _FOLDED.get(key)
+    if fb is not None and fb[0] is bank:
+        return fb[1]
+    n = config.stamp_size
+    nh = n // 2 + 1
+    jmax = (n - 1) // 2
+    a, b = np.tril_indices(jmax + 1)  # octant 0 <= b <= a <= jmax
+
+    def half(jx, jy):
+        neg = jx < 0
+        jx = np.where(neg, -jx, jx)
+        jy = np.where(neg, -jy, jy)
+        return (jy % n) * nh + jx
+
+    idx = np.stack([half(a, b), half(a, -b), half(b, a), half(b, -a)])
+    c = np.where((a == 0) & (b == 0), 0.25, np.where((b == 0) | (a == b), 1.0, 2.0))
+    coef = c / 4.0 / n**2
+    keep = tuple(np.flatnonzero(~((bool(al) & (b == 0)) | (bool(be) & (a == b))))
+                 for al, be in ((0, 0), (1, 0), (0, 1), (1, 1)))  # fmt: skip
+    eg = bank.egrid
+    rep = (eg[:, 0] > 0) & (eg[:, 1] > 0)
+    ie_rep = np.flatnonzero(rep)
+    key_rep = {(round(e1, 9), round(e2, 9)): o for o, (e1, e2) in enumerate(eg[ie_rep])}
+    orb = np.array([key_rep[(round(abs(e1), 9), round(abs(e2), 9))] for e1, e2 in eg])
+    h = (eg[:, 1] < 0).astype(int) + 2 * (eg[:, 0] < 0)  # s1 flips e2, s2 flips e1
+    n_r = bank.n_r
+    members = np.full((ie_rep.size * n_r + 1, 4), -1, dtype=np.int64)
+    j = np.arange(bank.n_models - 1)
+    members[orb[j // n_r] * n_r + j % n_r, h[j // n_r]] = j
+    members[-1, 0] = bank.n_models - 1  # the point source, its own image
+    rep_cols = np.append((ie_rep[:, None] * n_r + np.arange(n_r)[None, :]).ravel(),
+                         bank.n_models - 1)  # fmt: skip
+    Gr = bank.G[:, rep_cols]
+    Gh = np.einsum("ch,hkm->ckm", _CHI, Gr[idx].astype(np.float64))
+    G = tuple(np.ascontiguousarray(Gh[ch][keep[ch]], dtype=config.dtype) for ch in range(4))
+    fb = _FoldedBank(idx=idx, coef=coef, keep=keep, G=G, members=members)
+    if len(_FOLDED) >= 4:
+        _FOLDED.pop(next(iter(_FOLDED)))
+    _FOLDED[key] = (bank, fb)
+    return fb
+
+
 def _psf_bank(psf: np.ndarray, config: Config, bank) -> _PSFBank:
     n = config.stamp_size
     P = psf_transform(psf, n)
     kx, ky, w = rfft_frequencies(n)
-    p2 = (w * np.abs(P) ** 2 / n**2).ravel()
+    p2 = (w * np.abs(P) ** 2 / n**2).ravel() * _interior(n)
     kx = kx.ravel()
     ky = ky.ravel()
     G2 = np.square(bank.G, dtype=np.float64)
@@ -322,24 +416,39 @@ def fit_stamps(
     from ._kernels_nb import laplace_grid
 
     dtype = np.dtype(cfg.dtype)
-    G = bank.G if bank.G.dtype == dtype else bank.G.astype(dtype)
     n_e, n_r = bank.n_e, bank.n_r
     coarse = _coarse_models(n_e, n_r)
-    Gc = np.ascontiguousarray(G[:, coarse.cols])
-    wk = (w / n**2).ravel()
+    Gc = np.ascontiguousarray(bank.G[:, coarse.cols], dtype=dtype)
+    fb = _folded_bank(cfg, bank)
     kxf = kx.ravel()
     kyf = ky.ravel()
-    Pc = np.conj(pb.P) * wk
+    Pc = np.conj(pb.P)
+    wk = (w / n**2).ravel() * _interior(n)
+    one_c = np.arange(Gc.shape[1])[:, None]
 
-    def products(sl, Gm, cubic=False):
-        """Matrix products: h, grad h, Hess h (and third derivatives) for ``sl`` x ``Gm``."""
+    def rows(sl, cubic):
+        """h, grad h, Hess h (and third derivatives) as ``(q * m, frequency)`` rows."""
         ph = np.exp(1j * (kxf[None] * xc[sl, None] + kyf[None] * yc[sl, None]))
         Dp = D[sl].reshape(-1, kxf.size) * ph * Pc[None]
         r, i = Dp.real, Dp.imag
-        rows = [r, -kxf * i, -kyf * i, -kxf * kxf * r, -kxf * kyf * r, -kyf * kyf * r]
+        out = [r, -kxf * i, -kyf * i, -kxf * kxf * r, -kxf * kyf * r, -kyf * kyf * r]
         if cubic:
-            rows += [kxf**3 * i, kxf**2 * kyf * i, kxf * kyf**2 * i, kyf**3 * i]
-        return np.concatenate(rows, axis=0).astype(dtype, copy=False) @ Gm
+            out += [kxf**3 * i, kxf**2 * kyf * i, kxf * kyf**2 * i, kyf**3 * i]
+        return np.concatenate(out, axis=0)
+
+    def coarse_products(sl):
+        """The products with the coarse models, one column each."""
+        return ((rows(sl, False) * wk).astype(dtype) @ Gc)[None]
+
+    def folded_products(sl, cubic):
+        """The products with every model, folded by the square's symmetries (_FoldedBank)."""
+        R = rows(sl, cubic)[:, fb.idx]  # (q m, 4, octant)
+        out = np.empty((4, R.shape[0], fb.G[0].shape[1]), dtype=dtype)
+        for ch in range(4):
+            Fh = np.einsum("h,rhk->rk", _CHI[ch], R[:, :, fb.keep[ch]])
+            Fh *= fb.coef[fb.keep[ch]]
+            np.matmul(Fh.astype(dtype), fb.G[ch], out=out[ch])
+        return out
 
     n_b = bank.n_r // bank.n_sizes  # bulge fractions, a uniform prior over them here
     ln_pi = np.full(n_b, -np.log(n_b))
@@ -364,7 +473,7 @@ def fit_stamps(
                np.empty((m, coarse.n_r + 1)), np.empty(m, dtype=np.int64), np.empty(m),
                np.empty(m), np.empty(m))  # fmt: skip
         laplace_grid(
-            products(sl, Gc), m, coarse.n_e, coarse.n_r, coarse.n_r, pb.S[coarse.cols],
+            coarse_products(sl), one_c, m, coarse.n_e, coarse.n_r, coarse.n_r, pb.S[coarse.cols],
             pb.mxx[coarse.cols],
             pb.mxy[coarse.cols], pb.myy[coarse.cols], sigma[sl], x0[sl] - xc[sl],
             y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, ln_pi1, False,
@@ -386,8 +495,8 @@ def fit_stamps(
                    np.empty((sel.size, n_r + 1)), np.empty(sel.size, dtype=np.int64),
                    np.empty(sel.size), np.empty(sel.size), np.empty(sel.size))  # fmt: skip
             laplace_grid(
-                products(idx, G, cubic), sel.size, n_e, n_r, bank.n_sizes, pb.S, pb.mxx,
-                pb.mxy, pb.myy,
+                folded_products(idx, cubic), fb.members, sel.size, n_e, n_r, bank.n_sizes,
+                pb.S, pb.mxx, pb.mxy, pb.myy,
                 sigma[idx], x0[idx] - xc[idx], y0[idx] - yc[idx], b2, cfg.max_newton_step,
                 r_w, bank.star_weight, ln_run, ln_pi, cubic, *out,
             )  # fmt: skip
