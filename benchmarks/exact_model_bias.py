@@ -17,6 +17,7 @@ import numpy as np
 
 from pylensfit.config import Config
 from pylensfit.likelihood import fit_stamps
+from pylensfit.models import model_bank
 from pylensfit.precision import (
     MORPHOLOGIES,
     bias_table,
@@ -24,7 +25,7 @@ from pylensfit.precision import (
     render_block,
     spec_with,
 )
-from pylensfit.prior import Prior, estimate_bulge_weights
+from pylensfit.prior import Prior, estimate_bulge_weights, estimate_size_prior
 
 
 def main() -> None:
@@ -41,6 +42,9 @@ def main() -> None:
     ap.add_argument("--bulge-prior", choices=["uniform", "estimate"], default="uniform",
                     help="bulge-fraction prior: uniform, or estimated from an unsheared "
                          "calibration sample of --ngal galaxies (true e prior)")
+    ap.add_argument("--size-prior", choices=["flat", "estimate"], default="flat",
+                    help="size prior: the paper's flat one, or estimated from the unsheared "
+                         "calibration sample (prior.estimate_size_prior)")
     ap.add_argument("--config", nargs="*", default=[], help="Config overrides KEY=VALUE")
     a = ap.parse_args()
     over = {k: float(v) for k, v in (s.split("=", 1) for s in a.config)}
@@ -56,22 +60,44 @@ def main() -> None:
     cfg = Config(stamp_size=a.stamp, **over)
     prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
     t0 = time.time()
-    bw = None
-    if a.bulge_prior == "estimate" and cfg.n_bulge_fractions > 1:
-        lb, ls = [], []
+    bw = sp = None
+    est_bulge = a.bulge_prior == "estimate" and cfg.n_bulge_fractions > 1
+
+    def calibration(size_prior):
+        lb, ls, lr = [], [], []
         for b in range(-(-spec.ncal // spec.block_size)):
             st, psf, _ = render_block(spec, 0, b, stamp_size=a.stamp, calibration=True)
-            f = fit_stamps(st[:, 0], psf, 1.0, config=cfg)
+            f = fit_stamps(st[:, 0], psf, 1.0, config=cfg, size_prior=size_prior)
             ok = (f.flags == 0) & ~f.is_star
-            lb.append(f.lnL_bulge[ok])
-            ls.append(f.lnL_star[ok])
-        bw = estimate_bulge_weights(np.concatenate(lb), np.concatenate(ls), prior)
-        print(f"bulge-fraction prior {np.round(bw, 4).tolist()} from {spec.ncal} galaxies")
+            lr.append(f.lnL_r[ok])
+            if f.lnL_bulge is not None:
+                lb.append(f.lnL_bulge[ok])
+                ls.append(f.lnL_star[ok])
+        return (np.concatenate(lb) if lb else None, np.concatenate(ls) if ls else None,
+                np.concatenate(lr))  # fmt: skip
+
+    if est_bulge or a.size_prior == "estimate":
+        lb, ls, lr = calibration(None)
+        if est_bulge:
+            bw = estimate_bulge_weights(lb, ls, prior)
+        if a.size_prior == "estimate":
+            sp = estimate_size_prior(lr, model_bank(cfg), cfg, bulge_weights=bw)
+            q = np.quantile(np.exp(sp.ln_h), [0.0, 1.0])
+            cdf = np.cumsum(sp.density) / np.sum(sp.density)
+            pct = np.exp(np.interp([0.05, 0.5, 0.95], cdf, sp.ln_h))
+            print(f"size prior: half-light radius 5/50/95% {np.round(pct, 2).tolist()} px "
+                  f"(knots {q[0]:.2f}-{q[1]:.2f}), point sources {sp.star:.2e}")
+            if est_bulge:
+                lb, ls, _ = calibration(sp)
+                bw = estimate_bulge_weights(lb, ls, prior)
+        if est_bulge:
+            print(f"bulge-fraction prior {np.round(bw, 4).tolist()} from {spec.ncal} galaxies")
     Q, U, B, S = [], [], [], []
     for b in range(-(-a.ngal // spec.block_size)):
         st, psf, t = render_block(spec, 0, b, stamp_size=a.stamp)
         n = len(st)
-        f = fit_stamps(st.reshape(n * 4, a.stamp, a.stamp), psf, 1.0, config=cfg)
+        f = fit_stamps(st.reshape(n * 4, a.stamp, a.stamp), psf, 1.0, config=cfg,
+                       size_prior=sp)
         q, u = reduce_renderings(f, prior, spec.g, bulge_weights=bw)
         Q.append(q)
         U.append(u)

@@ -388,3 +388,53 @@ def test_folded_products_equal_the_direct_products(cfg):
     # a quarter of the operations: the octant's characters against the half-plane
     n_ops = sum(g.size for g in fb.G)
     assert n_ops < 0.3 * _interior(n).sum() * bank.n_models
+
+
+def test_size_prior_uniform_in_half_light_radius_is_the_flat_sum(rng):
+    """A SizePrior of density ~ h per unit ln h reproduces the default sum over r."""
+    from pylensfit.prior import SizePrior, _node_sizes
+
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
+    bank = model_bank(cfg)
+    _, _, h = _node_sizes(bank, cfg)
+    knots = np.linspace(np.log(h.min()) - 0.1, np.log(h.max()) + 0.1, 400)
+    c = 0.37  # any constant: the prior's normalisation is a constant in ln L
+    u0 = half_light_radius("bulge+disc", bulge_fraction=0.0)
+    flat = SizePrior(ln_h=knots, density=c * np.exp(knots), star=c * u0 * bank.star_weight)
+    psf = draw(PSFS["moffat_round"])
+    gal = galsim_model("bulge+disc", 2.0, 0.3, -0.2, bulge_fraction=0.3)
+    img = draw(galsim.Convolve(gal, PSFS["moffat_round"]))
+    stamps = np.stack([img * f for f in (300.0, 900.0)]) + rng.normal(size=(2, N, N))
+    ref = fit_stamps(stamps, psf, 1.0, config=cfg)
+    got = fit_stamps(stamps, psf, 1.0, config=cfg, size_prior=flat)
+    # the knots interpolate h linearly in ln h: exact to ~(0.015^2 / 8) relative
+    np.testing.assert_allclose(got.lnL, ref.lnL, atol=1e-3)
+    np.testing.assert_allclose(got.lnL_bulge, ref.lnL_bulge, atol=1e-3)
+    # a prior concentrated on small sizes pulls the mixture to the compact models
+    small = SizePrior(ln_h=knots, density=np.exp(-0.5 * ((knots - np.log(0.3)) / 0.1) ** 2))
+    sm = fit_stamps(stamps, psf, 1.0, config=cfg, size_prior=small)
+    # L(r) is the data's alone: the same under any prior, up to the shift of each row
+    def rel(f):
+        return f.lnL_r - f.lnL_r.max(axis=1, keepdims=True)
+
+    np.testing.assert_allclose(rel(sm), rel(ref), atol=1e-3)
+    assert not np.allclose(sm.lnL, ref.lnL, atol=0.1)
+
+
+def test_amplitude_terms_match_scipy():
+    """The positive-flux terms (tabulated between -20 and 7.5) against scipy's ln Phi."""
+    from scipy.special import log_ndtr
+
+    from pylensfit._kernels_nb import _amplitude_terms
+
+    t = np.concatenate([np.linspace(-30, 40, 7001), np.linspace(-20.01, -19.99, 101),
+                        np.linspace(7.49, 7.51, 101)])  # fmt: skip
+    got = np.array([_amplitude_terms(x) for x in t])
+    val = 0.5 * t * t + log_ndtr(t)
+    dl = t + np.exp(-0.5 * t * t - 0.5 * np.log(2 * np.pi) - log_ndtr(t))
+    e_val = np.abs(got[:, 0] - val) / np.maximum(1, np.abs(val))
+    e_dl = np.abs(got[:, 1] - dl) / np.maximum(1, np.abs(dl))
+    table = (t >= -20) & (t <= 7.5)
+    assert e_val[table].max() < 1e-10 and e_dl[table].max() < 1e-10
+    # below -20, the asymptotic series (next term 105 / t^8 = 4e-9)
+    assert e_val.max() < 2e-9 and e_dl.max() < 2e-7

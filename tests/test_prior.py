@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from pylensfit.grid import ellipticity_grid
+from pylensfit.models import model_bank
 from pylensfit.prior import (
     PRIOR_BOUNDS,
     Prior,
@@ -398,3 +399,45 @@ def test_mix_bulge_fractions_is_the_weighted_sum():
                                atol=1e-5)  # fmt: skip
     with pytest.raises(ValueError, match="weights"):
         mix_bulge_fractions(lb, ls, [1.0, -1.0, 0.5])
+
+
+def _size_sample(n, cfg, rng, mu=0.405, sd=0.35, width=(0.05, 0.4), star_frac=0.0):
+    """Synthetic ``lnL_r``: Gaussians in ln(h) about each galaxy's measured ln h."""
+    from pylensfit.prior import _node_sizes
+
+    bank = model_bank(cfg)
+    _, _, h = _node_sizes(bank, cfg)
+    lnh_true = rng.normal(mu, sd, n)
+    s = rng.uniform(*width, n)
+    lnh_obs = lnh_true + s * rng.normal(size=n)
+    L = -0.5 * ((np.log(h)[None] - lnh_obs[:, None]) / s[:, None]) ** 2
+    star = np.full((n, 1), -200.0)
+    is_star = rng.random(n) < star_frac
+    L[is_star] = -200.0  # a point source: no size fits, the r = 0 model does
+    star[is_star] = 0.0
+    return np.hstack([L, star]).astype(np.float32), lnh_true, bank
+
+
+def test_size_prior_recovers_a_lognormal_population():
+    """Smoothed EM deconvolves the measurement widths: mean and spread of ln h."""
+    from pylensfit import Config
+    from pylensfit.prior import estimate_size_prior
+
+    cfg = Config(model="exponential")
+    rng = np.random.default_rng(5)
+    lnL_r, lnh, bank = _size_sample(20000, cfg, rng, star_frac=0.05)
+    sp = estimate_size_prior(lnL_r, bank, cfg)
+    x, p = sp.ln_h, sp.density
+    mass = np.trapezoid(p, x)
+    mean = np.trapezoid(p * x, x) / mass
+    sd = np.sqrt(np.trapezoid(p * (x - mean) ** 2, x) / mass)
+    assert abs(mean - lnh.mean()) < 0.01, (mean, lnh.mean())
+    # the observed spread is sqrt(0.35^2 + <s^2>) ~ 0.40; the deconvolved one the true
+    # 0.35 plus the smoothing's broadening (a knot step of 0.1, ~0.03 in quadrature)
+    assert abs(sd - lnh.std()) < 0.02, (sd, lnh.std())
+    assert abs(sp.star - 0.05) < 0.004 and abs(mass + sp.star - 1) < 1e-6
+    # node weights: the prior mass per size of the bank, zero-free
+    w, ws = sp.node_weights(bank, cfg)
+    assert w.shape == (bank.n_r,) and np.all(w > 0) and ws == pytest.approx(sp.star)
+    with pytest.raises(ValueError, match="shape"):
+        estimate_size_prior(lnL_r[:, :-1], bank, cfg)

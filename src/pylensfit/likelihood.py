@@ -88,6 +88,11 @@ class StampFits:
         integral), shifted like ``lnL``; ``None`` with one fraction.
     bulge_fractions : numpy.ndarray or None
         ``(n_b,)`` the bulge fractions of ``lnL_bulge``.
+    lnL_r : numpy.ndarray or None
+        ``(n, n_r + 1)`` float32 ``ln`` of the likelihood of each size of the model
+        bank, ``L(r) = mean_e L(e, r)`` (every bulge fraction's run of sizes, then the
+        point source; no size prior), shifted like ``lnL``: the data of
+        :func:`pylensfit.prior.estimate_size_prior`. Not written by :meth:`write`.
     """
 
     egrid: np.ndarray
@@ -106,6 +111,7 @@ class StampFits:
     lnL_bulge: np.ndarray | None = None
     lnL_star: np.ndarray | None = None
     bulge_fractions: np.ndarray | None = None
+    lnL_r: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.lnL.shape[0]
@@ -349,6 +355,7 @@ def fit_stamps(
     *,
     config: Config | None = None,
     centres: tuple[np.ndarray, np.ndarray] | None = None,
+    size_prior=None,
 ) -> StampFits:
     """Likelihood ``L(e)`` of every stamp on the ellipticity grid, and the best model.
 
@@ -369,6 +376,9 @@ def fit_stamps(
     centres : tuple of numpy.ndarray, optional
         Catalogue positions ``(x, y)`` in stamp pixels (0-based), the centres of the
         position prior.
+    size_prior : pylensfit.prior.SizePrior, optional
+        Prior of the half-light radius in the sum over r (and of the point source);
+        default the paper's, uniform in r (in half-light radius for every bulge fraction).
 
     Returns
     -------
@@ -453,7 +463,12 @@ def fit_stamps(
     n_b = bank.n_r // bank.n_sizes  # bulge fractions, a uniform prior over them here
     ln_pi = np.full(n_b, -np.log(n_b))
     ln_pi1 = np.zeros(1)
-    ln_run = np.log(bank.run_weights) if bank.run_weights is not None else np.zeros(n_b)
+    if size_prior is None:
+        run_w = bank.run_weights if bank.run_weights is not None else np.ones(n_b)
+        node_w = np.tile(np.asarray(bank.r_weights, float), n_b) * np.repeat(run_w, bank.n_sizes)
+        w_star = float(bank.star_weight)
+    else:
+        node_w, w_star = size_prior.node_weights(bank, cfg)
     lnle = np.empty((n_gal, n_e))
     lnleb = np.empty((n_gal, n_e, n_b))
     lnlr = np.empty((n_gal, n_r + 1))
@@ -476,7 +491,7 @@ def fit_stamps(
             coarse_products(sl), one_c, m, coarse.n_e, coarse.n_r, coarse.n_r, pb.S[coarse.cols],
             pb.mxx[coarse.cols],
             pb.mxy[coarse.cols], pb.myy[coarse.cols], sigma[sl], x0[sl] - xc[sl],
-            y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, ln_pi1, False,
+            y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, False,
             *tmp,
         )  # fmt: skip
         step_x, step_y = tmp[5], tmp[6]
@@ -498,7 +513,7 @@ def fit_stamps(
                 folded_products(idx, cubic), fb.members, sel.size, n_e, n_r, bank.n_sizes,
                 pb.S, pb.mxx, pb.mxy, pb.myy,
                 sigma[idx], x0[idx] - xc[idx], y0[idx] - yc[idx], b2, cfg.max_newton_step,
-                r_w, bank.star_weight, ln_run, ln_pi, cubic, *out,
+                node_w, w_star, ln_pi, cubic, *out,
             )  # fmt: skip
             lnle[idx], lnleb[idx], lnlr[idx], best[idx], hbest[idx], xb[idx], yb[idx] = out
 
@@ -512,7 +527,9 @@ def fit_stamps(
     if n_b > 1:  # per bulge fraction, for a population prior over them (mix_bulge_fractions)
         lnL_bulge = np.moveaxis(lnleb - peak[:, None, None], 2, 1).astype(np.float32)
         lnL_bulge[dead] = np.nan
-        lnL_star = np.where(dead, np.nan, lnlr[:, n_r] + np.log(bank.star_weight) - peak)
+        lnL_star = np.where(dead, np.nan, lnlr[:, n_r] + np.log(w_star) - peak)
+    lnL_r = (lnlr - peak[:, None]).astype(np.float32)
+    lnL_r[dead] = np.nan
 
     ir_best = lnlr.argmax(axis=1)
     radii = np.append(bank.radii, 0.0)
@@ -541,4 +558,5 @@ def fit_stamps(
         lnL_bulge=lnL_bulge,
         lnL_star=lnL_star,
         bulge_fractions=None if n_b == 1 else np.unique(bank.bulge),
+        lnL_r=lnL_r,
     )

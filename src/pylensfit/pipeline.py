@@ -588,6 +588,10 @@ def measure(
         field without usable stars: one line naming the file and the problem.
     """
     cfg = config if config is not None else Config()
+    if cfg.size_prior != "flat":
+        raise ValueError(f"measure() sums over sizes with the flat prior; size_prior="
+                         f"{cfg.size_prior!r} is implemented by validate --precision and "
+                         "fit_stamps(size_prior=) only")  # fmt: skip
     if isinstance(images, (str, os.PathLike)):
         images = [images]
     images = [str(p) for p in images]

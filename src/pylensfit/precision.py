@@ -456,7 +456,7 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
     t1 = time.perf_counter()
     n, nr = stamps.shape[:2]
     fits = fit_stamps(stamps.reshape(n * nr, *stamps.shape[2:]), psf, spec.noise_sigma,
-                      config=cfg)  # fmt: skip
+                      config=cfg, size_prior=task.get("size_prior"))  # fmt: skip
     t2 = time.perf_counter()
     ok = _usable(fits)
     res: dict[str, Any] = {"block": task["block"], "psf": task["psf"], "truth": truth,
@@ -468,6 +468,8 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
         if fits.lnL_bulge is not None:
             res["lnL_bulge"] = fits.lnL_bulge[ok]
             res["lnL_star"] = fits.lnL_star[ok]
+        if task.get("keep_lnL_r"):
+            res["lnL_r"] = fits.lnL_r[ok]
         return res
     Q, usable = reduce_renderings(fits, task["prior"], spec.g, refine=cfg.integration_refine,
                                   bulge_weights=task.get("bulge_weights"))  # fmt: skip
@@ -635,11 +637,14 @@ def precision(
         The simulated set (default :class:`PrecisionSpec()`: 200,000 galaxies, four PSFs).
     config : Config, optional
         Measurement settings (default: the bulge+disc model with the bulge fraction
-        marginalised over 0, 0.5 and 1, as ``pylensfit validate``). With
-        ``bulge_prior="estimated"`` the prior over the fractions comes from the
-        calibration sample with the ellipticity prior
+        marginalised over 0, 0.5 and 1, as ``pylensfit validate``, and the size prior
+        estimated). With ``bulge_prior="estimated"`` the prior over the fractions comes
+        from the calibration sample with the ellipticity prior
         (:func:`~pylensfit.prior.estimate_prior_and_bulge`; with a given ``prior``, the
-        weights alone under it).
+        weights alone under it). With ``size_prior="estimated"`` the calibration sample
+        is fitted twice: with the flat size prior, for the size prior
+        (:func:`~pylensfit.prior.estimate_size_prior`), then with it, for the others;
+        the renderings are fitted with all three.
     jobs : int
         Local worker processes.
     scheduler : str, optional
@@ -667,39 +672,67 @@ def precision(
     from .prior import estimate_bulge_weights, estimate_prior, estimate_prior_and_bulge
 
     spec = spec if spec is not None else PrecisionSpec()
-    cfg = config if config is not None else Config(model="bulge+disc", n_bulge_fractions=3)
+    cfg = config if config is not None else Config(model="bulge+disc", n_bulge_fractions=3,
+                                                   size_prior="estimated")  # fmt: skip
     bulge_prior = cfg.bulge_prior
     npsf = len(spec.psfs)
     t_start = time.perf_counter()
-    # 1. the prior, from an unsheared calibration sample of the same population
+    # 1. the priors, from an unsheared calibration sample of the same population: the
+    # size prior (with the size_prior setting) from fits with the flat one, then the
+    # ellipticity and bulge-fraction priors from fits with the size prior
     fit_bulge = bulge_prior == "estimated" and cfg.n_bulge_fractions > 1
+    fit_size = cfg.size_prior == "estimated"
     prior_given = prior is not None
-    ncb = _n_blocks(spec.ncal, spec.block_size) if (prior is None or fit_bulge) else 0
-    tasks = [{"spec": spec, "config": cfg, "psf": b % npsf, "block": b, "calibration": True}
-             for b in range(ncb)]  # fmt: skip
-    lnls, lnlb, lnls_star, egrid, render_s, fit_s = [], [], [], None, 0.0, 0.0
-    for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, "calibration", progress),
-                       key=lambda tr: tr[0]["block"]):  # fmt: skip
-        lnls.append(r["lnL"])
-        lnlb.append(r.get("lnL_bulge"))
-        lnls_star.append(r.get("lnL_star"))
-        egrid = r["egrid"]
-        render_s += r["render_s"]
-        fit_s += r["fit_s"]
-    bulge_weights = None
-    if fit_bulge and prior is None:
-        prior, bulge_weights = estimate_prior_and_bulge(
-            np.concatenate(lnlb), np.concatenate(lnls_star), egrid, method=cfg.prior_method)
-    elif fit_bulge:
-        bulge_weights = estimate_bulge_weights(np.concatenate(lnlb), np.concatenate(lnls_star),
-                                               prior)  # fmt: skip
-    elif prior is None:
-        prior = estimate_prior(np.concatenate(lnls), egrid, method=cfg.prior_method)
+    ncb = _n_blocks(spec.ncal, spec.block_size) if (prior is None or fit_bulge or fit_size) else 0
+    render_s, fit_s = 0.0, 0.0
+
+    def calibrate(size_prior, keep_lnL_r, label):
+        nonlocal render_s, fit_s
+        tasks = [{"spec": spec, "config": cfg, "psf": b % npsf, "block": b, "calibration": True,
+                  "size_prior": size_prior, "keep_lnL_r": keep_lnL_r}
+                 for b in range(ncb)]  # fmt: skip
+        out: dict[str, list] = {"lnL": [], "lnL_bulge": [], "lnL_star": [], "lnL_r": []}
+        egrid = None
+        for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, label, progress),
+                           key=lambda tr: tr[0]["block"]):  # fmt: skip
+            for k in out:
+                out[k].append(r.get(k))
+            egrid = r["egrid"]
+            render_s += r["render_s"]
+            fit_s += r["fit_s"]
+        cat = {k: (np.concatenate(v) if v and v[0] is not None else None) for k, v in out.items()}
+        return cat, egrid
+
+    def ellipticity_priors(cal, egrid, prior):
+        if fit_bulge and prior is None:
+            return estimate_prior_and_bulge(cal["lnL_bulge"], cal["lnL_star"], egrid,
+                                            method=cfg.prior_method)  # fmt: skip
+        if fit_bulge:
+            return prior, estimate_bulge_weights(cal["lnL_bulge"], cal["lnL_star"], prior)
+        if prior is None:
+            return estimate_prior(cal["lnL"], egrid, method=cfg.prior_method), None
+        return prior, None
+
+    size_prior = None
+    cal, egrid = calibrate(None, fit_size, "calibration") if ncb else ({}, None)
+    prior0 = prior
+    if ncb:
+        prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
+    else:
+        bulge_weights = None
+    if fit_size:
+        from .models import model_bank
+        from .prior import estimate_size_prior
+
+        size_prior = estimate_size_prior(cal["lnL_r"], model_bank(cfg), cfg,
+                                         bulge_weights=bulge_weights)  # fmt: skip
+        cal, egrid = calibrate(size_prior, False, "calibration with the size prior")
+        prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
     t_cal = time.perf_counter() - t_start
     # 2. the four renderings of every galaxy, streamed block by block
     nb = _n_blocks(spec.ngal, spec.block_size)
     tasks = [{"spec": spec, "config": cfg, "prior": prior, "bulge_weights": bulge_weights,
-              "psf": b % npsf, "block": b, "calibration": False}
+              "size_prior": size_prior, "psf": b % npsf, "block": b, "calibration": False}
              for b in range(nb)]  # fmt: skip
     parts: dict[int, dict] = {}
     for t, r in _run(_block_task, tasks, jobs, scheduler, "precision", progress):
@@ -747,12 +780,16 @@ def precision(
         "fractions": [float(f) for f in np.linspace(0.0, 1.0, int(cfg.n_bulge_fractions))],
         "weights": None if bulge_weights is None else [float(w) for w in bulge_weights],
     }
+    out.meta["size_prior"] = None if size_prior is None else {
+        "ln_h": size_prior.ln_h.tolist(), "density": size_prior.density.tolist(),
+        "star": size_prior.star}  # fmt: skip
     out.meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
     out.meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
     out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
                           "e_step": cfg.e_step, "r_step": cfg.r_step,
                           "stamp_size": cfg.stamp_size,
-                          "integration_refine": cfg.integration_refine}  # fmt: skip
+                          "integration_refine": cfg.integration_refine,
+                          "size_prior": cfg.size_prior}  # fmt: skip
     out.meta["fp_step"] = step
     out.meta["timing"] = {
         "total_s": total, "calibration_s": t_cal, "main_s": t_main,
@@ -781,6 +818,18 @@ def _bulge_line(bp: dict | None) -> str:
     pairs = ", ".join(f"{f:g}: {w:.3f}" for f, w in zip(bp["fractions"], bp["weights"],
                                                          strict=True))
     return f"Bulge-fraction prior estimated from the calibration sample: {pairs}.\n"
+
+
+def _size_line(sp: dict | None, spec: dict) -> str:
+    if not sp:
+        return "Size prior: flat (uniform in half-light radius).\n"
+    x, p = np.asarray(sp["ln_h"]), np.asarray(sp["density"])
+    cdf = np.cumsum(p) / np.sum(p)
+    q = np.exp(np.interp([0.05, 0.5, 0.95], cdf, x))
+    return ("Size prior estimated from the calibration sample: half-light radius 5 / 50 / 95 "
+            f"% at {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} px (the population: "
+            f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g} PSF half-light "
+            f"radii, log-uniform), point sources {sp['star']:.1e}.\n")
 
 
 def write_report(res: Table, path: str | Path) -> None:
@@ -815,6 +864,7 @@ def write_report(res: Table, path: str | Path) -> None:
         f"D={res.meta['prior']['D']:.3f} (true {tuple(spec['prior_params'])}). "
         f"Largest fixed-point Newton step {res.meta['fp_step']:.1e}.", "",
         _bulge_line(res.meta.get("bulge_prior")),
+        _size_line(res.meta.get("size_prior"), spec),
         f"Time {tim['total_s']:.0f} s with {tim['jobs']} job(s): {tim['galaxies_per_s']:.0f} "
         f"galaxies/s ({tim['renderings_per_s']:.0f} renderings/s) in the main pass; CPU "
         f"{tim['render_cpu_s']:.0f} s rendering, {tim['fit_cpu_s']:.0f} s fitting.", "",

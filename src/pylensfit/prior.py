@@ -39,10 +39,12 @@ __all__ = [
     "PRIOR_BOUNDS",
     "BinnedPrior",
     "Prior",
+    "SizePrior",
     "estimate_bulge_weights",
     "estimate_prior",
     "estimate_prior_and_bulge",
     "estimate_prior_binned",
+    "estimate_size_prior",
     "mix_bulge_fractions",
     "fit_functional_prior",
     "marginal_log_likelihood",
@@ -1086,3 +1088,136 @@ def estimate_prior_binned(
         min_count=int(min_count),
         notes=tuple(notes),
     )
+
+
+# ----------------------------------------------------------------------------------------
+# The size prior
+# ----------------------------------------------------------------------------------------
+def _node_sizes(bank, config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per size node of an e cell: ``r``, its quadrature weight and half-light radius."""
+    from .models import half_light_radius
+
+    n_b = bank.n_r // bank.n_sizes
+    fracs = np.unique(bank.bulge) if n_b > 1 else [config.bulge_fraction]
+    unit = np.array([half_light_radius(bank.model, bulge_fraction=float(f),
+                                       bulge_size_ratio=config.bulge_size_ratio)
+                     for f in fracs])  # fmt: skip
+    r = np.asarray(bank.radii, float)
+    r_w = np.tile(np.asarray(bank.r_weights, float), n_b)
+    return r, r_w, r * np.repeat(unit, bank.n_sizes)
+
+
+@dataclass(frozen=True)
+class SizePrior:
+    """Population prior of the galaxies' half-light radius, and of point sources.
+
+    The paper sums ``L(e, r)`` over ``r`` with a uniform prior. A faint galaxy's
+    likelihood in size is broad, and which sizes the sum weights moves its ``L(e)``: for
+    de Vaucouleurs galaxies at S/N 10-20 fitted with their exact profile, the uniform
+    prior gives ``m = -0.07``, the population's own size distribution ``m ~ 0``
+    (``benchmarks/exact_model_bias.py``). This prior is estimated from the data
+    (:func:`estimate_size_prior`), as the ellipticity prior is.
+
+    Attributes
+    ----------
+    ln_h : numpy.ndarray
+        ``(K,)`` evenly spaced knots in ``ln`` of the half-light radius (pixels).
+    density : numpy.ndarray
+        ``(K,)`` the density per unit ``ln h`` at the knots, linear between them and 0
+        outside; integrates to ``1 - star``.
+    star : float
+        Prior probability of a point source.
+    """
+
+    ln_h: np.ndarray
+    density: np.ndarray
+    star: float = 1e-6
+
+    def pdf(self, h) -> np.ndarray:
+        """Density per unit ``ln h`` at half-light radii ``h`` (pixels)."""
+        with np.errstate(divide="ignore"):
+            x = np.log(np.asarray(h, dtype=float))
+        return np.interp(x, self.ln_h, self.density, left=0.0, right=0.0)
+
+    def node_weights(self, bank, config) -> tuple[np.ndarray, float]:
+        """Weights of the model bank's sizes and of the point source in the sum over r.
+
+        Node ``j`` (size ``r_j``, quadrature weight ``w_j``, half-light radius ``h_j``)
+        gets the prior mass ``w_j p(ln h_j) / r_j`` (``d ln h = dr / r``), floored at
+        ``1e-4`` of the largest so that every ``ln L`` stays finite.
+        """
+        r, r_w, h = _node_sizes(bank, config)
+        w = r_w * self.pdf(h) / r
+        w = np.maximum(w, 1e-4 * w.max())
+        return w, float(max(self.star, 1e-12))
+
+
+def estimate_size_prior(
+    lnL_r: np.ndarray,
+    bank,
+    config,
+    *,
+    bulge_weights: np.ndarray | None = None,
+    knot_step: float = 0.1,
+    n_iter: int = 500,
+    smooth: float = 0.25,
+) -> SizePrior:
+    """The size prior by maximum marginal likelihood, smoothed EM on a ln(h) grid.
+
+    Galaxy ``a``'s evidence under the prior is ``Z_a = sum_j pi_k(j) w_j p(ln h_j) / r_j
+    L_a(r_j) + s L_a(star)``, linear in the knot values of ``p`` and in ``s``: a mixture
+    whose weights EM estimates, each step followed by a light smoothing of the density
+    between neighbouring knots (EMS, Silverman et al. 1990) so that the deconvolved
+    distribution does not break into spikes where the likelihoods are broad.
+
+    Parameters
+    ----------
+    lnL_r : numpy.ndarray
+        ``(n, n_r + 1)`` per-size likelihoods of the sample (``StampFits.lnL_r``, flat
+        size prior), rows with NaN ignored.
+    bank, config :
+        The model bank and configuration of the fits.
+    bulge_weights : numpy.ndarray, optional
+        Prior of the bulge fractions (uniform by default).
+    knot_step : float
+        Knot spacing in ``ln h``.
+    n_iter : int
+        EM steps.
+    smooth : float
+        Weight moved to each neighbouring knot in a smoothing step.
+
+    Returns
+    -------
+    SizePrior
+    """
+    L = np.asarray(lnL_r, dtype=float)
+    n_r = bank.n_r
+    if L.ndim != 2 or L.shape[1] != n_r + 1:
+        raise ValueError(f"lnL_r must have shape (n, {n_r + 1}), got {L.shape}")
+    L = L[np.isfinite(L).all(axis=1)]
+    if L.shape[0] < 10:
+        raise ValueError(f"{L.shape[0]} usable likelihoods: too few to estimate a size prior")
+    r, r_w, h = _node_sizes(bank, config)
+    n_b = n_r // bank.n_sizes
+    pi = np.full(n_b, 1.0 / n_b) if bulge_weights is None else np.asarray(bulge_weights, float)
+    lo, hi = np.log(h.min()) - knot_step, np.log(h.max()) + knot_step
+    knots = np.arange(lo, hi + knot_step, knot_step)
+    # hat basis of the knots at the nodes: B[j, b]
+    x = (np.log(h) - knots[0]) / knot_step
+    i0 = np.clip(np.floor(x).astype(int), 0, knots.size - 2)
+    f = x - i0
+    B = np.zeros((n_r, knots.size))
+    B[np.arange(n_r), i0] = 1.0 - f
+    B[np.arange(n_r), i0 + 1] = f
+    M = (np.repeat(pi, bank.n_sizes) * r_w / r)[:, None] * B  # node mass per knot value
+    top = L.max(axis=1, keepdims=True)
+    E = np.exp(L - top)
+    comp = np.column_stack([E[:, :n_r] @ M / knot_step, E[:, n_r]])  # per unit mass
+    K = knots.size
+    w = np.full(K + 1, 1.0 / (K + 1))
+    for _ in range(n_iter):
+        tot = comp @ w
+        w = w * np.mean(comp / tot[:, None], axis=0)
+        w[:K] = np.convolve(w[:K], [smooth, 1 - 2 * smooth, smooth], mode="same")
+        w /= w.sum()
+    return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=float(w[K]))
