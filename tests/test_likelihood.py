@@ -135,9 +135,11 @@ def test_laplace_matches_brute_force(snr, offset, e_step):
     assert region.sum() >= 4
     err = np.abs(de[region] - db[region])
     assert err.max() < 0.05, f"max |d lnL| = {err.max():.3f} at S/N {snr}"
-    # the float32 default agrees with float64 to well within that tolerance
+    # the float32 default agrees with float64 to well within that tolerance: its rounding
+    # is a fixed fraction of ln L's range, S/N^2 / 2 (measured 0.0005 at S/N 30, 0.012 at
+    # 200: ~6e-7 of it)
     f32 = fit_stamps(d, psf_img, sigma, config=cfg).lnL[0]
-    assert np.max(np.abs(f32 - fits.lnL[0])[region]) < 0.01
+    assert np.max(np.abs(f32 - fits.lnL[0])[region]) < 1e-3 + 1e-6 * snr**2 / 2
 
 
 @pytest.mark.parametrize("model", ["exponential", "devaucouleurs", "bulge+disc"])

@@ -190,6 +190,15 @@ def _interior(n: int) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class _Coarse:
+    """The coarse sub-grid of the centring pass: bank columns, e cells and sizes."""
+
+    cols: np.ndarray
+    n_e: int
+    n_r: int
+
+
+@dataclass(frozen=True)
 class _FoldedBank:
     """The model bank folded by the symmetries of the square pixel grid.
 
@@ -209,6 +218,9 @@ class _FoldedBank:
     keep: tuple  # per character, the octant points where it can be non-zero
     G: tuple  # per character, (len(keep), n_cols) folded model transforms
     members: np.ndarray  # (n_cols, 4) model with h . (representative) in column c, or -1
+    coarse: _Coarse  # the coarse sub-grid of the centring pass, closed under the symmetries
+    coarse_G: tuple  # per character, its columns of G
+    coarse_members: np.ndarray  # (n_cols_c, 4) as members, in the coarse models' numbering
 
 
 #: characters chi[c, h] of the group h = (1, s1, s2, s1 s2): (+-1)^(a i + b j)
@@ -256,7 +268,25 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
     Gr = bank.G[:, rep_cols]
     Gh = np.einsum("ch,hkm->ckm", _CHI, Gr[idx].astype(np.float64))
     G = tuple(np.ascontiguousarray(Gh[ch][keep[ch]], dtype=config.dtype) for ch in range(4))
-    fb = _FoldedBank(idx=idx, coef=coef, keep=keep, G=G, members=members)
+    # the coarse sub-grid: e cells at every other lattice step in both components (a set
+    # closed under e1 -> -e1, e2 -> -e2) and every 5th size
+    lat = np.rint(np.abs(eg) / config.e_step - 0.5).astype(int)
+    ie_c = np.flatnonzero((lat % 2 == 0).all(axis=1))
+    ir_c = np.arange(min(2, n_r - 1), n_r, 5)
+    n_ec, n_rc = ie_c.size, ir_c.size
+    ccols = np.append((ie_c[:, None] * n_r + ir_c[None, :]).ravel(), bank.n_models - 1)
+    rep_c = ie_c[rep[ie_c]]
+    oc = {o: k for k, o in enumerate(orb[rep_c])}  # full orbit number -> coarse one
+    cmem = np.full((rep_c.size * n_rc + 1, 4), -1, dtype=np.int64)
+    jc = np.arange(n_ec * n_rc)
+    ie_j = ie_c[jc // n_rc]
+    cmem[np.array([oc[o] for o in orb[ie_j]]) * n_rc + jc % n_rc, h[ie_j]] = jc
+    cmem[-1, 0] = n_ec * n_rc
+    gcols = np.append((orb[rep_c][:, None] * n_r + ir_c[None, :]).ravel(), ie_rep.size * n_r)
+    coarse = _Coarse(cols=ccols, n_e=n_ec, n_r=n_rc)
+    fb = _FoldedBank(idx=idx, coef=coef, keep=keep, G=G, members=members, coarse=coarse,
+                     coarse_G=tuple(np.ascontiguousarray(g[:, gcols]) for g in G),
+                     coarse_members=cmem)  # fmt: skip
     if len(_FOLDED) >= 4:
         _FOLDED.pop(next(iter(_FOLDED)))
     _FOLDED[key] = (bank, fb)
@@ -270,12 +300,11 @@ def _psf_bank(psf: np.ndarray, config: Config, bank) -> _PSFBank:
     p2 = (w * np.abs(P) ** 2 / n**2).ravel() * _interior(n)
     kx = kx.ravel()
     ky = ky.ravel()
-    G2 = np.square(bank.G, dtype=np.float64)
-    S = p2 @ G2
-    mxx = -(p2 * kx * kx) @ G2
-    mxy = -(p2 * kx * ky) @ G2
-    myy = -(p2 * ky * ky) @ G2
-    return _PSFBank(P=P.ravel(), S=S, mxx=mxx, mxy=mxy, myy=myy)
+    W = np.stack([p2, -p2 * kx * kx, -p2 * kx * ky, -p2 * ky * ky])
+    out = np.empty((4, bank.G.shape[1]))
+    for c0 in range(0, bank.G.shape[1], 4096):  # in chunks: no bank-sized temporary
+        out[:, c0 : c0 + 4096] = W @ np.square(bank.G[:, c0 : c0 + 4096], dtype=np.float64)
+    return _PSFBank(P=P.ravel(), S=out[0], mxx=out[1], mxy=out[2], myy=out[3])
 
 
 def _cut_stamps(stamps: np.ndarray, n: int, cx: np.ndarray, cy: np.ndarray):
@@ -291,21 +320,6 @@ def _cut_stamps(stamps: np.ndarray, n: int, cx: np.ndarray, cy: np.ndarray):
     cols = (ix[:, None] + pad + np.arange(n)[None, :]).clip(0, nx + 2 * pad - 1)
     out = padded[np.arange(k)[:, None, None], rows[:, :, None], cols[:, None, :]]
     return out, cx - ix, cy - iy
-
-
-@dataclass(frozen=True)
-class _Coarse:
-    cols: np.ndarray
-    n_e: int
-    n_r: int
-
-
-def _coarse_models(n_e: int, n_r: int, e_stride: int = 2, r_stride: int = 5) -> _Coarse:
-    """Bank columns of a sub-grid (every ``e_stride``-th e cell and ``r_stride``-th r)."""
-    ie = np.arange(0, n_e, e_stride)
-    ir = np.arange(min(r_stride // 2, n_r - 1), n_r, r_stride)
-    cols = (ie[:, None] * n_r + ir[None, :]).ravel()
-    return _Coarse(cols=np.append(cols, n_e * n_r), n_e=ie.size, n_r=ir.size)
 
 
 def _centre(D: np.ndarray, P: np.ndarray, config: Config, x0: np.ndarray, y0: np.ndarray):
@@ -416,7 +430,7 @@ def fit_stamps(
         stamps = np.nan_to_num(stamps, nan=0.0, posinf=0.0, neginf=0.0)
         sigma = np.where(bad, 1.0, sigma)
 
-    kx, ky, w = rfft_frequencies(n)
+    kx, ky, _ = rfft_frequencies(n)
     c = n // 2
     x0 = cx - c
     y0 = cy - c
@@ -427,14 +441,11 @@ def fit_stamps(
 
     dtype = np.dtype(cfg.dtype)
     n_e, n_r = bank.n_e, bank.n_r
-    coarse = _coarse_models(n_e, n_r)
-    Gc = np.ascontiguousarray(bank.G[:, coarse.cols], dtype=dtype)
     fb = _folded_bank(cfg, bank)
+    coarse = fb.coarse
     kxf = kx.ravel()
     kyf = ky.ravel()
     Pc = np.conj(pb.P)
-    wk = (w / n**2).ravel() * _interior(n)
-    one_c = np.arange(Gc.shape[1])[:, None]
 
     def rows(sl, cubic):
         """h, grad h, Hess h (and third derivatives) as ``(q * m, frequency)`` rows."""
@@ -446,18 +457,21 @@ def fit_stamps(
             out += [kxf**3 * i, kxf**2 * kyf * i, kxf * kyf**2 * i, kyf**3 * i]
         return np.concatenate(out, axis=0)
 
-    def coarse_products(sl):
-        """The products with the coarse models, one column each."""
-        return ((rows(sl, False) * wk).astype(dtype) @ Gc)[None]
 
-    def folded_products(sl, cubic):
-        """The products with every model, folded by the square's symmetries (_FoldedBank)."""
+    n_cols = fb.G[0].shape[1]
+    # one buffer for every block's products, so that the pages are mapped once
+    store = np.empty(4 * 10 * min(cfg.block_size, n_gal) * n_cols, dtype=dtype)
+
+    def folded_products(sl, cubic, Gf=fb.G):
+        """The products with every model (or the coarse ones), folded by the square's
+        symmetries (_FoldedBank)."""
         R = rows(sl, cubic)[:, fb.idx]  # (q m, 4, octant)
-        out = np.empty((4, R.shape[0], fb.G[0].shape[1]), dtype=dtype)
+        nc = Gf[0].shape[1]
+        out = store[: 4 * R.shape[0] * nc].reshape(4, R.shape[0], nc)
         for ch in range(4):
             Fh = np.einsum("h,rhk->rk", _CHI[ch], R[:, :, fb.keep[ch]])
             Fh *= fb.coef[fb.keep[ch]]
-            np.matmul(Fh.astype(dtype), fb.G[ch], out=out[ch])
+            np.matmul(Fh.astype(dtype), Gf[ch], out=out[ch])
         return out
 
     n_b = bank.n_r // bank.n_sizes  # bulge fractions, a uniform prior over them here
@@ -488,8 +502,8 @@ def fit_stamps(
                np.empty((m, coarse.n_r + 1)), np.empty(m, dtype=np.int64), np.empty(m),
                np.empty(m), np.empty(m))  # fmt: skip
         laplace_grid(
-            coarse_products(sl), one_c, m, coarse.n_e, coarse.n_r, coarse.n_r, pb.S[coarse.cols],
-            pb.mxx[coarse.cols],
+            folded_products(sl, False, fb.coarse_G), fb.coarse_members, m, coarse.n_e,
+            coarse.n_r, coarse.n_r, pb.S[coarse.cols], pb.mxx[coarse.cols],
             pb.mxy[coarse.cols], pb.myy[coarse.cols], sigma[sl], x0[sl] - xc[sl],
             y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, False,
             *tmp,

@@ -1194,7 +1194,7 @@ def estimate_size_prior(
     n_r = bank.n_r
     if L.ndim != 2 or L.shape[1] != n_r + 1:
         raise ValueError(f"lnL_r must have shape (n, {n_r + 1}), got {L.shape}")
-    L = L[np.isfinite(L).all(axis=1)]
+    L = L[~np.isnan(L).any(axis=1) & np.isfinite(L.max(axis=1))]  # -inf: sizes not evaluated
     if L.shape[0] < 10:
         raise ValueError(f"{L.shape[0]} usable likelihoods: too few to estimate a size prior")
     r, r_w, h = _node_sizes(bank, config)
