@@ -185,13 +185,14 @@ _UNDERFLOW = 700.0
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
     prod, members, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step,
-    node_w, w_star, ln_pi, cubic, out_lnle, out_lnlb, out_lnlr, out_best, out_h, out_x, out_y,
+    node_w, w_star, ln_pi, e_w, cubic, out_lnle, out_lnlb, out_lnlr, out_best, out_h, out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 
     Two passes per galaxy: the first evaluates ``ln L(e, r)`` of every model into a
     buffer and finds the peak ``M``; the second takes one ``exp(ln L - M)`` per model and
-    accumulates both the sum over r (for ``L(e)``) and the mean over e (for ``L(r)``).
+    accumulates both the sum over r (for ``L(e)``) and the ``e_w``-weighted sum over e
+    (for ``L(r)``).
     Where a whole e cell lies more than 700 e-folds under the peak (bright galaxies far
     from their ellipticity) its sum underflows and ``ln L(e)`` is replaced by its
     largest weighted term: exact to within ``ln n_r`` at a point whose posterior weight
@@ -229,6 +230,9 @@ def laplace_grid(
         Log prior weight of each bulge fraction (summing to 1): ``L(e) = sum_k pi_k
         L_k(e) + w_star L_star``, where ``L_k(e)`` is the weighted sum over the sizes of
         run ``k`` and the point source, common to all fractions, is counted once.
+    e_w : (n_e,) array
+        Weights of the e cells (summing to 1) in ``L(r) = sum_e e_w L(e, r)``: an
+        ellipticity prior's mass per cell.
     out_lnlb : (n_gal, n_e, n_r // n_sub) array
         ``ln L_k(e)`` of each run (bulge fraction) alone, without the point source.
     """
@@ -238,7 +242,6 @@ def laplace_grid(
     star = n_mod - 1
     sq_m = np.sqrt(s_m)
     ln_m = np.log(s_m)
-    lne = math.log(n_e)
     ln_w = np.log(node_w)
     pi = np.exp(ln_pi)
     n_chi = prod.shape[0]
@@ -304,7 +307,7 @@ def laplace_grid(
                     l = buf[ie * n_r + ir]
                     ex = math.exp(l - best)
                     bacc += ex * node_w[ir]
-                    rsum[ir] += ex
+                    rsum[ir] += ex * e_w[ie]
                     lw = l + ln_w[ir]
                     lwr[irr] = lw
                     if lw > rmax:
@@ -325,7 +328,7 @@ def laplace_grid(
                 out_lnle[g, ie] = emax
         for ir in range(n_r):
             if rsum[ir] > 0.0:
-                out_lnlr[g, ir] = best + math.log(rsum[ir]) - lne
+                out_lnlr[g, ir] = best + math.log(rsum[ir])
             else:
                 out_lnlr[g, ir] = -np.inf
         out_lnlr[g, n_r] = buf[star]

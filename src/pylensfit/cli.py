@@ -42,7 +42,8 @@ def _measure(args: argparse.Namespace) -> int:
     cat = measure(
         args.images, stars=args.stars, weights=args.weights, masks=args.masks,
         catalogues=args.catalogues, star_column=args.star_column, config=_config(args),
-        prior=args.prior, output=args.output, psf_dir=args.psf_dir, overwrite=args.overwrite,
+        prior=args.prior, size_prior=args.size_prior, output=args.output, psf_dir=args.psf_dir,
+        overwrite=args.overwrite,
         jobs=args.jobs,
         scheduler=args.scheduler, progress=not args.quiet,
     )  # fmt: skip
@@ -297,6 +298,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--star-column", help="catalogue column marking the PSF stars")
     m.add_argument("--config", help="YAML configuration (see `pylensfit config`)")
     m.add_argument("--prior", help="a saved prior (default: estimated from the run)")
+    m.add_argument("--size-prior", help="a saved size prior (JSON, SizePrior.save); default "
+                                        "the config's size_prior: flat, or estimated from the run")
     m.add_argument("-o", "--output", required=True, help="output catalogue (FITS)")
     m.add_argument("--psf-dir", help="write each image's PSF and star diagnostics here")
     m.add_argument("--overwrite", action="store_true", help="replace an existing output")

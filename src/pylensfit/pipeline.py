@@ -45,7 +45,13 @@ from . import flags as _flags
 from ._version import __version__
 from .catalogue import COLUMNS, FITCLASS, atomic_write
 from .config import Config
-from .prior import Prior, estimate_prior, estimate_prior_and_bulge, mix_bulge_fractions
+from .prior import (
+    Prior,
+    SizePrior,
+    estimate_prior,
+    estimate_prior_and_bulge,
+    mix_bulge_fractions,
+)
 from .psf import PSFError, PSFResult, combine_psfs, stack_psf
 from .shear import shapes as _shapes
 from .stamps import cut_stamps
@@ -314,6 +320,13 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     lnL = np.full((n, egrid.shape[0]), np.nan, dtype=np.float32)
     lnL_bulge = None if n_b == 1 else np.full((n, n_b, egrid.shape[0]), np.nan, np.float32)
     lnL_star = np.full(n, np.nan)
+    keep_r = bool(task.get("keep_lnL_r"))
+    lnL_r = np.full((n, bank.n_r + 1), np.nan, dtype=np.float32) if keep_r else None
+    size_prior = task.get("size_prior")
+    if size_prior is not None:
+        from .prior import SizePrior
+
+        size_prior = SizePrior.from_dict(size_prior)
     cols = {k: np.full(n, np.nan) for k in ("model_flux", "model_SNratio", "scalelength",
                                             "e1_best", "e2_best")}  # fmt: skip
     xf, yf = x.copy(), y.copy()
@@ -321,8 +334,11 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     todo = np.flatnonzero(flags == 0)
     if todo.size:
         fits_ = fit_stamps(stamps[todo], psf.image, noise[todo], config=cfg,
-                           centres=(cx[todo], cy[todo]))  # fmt: skip
+                           centres=(cx[todo], cy[todo]), size_prior=size_prior,
+                           size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
         lnL[todo] = fits_.lnL
+        if lnL_r is not None:
+            lnL_r[todo] = fits_.lnL_r
         if lnL_bulge is not None:
             lnL_bulge[todo] = fits_.lnL_bulge
             lnL_star[todo] = fits_.lnL_star
@@ -368,7 +384,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
               "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
     return {
         "index": task["index"], "path": path, "rows": rows, "lnL": lnL,
-        "lnL_bulge": lnL_bulge, "egrid": egrid,
+        "lnL_bulge": lnL_bulge, "lnL_r": lnL_r, "egrid": egrid,
         "psf": None if psf is None else _psf_summary(psf), "psf_note": psf_note,
         "timing": timing,
     }  # fmt: skip
@@ -437,6 +453,8 @@ def _write_part(path: Path, res: dict[str, Any]) -> None:
     hdus[1].name = "ROWS"
     if res.get("lnL_bulge") is not None:
         hdus.append(fits.ImageHDU(res["lnL_bulge"], name="LNLB"))
+    if res.get("lnL_r") is not None:
+        hdus.append(fits.ImageHDU(res["lnL_r"], name="LNLR"))
     if res["psf"] is not None:
         ph = fits.ImageHDU(res["psf"]["image"], name="PSF")
         for k in _PSF_KEYS:
@@ -457,6 +475,7 @@ def _read_part(path: Path) -> dict[str, Any]:
             "rows": {c: np.asarray(rows[c]) for c in rows.colnames},
             "lnL": np.array(h["LNL"].data, dtype=np.float32),
             "lnL_bulge": np.array(h["LNLB"].data, dtype=np.float32) if "LNLB" in h else None,
+            "lnL_r": np.array(h["LNLR"].data, dtype=np.float32) if "LNLR" in h else None,
             "egrid": np.array(h["EGRID"].data, dtype=float), "psf": psf,
             "psf_note": h[0].header["PSFNOTE"], "timing": json.loads(h[0].header["TIMING"]),
         }  # fmt: skip
@@ -525,6 +544,7 @@ def measure(
     star_column: str | None = None,
     config: Config | None = None,
     prior: Prior | str | os.PathLike | None = None,
+    size_prior: SizePrior | str | os.PathLike | None = None,
     output: str | os.PathLike | None = None,
     psf_dir: str | os.PathLike | None = None,
     overwrite: bool = False,
@@ -557,6 +577,17 @@ def measure(
         the bulge fractions when those are marginalised and ``config.bulge_prior`` is
         ``"estimated"`` (a given prior leaves that one uniform; the catalogue keeps each
         fraction's ``ln L`` to re-mix, :func:`pylensfit.prior.mix_bulge_fractions`).
+    size_prior : SizePrior or str, optional
+        The prior of the galaxies' half-light radius in the sum over r, or the path of a
+        saved one (:meth:`pylensfit.prior.SizePrior.save`). Without one,
+        ``config.size_prior`` decides: ``"flat"``, the paper's uniform prior; ``"estimated"``,
+        a first pass over the images fits every object with the flat prior, the size
+        prior is estimated from the galaxies' ``L(r)`` (marginalised over e with
+        ``prior`` when one is given, else with the default functional prior;
+        :func:`pylensfit.prior.estimate_size_prior`, with the bulge-fraction prior when
+        that is estimated) and the images are measured again with it (twice the fitting
+        and detection time). The catalogue keeps it (``meta["size_prior"]``, HDU
+        ``SIZEPRI``).
     output : str, optional
         Catalogue path (FITS). With an output, finished images are kept in
         ``<output>.parts/`` until the catalogue is written, and a restarted run resumes.
@@ -588,10 +619,6 @@ def measure(
         field without usable stars: one line naming the file and the problem.
     """
     cfg = config if config is not None else Config()
-    if cfg.size_prior != "flat":
-        raise ValueError(f"measure() sums over sizes with the flat prior; size_prior="
-                         f"{cfg.size_prior!r} is implemented by validate --precision and "
-                         "fit_stamps(size_prior=) only")  # fmt: skip
     if isinstance(images, (str, os.PathLike)):
         images = [images]
     images = [str(p) for p in images]
@@ -606,6 +633,13 @@ def measure(
             raise InputError(f"{p}: file not found")
     if isinstance(prior, (str, os.PathLike)):
         prior = Prior.load(prior)
+    if isinstance(size_prior, (str, os.PathLike)):
+        if not Path(size_prior).exists():
+            raise InputError(f"{size_prior}: file not found")
+        try:
+            size_prior = SizePrior.load(size_prior)
+        except ValueError as err:
+            raise InputError(str(err)) from None
     out = Path(output) if output is not None else None
     if out is not None and out.exists() and not overwrite:
         raise FileExistsError(f"{out}: output exists (use overwrite to replace it)")
@@ -629,8 +663,19 @@ def measure(
     ]  # fmt: skip
     results: dict[int, dict] = {}
     todo = tasks
+    sp_file = parts / "size_prior.json" if parts is not None else None
+    if size_prior is None and cfg.size_prior == "estimated":
+        if sp_file is not None and sp_file.exists():  # a resumed run keeps its size prior
+            size_prior = SizePrior.load(sp_file)
+        else:
+            size_prior = _estimate_size_prior(tasks, cfg, prior, jobs, scheduler, progress)
+    if size_prior is not None:
+        for t in tasks:
+            t["size_prior"] = size_prior.to_dict()
     if parts is not None:
         parts.mkdir(parents=True, exist_ok=True)
+        if size_prior is not None and not (sp_file.exists() and cfg.size_prior == "estimated"):
+            size_prior.save(sp_file)
         todo = []
         for t in tasks:
             pp = _part_path(parts, t)
@@ -649,10 +694,45 @@ def measure(
         log.info("%s: %d objects, %s", t["path"], len(res["rows"]["x"]),
                  ", ".join(f"{k} {v:.2f} s" for k, v in res["timing"].items()))  # fmt: skip
     cat = _assemble([results[i] for i in range(len(tasks))], cfg, prior)
+    cat.meta["size_prior"] = size_prior
     if out is not None:
         write_catalogue(cat, out, overwrite=overwrite)
         shutil.rmtree(parts, ignore_errors=True)
     return cat
+
+
+def _estimate_size_prior(tasks: list[dict], cfg: Config, prior: Prior | None, jobs: int,
+                         scheduler: str | None, progress: bool) -> SizePrior:  # fmt: skip
+    """First pass of ``size_prior="estimated"``: fit with the flat size prior, estimate it.
+
+    Each galaxy's ``L(r)`` is marginalised over e with ``prior`` if one is given, else
+    with the default functional prior (:func:`pylensfit.likelihood.fit_stamps`).
+    """
+    from .models import model_bank
+    from .prior import estimate_prior_and_bulge, estimate_size_prior
+
+    first = [dict(t, keep_lnL_r=True, psf_dir=None, size_marginal_prior=prior) for t in tasks]
+    lnL_r, lnL_b, lnL_s, egrid = [], [], [], None
+    for _, res in _run(_image_task, first, jobs, scheduler, "size prior", progress):
+        rows = res["rows"]
+        gal = ((rows["flags"] == 0) & (rows["fitclass"] == FITCLASS["galaxy"])
+               & np.isfinite(res["lnL_r"]).all(axis=1))  # fmt: skip
+        lnL_r.append(res["lnL_r"][gal])
+        egrid = res["egrid"]
+        if res["lnL_bulge"] is not None:
+            lnL_b.append(res["lnL_bulge"][gal])
+            lnL_s.append(rows["lnL_star"][gal])
+    L = np.concatenate(lnL_r)
+    if L.shape[0] < 50:
+        raise InputError(f"only {L.shape[0]} measured galaxies in the run: too few to estimate "
+                         "the size prior (give one with size_prior=, or size_prior: flat)")
+    bw = None
+    if lnL_b and cfg.bulge_prior == "estimated":
+        _, bw = estimate_prior_and_bulge(np.concatenate(lnL_b), np.concatenate(lnL_s), egrid,
+                                         method=cfg.prior_method)  # fmt: skip
+    sp = estimate_size_prior(L, model_bank(cfg), cfg, bulge_weights=bw)
+    log.info("size prior estimated from %d galaxies", L.shape[0])
+    return sp
 
 
 def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
@@ -765,6 +845,12 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
         if w is not None:
             hb.header["BULGEW"] = (",".join(f"{v:.6g}" for v in w), "their estimated prior weights")
         hdus.append(hb)
+    sp = cat.meta.get("size_prior")
+    if sp is not None:
+        hs = fits.table_to_hdu(Table({"ln_h": sp.ln_h, "density": sp.density}))
+        hs.name = "SIZEPRI"
+        hs.header["STAR"] = (sp.star, "prior probability of a point source")
+        hdus.append(hs)
     if "psfs" in cat.meta:
         p = fits.table_to_hdu(cat.meta["psfs"])
         p.name = "PSFS"
@@ -806,6 +892,11 @@ def read_catalogue(path: str | os.PathLike) -> Table:
                 B=hdr["PRIOR_B"], C=hdr["PRIOR_C"], D=hdr["PRIOR_D"], egrid=cat.meta["egrid"],
                 method=hdr.get("PRIORMTH", "fixed"),
             )
+        if "SIZEPRI" in h:
+            hs = h["SIZEPRI"]
+            cat.meta["size_prior"] = SizePrior(ln_h=np.array(hs.data["ln_h"], dtype=float),
+                                               density=np.array(hs.data["density"], float),
+                                               star=float(hs.header["STAR"]))  # fmt: skip
         if "PSFS" in h:
             cat.meta["psfs"] = Table(h["PSFS"].data)
         if "CONFIG" in h:

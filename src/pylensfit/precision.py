@@ -456,7 +456,8 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
     t1 = time.perf_counter()
     n, nr = stamps.shape[:2]
     fits = fit_stamps(stamps.reshape(n * nr, *stamps.shape[2:]), psf, spec.noise_sigma,
-                      config=cfg, size_prior=task.get("size_prior"))  # fmt: skip
+                      config=cfg, size_prior=task.get("size_prior"),
+                      size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
     t2 = time.perf_counter()
     ok = _usable(fits)
     res: dict[str, Any] = {"block": task["block"], "psf": task["psf"], "truth": truth,
@@ -642,9 +643,11 @@ def precision(
         from the calibration sample with the ellipticity prior
         (:func:`~pylensfit.prior.estimate_prior_and_bulge`; with a given ``prior``, the
         weights alone under it). With ``size_prior="estimated"`` the calibration sample
-        is fitted twice: with the flat size prior, for the size prior
-        (:func:`~pylensfit.prior.estimate_size_prior`), then with it, for the others;
-        the renderings are fitted with all three.
+        is fitted three times: with the flat size prior, for a first ellipticity prior;
+        again, each galaxy's ``L(r)`` marginalised over e with that prior, for the size
+        prior (:func:`~pylensfit.prior.estimate_size_prior`); then with the size prior,
+        for the ellipticity and bulge-fraction priors. The renderings are fitted with
+        all three.
     jobs : int
         Local worker processes.
     scheduler : str, optional
@@ -686,10 +689,11 @@ def precision(
     ncb = _n_blocks(spec.ncal, spec.block_size) if (prior is None or fit_bulge or fit_size) else 0
     render_s, fit_s = 0.0, 0.0
 
-    def calibrate(size_prior, keep_lnL_r, label):
+    def calibrate(size_prior, keep_lnL_r, label, marginal_prior=None):
         nonlocal render_s, fit_s
         tasks = [{"spec": spec, "config": cfg, "psf": b % npsf, "block": b, "calibration": True,
-                  "size_prior": size_prior, "keep_lnL_r": keep_lnL_r}
+                  "size_prior": size_prior, "keep_lnL_r": keep_lnL_r,
+                  "size_marginal_prior": marginal_prior}
                  for b in range(ncb)]  # fmt: skip
         out: dict[str, list] = {"lnL": [], "lnL_bulge": [], "lnL_star": [], "lnL_r": []}
         egrid = None
@@ -714,7 +718,7 @@ def precision(
         return prior, None
 
     size_prior = None
-    cal, egrid = calibrate(None, fit_size, "calibration") if ncb else ({}, None)
+    cal, egrid = calibrate(None, False, "calibration") if ncb else ({}, None)
     prior0 = prior
     if ncb:
         prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
@@ -724,6 +728,9 @@ def precision(
         from .models import model_bank
         from .prior import estimate_size_prior
 
+        # each galaxy's L(r) marginalised over e with the ellipticity prior just
+        # estimated (not the fits' default, which is the population's own here)
+        cal, _ = calibrate(None, True, "calibration: L(r)", marginal_prior=prior)
         size_prior = estimate_size_prior(cal["lnL_r"], model_bank(cfg), cfg,
                                          bulge_weights=bulge_weights)  # fmt: skip
         cal, egrid = calibrate(size_prior, False, "calibration with the size prior")

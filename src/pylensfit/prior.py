@@ -1139,6 +1139,35 @@ class SizePrior:
             x = np.log(np.asarray(h, dtype=float))
         return np.interp(x, self.ln_h, self.density, left=0.0, right=0.0)
 
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able parameters (:meth:`from_dict` inverts it)."""
+        return {"ln_h": [float(v) for v in self.ln_h],
+                "density": [float(v) for v in self.density], "star": float(self.star)}  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SizePrior:
+        """The prior of :meth:`to_dict`."""
+        ln_h = np.asarray(d["ln_h"], dtype=float)
+        dens = np.asarray(d["density"], dtype=float)
+        if ln_h.ndim != 1 or ln_h.shape != dens.shape or ln_h.size < 2:
+            raise ValueError("a size prior needs ln_h and density of the same length >= 2")
+        if not (np.all(np.diff(ln_h) > 0) and np.all(dens >= 0) and dens.sum() > 0):
+            raise ValueError("a size prior needs increasing ln_h and a non-negative density")
+        return cls(ln_h=ln_h, density=dens, star=float(d.get("star", 1e-6)))
+
+    def save(self, path: str | Path) -> None:
+        """Write the prior as JSON."""
+        Path(path).write_text(json.dumps({"size_prior": self.to_dict()}, indent=1))
+
+    @classmethod
+    def load(cls, path: str | Path) -> SizePrior:
+        """Read a prior written by :meth:`save`."""
+        try:
+            d = json.loads(Path(path).read_text())
+            return cls.from_dict(d["size_prior"])
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise ValueError(f"{path}: not a size prior file ({err})") from None
+
     def node_weights(self, bank, config) -> tuple[np.ndarray, float]:
         """Weights of the model bank's sizes and of the point source in the sum over r.
 
