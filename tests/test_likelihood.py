@@ -30,13 +30,15 @@ def _model_images(cfg, cols, P, centres):
     return np.fft.irfft2(G[:, None] * P[None, None] * phase[None], s=(N, N))
 
 
-def brute_force_lnL(cfg, d, sigma, psf_img, x0, cells):
+def brute_force_lnL(cfg, d, sigma, psf_img, x0, cells, amp_pow=None):
     """ln L(e) of grid cells ``cells`` by direct numerical marginalisation.
 
     For every model: chi-square in real space on a fine grid of sub-pixel positions,
     amplitude (> 0, uniform prior) integrated numerically, times the Gaussian position
     prior about ``x0``, integrated over position by the trapezoid rule; then summed over
-    r (the point source included) with weight dr.
+    r (the point source included) with weight dr. With ``amp_pow = beta`` the amplitude
+    prior is ``t^-beta dt/dA`` in the model's S/N ``t = A sqrt(sum m^2) / sigma``, for
+    ``t >= 1``.
     """
     bank = model_bank(cfg)
     P = psf_transform(psf_img, N)
@@ -72,10 +74,13 @@ def brute_force_lnL(cfg, d, sigma, psf_img, x0, cells):
         # amplitude integral, numerically on a grid adapted to each (model, position)
         w = sigma / np.sqrt(ss)
         a_hat = hh / ss
-        lo = np.maximum(a_hat - 10 * w, 0.0)
+        lo = np.maximum(a_hat - 10 * w, 0.0 if amp_pow is None else w)
         u = np.linspace(0.0, 1.0, 201)
-        amp = lo[..., None] + (np.maximum(a_hat, 0) + 10 * w - lo)[..., None] * u
+        amp = lo[..., None] + (np.maximum(a_hat, lo) + 10 * w - lo)[..., None] * u
         chi = (ss[..., None] * amp**2 - 2 * hh[..., None] * amp) / (2 * sigma**2)
+        if amp_pow is not None:  # -ln of the prior density in A
+            t = amp / w[..., None]
+            chi = chi + amp_pow * np.log(t) + np.log(w)[..., None]
         cmin = chi.min(axis=-1, keepdims=True)
         la = np.log(np.trapezoid(np.exp(-(chi - cmin)), amp, axis=-1)) - cmin[..., 0]
         # position integral with the prior (trapezoid on the regular grid)
@@ -135,6 +140,15 @@ def test_laplace_matches_brute_force(snr, offset, e_step):
     assert region.sum() >= 4
     err = np.abs(de[region] - db[region])
     assert err.max() < 0.05, f"max |d lnL| = {err.max():.3f} at S/N {snr}"
+    if snr <= 30:  # the S/N-power-law amplitude prior, against its own brute force
+        cs = cfg.replace(dtype="float64", amplitude_prior="snr", amplitude_prior_power=2.0)
+        es = fit_stamps(d, psf_img, sigma, config=cs).lnL[0].astype(float)
+        bs = brute_force_lnL(cs, d, sigma, psf_img, x0, cells, amp_pow=2.0)
+        err = np.abs((es - es[ref]) - (bs - bs[ref]))[region]
+        assert err.max() < 0.05, f"snr prior: max |d lnL| = {err.max():.3f} at S/N {snr}"
+        if snr == 10:  # where it differs from the uniform prior by more than that (the
+            # uniform prior weights every model by 1 / sqrt(sum m^2))
+            assert np.max(np.abs((bs - bs[ref]) - db)[region]) > 0.1
     # the float32 default agrees with float64 to well within that tolerance: its rounding
     # is a fixed fraction of ln L's range, S/N^2 / 2 (measured 0.0005 at S/N 30, 0.012 at
     # 200: ~6e-7 of it)

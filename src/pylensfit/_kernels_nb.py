@@ -66,10 +66,15 @@ def _amplitude_terms(t):
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
 def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sqs, lns,
-                 mxx, mxy, myy, sig, x0, y0, b2, max_step2):  # fmt: skip
+                 mxx, mxy, myy, sig, x0, y0, b2, max_step2, amp_pow):  # fmt: skip
     """ln L of one model, marginalised over amplitude (> 0) and position (Laplace).
 
     ``s``, ``sqs``, ``lns`` are ``S = sum m^2``, its square root and its log. With
+    ``amp_pow < 0`` the amplitude prior is uniform (the paper's): ``0.5 t^2 + ln Phi(t) -
+    0.5 ln S`` for the model's S/N ``t = h / (sigma sqrt S)``. With ``amp_pow = beta >=
+    0`` it is a power law in the model's S/N, ``p(A | model) ~ t^-beta dt/dA``: the
+    amplitude integral is ``0.5 t^2 - beta ln t`` (its peak value times its width, the
+    ``sqrt S`` of the width cancelling that of ``dt/dA``; ``t`` floored at 1). With
     ``cubic``, the third derivatives ``t...`` of ``h`` refine the peak (two Newton steps
     on the cubic expansion) and give the Hessian at the peak rather than at the origin.
     Returns ``(ln L, h*, X*, Y*)``. See :func:`pylensfit.likelihood.fit_stamps`.
@@ -130,7 +135,14 @@ def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sq
             hxx = ax
             hxy = axy
             hyy = ay
-    val, dl = _amplitude_terms(hstar * iss)
+    t = hstar * iss
+    if amp_pow < 0.0:
+        val, dl = _amplitude_terms(t)
+        val -= 0.5 * lns
+    else:
+        tt = max(t, 1.0)
+        val = 0.5 * t * t - amp_pow * math.log(tt)
+        dl = t - amp_pow / tt if t > 1.0 else t
     dl = -dl * iss
     # Fisher matrix of position, F = -(dl/dh) Hess h, and M = I + b^2 F
     f11 = dl * hxx
@@ -148,7 +160,7 @@ def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sq
     quad = (
         (f11 + b2 * detf) * dx * dx + 2.0 * f12 * dx * dy + (f22 + b2 * detf) * dy * dy
     ) / detm
-    lnl = val - 0.5 * lns - 0.5 * math.log(detm) - 0.5 * quad
+    lnl = val - 0.5 * math.log(detm) - 0.5 * quad
     return lnl, hstar, x, y
 
 
@@ -185,7 +197,8 @@ _UNDERFLOW = 700.0
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
     prod, members, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step,
-    node_w, w_star, ln_pi, e_w, cubic, out_lnle, out_lnlb, out_lnlr, out_best, out_h, out_x, out_y,
+    node_w, w_star, ln_pi, e_w, amp_pow, cubic, out_lnle, out_lnlb, out_lnlr, out_best, out_h,
+    out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 
@@ -230,6 +243,9 @@ def laplace_grid(
         Log prior weight of each bulge fraction (summing to 1): ``L(e) = sum_k pi_k
         L_k(e) + w_star L_star``, where ``L_k(e)`` is the weighted sum over the sizes of
         run ``k`` and the point source, common to all fractions, is counted once.
+    amp_pow : float
+        The amplitude prior (:func:`_laplace_lnl`): uniform if negative, else the power
+        of a power law in the model's S/N.
     e_w : (n_e,) array
         Weights of the e cells (summing to 1) in ``L(r) = sum_e e_w L(e, r)``: an
         ellipticity prior's mass per cell.
@@ -281,7 +297,7 @@ def laplace_grid(
                     vals[hm, 0], vals[hm, 1], vals[hm, 2], vals[hm, 3], vals[hm, 4],
                     vals[hm, 5], vals[hm, 6], vals[hm, 7], vals[hm, 8], vals[hm, 9], cubic,
                     s_m[j], sq_m[j], ln_m[j], mxx[j], mxy[j], myy[j], sig, gx0, gy0, b2,
-                    max_step2,
+                    max_step2, amp_pow,
                 )  # fmt: skip
                 buf[j] = l
                 if l > best:

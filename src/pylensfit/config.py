@@ -75,6 +75,16 @@ class Config:
         "validate --precision). The flat prior biases faint compact galaxies, m ~ -0.07 "
         "for de Vaucouleurs galaxies at S/N 10-20 (benchmarks/exact_model_bias.py)",
     )
+    # --- marginalisation over amplitude (paper eqs. likee1, likee) ---
+    amplitude_prior: str = _f(
+        "uniform",
+        "prior of the model amplitude: 'uniform' (the paper's; positive amplitudes) or "
+        "'snr' (a power law t^-amplitude_prior_power in the model's S/N t, which does "
+        "not weight models by their sum m^2 as the uniform prior does)",
+    )
+    amplitude_prior_power: float = _f(
+        2.0, "power of the 'snr' amplitude prior (dN/dS ~ S^-power; 1: scale-invariant)"
+    )
     # --- marginalisation over position (paper eq. eq:likelihood) ---
     position_prior_sigma: float = _f(
         2.0, "width b of the Gaussian prior on position about the catalogue position, px"
@@ -218,6 +228,9 @@ def _validate(c: Config) -> None:
     need(c.bulge_prior in ("estimated", "uniform"),
          f"bulge_prior must be 'estimated' or 'uniform', got {c.bulge_prior!r}")
     need(c.position_prior_sigma > 0, "position_prior_sigma must be > 0")
+    need(c.amplitude_prior in ("uniform", "snr"),
+         f"amplitude_prior must be 'uniform' or 'snr', got {c.amplitude_prior!r}")
+    need(c.amplitude_prior_power >= 0, "amplitude_prior_power must be >= 0")
     need(c.max_offset >= 0, "max_offset must be >= 0")
     need(c.centring_scale > 0, "centring_scale must be > 0")
     need(c.max_newton_step > 0, "max_newton_step must be > 0")

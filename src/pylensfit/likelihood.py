@@ -498,6 +498,7 @@ def fit_stamps(
     e_w = mp.pdf(bank.egrid[:, 0], bank.egrid[:, 1])
     e_w = e_w / e_w.sum()
     e_w_c = np.full(coarse.n_e, 1.0 / coarse.n_e)
+    amp_pow = -1.0 if cfg.amplitude_prior == "uniform" else float(cfg.amplitude_prior_power)
     lnle = np.empty((n_gal, n_e))
     lnleb = np.empty((n_gal, n_e, n_b))
     lnlr = np.empty((n_gal, n_r + 1))
@@ -520,7 +521,8 @@ def fit_stamps(
             folded_products(sl, False, fb.coarse_G), fb.coarse_members, m, coarse.n_e,
             coarse.n_r, coarse.n_r, pb.S[coarse.cols], pb.mxx[coarse.cols],
             pb.mxy[coarse.cols], pb.myy[coarse.cols], sigma[sl], x0[sl] - xc[sl],
-            y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, e_w_c, False,
+            y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, e_w_c,
+            amp_pow, False,
             *tmp,
         )  # fmt: skip
         step_x, step_y = tmp[5], tmp[6]
@@ -542,7 +544,7 @@ def fit_stamps(
                 folded_products(idx, cubic), fb.members, sel.size, n_e, n_r, bank.n_sizes,
                 pb.S, pb.mxx, pb.mxy, pb.myy,
                 sigma[idx], x0[idx] - xc[idx], y0[idx] - yc[idx], b2, cfg.max_newton_step,
-                node_w, w_star, ln_pi, e_w, cubic, *out,
+                node_w, w_star, ln_pi, e_w, amp_pow, cubic, *out,
             )  # fmt: skip
             lnle[idx], lnleb[idx], lnlr[idx], best[idx], hbest[idx], xb[idx], yb[idx] = out
 
