@@ -324,8 +324,6 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     lnL_r = np.full((n, bank.n_r + 1), np.nan, dtype=np.float32) if keep_r else None
     size_prior = task.get("size_prior")
     if size_prior is not None:
-        from .prior import SizePrior
-
         size_prior = SizePrior.from_dict(size_prior)
     cols = {k: np.full(n, np.nan) for k in ("model_flux", "model_SNratio", "scalelength",
                                             "e1_best", "e2_best")}  # fmt: skip
@@ -453,8 +451,6 @@ def _write_part(path: Path, res: dict[str, Any]) -> None:
     hdus[1].name = "ROWS"
     if res.get("lnL_bulge") is not None:
         hdus.append(fits.ImageHDU(res["lnL_bulge"], name="LNLB"))
-    if res.get("lnL_r") is not None:
-        hdus.append(fits.ImageHDU(res["lnL_r"], name="LNLR"))
     if res["psf"] is not None:
         ph = fits.ImageHDU(res["psf"]["image"], name="PSF")
         for k in _PSF_KEYS:
@@ -475,7 +471,6 @@ def _read_part(path: Path) -> dict[str, Any]:
             "rows": {c: np.asarray(rows[c]) for c in rows.colnames},
             "lnL": np.array(h["LNL"].data, dtype=np.float32),
             "lnL_bulge": np.array(h["LNLB"].data, dtype=np.float32) if "LNLB" in h else None,
-            "lnL_r": np.array(h["LNLR"].data, dtype=np.float32) if "LNLR" in h else None,
             "egrid": np.array(h["EGRID"].data, dtype=float), "psf": psf,
             "psf_note": h[0].header["PSFNOTE"], "timing": json.loads(h[0].header["TIMING"]),
         }  # fmt: skip
