@@ -6,6 +6,8 @@ for all galaxies and by size (in PSF half-light radii)::
 
     python benchmarks/exact_model_bias.py exponential --snr 40 200 --size 0.5 1.0
     python benchmarks/exact_model_bias.py devaucouleurs --stamp 64 --config r_rel_step=0
+    python benchmarks/exact_model_bias.py exponential --snr 30 30.01 --size 0.5 0.7 \
+        --noise-free --size-prior estimate --ngal 4000
 """
 
 from __future__ import annotations
@@ -45,6 +47,10 @@ def main() -> None:
     ap.add_argument("--size-prior", choices=["flat", "estimate"], default="flat",
                     help="size prior: the paper's flat one, or estimated from the unsheared "
                          "calibration sample (prior.estimate_size_prior)")
+    ap.add_argument("--noise-free", action="store_true",
+                    help="render without noise (the fits still assume sigma = 1, so the "
+                         "likelihood keeps the width of the S/N): the bias of the model and "
+                         "the priors alone, without noise bias")
     ap.add_argument("--config", nargs="*", default=[], help="Config overrides KEY=VALUE")
     a = ap.parse_args()
     over = {k: float(v) for k, v in (s.split("=", 1) for s in a.config)}
@@ -66,7 +72,8 @@ def main() -> None:
     def calibration(size_prior):
         lb, ls, lr = [], [], []
         for b in range(-(-spec.ncal // spec.block_size)):
-            st, psf, _ = render_block(spec, 0, b, stamp_size=a.stamp, calibration=True)
+            st, psf, _ = render_block(spec, 0, b, stamp_size=a.stamp, calibration=True,
+                                      noise=not a.noise_free)  # fmt: skip
             f = fit_stamps(st[:, 0], psf, 1.0, config=cfg, size_prior=size_prior)
             ok = (f.flags == 0) & ~f.is_star
             lr.append(f.lnL_r[ok])
@@ -94,7 +101,7 @@ def main() -> None:
             print(f"bulge-fraction prior {np.round(bw, 4).tolist()} from {spec.ncal} galaxies")
     Q, U, B, S = [], [], [], []
     for b in range(-(-a.ngal // spec.block_size)):
-        st, psf, t = render_block(spec, 0, b, stamp_size=a.stamp)
+        st, psf, t = render_block(spec, 0, b, stamp_size=a.stamp, noise=not a.noise_free)
         n = len(st)
         f = fit_stamps(st.reshape(n * 4, a.stamp, a.stamp), psf, 1.0, config=cfg,
                        size_prior=sp)
