@@ -43,6 +43,7 @@ from . import flags as _flags
 from ._util import newton_peak, per_object
 from .config import Config
 from .models import fourier_profile, model_bank, rfft_frequencies
+from .prior import Prior
 from .psf import psf_transform
 
 __all__ = ["StampFits", "fit_stamps"]
@@ -466,7 +467,6 @@ def fit_stamps(
             out += [kxf**3 * i, kxf**2 * kyf * i, kxf * kyf**2 * i, kyf**3 * i]
         return np.concatenate(out, axis=0)
 
-
     n_cols = fb.G[0].shape[1]
     # one buffer for every block's products, so that the pages are mapped once
     store = np.empty(4 * 10 * min(cfg.block_size, n_gal) * n_cols, dtype=dtype)
@@ -492,8 +492,6 @@ def fit_stamps(
         w_star = float(bank.star_weight)
     else:
         node_w, w_star = size_prior.node_weights(bank, cfg)
-    from .prior import Prior
-
     mp = size_marginal_prior if size_marginal_prior is not None else Prior()
     e_w = mp.pdf(bank.egrid[:, 0], bank.egrid[:, 1])
     e_w = e_w / e_w.sum()
@@ -509,6 +507,8 @@ def fit_stamps(
     r_w = np.asarray(bank.r_weights, dtype=float)
     rw_c = np.tile(r_w, bank.n_r // bank.n_sizes)[coarse.cols[:-1] % n_r][: coarse.n_r]
     b2 = cfg.position_prior_sigma**2
+    # the PSF bank's values at the coarse models, once for every block
+    S_c, mxx_c, mxy_c, myy_c = (a[coarse.cols] for a in (pb.S, pb.mxx, pb.mxy, pb.myy))
     for s0 in range(0, n_gal, cfg.block_size):
         sl = slice(s0, min(s0 + cfg.block_size, n_gal))
         m = sl.stop - sl.start
@@ -519,8 +519,7 @@ def fit_stamps(
                np.empty(m), np.empty(m))  # fmt: skip
         laplace_grid(
             folded_products(sl, False, fb.coarse_G), fb.coarse_members, m, coarse.n_e,
-            coarse.n_r, coarse.n_r, pb.S[coarse.cols], pb.mxx[coarse.cols],
-            pb.mxy[coarse.cols], pb.myy[coarse.cols], sigma[sl], x0[sl] - xc[sl],
+            coarse.n_r, coarse.n_r, S_c, mxx_c, mxy_c, myy_c, sigma[sl], x0[sl] - xc[sl],
             y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, e_w_c,
             amp_pow, False,
             *tmp,
@@ -531,7 +530,7 @@ def fit_stamps(
         yc[sl] += np.where(move, step_y, 0.0)
         # pass 2, every model; faint galaxies, whose models' peaks spread over a good
         # fraction of a pixel, with the third-order expansion in position
-        snr_c = tmp[4] / (sigma[sl] * np.sqrt(pb.S[coarse.cols][tmp[3]]))
+        snr_c = tmp[4] / (sigma[sl] * np.sqrt(S_c[tmp[3]]))
         low = snr_c < cfg.cubic_snr
         for sel, cubic in ((np.flatnonzero(low), True), (np.flatnonzero(~low), False)):
             if sel.size == 0:

@@ -669,7 +669,7 @@ def measure(
             t["size_prior"] = size_prior.to_dict()
     if parts is not None:
         parts.mkdir(parents=True, exist_ok=True)
-        if size_prior is not None and not (sp_file.exists() and cfg.size_prior == "estimated"):
+        if size_prior is not None:  # for a resumed run (the same prior if it was read here)
             size_prior.save(sp_file)
         todo = []
         for t in tasks:
@@ -704,7 +704,7 @@ def _estimate_size_prior(tasks: list[dict], cfg: Config, prior: Prior | None, jo
     with the default functional prior (:func:`pylensfit.likelihood.fit_stamps`).
     """
     from .models import model_bank
-    from .prior import estimate_prior_and_bulge, estimate_size_prior
+    from .prior import estimate_size_prior
 
     first = [dict(t, keep_lnL_r=True, psf_dir=None, size_marginal_prior=prior) for t in tasks]
     lnL_r, lnL_b, lnL_s, egrid = [], [], [], None
