@@ -348,3 +348,97 @@ def laplace_grid(
             else:
                 out_lnlr[g, ir] = -np.inf
         out_lnlr[g, n_r] = buf[star]
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
+def _profile_value(rr, model_code, fb, bsr, b_dev, norm_dev, trunc):
+    """Surface brightness of a unit-flux round profile of unit scale at radius ``rr``.
+
+    ``model_code``: 0 exponential (scale length), 1 de Vaucouleurs (half-light radius,
+    truncated at ``trunc``), 2 bulge + disc (disc scale length; bulge of fraction
+    ``fb`` and half-light radius ``bsr``).
+    """
+    v = 0.0
+    if model_code != 1 and fb < 1.0:
+        v += (1.0 - fb) * math.exp(-rr) / (2.0 * math.pi)
+    if model_code == 1 or (model_code == 2 and fb > 0.0):
+        s = 1.0 if model_code == 1 else bsr
+        w = 1.0 if model_code == 1 else fb
+        x = rr / s
+        if x <= trunc:
+            v += w * math.exp(-b_dev * x**0.25) / (norm_dev * s * s)
+    return v
+
+
+@njit(parallel=True, cache=True)
+def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trunc, n,
+                  max_copies, out):  # fmt: skip
+    """The wings that a periodic model wraps into an ``n x n`` stamp (DESIGN.md s. 3).
+
+    A model evaluated on the stamp's discrete frequencies is the periodic sum of its
+    copies ``m(x + j n)``; a stamp cut from the sky holds only ``m(x)``. For each
+    ellipticity ``(e1s[i], e2s[i])``, bulge fraction ``fracs[b]`` and size ``radii[j]``
+    (column ``b * len(radii) + j``), ``out[i, col]`` receives the sum of the copies
+    ``j != 0`` on the stamp's pixels (offsets ``-n/2 ... n/2 - 1`` from the centre,
+    ``[iy, ix]``), with the two pixel lines at ``+-n/2`` (one periodic line) shared
+    half and half, which keeps the square's symmetries. Pixel-centre values: the wings
+    are smooth on the pixel scale. Columns without wings beyond the stamp stay zero.
+    """
+    n_e = e1s.size
+    n_r = radii.size
+    n_b = fracs.size
+    h = n // 2
+    shared = n % 2 == 0  # an even stamp's first line is at -n/2, its copy at +n/2
+    for t in prange(n_e * n_b * n_r):
+        i = t // (n_b * n_r)
+        col = t % (n_b * n_r)
+        fb = fracs[col // n_r]
+        r = radii[col % n_r]
+        e1 = e1s[i]
+        e2 = e2s[i]
+        ee = math.sqrt(e1 * e1 + e2 * e2)
+        inv = 1.0 / math.sqrt(1.0 - ee * ee)
+        stretch = math.sqrt((1.0 + ee) / (1.0 - ee))
+        # the model's extent: 25 scale lengths of the disc (a fraction 4e-10 of its flux
+        # beyond), the bulge's truncation radius
+        ext = 0.0
+        if model_code != 1 and fb < 1.0:
+            ext = 25.0
+        if model_code == 1 or (model_code == 2 and fb > 0.0):
+            s = 1.0 if model_code == 1 else bsr
+            ext = max(ext, trunc * s)
+        ext *= r * stretch
+        if ext <= h:
+            continue
+        kmax = min(int(math.ceil(ext / n + 0.5)), max_copies)
+        for iy in range(n):
+            py = iy - h
+            for ix in range(n):
+                px = ix - h
+                acc = 0.0
+                for a in range(-kmax, kmax + 1):
+                    x = px + a * n
+                    # the share of this copy that the stamp holds
+                    inx = 0.0
+                    if a == 0:
+                        inx = 0.5 if shared and ix == 0 else 1.0
+                    elif a == 1 and shared and ix == 0:
+                        inx = 0.5
+                    if abs(x) > ext + 1.0:
+                        continue
+                    for b in range(-kmax, kmax + 1):
+                        y = py + b * n
+                        iny = 0.0
+                        if b == 0:
+                            iny = 0.5 if shared and iy == 0 else 1.0
+                        elif b == 1 and shared and iy == 0:
+                            iny = 0.5
+                        keep = 1.0 - inx * iny
+                        if keep == 0.0 or abs(y) > ext + 1.0:
+                            continue
+                        ux = ((1.0 - e1) * x - e2 * y) * inv
+                        uy = (-e2 * x + (1.0 + e1) * y) * inv
+                        rr = math.sqrt(ux * ux + uy * uy) / r
+                        acc += keep * _profile_value(rr, model_code, fb, bsr, b_dev,
+                                                     norm_dev, trunc) / (r * r)  # fmt: skip
+                out[i, col, iy, ix] = acc

@@ -234,7 +234,8 @@ _FOLDED: dict = {}
 def _folded_bank(config: Config, bank) -> _FoldedBank:
     key = (config.stamp_size, config.e_step, config.e_max, config.r_min, config.r_max,
            config.r_step, config.model, config.bulge_fraction, config.bulge_size_ratio,
-           config.dtype, int(config.n_bulge_fractions), float(config.r_rel_step))  # fmt: skip
+           config.dtype, int(config.n_bulge_fractions), float(config.r_rel_step),
+           bool(config.truncate_models))  # fmt: skip
     fb = _FOLDED.get(key)
     if fb is not None and fb[0] is bank:
         return fb[1]
