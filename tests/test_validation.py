@@ -131,6 +131,23 @@ def test_step2_shears_and_twins(step2):
         assert not np.allclose(ha[0].data, hb[0].data)
 
 
+def test_step1_twins(tmp_path):
+    """``twins=True`` gives step1 rotated twins: same objects and flux, e_int flipped."""
+    d = simulate_step("step1", tmp_path / "s1t", ngal=300, seed=4, n_shear=2, twins=True)
+    man = read_manifest(d)
+    shear = [f for f in man["fields"] if f["role"] == "shear"]
+    assert len(shear) == 2 * 2 * len(man["psfs"])
+    orig = {(f["psf"], f["shear_index"]): f for f in shear if not f["twin"]}
+    twins = {(f["psf"], f["shear_index"]): f for f in shear if f["twin"]}
+    assert orig.keys() == twins.keys()
+    ta, tb = _truth(d / orig[(1, 1)]["file"]), _truth(d / twins[(1, 1)]["file"])
+    gal = ~np.asarray(ta["is_star"])
+    assert gal.sum() > 5 and np.array_equal(ta["x"], tb["x"])
+    assert np.allclose(tb["e1_int"], -ta["e1_int"]) and np.allclose(tb["e2_int"], -ta["e2_int"])
+    assert np.allclose(ta["flux"], tb["flux"], rtol=1e-6)  # the flux of the unlensed galaxy
+    assert not np.allclose(ta["e1"][gal], tb["e1"][gal])
+
+
 def _star_shape(path) -> complex:
     """HSM shape (reduced-shear convention) of the brightest star away from the edges."""
     t = _truth(path)

@@ -190,7 +190,7 @@ def simulate_field(
     truth : astropy.table.Table
         One row per object: ``x, y`` (0-based pixels), ``is_star``, ``flux``, ``r`` (scale
         length or half-light radius, px), ``e1_int, e2_int`` (intrinsic), ``e1, e2``
-        (sheared), ``snr`` (matched-filter S/N of the noise-free object).
+        (sheared), ``snr`` (matched-filter S/N of the noise-free object before lensing).
     """
     import galsim
 
@@ -212,7 +212,11 @@ def simulate_field(
         else:
             gal = _galaxy(spec.model, r[i]).shear(g1=e_int[i, 0], g2=e_int[i, 1])
             obj = galsim.Convolve(gal.shear(g1=spec.g1, g2=spec.g2), psf)
-            arr = obj.drawImage(nx=64, ny=64, scale=1.0).array
+            # the flux from the S/N of the unlensed, unrotated galaxy: lensing keeps the
+            # flux, and a rotated twin gets the same flux as its original
+            e0 = -e_int[i] if spec.rotate else e_int[i]
+            ref = galsim.Convolve(_galaxy(spec.model, r[i]).shear(g1=e0[0], g2=e0[1]), psf)
+            arr = ref.drawImage(nx=64, ny=64, scale=1.0).array
             flux[i] = snr[i] * spec.noise_sigma / np.sqrt((arr**2).sum())
         _add_object(image, obj, flux[i], x[i], y[i])
     image, weight = _add_sky_and_noise(image, spec, seed, noise_seed)
