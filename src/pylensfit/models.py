@@ -25,7 +25,12 @@ profile at unit scale, normalised to ``F(0) = 1`` (unit total flux):
   the same ellipticity.
 
 The models are evaluated on the ``rfft2`` frequencies of an ``N x N`` stamp,
-``k = 2 pi (f_x, f_y)`` in radians per pixel.
+``k = 2 pi (f_x, f_y)`` in radians per pixel. So sampled, a model is periodic in real
+space: a model wider than the stamp wraps its far wings round to the opposite side,
+while the stamp of a galaxy cut from the sky holds only the galaxy. With
+``Config.truncate_models`` (the default) the bank subtracts the transforms of those
+wrapped wings (:func:`wrap_correction`), so that every model is the profile cut at the
+stamp's edge, as the data are.
 """
 
 from __future__ import annotations
