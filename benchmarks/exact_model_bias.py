@@ -27,7 +27,7 @@ from pylensfit.precision import (
     render_block,
     spec_with,
 )
-from pylensfit.prior import Prior, estimate_bulge_weights, estimate_size_prior
+from pylensfit.prior import Prior, SizePrior, estimate_bulge_weights, estimate_size_prior
 
 
 def main() -> None:
@@ -44,16 +44,23 @@ def main() -> None:
     ap.add_argument("--bulge-prior", choices=["uniform", "estimate"], default="uniform",
                     help="bulge-fraction prior: uniform, or estimated from an unsheared "
                          "calibration sample of --ngal galaxies (true e prior)")
-    ap.add_argument("--size-prior", choices=["flat", "estimate"], default="flat",
-                    help="size prior: the paper's flat one, or estimated from the unsheared "
-                         "calibration sample (prior.estimate_size_prior)")
+    ap.add_argument("--size-prior", choices=["flat", "estimate", "true"], default="flat",
+                    help="size prior: the paper's flat one, estimated from the unsheared "
+                         "calibration sample (prior.estimate_size_prior), or the population's "
+                         "true one (log-uniform in half-light radius over --size)")
     ap.add_argument("--noise-free", action="store_true",
                     help="render without noise (the fits still assume sigma = 1, so the "
                          "likelihood keeps the width of the S/N): the bias of the model and "
                          "the priors alone, without noise bias")
     ap.add_argument("--config", nargs="*", default=[], help="Config overrides KEY=VALUE")
     a = ap.parse_args()
-    over = {k: float(v) for k, v in (s.split("=", 1) for s in a.config)}
+    def value(v: str):
+        try:
+            return float(v)
+        except ValueError:
+            return v
+
+    over = {k: value(v) for k, v in (s.split("=", 1) for s in a.config)}
     exact = a.morphology in ("exponential", "devaucouleurs")
     over.update(model=a.model or (a.morphology if exact else "bulge+disc"))
     weights = tuple(1.0 if m == a.morphology else 0.0 for m in MORPHOLOGIES)
@@ -83,6 +90,16 @@ def main() -> None:
         return (np.concatenate(lb) if lb else None, np.concatenate(ls) if ls else None,
                 np.concatenate(lr))  # fmt: skip
 
+    if a.size_prior == "true":  # log-uniform between the population's bounds
+        _, _, tr0 = render_block(spec, 0, 0, stamp_size=a.stamp, calibration=True)
+        psf_hlr = float(tr0["r"][0] / tr0["size_ratio"][0])
+        lo, hi = np.log(np.asarray(a.size) * psf_hlr)
+        eps = 1e-4 * (hi - lo)
+        knots = np.concatenate([[lo - eps], np.linspace(lo, hi, 50), [hi + eps]])
+        dens = np.concatenate([[0.0], np.full(50, 1.0 / (hi - lo)), [0.0]])
+        sp = SizePrior(ln_h=knots, density=dens * (1 - 1e-6), star=1e-6)
+        if cfg.model == "bulge+disc":
+            raise SystemExit("--size-prior true: for the exact models only")
     if est_bulge or a.size_prior == "estimate":
         lb, ls, lr = calibration(None)
         if est_bulge:

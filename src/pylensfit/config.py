@@ -82,6 +82,12 @@ class Config:
         "validate --precision). The flat prior biases faint compact galaxies, m ~ -0.07 "
         "for de Vaucouleurs galaxies at S/N 10-20 (benchmarks/exact_model_bias.py)",
     )
+    size_prior_smoothing: float = _f(
+        0.25,
+        "the estimated size prior's EMS smoothing: weight moved to each neighbouring knot "
+        "(0.1 in ln h apart) per EM step. Less smoothing resolves sharper features of the "
+        "size distribution (prior.estimate_size_prior)",
+    )
     # --- marginalisation over amplitude (paper eqs. likee1, likee) ---
     amplitude_prior: str = _f(
         "uniform",
@@ -253,6 +259,7 @@ def _validate(c: Config) -> None:
     need(c.amplitude_prior in ("uniform", "snr"),
          f"amplitude_prior must be 'uniform' or 'snr', got {c.amplitude_prior!r}")
     need(c.amplitude_prior_power >= 0, "amplitude_prior_power must be >= 0")
+    need(0 < c.size_prior_smoothing < 0.5, "size_prior_smoothing must be in (0, 0.5)")
     need(c.max_offset >= 0, "max_offset must be >= 0")
     need(c.centring_scale > 0, "centring_scale must be > 0")
     need(c.max_newton_step > 0, "max_newton_step must be > 0")

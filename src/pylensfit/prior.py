@@ -1188,8 +1188,8 @@ def estimate_size_prior(
     *,
     bulge_weights: np.ndarray | None = None,
     knot_step: float = 0.1,
-    n_iter: int = 500,
-    smooth: float = 0.25,
+    n_iter: int | None = None,
+    smooth: float | None = None,
 ) -> SizePrior:
     """The size prior by maximum marginal likelihood, smoothed EM on a ln(h) grid.
 
@@ -1210,15 +1210,21 @@ def estimate_size_prior(
         Prior of the bulge fractions (uniform by default).
     knot_step : float
         Knot spacing in ``ln h``.
-    n_iter : int
-        EM steps.
-    smooth : float
-        Weight moved to each neighbouring knot in a smoothing step.
+    n_iter : int, optional
+        EM steps (default ``max(500, 100 / smooth)``: the less smoothing, the slower EM
+        converges).
+    smooth : float, optional
+        Weight moved to each neighbouring knot in a smoothing step (default
+        ``config.size_prior_smoothing``).
 
     Returns
     -------
     SizePrior
     """
+    if smooth is None:
+        smooth = float(getattr(config, "size_prior_smoothing", 0.25))
+    if n_iter is None:
+        n_iter = int(max(500, round(100.0 / max(smooth, 1e-3))))
     L = np.asarray(lnL_r, dtype=float)
     n_r = bank.n_r
     if L.ndim != 2 or L.shape[1] != n_r + 1:
