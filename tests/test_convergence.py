@@ -91,7 +91,13 @@ def test_known_mean_recovered_at_finest_grid():
 
     The intrinsic shapes are prior draws (|e| <= 0.8) mapped by a reduced shear
     (0.12, -0.08), so the sample mean is (0.060, -0.073): far from zero and different in
-    the two components. The tolerance is three standard errors of the per-galaxy residuals.
+    the two components. The 32-pixel stamps give the mean of 64-pixel ones (no model
+    reaches the edge there) to 2e-4 (measured 1e-5 / 9e-5; the periodic models, which
+    wrap the de Vaucouleurs wings round the 32-px stamp, are 7e-4 / 1.5e-3 off), and the
+    truth to 3 standard errors of the per-galaxy residuals plus 5e-4: at S/N 200 the
+    posterior mean sits ~3e-4 from the input towards the prior's zero, on 64-pixel stamps
+    as on 32 (measured on 300 galaxies: mean offsets -3.5e-4 / +2.2e-4 on 32 px, -3.3e-4 /
+    +2.9e-4 on 64 px).
     """
     rng = np.random.default_rng(7)
     e0 = Prior().sample(80, rng=rng)
@@ -99,10 +105,13 @@ def test_known_mean_recovered_at_finest_grid():
     e = np.column_stack(apply_shear(e0[:, 0], e0[:, 1], 0.12, -0.08))
     sample = render_sample(80, seed=7, snr=(200.0, 200.0), e=e, noise=False)
     m = measure_setting(sample, Config(e_step=0.05))
-    assert m["usable"].all()
+    big = render_sample(80, seed=7, snr=(200.0, 200.0), e=e, noise=False, stamp_size=64)
+    m64 = measure_setting(big, Config(e_step=0.05, stamp_size=64))
+    assert m["usable"].all() and m64["usable"].all()
     for i, q in enumerate(("e1", "e2")):
+        assert abs(m[q].mean() - m64[q].mean()) < 2e-4, (q, m[q].mean(), m64[q].mean())
         resid = m[q] - e[:, i]
-        tol = 3.0 * resid.std(ddof=1) / np.sqrt(resid.size)
+        tol = 3.0 * resid.std(ddof=1) / np.sqrt(resid.size) + 5e-4
         assert abs(m[q].mean() - e[:, i].mean()) < tol, (q, m[q].mean(), e[:, i].mean(), tol)
         assert tol < 0.005
     # at this S/N the exact sensitivity is the noise-free response 1 -+ (e1^2 - e2^2)
