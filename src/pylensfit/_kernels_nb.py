@@ -370,6 +370,20 @@ def _profile_value(rr, model_code, fb, bsr, b_dev, norm_dev, trunc):
     return v
 
 
+@njit(cache=True, inline="always")
+def _stamp_share(a, i, shared):
+    """The share of copy ``a`` (stamps away) that pixel line ``i`` of the stamp holds.
+
+    The central copy is the stamp's own (1), except on an even stamp's first line, whose
+    periodic image at ``+n/2`` (copy 1) it shares half and half; other copies wrap in (0).
+    """
+    if a == 0:
+        return 0.5 if shared and i == 0 else 1.0
+    if a == 1 and shared and i == 0:
+        return 0.5
+    return 0.0
+
+
 @njit(parallel=True, cache=True)
 def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trunc, n,
                   max_copies, out):  # fmt: skip
@@ -418,21 +432,12 @@ def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trun
                 acc = 0.0
                 for a in range(-kmax, kmax + 1):
                     x = px + a * n
-                    # the share of this copy that the stamp holds
-                    inx = 0.0
-                    if a == 0:
-                        inx = 0.5 if shared and ix == 0 else 1.0
-                    elif a == 1 and shared and ix == 0:
-                        inx = 0.5
+                    inx = _stamp_share(a, ix, shared)
                     if abs(x) > ext + 1.0:
                         continue
                     for b in range(-kmax, kmax + 1):
                         y = py + b * n
-                        iny = 0.0
-                        if b == 0:
-                            iny = 0.5 if shared and iy == 0 else 1.0
-                        elif b == 1 and shared and iy == 0:
-                            iny = 0.5
+                        iny = _stamp_share(b, iy, shared)
                         keep = 1.0 - inx * iny
                         if keep == 0.0 or abs(y) > ext + 1.0:
                             continue
