@@ -116,7 +116,7 @@ def main() -> None:
                 bw = estimate_bulge_weights(lb, ls, prior)
         if est_bulge:
             print(f"bulge-fraction prior {np.round(bw, 4).tolist()} from {spec.ncal} galaxies")
-    Q, U, B, S = [], [], [], []
+    Q, U, S = [], [], []
     for b in range(-(-a.ngal // spec.block_size)):
         st, psf, t = render_block(spec, 0, b, stamp_size=a.stamp, noise=not a.noise_free)
         n = len(st)
@@ -125,9 +125,8 @@ def main() -> None:
         q, u = reduce_renderings(f, prior, spec.g, bulge_weights=bw)
         Q.append(q)
         U.append(u)
-        B.append(np.full(n, b))
         S.append(np.asarray(t["size_ratio"]))
-    Q, U, B, S = map(np.concatenate, (Q, U, B, S))
+    Q, U, S = map(np.concatenate, (Q, U, S))
     B = np.arange(S.size) * 40 // S.size  # 40 jackknife groups (a few render blocks are too few)
     print(f"{a.morphology}, model {cfg.model}, {a.ngal} galaxies, S/N {a.snr}, "
           f"{time.time() - t0:.0f} s")  # fmt: skip
