@@ -145,7 +145,7 @@ def _precision(args: argparse.Namespace) -> int:
     res = precision(spec, config=_config(args) if args.config else None, jobs=args.jobs,
                     scheduler=args.scheduler, report=report, prior=prior,
                     progress=not args.quiet)  # fmt: skip
-    show = res[(res["breakdown"] == "all") | (res["breakdown"] == "psf")]
+    show = res[np.isin(res["breakdown"], ["all", "psf", "no controls"])]
     show = show[show["estimator"] == "fixed-point"]
     for c in ("m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2", "c2_err"):
         show[c].format = "+.5f"
