@@ -127,7 +127,8 @@ def main() -> None:
         n = len(st)
         f = fit_stamps(st.reshape(n * 4, a.stamp, a.stamp), psf, 1.0, config=cfg,
                        size_prior=sp)
-        q, u = reduce_renderings(f, prior, spec.g, bulge_weights=bw)
+        q, u = reduce_renderings(f, prior, spec.g, refine=cfg.integration_refine,
+                                 bulge_weights=bw)
         Q.append(q)
         U.append(u)
         S.append(np.asarray(t["size_ratio"]))
