@@ -57,6 +57,9 @@ def main() -> None:
                     help="render without noise (the fits still assume sigma = 1, so the "
                          "likelihood keeps the width of the S/N): the bias of the model and "
                          "the priors alone, without noise bias")
+    ap.add_argument("--pedestal", type=float, default=0.0,
+                    help="add this constant (in noise sigmas) to every pixel of the "
+                         "sheared renderings: a background left after sky subtraction")
     ap.add_argument("--config", nargs="*", default=[], help="Config overrides KEY=VALUE")
     a = ap.parse_args()
     def value(v: str):
@@ -124,6 +127,7 @@ def main() -> None:
     Q, U, S, X = [], [], [], []
     for b in range(-(-a.ngal // spec.block_size)):
         st, psf, t = render_block(spec, 0, b, stamp_size=a.stamp, noise=not a.noise_free)
+        st = st + np.float32(a.pedestal * spec.noise_sigma)
         n = len(st)
         f = fit_stamps(st.reshape(n * 4, a.stamp, a.stamp), psf, 1.0, config=cfg,
                        size_prior=sp)
