@@ -150,6 +150,20 @@ def test_background_and_rms_recovered(field, image):
     np.testing.assert_allclose(sub, image - bkg.back)
 
 
+def test_background_with_everything_masked_falls_back_to_the_unmasked_estimate(image, caplog):
+    """A source mask that leaves no box half free must not give a background of 0.
+
+    SEP returns 0 when every box is discarded; the masked estimate is then dropped (with
+    a warning) and the unmasked one kept, which sits within 0.3 sigma of the sky here.
+    """
+    with caplog.at_level("WARNING", logger="pylensfit.detection"):
+        bkg = measure_background(image, source_radius=200.0)
+    assert "no 64 x 64 background box half free" in caplog.text
+    plain = measure_background(image, mask_sources=False)
+    assert abs(bkg.global_back - SKY) < 0.3 * SIGMA
+    np.testing.assert_allclose(bkg.back, plain.back)
+
+
 def test_pure_noise_gives_few_detections():
     noise = SKY + np.random.default_rng(3).normal(0.0, SIGMA, (N, N))
     cat5 = detect(noise, threshold=5.0)

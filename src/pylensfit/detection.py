@@ -267,10 +267,16 @@ def measure_background(
                     objs["theta"],
                     r=float(source_radius),
                 )
-                if not (bad | src).all():
+                if _usable_boxes(bad | src, bh, bw):
                     sky = ~(bad | src)
                     bkg = sep.Background(
                         data, mask=~sky, bw=bw, bh=bh, fw=filter_size, fh=filter_size
+                    )
+                else:
+                    log.warning(
+                        "masking the objects (to %g times their isophotal ellipses) leaves "
+                        "no %d x %d background box half free: background measured "
+                        "without the object mask", source_radius, bw, bh,
                     )
     back = np.asarray(bkg.back(), dtype=np.float64)
     rms = np.asarray(bkg.rms(), dtype=np.float64)
@@ -290,6 +296,21 @@ def measure_background(
         global_rms=global_rms,
         bad=bad,
     )
+
+
+def _usable_boxes(masked: np.ndarray, bh: int, bw: int) -> bool:
+    """Whether some background box keeps at least half its pixels unmasked.
+
+    SEP (as Source Extractor, ``BACK_MINGOODFRAC``) discards a box with fewer and fills
+    it from its neighbours; with every box discarded it returns a background of 0, which
+    would be subtracted as if measured.
+    """
+    ny, nx = masked.shape
+    for y0 in range(0, ny, bh):
+        for x0 in range(0, nx, bw):
+            if np.mean(~masked[y0 : y0 + bh, x0 : x0 + bw]) >= 0.5:
+                return True
+    return False
 
 
 # --------------------------------------------------------------------------------------
