@@ -264,6 +264,13 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     tab = Table.read(rep.with_suffix(".ecsv"))
     assert set(tab["breakdown"]) >= {"all", "psf", "snr", "size", "selection", "no controls"}
     assert "## no controls" in text and "| cv |" in text
+    # the mean of the two PSFs' m and c, their errors combined in quadrature
+    fp = tab[tab["estimator"] == "fixed-point"]
+    mean = fp[fp["group"] == "mean of PSFs"][0]
+    per = fp[fp["breakdown"] == "psf"]
+    assert len(per) == 2 and mean["breakdown"] == "all"
+    assert abs(mean["m1"] - np.mean(per["m1"])) < 1e-12
+    assert abs(mean["c2_err"] - np.hypot(*per["c2_err"]) / 2) < 1e-12
     assert tab.meta["spec"]["ngal"] == 16
     # --true-prior: no calibration sample, the population's own prior
     assert "Prior given: B=0.190, C=0.580, D=2.400" in text and tab.meta["prior"]["given"]

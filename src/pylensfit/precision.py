@@ -617,6 +617,30 @@ def bias_table(
     return Table(rows=[[r[k] for k in names] for r in rows], names=names)
 
 
+def _psf_mean(per_psf: Table) -> Table:
+    """The unweighted mean over PSFs of each estimator's m and c, errors combined.
+
+    The blocks go to the PSFs in turn, so the PSFs' shares of the sample are fixed by
+    design; the jackknife of the ``all`` group counts as noise the change of those
+    shares when a block is left out, which this mean does not have.
+    """
+    rows = []
+    for est in dict.fromkeys(per_psf["estimator"]):
+        t = per_psf[per_psf["estimator"] == est]
+        k = len(t)
+        row: dict[str, Any] = {"breakdown": "all", "group": "mean of PSFs", "estimator": est}
+        for q in ("m1", "m2", "c1", "c2"):
+            row[q] = float(np.mean(t[q]))
+            row[f"{q}_err"] = float(np.sqrt(np.sum(np.asarray(t[f"{q}_err"]) ** 2)) / k)
+        row["n_gal"] = int(np.sum(t["n_gal"]))
+        row["n_blocks"] = int(np.sum(t["n_blocks"]))
+        row["controlled"] = bool(np.all(t["controlled"]))
+        rows.append(row)
+    names = ["group", "estimator", "m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2",
+             "c2_err", "n_gal", "n_blocks", "controlled", "breakdown"]  # fmt: skip
+    return Table(rows=[[r[n] for n in names] for r in rows], names=names)
+
+
 #: Fewest jackknife blocks for which :func:`bias_table` applies control variates.
 _MIN_CONTROL_BLOCKS = 20
 
@@ -739,9 +763,11 @@ def precision(
     astropy.table.Table
         :func:`bias_table` rows for the breakdowns ``all``, per PSF, S/N, size,
         morphology and bulge fraction (column ``breakdown``), paired selection, with the
-        intrinsic shapes as control variates (:func:`shape_controls`), plus the ``all``
-        rows with independent selection (``breakdown = "selection"``) and without the
-        control variates (``breakdown = "no controls"``). ``meta``:
+        intrinsic shapes as control variates (:func:`shape_controls`); the ``all``
+        breakdown also has the group ``mean of PSFs`` (the PSFs' m and c averaged, the
+        errors combined); plus the ``all`` rows with independent selection
+        (``breakdown = "selection"``) and without the control variates (``breakdown =
+        "no controls"``). ``meta``:
         ``prior``, ``spec``, ``timing`` (seconds and galaxies per second), the largest
         fixed-point Newton step ``fp_step`` and ``galaxies`` (per-galaxy truth).
     """
@@ -836,6 +862,8 @@ def precision(
         t = bias_table(Q, usable, gal["block"], spec.g, groups=groups, controls=X)
         t["breakdown"] = name
         tabs.append(t)
+        if name == "psf" and npsf > 1:
+            tabs.insert(1, _psf_mean(t))
     t = bias_table(Q, usable, gal["block"], spec.g, selection="independent", controls=X)
     t["breakdown"] = "selection"
     t.replace_column("group", np.full(len(t), "independent"))
@@ -961,7 +989,9 @@ def write_report(res: Table, path: str | Path) -> None:
         "The breakdowns by true S/N and true size are conditional on the truth: a Bayesian "
         "estimator with a size prior is biased in opposite directions at the two ends of "
         "the population (it pulls every galaxy towards the prior's typical size) while "
-        "the whole population is not. Judge m on `all` and per PSF.", "",
+        "the whole population is not. Judge m on `all` and per PSF. The group `mean of "
+        "PSFs` averages the PSFs' m and c; its error leaves out the jackknife's noise "
+        "from the PSFs' shares of the sample, which the design fixes.", "",
     ]  # fmt: skip
     for bd in dict.fromkeys(res["breakdown"]):
         t = res[res["breakdown"] == bd]
