@@ -278,9 +278,13 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     assert "Bulge-fraction prior estimated from the calibration sample: 0: " in text
     assert abs(sum(tab.meta["bulge_prior"]["weights"]) - 1) < 1e-9
     # and the size prior, estimated from the calibration set too
-    assert "Size prior estimated from the calibration sample" in text
-    sp = tab.meta["size_prior"]
-    assert abs(np.trapezoid(sp["density"], sp["ln_h"]) + sp["star"] - 1) < 0.02
+    # one per PSF: the population's sizes are drawn relative to the PSF's
+    assert "Size prior estimated from the calibration sample (one per PSF)" in text
+    sps = tab.meta["size_prior"]
+    assert [sp["psf"] for sp in sps] == ["round", "e=0.10"] and tab.meta["size_prior_per_psf"]
+    assert sps[0]["density"] != sps[1]["density"]
+    for sp in sps:
+        assert abs(np.trapezoid(sp["density"], sp["ln_h"]) + sp["star"] - 1) < 0.02
     # a directory or a mode is required
     with pytest.raises(SystemExit):
         main(["validate"])

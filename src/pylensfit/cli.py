@@ -144,7 +144,8 @@ def _precision(args: argparse.Namespace) -> int:
         prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
     res = precision(spec, config=_config(args) if args.config else None, jobs=args.jobs,
                     scheduler=args.scheduler, report=report, prior=prior,
-                    progress=not args.quiet)  # fmt: skip
+                    progress=not args.quiet,
+                    size_prior_per_psf=not args.one_size_prior)  # fmt: skip
     show = res[np.isin(res["breakdown"], ["all", "psf", "no controls"])]
     show = show[show["estimator"] == "fixed-point"]
     for c in ("m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2", "c2_err"):
@@ -367,6 +368,9 @@ def build_parser() -> argparse.ArgumentParser:
     pv.add_argument("--true-prior", action="store_true",
                     help="diagnostic: use the population's true prior instead of estimating "
                          "it from the calibration sample")  # fmt: skip
+    pv.add_argument("--one-size-prior", action="store_true",
+                    help="diagnostic: one size prior for all PSFs instead of one per PSF "
+                         "(the population's sizes are drawn relative to each PSF's)")  # fmt: skip
     cv = v.add_argument_group("convergence study (paper Figure 2), no directory needed")
     cv.add_argument("--convergence", action="store_true",
                     help="<e>, <e^2> and sensitivity against de, dr, r_max and a catalogue "

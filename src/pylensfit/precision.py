@@ -725,6 +725,7 @@ def precision(
     report: str | Path | None = None,
     prior: Prior | None = None,
     progress: bool = True,
+    size_prior_per_psf: bool = True,
 ) -> Table:
     """Run the paired precision measurement of m and c (see the module docstring).
 
@@ -757,6 +758,12 @@ def precision(
         difference in m is the share of the prior's estimation).
     progress : bool
         Progress bars.
+    size_prior_per_psf : bool
+        With ``size_prior="estimated"``, one size prior per PSF, each from that PSF's
+        calibration galaxies (default). The population's sizes are drawn relative to
+        the PSF's size, so each PSF has its own size distribution in pixels; one prior
+        for all of them is too wide for each, and pulls the galaxies of the small PSFs
+        larger (m < 0) and those of the large PSFs smaller (m > 0).
 
     Returns
     -------
@@ -789,16 +796,18 @@ def precision(
     ncb = _n_blocks(spec.ncal, spec.block_size) if (prior is None or fit_bulge or fit_size) else 0
     render_s, fit_s = 0.0, 0.0
 
-    def calibrate(size_prior, keep_lnL_r, label, marginal_prior=None):
+    def calibrate(size_priors, keep_lnL_r, label, marginal_prior=None):
         nonlocal render_s, fit_s
         tasks = [{"spec": spec, "config": cfg, "psf": b % npsf, "block": b, "calibration": True,
-                  "size_prior": size_prior, "keep_lnL_r": keep_lnL_r,
+                  "size_prior": size_priors[b % npsf], "keep_lnL_r": keep_lnL_r,
                   "size_marginal_prior": marginal_prior}
                  for b in range(ncb)]  # fmt: skip
-        out: dict[str, list] = {"lnL": [], "lnL_bulge": [], "lnL_star": [], "lnL_r": []}
+        out: dict[str, list] = {"lnL": [], "lnL_bulge": [], "lnL_star": [], "lnL_r": [],
+                                "psf": []}  # fmt: skip
         egrid = None
         for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, label, progress),
                            key=lambda tr: tr[0]["block"]):  # fmt: skip
+            r["psf"] = np.full(r["n_usable"], r["psf"])
             for k in out:
                 out[k].append(r.get(k))
             egrid = r["egrid"]
@@ -817,8 +826,8 @@ def precision(
             return estimate_prior(cal["lnL"], egrid, method=cfg.prior_method), None
         return prior, None
 
-    size_prior = None
-    cal, egrid = calibrate(None, False, "calibration") if ncb else ({}, None)
+    size_priors: list = [None] * npsf
+    cal, egrid = calibrate(size_priors, False, "calibration") if ncb else ({}, None)
     prior0 = prior
     if ncb:
         prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
@@ -830,16 +839,23 @@ def precision(
 
         # each galaxy's L(r) marginalised over e with the ellipticity prior just
         # estimated (not the fits' default, which is the population's own here)
-        cal, _ = calibrate(None, True, "calibration: L(r)", marginal_prior=prior)
-        size_prior = estimate_size_prior(cal["lnL_r"], model_bank(cfg), cfg,
-                                         bulge_weights=bulge_weights)  # fmt: skip
-        cal, egrid = calibrate(size_prior, False, "calibration with the size prior")
+        cal, _ = calibrate(size_priors, True, "calibration: L(r)", marginal_prior=prior)
+        bank = model_bank(cfg)
+        if size_prior_per_psf:
+            size_priors = [estimate_size_prior(cal["lnL_r"][cal["psf"] == k], bank, cfg,
+                                               bulge_weights=bulge_weights)
+                           for k in range(npsf)]  # fmt: skip
+        else:
+            size_priors = [estimate_size_prior(cal["lnL_r"], bank, cfg,
+                                               bulge_weights=bulge_weights)] * npsf  # fmt: skip
+        cal, egrid = calibrate(size_priors, False, "calibration with the size prior")
         prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
     t_cal = time.perf_counter() - t_start
     # 2. the four renderings of every galaxy, streamed block by block
     nb = _n_blocks(spec.ngal, spec.block_size)
     tasks = [{"spec": spec, "config": cfg, "prior": prior, "bulge_weights": bulge_weights,
-              "size_prior": size_prior, "psf": b % npsf, "block": b, "calibration": False}
+              "size_prior": size_priors[b % npsf], "psf": b % npsf, "block": b,
+              "calibration": False}
              for b in range(nb)]  # fmt: skip
     parts: dict[int, dict] = {}
     for t, r in _run(_block_task, tasks, jobs, scheduler, "precision", progress):
@@ -893,9 +909,11 @@ def precision(
         "fractions": [float(f) for f in np.linspace(0.0, 1.0, int(cfg.n_bulge_fractions))],
         "weights": None if bulge_weights is None else [float(w) for w in bulge_weights],
     }
-    out.meta["size_prior"] = None if size_prior is None else {
-        "ln_h": size_prior.ln_h.tolist(), "density": size_prior.density.tolist(),
-        "star": size_prior.star}  # fmt: skip
+    out.meta["size_prior"] = None if size_priors[0] is None else [
+        {"psf": spec.psfs[k]["name"], "ln_h": sp.ln_h.tolist(), "density": sp.density.tolist(),
+         "star": sp.star}
+        for k, sp in enumerate(size_priors)]  # fmt: skip
+    out.meta["size_prior_per_psf"] = bool(size_prior_per_psf)
     out.meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
     out.meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
     out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
@@ -933,16 +951,24 @@ def _bulge_line(bp: dict | None) -> str:
     return f"Bulge-fraction prior estimated from the calibration sample: {pairs}.\n"
 
 
-def _size_line(sp: dict | None, spec: dict) -> str:
+def _size_line(sp: list | dict | None, spec: dict) -> str:
     if not sp:
         return "Size prior: flat (uniform in half-light radius).\n"
-    x, p = np.asarray(sp["ln_h"]), np.asarray(sp["density"])
-    cdf = np.cumsum(p) / np.sum(p)
-    q = np.exp(np.interp([0.05, 0.5, 0.95], cdf, x))
-    return ("Size prior estimated from the calibration sample: half-light radius 5 / 50 / 95 "
-            f"% at {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} px (the population: "
+    sps = sp if isinstance(sp, list) else [sp]
+    parts = []
+    for one in sps:
+        x, p = np.asarray(one["ln_h"]), np.asarray(one["density"])
+        cdf = np.cumsum(p) / np.sum(p)
+        q = np.exp(np.interp([0.05, 0.5, 0.95], cdf, x))
+        name = f"{one['psf']}: " if "psf" in one else ""
+        parts.append(f"{name}{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} px "
+                     f"(point sources {one['star']:.1e})")  # fmt: skip
+    shared = len(sps) > 1 and all(o["density"] == sps[0]["density"] for o in sps)
+    how = ("one for all PSFs" if shared else "one per PSF") if len(sps) > 1 else ""
+    return (f"Size prior estimated from the calibration sample ({how}), half-light radius "
+            f"5 / 50 / 95 %: {'; '.join(parts)}. The population: "
             f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g} PSF half-light "
-            f"radii, log-uniform), point sources {sp['star']:.1e}.\n")
+            "radii, log-uniform.\n").replace(" ()", "")
 
 
 def write_report(res: Table, path: str | Path) -> None:
