@@ -602,7 +602,8 @@ def bias_table(
             for i in (0, 1):
                 for key, v in (("m", m[:, i]), ("c", c[:, i])):
                     if xbar is not None:
-                        v = _controlled(v, xbar, k)
+                        v, applied = _controlled(v, xbar, k)
+                        row["controlled"] &= applied
                     row[f"{key}{i + 1}"] = float(v[0])
                     jk = v[1:]
                     row[f"{key}{i + 1}_err"] = (
@@ -651,16 +652,17 @@ def _controlled(v: np.ndarray, xbar: np.ndarray, k: int) -> np.ndarray:
     ``v`` is ``(1 + k,)``: the full-sample value, then the delete-one-block values;
     ``xbar`` is ``(1 + k, n_c)``, the controls' means over the same samples. ``beta`` is
     the least-squares slope of the blocks' jackknife pseudo-values of ``v`` on those of
-    ``xbar``; the result is ``v - xbar . beta`` for every sample.
+    ``xbar``; the result is ``v - xbar . beta`` for every sample, and whether it was
+    applied (not where a value is not finite: ``v`` is returned as it is).
     """
     ok = np.isfinite(v).all() and np.isfinite(xbar).all()
     if not ok:
-        return v
+        return v, False
     pv = k * v[0] - (k - 1) * v[1:]
     px = k * xbar[0] - (k - 1) * xbar[1:]
     A = px - px.mean(axis=0)
     beta = np.linalg.lstsq(A, pv - pv.mean(), rcond=None)[0]
-    return v - xbar @ beta
+    return v - xbar @ beta, True
 
 
 def shape_controls(e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
