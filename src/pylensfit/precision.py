@@ -40,8 +40,10 @@ Three shear estimators are reported side by side:
   Newton step from ``g_n``: its error is second order in ``g_hat - g_n`` (a few 1e-3:
   ``<1e-6``; ``tests/test_precision.py`` checks it against the iterated estimator).
 
-Errors are delete-one-block jackknife over the blocks of galaxies that are the unit of
-work. A galaxy is used only if all four renderings are measured (``paired`` selection,
+Errors are delete-one-group jackknife over groups of 100 galaxies (each block of work
+cut into runs), and m and c are corrected with control variates, the intrinsic shapes'
+spin-4 parts (:func:`shape_controls`), which take out the shape noise that the rotated
+twins leave. A galaxy is used only if all four renderings are measured (``paired`` selection,
 the default and the reported numbers); the ``independent`` selection, where each
 rendering's own flags decide, is reported too: the difference is the bias that a
 selection responding to the shear adds (stars, failed fits).
@@ -642,6 +644,9 @@ def _psf_mean(per_psf: Table) -> Table:
     return Table(rows=[[r[n] for n in names] for r in rows], names=names)
 
 
+#: Galaxies per jackknife group of :func:`precision`.
+_JACKKNIFE_GALAXIES = 100
+
 #: Fewest jackknife blocks for which :func:`bias_table` applies control variates.
 _MIN_CONTROL_BLOCKS = 20
 
@@ -869,24 +874,29 @@ def precision(
     gal = Table(np.hstack([np.asarray(r["truth"]) for r in res]))
     gal["psf"] = np.concatenate([np.full(len(r["truth"]), r["psf"]) for r in res])
     gal["block"] = np.concatenate([np.full(len(r["truth"]), r["block"]) for r in res])
+    # jackknife groups: the blocks cut into runs of _JACKKNIFE_GALAXIES (the galaxies
+    # are independent; the blocks only share out the work), so that a small run still
+    # has the groups per PSF that the control variates need
+    gal["jk"] = np.concatenate([r["block"] * 10_000 + np.arange(len(r["truth"]))
+                                // _JACKKNIFE_GALAXIES for r in res])  # fmt: skip
     gal["r_best"] = np.concatenate([r["r_best"] for r in res])
     gal["snr_meas"] = np.concatenate([r["snr_meas"] for r in res])
     gal["n_usable"] = usable.sum(axis=1)
     # 3. m and c, with the intrinsic shapes' spin-4 parts as control variates
     X = shape_controls(gal["e1_int"], gal["e2_int"])
-    tabs = [bias_table(Q, usable, gal["block"], spec.g, controls=X)]
+    tabs = [bias_table(Q, usable, gal["jk"], spec.g, controls=X)]
     tabs[0]["breakdown"] = "all"
     for name, groups in _breakdowns(gal, spec.psfs).items():
-        t = bias_table(Q, usable, gal["block"], spec.g, groups=groups, controls=X)
+        t = bias_table(Q, usable, gal["jk"], spec.g, groups=groups, controls=X)
         t["breakdown"] = name
         tabs.append(t)
         if name == "psf" and npsf > 1:
             tabs.insert(1, _psf_mean(t))
-    t = bias_table(Q, usable, gal["block"], spec.g, selection="independent", controls=X)
+    t = bias_table(Q, usable, gal["jk"], spec.g, selection="independent", controls=X)
     t["breakdown"] = "selection"
     t.replace_column("group", np.full(len(t), "independent"))
     tabs.append(t)
-    t = bias_table(Q, usable, gal["block"], spec.g)
+    t = bias_table(Q, usable, gal["jk"], spec.g)
     t["breakdown"] = "no controls"
     tabs.append(t)
     from astropy.table import vstack
@@ -1009,7 +1019,8 @@ def write_report(res: Table, path: str | Path) -> None:
         f"Time {tim['total_s']:.0f} s with {tim['jobs']} job(s): {tim['galaxies_per_s']:.0f} "
         f"galaxies/s ({tim['renderings_per_s']:.0f} renderings/s) in the main pass; CPU "
         f"{tim['render_cpu_s']:.0f} s rendering, {tim['fit_cpu_s']:.0f} s fitting.", "",
-        "Errors are delete-one-block jackknife (1 sigma). m and c are corrected with "
+        "Errors are delete-one-group jackknife over groups of 100 galaxies (1 sigma). m "
+        "and c are corrected with "
         "control variates, the spin-4 parts of the intrinsic ellipticity (e1² - e2², "
         "2 e1 e2), whose population mean is zero: they remove the shape noise that the "
         "rotated twins leave, not the bias (column cv; groups of fewer than 20 blocks are "
