@@ -615,9 +615,12 @@ def bias_table(
             row["n_gal"] = n_gal
             row["n_blocks"] = k
             rows.append(row)
-    names = ["group", "estimator", "m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2",
-             "c2_err", "n_gal", "n_blocks", "controlled"]  # fmt: skip
-    return Table(rows=[[r[k] for k in names] for r in rows], names=names)
+    return Table(rows=[[r[k] for k in _BIAS_COLUMNS] for r in rows], names=_BIAS_COLUMNS)
+
+
+#: Columns of :func:`bias_table`.
+_BIAS_COLUMNS = ["group", "estimator", "m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2",
+                 "c2_err", "n_gal", "n_blocks", "controlled"]  # fmt: skip
 
 
 def _psf_mean(per_psf: Table) -> Table:
@@ -631,7 +634,7 @@ def _psf_mean(per_psf: Table) -> Table:
     for est in dict.fromkeys(per_psf["estimator"]):
         t = per_psf[per_psf["estimator"] == est]
         k = len(t)
-        row: dict[str, Any] = {"breakdown": "all", "group": "mean of PSFs", "estimator": est}
+        row: dict[str, Any] = {"group": "mean of PSFs", "estimator": est}
         for q in ("m1", "m2", "c1", "c2"):
             row[q] = float(np.mean(t[q]))
             row[f"{q}_err"] = float(np.sqrt(np.sum(np.asarray(t[f"{q}_err"]) ** 2)) / k)
@@ -639,9 +642,9 @@ def _psf_mean(per_psf: Table) -> Table:
         row["n_blocks"] = int(np.sum(t["n_blocks"]))
         row["controlled"] = bool(np.all(t["controlled"]))
         rows.append(row)
-    names = ["group", "estimator", "m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2",
-             "c2_err", "n_gal", "n_blocks", "controlled", "breakdown"]  # fmt: skip
-    return Table(rows=[[r[n] for n in names] for r in rows], names=names)
+    out = Table(rows=[[r[n] for n in _BIAS_COLUMNS] for r in rows], names=_BIAS_COLUMNS)
+    out["breakdown"] = "all"
+    return out
 
 
 #: Galaxies per jackknife group of :func:`precision`.
@@ -814,9 +817,8 @@ def precision(
         egrid = None
         for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, label, progress),
                            key=lambda tr: tr[0]["block"]):  # fmt: skip
-            r["psf"] = np.full(r["n_usable"], r["psf"])
             for k in out:
-                out[k].append(r.get(k))
+                out[k].append(np.full(r["n_usable"], r["psf"]) if k == "psf" else r.get(k))
             egrid = r["egrid"]
             render_s += r["render_s"]
             fit_s += r["fit_s"]
@@ -877,7 +879,8 @@ def precision(
     # jackknife groups: the blocks cut into runs of _JACKKNIFE_GALAXIES (the galaxies
     # are independent; the blocks only share out the work), so that a small run still
     # has the groups per PSF that the control variates need
-    gal["jk"] = np.concatenate([r["block"] * 10_000 + np.arange(len(r["truth"]))
+    per_block = -(-spec.block_size // _JACKKNIFE_GALAXIES)
+    gal["jk"] = np.concatenate([r["block"] * per_block + np.arange(len(r["truth"]))
                                 // _JACKKNIFE_GALAXIES for r in res])  # fmt: skip
     gal["r_best"] = np.concatenate([r["r_best"] for r in res])
     gal["snr_meas"] = np.concatenate([r["snr_meas"] for r in res])
@@ -963,24 +966,24 @@ def _bulge_line(bp: dict | None) -> str:
     return f"Bulge-fraction prior estimated from the calibration sample: {pairs}.\n"
 
 
-def _size_line(sp: list | dict | None, spec: dict) -> str:
-    if not sp:
+def _size_line(sps: list | None, spec: dict) -> str:
+    if not sps:
         return "Size prior: flat (uniform in half-light radius).\n"
-    sps = sp if isinstance(sp, list) else [sp]
     parts = []
     for one in sps:
         x, p = np.asarray(one["ln_h"]), np.asarray(one["density"])
         cdf = np.cumsum(p) / np.sum(p)
         q = np.exp(np.interp([0.05, 0.5, 0.95], cdf, x))
-        name = f"{one['psf']}: " if "psf" in one else ""
-        parts.append(f"{name}{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} px "
+        parts.append(f"{one['psf']}: {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} px "
                      f"(point sources {one['star']:.1e})")  # fmt: skip
-    shared = len(sps) > 1 and all(o["density"] == sps[0]["density"] for o in sps)
-    how = ("one for all PSFs" if shared else "one per PSF") if len(sps) > 1 else ""
-    return (f"Size prior estimated from the calibration sample ({how}), half-light radius "
+    how = ""
+    if len(sps) > 1:
+        shared = all(o["density"] == sps[0]["density"] for o in sps)
+        how = " (one for all PSFs)" if shared else " (one per PSF)"
+    return (f"Size prior estimated from the calibration sample{how}, half-light radius "
             f"5 / 50 / 95 %: {'; '.join(parts)}. The population: "
             f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g} PSF half-light "
-            "radii, log-uniform.\n").replace(" ()", "")
+            "radii, log-uniform.\n")
 
 
 def write_report(res: Table, path: str | Path) -> None:
@@ -1023,8 +1026,9 @@ def write_report(res: Table, path: str | Path) -> None:
         "and c are corrected with "
         "control variates, the spin-4 parts of the intrinsic ellipticity (e1² - e2², "
         "2 e1 e2), whose population mean is zero: they remove the shape noise that the "
-        "rotated twins leave, not the bias (column cv; groups of fewer than 20 blocks are "
-        "not corrected). The breakdown `no controls` gives the plain estimate.", "",
+        "rotated twins leave, not the bias (column cv; groups of galaxies split into fewer "
+        "than 20 jackknife groups are not corrected). The breakdown `no controls` gives "
+        "the plain estimate.", "",
         "The breakdowns by true S/N and true size are conditional on the truth: a Bayesian "
         "estimator with a size prior is biased in opposite directions at the two ends of "
         "the population (it pulls every galaxy towards the prior's typical size) while "
