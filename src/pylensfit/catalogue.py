@@ -71,6 +71,8 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "e1_best": ("", "e1 of the single most likely model (grid cell)"),
     "e2_best": ("", "e2 of the single most likely model (grid cell)"),
     "psf_star": ("", "selected on the stellar locus as a PSF star of its image"),
+    "refit_neighbours": ("", "measured in a second fit, with the neighbours' best-fit models "
+                         "subtracted from its stamp (Config.subtract_neighbours)"),
     "PSF_e1": ("", "ellipticity e1 of the PSF used for this object"),
     "PSF_e2": ("", "ellipticity e2 of the PSF used for this object"),
     "flags": ("", "bit mask of reasons, see pylensfit.flags.FLAGS (0: measured, usable)"),

@@ -149,6 +149,17 @@ class Config:
         "of its flux (0: reject every close pair)",
     )
 
+    subtract_neighbours: bool = _f(
+        True,
+        "fit every galaxy a second time with its neighbours' best-fit models (from the first "
+        "fit) subtracted from its stamp, so that their wings do not distort its shape",
+    )
+    neighbour_min_chi2: float = _f(
+        0.01,
+        "refit a galaxy only if the neighbours' models in its stamp sum to more than this "
+        "(sum of squares in noise variances)",
+    )
+
     def __post_init__(self) -> None:
         _validate(self)
 
@@ -279,3 +290,4 @@ def _validate(c: Config) -> None:
     need(c.psf_min_stars >= 1, "psf_min_stars must be >= 1")
     need(c.close_pair_min_snr >= 0, "close_pair_min_snr must be >= 0")
     need(0 <= c.close_pair_faint_ratio < 1, "close_pair_faint_ratio must be in [0, 1)")
+    need(c.neighbour_min_chi2 >= 0, "neighbour_min_chi2 must be >= 0")

@@ -89,6 +89,10 @@ class StampFits:
         integral), shifted like ``lnL``; ``None`` with one fraction.
     bulge_fractions : numpy.ndarray or None
         ``(n_b,)`` the bulge fractions of ``lnL_bulge``.
+    bulge_best : numpy.ndarray or None
+        Bulge fraction of the most likely model (the configuration's fixed fraction for
+        a ``"bulge+disc"`` bank of one fraction; NaN for stars and failed fits). Not
+        written by :meth:`write`.
     lnL_r : numpy.ndarray or None
         ``(n, n_r + 1)`` float32 ``ln`` of the likelihood of each size of the model
         bank, ``L(r) = sum_e P(e) L(e, r)`` with the ellipticity prior
@@ -114,6 +118,7 @@ class StampFits:
     lnL_star: np.ndarray | None = None
     bulge_fractions: np.ndarray | None = None
     lnL_r: np.ndarray | None = None
+    bulge_best: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.lnL.shape[0]
@@ -571,6 +576,8 @@ def fit_stamps(
     ie_best = np.where(best == bank.n_models - 1, -1, best // max(n_r, 1))
     e_best = np.where(ie_best[:, None] >= 0, bank.egrid[np.maximum(ie_best, 0)], 0.0)
     nanif = np.where(dead, np.nan, 1.0)
+    fracs = bank.bulge if bank.bulge is not None else np.full(n_r, cfg.bulge_fraction)
+    bulge_best = np.where(ie_best >= 0, fracs[best % max(n_r, 1)], np.nan) * nanif
     return StampFits(
         egrid=bank.egrid.copy(),
         lnL=lnL,
@@ -590,4 +597,5 @@ def fit_stamps(
         lnL_star=lnL_star,
         bulge_fractions=None if n_b == 1 else np.unique(bank.bulge),
         lnL_r=lnL_r,
+        bulge_best=bulge_best,
     )

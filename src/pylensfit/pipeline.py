@@ -334,22 +334,20 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         fits_ = fit_stamps(stamps[todo], psf.image, noise[todo], config=cfg,
                            centres=(cx[todo], cy[todo]), size_prior=size_prior,
                            size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
-        lnL[todo] = fits_.lnL
-        if lnL_r is not None:
-            lnL_r[todo] = fits_.lnL_r
-        if lnL_bulge is not None:
-            lnL_bulge[todo] = fits_.lnL_bulge
-            lnL_star[todo] = fits_.lnL_star
-        flags[todo] |= fits_.flags
-        cols["model_flux"][todo] = fits_.flux
-        cols["model_SNratio"][todo] = fits_.snr
-        cols["scalelength"][todo] = fits_.r_best
-        cols["e1_best"][todo] = fits_.e1_best
-        cols["e2_best"][todo] = fits_.e2_best
-        ok = np.isfinite(fits_.x)
-        xf[todo[ok]] = fits_.x[ok] + (x[todo[ok]] - cx[todo[ok]])
-        yf[todo[ok]] = fits_.y[ok] + (y[todo[ok]] - cy[todo[ok]])
-        is_star[todo] = fits_.is_star
+        _store_fit(fits_, todo, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
+                   xf, yf, is_star)  # fmt: skip
+    n_refit = 0
+    if todo.size > 1 and cfg.subtract_neighbours:
+        others = _neighbour_light(sub.shape, x, y, xf, yf, todo, fits_, psf.image, cfg)
+        chi2 = np.sum(others[todo] ** 2, axis=(1, 2)) / noise[todo] ** 2
+        redo = todo[(chi2 > cfg.neighbour_min_chi2) & (fits_.flags == 0)]
+        n_refit = int(redo.size)
+        if n_refit:
+            f2 = fit_stamps(stamps[redo] - others[redo], psf.image, noise[redo], config=cfg,
+                            centres=(cx[redo], cy[redo]), size_prior=size_prior,
+                            size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
+            _store_fit(f2, redo, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
+                       xf, yf, is_star)  # fmt: skip
     t_fit = time.perf_counter()
     ra, dec = _sky(img.header, xf, yf)
     measured = np.isfinite(lnL).all(axis=1)
@@ -380,12 +378,88 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         rows["lnL_star"] = lnL_star
     timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
               "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
+    rows["refit_neighbours"] = np.zeros(n, dtype=bool)
+    if n_refit:
+        rows["refit_neighbours"][redo] = True
     return {
         "index": task["index"], "path": path, "rows": rows, "lnL": lnL,
         "lnL_bulge": lnL_bulge, "lnL_r": lnL_r, "egrid": egrid,
         "psf": None if psf is None else _psf_summary(psf), "psf_note": psf_note,
         "timing": timing,
     }  # fmt: skip
+
+
+def _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols, xf, yf,
+               is_star) -> None:  # fmt: skip
+    """Write the fits ``f`` of objects ``idx`` into the image's per-object arrays."""
+    lnL[idx] = f.lnL
+    if lnL_r is not None:
+        lnL_r[idx] = f.lnL_r
+    if lnL_bulge is not None:
+        lnL_bulge[idx] = f.lnL_bulge
+        lnL_star[idx] = f.lnL_star
+    flags[idx] |= f.flags
+    cols["model_flux"][idx] = f.flux
+    cols["model_SNratio"][idx] = f.snr
+    cols["scalelength"][idx] = f.r_best
+    cols["e1_best"][idx] = f.e1_best
+    cols["e2_best"][idx] = f.e2_best
+    ok = np.isfinite(f.x)
+    xf[idx[ok]] = f.x[ok] + (x[idx[ok]] - cx[idx[ok]])
+    yf[idx[ok]] = f.y[ok] + (y[idx[ok]] - cy[idx[ok]])
+    is_star[idx] = f.is_star
+
+
+def _likelihood_mean_e(lnL: np.ndarray, egrid: np.ndarray, block: int = 512) -> np.ndarray:
+    """``(n, 2)`` mean of each ``L(e)`` (flat prior) on the refined integration grid: the
+    ellipticity of a neighbour's model, continuous where the most likely cell is not."""
+    from .shear import refine_lnL
+
+    out = np.zeros((lnL.shape[0], 2))
+    for s0 in range(0, lnL.shape[0], block):
+        fine, grid = refine_lnL(lnL[s0 : s0 + block], egrid)
+        w = np.exp(fine)
+        out[s0 : s0 + block] = (w @ grid) / w.sum(axis=1, keepdims=True)
+    return out
+
+
+def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: int = 256):
+    """The light of every other fitted object in each object's stamp.
+
+    Each object of ``fitted`` (fits ``f``, in the same order) is rendered
+    (:func:`pylensfit.models.render_models`) with the size, bulge fraction, flux and
+    position of the maximum of ``L(e, r)`` and the mean ellipticity of ``L(e)`` (a
+    point source for stars) on a canvas of twice the stamp side about its position, and
+    the canvases are added into an image of the field. Returns ``(n, N, N)``: that image
+    cut about every object's position as :func:`~pylensfit.stamps.cut_stamps` cuts the
+    stamps, less the object's own model.
+    """
+    from .models import render_models
+    from .stamps import add_patches, patch_origins
+
+    n_stamp = cfg.stamp_size
+    big = 2 * n_stamp
+    good = np.isfinite(f.flux) & (f.flux > 0) & np.isfinite(f.x) & np.isfinite(f.y)
+    obj = fitted[good]
+    r = np.where(f.is_star[good], 0.0, np.nan_to_num(f.r_best[good]))
+    e = _likelihood_mean_e(f.lnL[good], f.egrid)
+    e1 = np.where(f.is_star[good], 0.0, e[:, 0])
+    e2 = np.where(f.is_star[good], 0.0, e[:, 1])
+    bf = np.nan_to_num(f.bulge_best[good], nan=cfg.bulge_fraction)
+    flux = f.flux[good]
+    field = np.zeros(shape)
+    own = np.zeros((x.size, n_stamp, n_stamp))
+    bx0, by0 = patch_origins(x[obj], y[obj], big)
+    lo = big // 2 - n_stamp // 2
+    for s0 in range(0, obj.size, block):
+        sl = slice(s0, s0 + block)
+        pat = render_models(big, psf, xf[obj[sl]] - bx0[sl], yf[obj[sl]] - by0[sl], e1[sl],
+                            e2[sl], r[sl], flux[sl], model=cfg.model, bulge_fraction=bf[sl],
+                            bulge_size_ratio=cfg.bulge_size_ratio)  # fmt: skip
+        add_patches(field, pat, bx0[sl], by0[sl])
+        own[obj[sl]] = pat[:, lo : lo + n_stamp, lo : lo + n_stamp]
+    stamps, _, _, _ = cut_stamps(field, x, y, n_stamp)
+    return stamps - own
 
 
 _PSF_KEYS = ("n_used", "n_rejected", "fwhm", "e1", "e2")

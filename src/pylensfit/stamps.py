@@ -21,7 +21,7 @@ import numpy as np
 
 from .flags import flag_value
 
-__all__ = ["cut_stamps"]
+__all__ = ["add_patches", "cut_stamps", "patch_origins"]
 
 
 def cut_stamps(
@@ -77,3 +77,28 @@ def cut_stamps(
         masked = np.where(valid, np.asarray(bad, dtype=bool)[r, c], False)
         flags[masked.any(axis=(1, 2))] |= flag_value("MASKED")
     return stamps, x - ix0, y - iy0, flags
+
+
+def patch_origins(x: np.ndarray, y: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Image pixel of element ``[0, 0]`` of the ``size x size`` stamps about ``(x, y)``.
+
+    The convention of :func:`cut_stamps`: element ``[size//2, size//2]`` on the pixel
+    nearest the position.
+    """
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    return (np.floor(x + 0.5).astype(np.int64) - size // 2,
+            np.floor(y + 0.5).astype(np.int64) - size // 2)  # fmt: skip
+
+
+def add_patches(canvas: np.ndarray, patches: np.ndarray, ix0: np.ndarray, iy0: np.ndarray) -> None:
+    """Add ``(m, M, M)`` patches into ``canvas`` in place, element ``[0, 0]`` of patch ``k``
+    on pixel ``(ix0[k], iy0[k])``; what falls outside the canvas is dropped. Overlapping
+    patches add up."""
+    ny, nx = canvas.shape
+    m, size, _ = patches.shape
+    off = np.arange(size)
+    rows = np.broadcast_to(np.asarray(iy0)[:, None, None] + off[None, :, None], patches.shape)
+    cols = np.broadcast_to(np.asarray(ix0)[:, None, None] + off[None, None, :], patches.shape)
+    ok = (rows >= 0) & (rows < ny) & (cols >= 0) & (cols < nx)
+    np.add.at(canvas, (rows[ok], cols[ok]), patches[ok])
