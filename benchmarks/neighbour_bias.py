@@ -1,0 +1,154 @@
+"""Paired +-g bias from the light of lattice neighbours, and what subtracting them leaves.
+
+STEP1-like scenes: a bulge+disc galaxy (bulge fraction 0.5, bulge half-light radius 0.6
+disc scale lengths, scale length uniform in --rd, S/N log-uniform 15-150) at the centre
+of a square lattice of pitch --spacing with its 8 neighbours (positions jittered by
++-6 px, their own sizes, fluxes and shapes), all sheared by +-(g, g) and rendered with
+GalSim through the round Moffat PSF, each with a 90-degree twin in which every galaxy
+is rotated (as `pylensfit simulate step1 --twins` makes them). The central galaxy is
+fitted with its exact model on a stamp about it; m and c come from the four renderings
+(`precision.bias_table`, with the intrinsic shapes' spin-4 parts as control variates,
+rows `cv`). Modes:
+
+* ``alone``: the central galaxy without neighbours;
+* ``neighbours``: with them;
+* ``subtracted``: with them, every object of the scene fitted, and the central galaxy
+  fitted again with the others' best-fit models subtracted, as `pylensfit.measure` does
+  (`Config.subtract_neighbours`).
+
+::
+
+    python benchmarks/neighbour_bias.py --mode alone neighbours subtracted --ngal 2000
+    python benchmarks/neighbour_bias.py --mode neighbours --noise-free --rd 2.5 3.5
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from types import SimpleNamespace
+
+import galsim
+import numpy as np
+
+import pylensfit.pipeline as pl
+from pylensfit.config import Config
+from pylensfit.likelihood import fit_stamps
+from pylensfit.precision import (
+    PRECISION_PSFS,
+    _draw,
+    _galsim_psf,
+    _psf_image,
+    bias_table,
+    reduce_renderings,
+    shape_controls,
+)
+from pylensfit.prior import Prior
+from pylensfit.simulate import _galaxy, draw_shapes
+from pylensfit.stamps import cut_stamps
+
+_LATTICE = np.array([(0, 0)] + [(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if i or j])
+
+
+def scene(rng, a, psf, prior, with_neighbours: bool, canvas: int):
+    """Four renderings (+g, +g twin, -g, -g twin) of one scene on ``canvas`` px, the
+    central galaxy at the canvas centre + a sub-pixel offset; positions, intrinsic e."""
+    nobj = 9  # drawn in every mode, so that the modes share the central galaxies
+    rd = rng.uniform(*a.rd, nobj)
+    snr = np.exp(rng.uniform(np.log(15.0), np.log(150.0), nobj))
+    e = draw_shapes(prior, nobj, rng, 0.99)
+    jit = rng.uniform(-6.0, 6.0, (nobj, 2))
+    jit[0] = rng.uniform(-0.5, 0.5, 2)
+    pos = _LATTICE[:nobj] * a.spacing + jit
+    flux = np.empty(nobj)
+    for k in range(nobj if with_neighbours else 1):
+        ref = _draw(galsim.Convolve(_galaxy("bulge+disc", rd[k]), psf), 64)
+        flux[k] = snr[k] / math.sqrt(float(np.sum(ref.astype(float) ** 2)))
+    out = np.zeros((4, canvas, canvas))
+    shown = nobj if with_neighbours else 1
+    for i, (g, rot) in enumerate([(a.g, False), (a.g, True), (-a.g, False), (-a.g, True)]):
+        for k in range(shown):
+            gal = _galaxy("bulge+disc", rd[k]).shear(g1=e[k, 0], g2=e[k, 1])
+            if rot:
+                gal = gal.rotate(90 * galsim.degrees)
+            out[i] += flux[k] * _draw(galsim.Convolve(gal.shear(g1=g, g2=g), psf), canvas,
+                                      tuple(pos[k]))  # fmt: skip
+    c = canvas // 2
+    return out, pos[:shown] + c, e[0]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--mode", nargs="+", default=["alone", "neighbours", "subtracted"],
+                    choices=["alone", "neighbours", "subtracted"])  # fmt: skip
+    ap.add_argument("--ngal", type=int, default=2000)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--rd", type=float, nargs=2, default=(1.2, 3.5),
+                    help="disc scale length range (px)")
+    ap.add_argument("--spacing", type=float, default=40.0)
+    ap.add_argument("--g", type=float, default=0.02)
+    ap.add_argument("--noise-free", action="store_true",
+                    help="no noise (the fits still assume sigma = 1)")
+    a = ap.parse_args()
+    N = 32
+    canvas = int(2 * a.spacing + 2 * N + 16)
+    prior = Prior(B=0.19, C=0.58, D=2.4)
+    p = PRECISION_PSFS[0]
+    psf = _galsim_psf(p)
+    psf_img, _ = _psf_image(p, N)
+    cfg = Config(model="bulge+disc", n_bulge_fractions=1, bulge_fraction=0.5,
+                 bulge_size_ratio=0.6, stamp_size=N)  # fmt: skip
+    for mode in a.mode:
+        rng = np.random.default_rng(a.seed)  # the same scenes and noise in every mode
+        t0 = time.time()
+        Q, U, X = [], [], []
+        block = 100
+        for _ in range(-(-a.ngal // block)):
+            st = np.zeros((block, 4, N, N))
+            es = np.zeros((block, 2))
+            scenes = []
+            for i in range(block):
+                img, pos, es[i] = scene(rng, a, psf, prior, mode != "alone", canvas)
+                if not a.noise_free:
+                    na, nb = rng.normal(size=(2, canvas, canvas))
+                    img += np.stack([na, nb, na, nb])
+                scenes.append((img, pos))
+                for k in range(4):
+                    st[i, k] = cut_stamps(img[k], pos[:1, 0], pos[:1, 1], N)[0][0]
+            if mode == "subtracted":  # every object of every scene in one call, as measure
+                cuts = [cut_stamps(img[k], pos[:, 0], pos[:, 1], N)
+                        for img, pos in scenes for k in range(4)]  # fmt: skip
+                allf = fit_stamps(np.concatenate([c[0] for c in cuts]), psf_img, 1.0,
+                                  config=cfg, centres=(np.concatenate([c[1] for c in cuts]),
+                                                       np.concatenate([c[2] for c in cuts])))
+                m = len(_LATTICE)
+                for j, (stk, cx, cy, _) in enumerate(cuts):
+                    img, pos = scenes[j // 4]
+                    x, y = pos[:, 0], pos[:, 1]
+                    sl = slice(j * m, (j + 1) * m)
+                    f = SimpleNamespace(**{k: getattr(allf, k)[sl] for k in (
+                        "flux", "x", "y", "is_star", "r_best", "lnL", "bulge_best")},
+                        egrid=allf.egrid)  # fmt: skip
+                    others = pl._neighbour_light(img[0].shape, x, y, f.x + (x - cx),
+                                                 f.y + (y - cy), np.arange(m), f, psf_img,
+                                                 cfg)  # fmt: skip
+                    st[j // 4, j % 4] = stk[0] - others[0]
+            f = fit_stamps(st.reshape(4 * block, N, N), psf_img, 1.0, config=cfg)
+            q, u = reduce_renderings(f, prior, a.g, refine=cfg.integration_refine)
+            Q.append(q)
+            U.append(u)
+            X.append(shape_controls(es[:, 0], es[:, 1]))
+        Q, U, X = map(np.concatenate, (Q, U, X))
+        groups = np.arange(len(Q)) * 40 // len(Q)
+        for tag, x in (("", None), (" cv", X)):
+            r = bias_table(Q, U, groups, a.g, controls=x)
+            r = r[r["estimator"] == "fixed-point"][0]
+            print(f"{mode + tag:14s} m1 {r['m1']:+.4f} ± {r['m1_err']:.4f}  "
+                  f"m2 {r['m2']:+.4f} ± {r['m2_err']:.4f}  c1 {r['c1']:+.5f}  "
+                  f"c2 {r['c2']:+.5f}  n {r['n_gal']}  ({time.time() - t0:.0f} s)",
+                  flush=True)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
