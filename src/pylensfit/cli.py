@@ -339,7 +339,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("directory", nargs="?", help="a set from `pylensfit simulate`")
     v.add_argument("--config", help="YAML configuration (default: bulge+disc model)")
     v.add_argument("--jobs", type=int, default=1, help="local worker processes")
-    v.add_argument("--estimator", choices=("key2", "fixed-point"), default="key2")
+    v.add_argument("--estimator", choices=("fixed-point", "key2"), default="fixed-point",
+                   help="shear estimator: the fixed point (default) or the paper's eq. key2, "
+                        "whose +g^2 term shows at STEP's shears of up to 0.1")
     v.add_argument("--report", help="write a Markdown report (and a PNG beside it)")
     v.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     v.add_argument("--remeasure", action="store_true",
