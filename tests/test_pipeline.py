@@ -423,3 +423,25 @@ def test_neighbour_subtraction_recovers_the_isolated_shape():
     err_after = np.hypot(*(e_after - e_alone))
     assert err_before > 0.1  # the neighbour matters
     assert err_after < 0.2 * err_before
+
+
+def test_patches_add_where_cut_stamps_cuts():
+    """A patch added about a position is what cut_stamps cuts back there (the convention
+    the own-model subtraction relies on); overlaps add up and the image edge clips."""
+    from pylensfit.stamps import add_patches, cut_stamps, patch_origins
+
+    rng = np.random.default_rng(3)
+    canvas = np.zeros((40, 50))
+    x, y = np.array([10.4, 12.6, 47.0]), np.array([20.5, 19.2, 38.9])
+    patches = rng.normal(size=(3, 8, 8))
+    ix0, iy0 = patch_origins(x, y, 8)
+    add_patches(canvas, patches, ix0, iy0)
+    back, *_ = cut_stamps(canvas, x[:1], y[:1], 8)
+    overlap = np.zeros((40, 50))
+    add_patches(overlap, patches[1:2], ix0[1:2], iy0[1:2])
+    assert np.allclose(back[0], patches[0] + cut_stamps(overlap, x[:1], y[:1], 8)[0][0])
+    # the third patch (origin (43, 35)) crosses the right and top edges: only its
+    # inside part lands, at the right place
+    assert np.allclose(canvas[35:40, 43:50], patches[2][:5, :7])
+    assert canvas.sum() == pytest.approx(patches[0].sum() + patches[1].sum()
+                                         + patches[2][:5, :7].sum())  # fmt: skip
