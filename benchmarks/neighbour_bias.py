@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from types import SimpleNamespace
 
 import galsim
 import numpy as np
@@ -78,6 +77,41 @@ def scene(rng, a, psf, prior, with_neighbours: bool, canvas: int):
     return out, pos[:shown] + c, e[0]
 
 
+def subtracted_centrals(scenes, canvas: int, N: int, psf_img, cfg):
+    """The central galaxies' stamps after neighbour subtraction, as `measure` does it: the
+    scenes' renderings side by side in one image, every object fitted, then
+    `pipeline.subtract_neighbours`. Returns ``(n_scenes, 4, N, N)``."""
+    n_tile = 4 * len(scenes)
+    per_row = math.ceil(math.sqrt(n_tile))
+    rows = -(-n_tile // per_row)
+    mosaic = np.zeros((rows * canvas, per_row * canvas))
+    xs, ys, central = [], [], []
+    for j in range(n_tile):
+        img, pos = scenes[j // 4]
+        r0, c0 = divmod(j, per_row)
+        mosaic[r0 * canvas:(r0 + 1) * canvas, c0 * canvas:(c0 + 1) * canvas] = img[j % 4]
+        central.append(sum(len(v) for v in xs))
+        xs.append(pos[:, 0] + c0 * canvas)
+        ys.append(pos[:, 1] + r0 * canvas)
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    stk, cx, cy, _ = cut_stamps(mosaic, x, y, N)
+    first = fit_stamps(stk, psf_img, 1.0, config=cfg, centres=(cx, cy))
+    xf, yf = first.x + (x - cx), first.y + (y - cy)
+    cleaned = stk.copy()
+
+    def refit(idx, others):
+        cleaned[idx] = stk[idx] - others
+        return fit_stamps(cleaned[idx], psf_img, 1.0, config=cfg, centres=(cx[idx], cy[idx]))
+
+    def store(f, idx):
+        xf[idx] = f.x + (x[idx] - cx[idx])
+        yf[idx] = f.y + (y[idx] - cy[idx])
+
+    pl.subtract_neighbours(mosaic.shape, x, y, xf, yf, np.ones(x.size), np.arange(x.size),
+                           first, psf_img, cfg, refit, store)  # fmt: skip
+    return cleaned[np.asarray(central)].reshape(len(scenes), 4, N, N)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mode", nargs="+", default=["alone", "neighbours", "subtracted"],
@@ -88,6 +122,8 @@ def main() -> None:
                     help="disc scale length range (px)")
     ap.add_argument("--spacing", type=float, default=40.0)
     ap.add_argument("--g", type=float, default=0.02)
+    ap.add_argument("--iterations", type=int, default=2,
+                    help="rounds of neighbour subtraction (Config.neighbour_iterations)")
     ap.add_argument("--noise-free", action="store_true",
                     help="no noise (the fits still assume sigma = 1)")
     a = ap.parse_args()
@@ -98,7 +134,8 @@ def main() -> None:
     psf = _galsim_psf(p)
     psf_img, _ = _psf_image(p, N)
     cfg = Config(model="bulge+disc", n_bulge_fractions=1, bulge_fraction=0.5,
-                 bulge_size_ratio=0.6, stamp_size=N)  # fmt: skip
+                 bulge_size_ratio=0.6, stamp_size=N,
+                 neighbour_iterations=a.iterations)  # fmt: skip
     for mode in a.mode:
         rng = np.random.default_rng(a.seed)  # the same scenes and noise in every mode
         t0 = time.time()
@@ -116,24 +153,8 @@ def main() -> None:
                 scenes.append((img, pos))
                 for k in range(4):
                     st[i, k] = cut_stamps(img[k], pos[:1, 0], pos[:1, 1], N)[0][0]
-            if mode == "subtracted":  # every object of every scene in one call, as measure
-                cuts = [cut_stamps(img[k], pos[:, 0], pos[:, 1], N)
-                        for img, pos in scenes for k in range(4)]  # fmt: skip
-                allf = fit_stamps(np.concatenate([c[0] for c in cuts]), psf_img, 1.0,
-                                  config=cfg, centres=(np.concatenate([c[1] for c in cuts]),
-                                                       np.concatenate([c[2] for c in cuts])))
-                m = len(_LATTICE)
-                for j, (stk, cx, cy, _) in enumerate(cuts):
-                    img, pos = scenes[j // 4]
-                    x, y = pos[:, 0], pos[:, 1]
-                    sl = slice(j * m, (j + 1) * m)
-                    f = SimpleNamespace(**{k: getattr(allf, k)[sl] for k in (
-                        "flux", "x", "y", "is_star", "r_best", "lnL", "bulge_best")},
-                        egrid=allf.egrid)  # fmt: skip
-                    others = pl._neighbour_light(img[0].shape, x, y, f.x + (x - cx),
-                                                 f.y + (y - cy), np.arange(m), f, psf_img,
-                                                 cfg)  # fmt: skip
-                    st[j // 4, j % 4] = stk[0] - others[0]
+            if mode == "subtracted":
+                st[:] = subtracted_centrals(scenes, canvas, N, psf_img, cfg)
             f = fit_stamps(st.reshape(4 * block, N, N), psf_img, 1.0, config=cfg)
             q, u = reduce_renderings(f, prior, a.g, refine=cfg.integration_refine)
             Q.append(q)

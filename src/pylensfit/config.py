@@ -154,6 +154,11 @@ class Config:
         "fit every galaxy a second time with its neighbours' best-fit models (from the first "
         "fit) subtracted from its stamp, so that their wings do not distort its shape",
     )
+    neighbour_iterations: int = _f(
+        2,
+        "rounds of neighbour subtraction: the second fits the neighbours with the galaxy's own "
+        "model subtracted, so that their models do not carry its wings away",
+    )
     neighbour_min_chi2: float = _f(
         0.01,
         "refit a galaxy only if the neighbours' models in its stamp sum to more than this "
@@ -291,3 +296,4 @@ def _validate(c: Config) -> None:
     need(c.close_pair_min_snr >= 0, "close_pair_min_snr must be >= 0")
     need(0 <= c.close_pair_faint_ratio < 1, "close_pair_faint_ratio must be in [0, 1)")
     need(c.neighbour_min_chi2 >= 0, "neighbour_min_chi2 must be >= 0")
+    need(c.neighbour_iterations >= 1, "neighbour_iterations must be >= 1")

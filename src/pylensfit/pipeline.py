@@ -35,6 +35,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -336,18 +337,20 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
                            size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
         _store_fit(fits_, todo, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
                    xf, yf, is_star)  # fmt: skip
-    n_refit = 0
+    redo = np.zeros(0, dtype=np.int64)
     if todo.size > 1 and cfg.subtract_neighbours:
-        others = _neighbour_light(sub.shape, x, y, xf, yf, todo, fits_, psf.image, cfg)
-        chi2 = np.sum(others[todo] ** 2, axis=(1, 2)) / noise[todo] ** 2
-        redo = todo[(chi2 > cfg.neighbour_min_chi2) & (fits_.flags == 0)]
-        n_refit = int(redo.size)
-        if n_refit:
-            f2 = fit_stamps(stamps[redo] - others[redo], psf.image, noise[redo], config=cfg,
-                            centres=(cx[redo], cy[redo]), size_prior=size_prior,
-                            size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
-            _store_fit(f2, redo, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
+        def refit(idx, others_idx):
+            return fit_stamps(stamps[idx] - others_idx, psf.image, noise[idx], config=cfg,
+                              centres=(cx[idx], cy[idx]), size_prior=size_prior,
+                              size_marginal_prior=task.get("size_marginal_prior"))
+
+        def store(f, idx):
+            _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
                        xf, yf, is_star)  # fmt: skip
+
+        redo = subtract_neighbours(sub.shape, x, y, xf, yf, noise, todo, fits_, psf.image,
+                                   cfg, refit, store)  # fmt: skip
+    n_refit = int(redo.size)
     t_fit = time.perf_counter()
     ra, dec = _sky(img.header, xf, yf)
     measured = np.isfinite(lnL).all(axis=1)
@@ -393,12 +396,12 @@ def _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, col
                is_star) -> None:  # fmt: skip
     """Write the fits ``f`` of objects ``idx`` into the image's per-object arrays."""
     lnL[idx] = f.lnL
+    flags[idx] = f.flags  # the objects fitted had no flag before the fit
     if lnL_r is not None:
         lnL_r[idx] = f.lnL_r
     if lnL_bulge is not None:
         lnL_bulge[idx] = f.lnL_bulge
         lnL_star[idx] = f.lnL_star
-    flags[idx] |= f.flags
     cols["model_flux"][idx] = f.flux
     cols["model_SNratio"][idx] = f.snr
     cols["scalelength"][idx] = f.r_best
@@ -408,6 +411,67 @@ def _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, col
     xf[idx[ok]] = f.x[ok] + (x[idx[ok]] - cx[idx[ok]])
     yf[idx[ok]] = f.y[ok] + (y[idx[ok]] - cy[idx[ok]])
     is_star[idx] = f.is_star
+
+
+_MODEL_KEYS = ("flux", "x", "y", "is_star", "r_best", "lnL", "bulge_best", "flags")
+
+
+def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Config, refit,
+                        store) -> np.ndarray:  # fmt: skip
+    """Fit galaxies again with their neighbours' best-fit models taken out of the stamps.
+
+    ``cfg.neighbour_iterations`` rounds: each renders every fitted object's current model
+    (:func:`_neighbour_light`) and refits the galaxies of the first fit (``flags == 0``)
+    whose stamps hold more than ``cfg.neighbour_min_chi2`` of their neighbours' light.
+    The first round's neighbour models were fitted with the galaxy's own wings in their
+    stamps, and so take some of its light away with them; the next round fits the
+    neighbours with the galaxy's model subtracted in turn.
+
+    Parameters
+    ----------
+    shape : tuple
+        Image shape.
+    x, y : numpy.ndarray
+        Every object's stamp position (the stamps' centres).
+    xf, yf : numpy.ndarray
+        Every object's fitted position, updated in place by ``store``.
+    noise : numpy.ndarray
+        Every object's noise sigma.
+    fitted : numpy.ndarray
+        Indices of the objects fitted, in the order of ``first``.
+    first : StampFits
+        Their first fits.
+    psf : numpy.ndarray
+        PSF image.
+    cfg : Config
+    refit : callable
+        ``refit(idx, others)`` fits the stamps of objects ``idx`` less ``others``.
+    store : callable
+        ``store(fits, idx)`` records the fits of objects ``idx`` (and updates ``xf, yf``).
+
+    Returns
+    -------
+    numpy.ndarray
+        Indices of the objects fitted again.
+    """
+    cur = {k: np.array(getattr(first, k)) for k in _MODEL_KEYS}
+    cur["egrid"] = first.egrid
+    ok = first.flags == 0
+    done = np.zeros(0, dtype=np.int64)
+    for _ in range(int(cfg.neighbour_iterations)):
+        f = SimpleNamespace(**cur)
+        others = _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg)
+        chi2 = np.sum(others[fitted] ** 2, axis=(1, 2)) / noise[fitted] ** 2
+        sel = np.flatnonzero(ok & (chi2 > cfg.neighbour_min_chi2))
+        if sel.size == 0:
+            break
+        idx = fitted[sel]
+        f2 = refit(idx, others[idx])
+        store(f2, idx)
+        for k in _MODEL_KEYS:
+            cur[k][sel] = getattr(f2, k)
+        done = np.union1d(done, idx)
+    return done
 
 
 def _likelihood_mean_e(lnL: np.ndarray, egrid: np.ndarray, block: int = 512) -> np.ndarray:
