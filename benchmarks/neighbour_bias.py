@@ -122,7 +122,7 @@ def main() -> None:
                     help="disc scale length range (px)")
     ap.add_argument("--spacing", type=float, default=40.0)
     ap.add_argument("--g", type=float, default=0.02)
-    ap.add_argument("--iterations", type=int, default=2,
+    ap.add_argument("--iterations", type=int, default=1,
                     help="rounds of neighbour subtraction (Config.neighbour_iterations)")
     ap.add_argument("--noise-free", action="store_true",
                     help="no noise (the fits still assume sigma = 1)")

@@ -155,9 +155,10 @@ class Config:
         "fit) subtracted from its stamp, so that their wings do not distort its shape",
     )
     neighbour_iterations: int = _f(
-        2,
-        "rounds of neighbour subtraction: the second fits the neighbours with the galaxy's own "
-        "model subtracted, so that their models do not carry its wings away",
+        1,
+        "rounds of neighbour subtraction; from the second on, the neighbours are fitted with "
+        "the galaxy's own model subtracted too (a second round moved m by < 2e-4 in "
+        "benchmarks/neighbour_bias.py and costs another fit)",
     )
     neighbour_min_chi2: float = _f(
         0.01,
