@@ -60,12 +60,12 @@ def scene(rng, a, psf, prior, with_neighbours: bool, canvas: int):
     jit = rng.uniform(-6.0, 6.0, (nobj, 2))
     jit[0] = rng.uniform(-0.5, 0.5, 2)
     pos = _LATTICE[:nobj] * a.spacing + jit
+    shown = nobj if with_neighbours else 1
     flux = np.empty(nobj)
-    for k in range(nobj if with_neighbours else 1):
+    for k in range(shown):
         ref = _draw(galsim.Convolve(_galaxy("bulge+disc", rd[k]), psf), 64)
         flux[k] = snr[k] / math.sqrt(float(np.sum(ref.astype(float) ** 2)))
     out = np.zeros((4, canvas, canvas))
-    shown = nobj if with_neighbours else 1
     for i, (g, rot) in enumerate([(a.g, False), (a.g, True), (-a.g, False), (-a.g, True)]):
         for k in range(shown):
             gal = _galaxy("bulge+disc", rd[k]).shear(g1=e[k, 0], g2=e[k, 1])
@@ -86,11 +86,13 @@ def subtracted_centrals(scenes, canvas: int, N: int, psf_img, cfg):
     rows = -(-n_tile // per_row)
     mosaic = np.zeros((rows * canvas, per_row * canvas))
     xs, ys, central = [], [], []
+    start = 0
     for j in range(n_tile):
         img, pos = scenes[j // 4]
         r0, c0 = divmod(j, per_row)
         mosaic[r0 * canvas:(r0 + 1) * canvas, c0 * canvas:(c0 + 1) * canvas] = img[j % 4]
-        central.append(sum(len(v) for v in xs))
+        central.append(start)
+        start += len(pos)
         xs.append(pos[:, 0] + c0 * canvas)
         ys.append(pos[:, 1] + r0 * canvas)
     x, y = np.concatenate(xs), np.concatenate(ys)

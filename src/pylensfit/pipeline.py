@@ -331,26 +331,24 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     xf, yf = x.copy(), y.copy()
     is_star = np.zeros(n, dtype=bool)
     todo = np.flatnonzero(flags == 0)
-    if todo.size:
-        fits_ = fit_stamps(stamps[todo], psf.image, noise[todo], config=cfg,
-                           centres=(cx[todo], cy[todo]), size_prior=size_prior,
-                           size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
-        _store_fit(fits_, todo, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
+
+    def fit(idx, less=0.0):
+        """Fit the stamps of objects ``idx`` (less ``less``: the neighbours' light)."""
+        return fit_stamps(stamps[idx] - less, psf.image, noise[idx], config=cfg,
+                          centres=(cx[idx], cy[idx]), size_prior=size_prior,
+                          size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
+
+    def store(f, idx):
+        _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
                    xf, yf, is_star)  # fmt: skip
+
+    if todo.size:
+        fits_ = fit(todo)
+        store(fits_, todo)
     redo = np.zeros(0, dtype=np.int64)
     if todo.size > 1 and cfg.subtract_neighbours:
-        def refit(idx, others_idx):
-            return fit_stamps(stamps[idx] - others_idx, psf.image, noise[idx], config=cfg,
-                              centres=(cx[idx], cy[idx]), size_prior=size_prior,
-                              size_marginal_prior=task.get("size_marginal_prior"))
-
-        def store(f, idx):
-            _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
-                       xf, yf, is_star)  # fmt: skip
-
         redo = subtract_neighbours(sub.shape, x, y, xf, yf, noise, todo, fits_, psf.image,
-                                   cfg, refit, store)  # fmt: skip
-    n_refit = int(redo.size)
+                                   cfg, fit, store)  # fmt: skip
     t_fit = time.perf_counter()
     ra, dec = _sky(img.header, xf, yf)
     measured = np.isfinite(lnL).all(axis=1)
@@ -382,8 +380,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
               "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
     rows["refit_neighbours"] = np.zeros(n, dtype=bool)
-    if n_refit:
-        rows["refit_neighbours"][redo] = True
+    rows["refit_neighbours"][redo] = True
     return {
         "index": task["index"], "path": path, "rows": rows, "lnL": lnL,
         "lnL_bulge": lnL_bulge, "lnL_r": lnL_r, "egrid": egrid,

@@ -59,8 +59,7 @@ def cut_stamps(
     y = np.asarray(y, dtype=float)
     ny, nx = image.shape
     n = x.size
-    ix0 = np.floor(x + 0.5).astype(np.int64) - size // 2
-    iy0 = np.floor(y + 0.5).astype(np.int64) - size // 2
+    ix0, iy0 = patch_origins(x, y, size)
     flags = np.zeros(n, dtype=np.int32)
     inside = (ix0 >= 0) & (iy0 >= 0) & (ix0 + size <= nx) & (iy0 + size <= ny)
     flags[~inside] |= flag_value("EDGE")
