@@ -51,6 +51,8 @@ COLUMNS: dict[str, tuple[str, str]] = {
                  "pylensfit.detection.SEP_FLAGS)"),
     "pixel_SNratio": ("", "detection S/N: aperture flux over its error"),
     "noise_sigma": ("adu", "per-pixel noise standard deviation used in the fit"),
+    "background": ("adu", "sky background subtracted at the object's position (measured "
+                          "again less the fitted models: Config.model_background)"),
     "model_flux": ("adu", "amplitude of the most likely model (total flux)"),
     "model_SNratio": ("", "matched-filter S/N of the most likely model"),
     "scalelength": ("pix", "most likely model size r (marginal over e); 0 for a point "
