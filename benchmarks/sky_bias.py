@@ -74,7 +74,8 @@ def main(argv=None) -> int:
     cfg = Config(model="bulge+disc", n_bulge_fractions=3).to_dict()
     tasks = [(m, f["path"], star, cfg, sky) for m in MODES for f in sel]
     cats: dict[str, list] = {m: [] for m in MODES}
-    with mp.get_context("fork").Pool(a.jobs) as pool:
+    # one task per worker: the true-sky patch must not outlive its task
+    with mp.get_context("fork").Pool(a.jobs, maxtasksperchild=1) as pool:
         for mode, path, cat in pool.imap_unordered(_measure, tasks):
             cats[mode].append(cat)
             ok = cat["flags"] == 0
