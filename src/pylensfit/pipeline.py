@@ -442,7 +442,8 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
     whose stamps hold more than ``cfg.neighbour_min_chi2`` of their neighbours' light.
     The first round's neighbour models were fitted with the galaxy's own wings in their
     stamps; a second round fits the neighbours with the galaxy's model subtracted in turn
-    (measured: it moves m by less than 2e-4, so one round is the default). With
+    (measured: it moves m by less than 2e-4 for the neighbours alone; the re-measured
+    sky below needs it, so two rounds are the default). With
     ``cfg.subtract_neighbours`` off, no neighbour light is taken out (only ``sky``'s
     change).
 
