@@ -213,14 +213,12 @@ def _value_at(image: np.ndarray, x, y) -> np.ndarray:
 
 
 def _noise_at(img: _Image, x, y, bkg, rms_map) -> np.ndarray:
-    ix = np.clip(np.round(np.asarray(x)).astype(int), 0, img.data.shape[1] - 1)
-    iy = np.clip(np.round(np.asarray(y)).astype(int), 0, img.data.shape[0] - 1)
     if img.weight is not None:
-        w = img.weight[iy, ix]
+        w = _value_at(img.weight, x, y)
         return np.where(w > 0, 1.0 / np.sqrt(np.where(w > 0, w, 1.0)), np.nan)
     if rms_map is not None:
-        return np.asarray(rms_map)[iy, ix]
-    return np.full(ix.shape, float(bkg.global_rms))
+        return _value_at(rms_map, x, y)
+    return np.full(np.shape(x), float(bkg.global_rms))
 
 
 def _psf_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_col):
