@@ -74,6 +74,27 @@ def test_rotated_twin_of_a_round_psf_is_the_rotated_image():
         np.testing.assert_allclose(r0, np.rot90(m0), atol=1e-6 * r0.max())
 
 
+def test_offset_places_the_galaxies_about_the_stamp_centre():
+    """``offset = 0`` centres every galaxy on element ``[n//2, n//2]`` (its noise-free
+    centroid there, on an odd stamp that the cut leaves symmetric); the default spreads
+    the centres over +-0.5 px, where the centroids follow the drawn offsets."""
+    n = 33
+    yy, xx = np.mgrid[:n, :n] - n // 2
+    for off in (0.0, 0.5):
+        spec = PrecisionSpec(ngal=20, block_size=20, seed=3, offset=off, snr_range=(100, 200),
+                             size_ratio_range=(0.8, 1.2), morphology_weights=(1, 0, 0, 0, 0))
+        clean, _, t = render_block(spec, 0, 0, stamp_size=n, noise=False)
+        img = clean[:, 0].astype(float)
+        cx = (img * xx).sum(axis=(1, 2)) / img.sum(axis=(1, 2))
+        cy = (img * yy).sum(axis=(1, 2)) / img.sum(axis=(1, 2))
+        tol = 1e-3 if off == 0 else 0.03  # the stamp's edge cuts an off-centre galaxy unevenly
+        np.testing.assert_allclose(cx, t["dx"], atol=tol)
+        np.testing.assert_allclose(cy, t["dy"], atol=tol)
+        assert np.all(np.abs(t["dx"]) <= off) and (off == 0 or np.ptp(t["dx"]) > 0.5)
+    with pytest.raises(ValueError, match="offset"):
+        PrecisionSpec(offset=-1)
+
+
 def _gaussian_lnL(e_obs, s):
     d2 = (EGRID[None, :, 0] - e_obs[:, :1]) ** 2 + (EGRID[None, :, 1] - e_obs[:, 1:]) ** 2
     return -d2 / (2.0 * s[:, None] ** 2)

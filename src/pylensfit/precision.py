@@ -127,6 +127,10 @@ class PrecisionSpec:
         Largest intrinsic ``|e|``.
     noise_sigma : float
         Pixel noise.
+    offset : float
+        Each galaxy's centre lies uniformly within ``+-offset`` pixels of the stamp's
+        centre along both axes (0: centred, for tests of the likelihood at a known
+        position).
     block_size : int
         Galaxies per block (unit of work and of the jackknife).
     ncal : int
@@ -145,6 +149,7 @@ class PrecisionSpec:
     prior_params: tuple[float, float, float] = (0.19, 0.58, 2.4)
     max_e: float = 0.99
     noise_sigma: float = 1.0
+    offset: float = 0.5
     block_size: int = 500
     ncal: int = 20_000
     seed: int = 1
@@ -153,6 +158,8 @@ class PrecisionSpec:
     def __post_init__(self) -> None:
         if self.ngal < 2 * len(self.psfs) or self.block_size < 1:
             raise ValueError("precision needs at least two galaxies per PSF and block_size >= 1")
+        if not 0 <= self.offset <= 4:
+            raise ValueError(f"offset must be in [0, 4] pixels, got {self.offset}")
         if not 0 < self.g < 0.2:
             raise ValueError(f"g must be in (0, 0.2), got {self.g}")
         if len(self.morphology_weights) != len(MORPHOLOGIES):
@@ -249,8 +256,8 @@ def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Gene
     t["n_knots"] = np.where(name == "knots", rng.integers(10, 30, n), 0)
     t["knot_frac"] = rng.uniform(0.2, 0.5, n)
     t["knot_seed"] = rng.integers(1, 2**31 - 1, n)
-    t["dx"] = rng.uniform(-0.5, 0.5, n)
-    t["dy"] = rng.uniform(-0.5, 0.5, n)
+    t["dx"] = rng.uniform(-0.5, 0.5, n) * (2.0 * spec.offset)
+    t["dy"] = rng.uniform(-0.5, 0.5, n) * (2.0 * spec.offset)
     return t
 
 
