@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 from astropy.io import fits
@@ -416,3 +419,43 @@ def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
                  config=Config(model="bulge+disc", integration_refine=2))  # fmt: skip
     with pytest.raises(AssertionError, match="measure called"):
         validate(step2["dir"], progress=False, bins={}, remeasure=True)
+
+
+def test_validate_takes_the_size_prior_from_the_zero_shear_field(tmp_path, monkeypatch):
+    """With ``size_prior: estimated`` the size prior is estimated once per PSF, on the
+    zero-shear field (as the ellipticity prior is), and the shear fields are measured
+    with it: no second estimation pass over them, and the kept catalogues record it."""
+    from pylensfit import pipeline
+    from pylensfit.config import Config
+    from pylensfit.prior import SizePrior
+    from pylensfit.validation import simulate_step, validate
+
+    d = simulate_step("step2", tmp_path / "s2", ngal=1500, seed=8, n_shear=1)
+    n_psf = len(read_manifest(d)["psfs"])
+    calls = []
+    real = pipeline.measure
+
+    def spy(paths, **kw):
+        calls.append((Path(paths[0]).name, kw.get("size_prior")))
+        return real(paths, **kw)
+
+    monkeypatch.setattr(pipeline, "measure", spy)
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated")
+    res = validate(d, config=cfg, progress=False, bins={})
+    assert len(calls) == 2 * n_psf and res["n_gal"][-1] > 100
+    mdir = Path(d) / "measured"
+    for k in range(n_psf):
+        (prior_name, given_p), (shear_name, given_s) = calls[2 * k], calls[2 * k + 1]
+        assert "prior" in prior_name and given_p is None  # estimated there
+        assert "prior" not in shear_name
+        sp = pipeline.read_catalogue(mdir / f"psf{k}_prior.fits").meta["size_prior"]
+        assert isinstance(sp, SizePrior) and isinstance(given_s, SizePrior)
+        np.testing.assert_array_equal(given_s.density, sp.density)
+        kept = pipeline.read_catalogue(mdir / f"psf{k}_shear.fits").meta["size_prior"]
+        np.testing.assert_array_equal(kept.density, sp.density)
+        side = json.loads((mdir / f"psf{k}_shear.json").read_text())
+        assert side["size_prior"] == sp.to_dict()
+    # kept catalogues are reused, the size prior included
+    calls.clear()
+    validate(d, config=cfg, progress=False, bins={})
+    assert calls == []

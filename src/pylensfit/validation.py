@@ -613,26 +613,32 @@ def twin_shear(
 
 
 # -- measured catalogues, kept under DIR/measured/ ----------------------------------------
-def _ident(fields: list[dict], star: dict, cfg) -> dict:
-    """What a kept catalogue was made from: the configuration and the fields' seeds."""
+def _ident(fields: list[dict], star: dict, cfg, size_prior=None) -> dict:
+    """What a kept catalogue was made from: the configuration, the fields' seeds and the
+    size prior given to the measurement (if any)."""
     ids = [{"file": f["file"], "seed": f.get("seed"), "noise_seed": f.get("noise_seed")}
            for f in [*fields, star]]  # fmt: skip
-    return json.loads(json.dumps({"version": 1, "config": cfg.to_dict(), "fields": ids}))
+    ident = {"version": 1, "config": cfg.to_dict(), "fields": ids}
+    if size_prior is not None:
+        ident["size_prior"] = size_prior.to_dict()
+    return json.loads(json.dumps(ident))
 
 
 def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, jobs: int,
-              progress: bool, remeasure: bool) -> tuple[Table, bool]:  # fmt: skip
+              progress: bool, remeasure: bool, size_prior=None) -> tuple[Table, bool]:  # fmt: skip
     """The catalogue of ``fields`` from ``mdir/<name>.fits``, measured unless kept.
 
     A kept catalogue is reused when its sidecar ``<name>.json`` records the same
-    configuration and the same fields (names and seeds). Otherwise the fields are
-    measured with :func:`pylensfit.pipeline.measure` (``output=``: written atomically,
-    resumable from its ``.parts`` folder) and the sidecar written after the catalogue.
+    configuration, the same fields (names and seeds) and the same ``size_prior``.
+    Otherwise the fields are measured with :func:`pylensfit.pipeline.measure`
+    (``output=``: written atomically, resumable from its ``.parts`` folder; with
+    ``size_prior``, a :class:`~pylensfit.prior.SizePrior`, if given) and the sidecar
+    written after the catalogue.
     """
     from . import pipeline
 
     cat_path, side = mdir / f"{name}.fits", mdir / f"{name}.json"
-    ident = _ident(fields, star, cfg)
+    ident = _ident(fields, star, cfg, size_prior)
     if not remeasure and cat_path.exists() and side.exists():
         try:
             same = json.loads(side.read_text()) == ident
@@ -646,8 +652,8 @@ def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, job
     mdir.mkdir(parents=True, exist_ok=True)
     side.unlink(missing_ok=True)
     pipeline.measure([f["path"] for f in fields], stars=[star["path"]], config=cfg,
-                     prior=Prior(), output=cat_path, overwrite=True, jobs=jobs,
-                     progress=progress)  # fmt: skip
+                     prior=Prior(), size_prior=size_prior, output=cat_path, overwrite=True,
+                     jobs=jobs, progress=progress)  # fmt: skip
     tmp = side.with_name(f".{side.name}.tmp")
     tmp.write_text(json.dumps(ident, indent=1))
     os.replace(tmp, side)
@@ -979,7 +985,10 @@ def validate(
        ``psf{k}_shear.fits`` (with ``.json`` sidecars recording the configuration and the
        fields' seeds). A later call with the same configuration reuses them, so a large set
        is re-analysed (other estimator, other bins) without re-measuring;
-       ``remeasure=True`` forces a new measurement.
+       ``remeasure=True`` forces a new measurement. With ``size_prior: estimated`` the
+       size prior is estimated on each PSF's zero-shear field and the shear fields are
+       measured with it (recorded in their sidecars), as the ellipticity prior comes
+       from the zero-shear fields.
     2. **Match** every measured galaxy (``flags == 0``, ``fitclass == 0``) to the truth of
        its image (nearest truth object within 5 px).
     3. **Prior** from the galaxies of the zero-shear fields of all PSFs (as in the paper).
@@ -1081,6 +1090,7 @@ def validate(
     stars = {int(s["psf"]): s for s in man["star_fields"]}
     mdir = Path(man["dir"]) / "measured"
     pgs, sgs, measured, psf_rows = [], [], {}, []
+    size_priors: dict = {}
     egrid = None
     for k, fl in sorted(by_psf.items()):
         fwhm = float(man["psfs"][k]["fwhm"])
@@ -1089,8 +1099,13 @@ def validate(
             if not sel:
                 continue
             name = f"psf{k}_{role}"
-            cat, reused = _measured(name, sel, stars[k], cfg, mdir, jobs=jobs,
-                                    progress=progress, remeasure=remeasure)  # fmt: skip
+            # an estimated size prior comes from the zero-shear field, as the ellipticity
+            # prior does: the shear fields are measured once, with it
+            sp = size_priors.get(k) if role == "shear" else None
+            cat, reused = _measured(name, sel, stars[k], cfg, mdir, jobs=jobs, progress=progress,
+                                    remeasure=remeasure, size_prior=sp)  # fmt: skip
+            if role == "prior" and cfg.size_prior == "estimated":
+                size_priors[k] = cat.meta.get("size_prior")
             measured[name] = {"path": str(mdir / f"{name}.fits"), "reused": reused}
             egrid = cat.meta["egrid"]
             lst.append(_galaxies(cat, fields, k, fwhm))
