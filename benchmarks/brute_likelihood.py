@@ -46,9 +46,10 @@ from pylensfit.precision import (
 from pylensfit.prior import Prior, SizePrior
 
 
-def true_size_prior(spec, size) -> SizePrior:
-    """Log-uniform in half-light radius over ``size`` times the PSF's half-light radius."""
-    _, _, t0 = render_block(spec, 0, 0, calibration=True, noise=False)
+def true_size_prior(spec, size, stamp_size: int = 32) -> SizePrior:
+    """Log-uniform in half-light radius over ``size`` times the PSF's half-light radius
+    (the precision population's sizes; also ``exact_model_bias.py --size-prior true``)."""
+    _, _, t0 = render_block(spec, 0, 0, stamp_size=stamp_size, calibration=True, noise=False)
     psf_hlr = float(t0["r"][0] / t0["size_ratio"][0])
     lo, hi = np.log(np.asarray(size) * psf_hlr)
     eps = 1e-4 * (hi - lo)
@@ -91,7 +92,7 @@ def main() -> None:
                      size_ratio_range=tuple(a.size), offset=0.0)  # fmt: skip
     cfg = Config(model=a.morphology, position_prior_sigma=0.01, e_step=a.e_step)
     prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
-    sp = true_size_prior(spec, a.size)
+    sp = true_size_prior(spec, a.size, cfg.stamp_size)
     bank = model_bank(cfg)
     node_w, w_star = sp.node_weights(bank, cfg)
     live = node_w > 1e-3 * node_w.max()  # the floor elsewhere: e^-7 of the mass

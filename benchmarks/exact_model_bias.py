@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 
+from brute_likelihood import true_size_prior  # this folder's (run as a script)
 from pylensfit.config import Config
 from pylensfit.likelihood import fit_stamps
 from pylensfit.models import model_bank
@@ -32,7 +33,7 @@ from pylensfit.precision import (
     shape_controls,
     spec_with,
 )
-from pylensfit.prior import Prior, SizePrior, estimate_bulge_weights, estimate_size_prior
+from pylensfit.prior import Prior, estimate_bulge_weights, estimate_size_prior
 
 
 def main() -> None:
@@ -99,13 +100,7 @@ def main() -> None:
                 np.concatenate(lr))  # fmt: skip
 
     if a.size_prior == "true":  # log-uniform between the population's bounds
-        _, _, tr0 = render_block(spec, 0, 0, stamp_size=a.stamp, calibration=True)
-        psf_hlr = float(tr0["r"][0] / tr0["size_ratio"][0])
-        lo, hi = np.log(np.asarray(a.size) * psf_hlr)
-        eps = 1e-4 * (hi - lo)
-        knots = np.concatenate([[lo - eps], np.linspace(lo, hi, 50), [hi + eps]])
-        dens = np.concatenate([[0.0], np.full(50, 1.0 / (hi - lo)), [0.0]])
-        sp = SizePrior(ln_h=knots, density=dens * (1 - 1e-6), star=1e-6)
+        sp = true_size_prior(spec, a.size, a.stamp)
         if cfg.model == "bulge+disc":
             raise SystemExit("--size-prior true: for the exact models only")
     if est_bulge or a.size_prior == "estimate":

@@ -489,6 +489,10 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
     ok = first.flags == 0
     done = np.zeros(0, dtype=np.int64)
     dsky = None
+
+    def _chi2(light):  # the light taken out of each fitted stamp, in units of its noise
+        return np.sum(light[fitted] ** 2, axis=(1, 2)) / noise[fitted] ** 2
+
     for _ in range(int(cfg.neighbour_iterations)):
         f = SimpleNamespace(**cur)
         others, field = _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg)
@@ -496,12 +500,9 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
             others[:] = 0.0
         if sky is not None:
             dsky = cut_stamps(sky(field), x, y, cfg.stamp_size)[0]
-        chi2 = np.sum(others[fitted] ** 2, axis=(1, 2)) / noise[fitted] ** 2
-        near = chi2 > cfg.neighbour_min_chi2
+        near = _chi2(others) > cfg.neighbour_min_chi2
         less = others if dsky is None else others + dsky
-        if dsky is not None:
-            chi2 = np.sum(less[fitted] ** 2, axis=(1, 2)) / noise[fitted] ** 2
-        sel = np.flatnonzero(ok & (chi2 > cfg.neighbour_min_chi2))
+        sel = np.flatnonzero(ok & (near if dsky is None else _chi2(less) > cfg.neighbour_min_chi2))
         if sel.size == 0:
             break
         idx = fitted[sel]
