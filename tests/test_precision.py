@@ -339,3 +339,40 @@ def test_estimated_size_prior_recovers_the_population_sizes():
     # measured: 1.09 / 1.75 px against 1.03 / 1.76 px
     np.testing.assert_allclose(np.exp(np.interp(q, cdf, sp.ln_h)), np.quantile(h, q), rtol=0.07)
     assert sp.star < 1e-3
+
+
+def test_given_size_and_bulge_priors_replace_the_estimates():
+    """``precision(size_prior=, bulge_weights=)``: the population's own size prior
+    covers exactly the sizes that ``render_block`` draws, and given priors are used
+    as they are (no calibration pass), recorded as given, and change the result."""
+    from pylensfit.precision import population_size_prior
+
+    spec = spec_with(ngal=40, block_size=20, ncal=400, seed=3, psfs=["round"],
+                     snr_range=(20.0, 40.0), morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
+    sp = population_size_prior(spec, 0)
+    _, _, t = render_block(spec, 0, 0, calibration=True, noise=False)
+    lnr = np.log(np.asarray(t["r"]))
+    lo, hi = sp.ln_h[1], sp.ln_h[-2]
+    assert np.all((lnr >= lo) & (lnr <= hi))
+    # log-uniform: the drawn sizes fill the support evenly (20 galaxies: loose)
+    assert abs(np.mean((lnr - lo) / (hi - lo)) - 0.5) < 0.15
+    assert hi - lo == pytest.approx(np.log(spec.size_ratio_range[1] / spec.size_ratio_range[0]))
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated")
+    prior = Prior(B=0.19, C=0.58, D=2.4)
+    runs = {}
+    for w in ((2, 0, 0), (0, 0, 1)):
+        res = precision(spec, config=cfg, prior=prior, size_prior=sp, bulge_weights=w,
+                        progress=False)  # fmt: skip
+        assert res.meta["timing"]["calibration_s"] < 1.0  # nothing was estimated
+        assert res.meta["size_prior_given"]
+        assert res.meta["size_prior"][0]["density"] == sp.density.tolist()
+        bp = res.meta["bulge_prior"]
+        assert bp["method"] == "given"
+        np.testing.assert_allclose(bp["weights"], np.asarray(w) / sum(w))
+        runs[w] = res[(res["breakdown"] == "all") & (res["estimator"] == "fixed-point")][0]
+    # the same renderings fitted as discs and as de Vaucouleurs galaxies differ
+    assert abs(runs[(2, 0, 0)]["m1"] - runs[(0, 0, 1)]["m1"]) > 1e-3
+    with pytest.raises(ValueError, match="bulge_weights"):
+        precision(spec, config=cfg, prior=prior, bulge_weights=(1, 1), progress=False)
+    with pytest.raises(ValueError, match="size_prior"):
+        precision(spec, config=cfg, prior=prior, size_prior=[sp, sp], progress=False)

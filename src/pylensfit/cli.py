@@ -142,9 +142,14 @@ def _precision(args: argparse.Namespace) -> int:
         from .prior import Prior
 
         prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
+    size_prior = None
+    if args.true_size_prior:
+        from .precision import population_size_prior
+
+        size_prior = [population_size_prior(spec, k) for k in range(len(spec.psfs))]
     res = precision(spec, config=_config(args) if args.config else None, jobs=args.jobs,
                     scheduler=args.scheduler, report=report, prior=prior,
-                    progress=not args.quiet,
+                    progress=not args.quiet, size_prior=size_prior,
                     size_prior_per_psf=not args.one_size_prior)  # fmt: skip
     show = res[np.isin(res["breakdown"], ["all", "psf", "no controls"])]
     show = show[show["estimator"] == "fixed-point"]
@@ -370,6 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
     pv.add_argument("--true-prior", action="store_true",
                     help="diagnostic: use the population's true prior instead of estimating "
                          "it from the calibration sample")  # fmt: skip
+    pv.add_argument("--true-size-prior", action="store_true",
+                    help="diagnostic: use the population's own size prior per PSF "
+                         "(log-uniform over the sizes drawn) instead of estimating it")
     pv.add_argument("--one-size-prior", action="store_true",
                     help="diagnostic: one size prior for all PSFs instead of one per PSF "
                          "(the population's sizes are drawn relative to each PSF's)")  # fmt: skip

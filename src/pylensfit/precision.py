@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -65,7 +66,7 @@ import numpy as np
 from astropy.table import Table
 
 from .config import Config
-from .prior import Prior, mix_bulge_fractions
+from .prior import Prior, SizePrior, mix_bulge_fractions
 from .simulate import draw_shapes
 
 __all__ = [
@@ -74,6 +75,7 @@ __all__ = [
     "PrecisionSpec",
     "render_block",
     "precision",
+    "population_size_prior",
     "bias_table",
     "shape_controls",
     "reduce_likelihoods",
@@ -225,6 +227,23 @@ def _profile(morph: str, r: float, bulge_frac: float, sersic_n: float, n_knots: 
         disc = galsim.Exponential(half_light_radius=r).withFlux((1 - knot_frac) * disc_flux)
         return galsim.Add(bulge, disc, knots)
     raise ValueError(f"unknown morphology {morph!r}")
+
+
+def population_size_prior(spec: PrecisionSpec, psf_index: int = 0, *,
+                          stamp_size: int = 32) -> SizePrior:  # fmt: skip
+    """The population's own size prior for one PSF (a diagnostic for :func:`precision`).
+
+    Log-uniform in half-light radius over ``spec.size_ratio_range`` times the PSF's
+    half-light radius, as :func:`render_block` draws the sizes. It is exact for the
+    exponential, de Vaucouleurs and Sersic galaxies; the bulge+disc and knotty galaxies
+    draw their disc's half-light radius, so theirs are smaller.
+    """
+    _, psf_hlr = _psf_image(spec.psfs[psf_index], int(stamp_size))
+    lo, hi = np.log(np.asarray(spec.size_ratio_range, dtype=float) * psf_hlr)
+    eps = 1e-4 * (hi - lo)
+    knots = np.concatenate([[lo - eps], np.linspace(lo, hi, 50), [hi + eps]])
+    dens = np.concatenate([[0.0], np.full(50, 1.0 / (hi - lo)), [0.0]])
+    return SizePrior(ln_h=knots, density=dens * (1 - 1e-6), star=1e-6)
 
 
 def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Generator) -> Table:
@@ -743,6 +762,8 @@ def precision(
     prior: Prior | None = None,
     progress: bool = True,
     size_prior_per_psf: bool = True,
+    size_prior: SizePrior | Sequence[SizePrior] | None = None,
+    bulge_weights: Sequence[float] | None = None,
 ) -> Table:
     """Run the paired precision measurement of m and c (see the module docstring).
 
@@ -781,6 +802,13 @@ def precision(
         the PSF's size, so each PSF has its own size distribution in pixels; one prior
         for all of them is too wide for each, and pulls the galaxies of the small PSFs
         larger (m < 0) and those of the large PSFs smaller (m > 0).
+    size_prior : SizePrior or sequence of SizePrior, optional
+        Use this size prior (one for all PSFs, or one per PSF) instead of estimating it
+        (a diagnostic, as ``prior``: :func:`population_size_prior` gives the
+        population's own).
+    bulge_weights : sequence of float, optional
+        Use these weights of the bulge fractions (``config.n_bulge_fractions`` of them,
+        normalised here) instead of estimating them (a diagnostic).
 
     Returns
     -------
@@ -807,8 +835,21 @@ def precision(
     # 1. the priors, from an unsheared calibration sample of the same population: the
     # size prior (with the size_prior setting) from fits with the flat one, then the
     # ellipticity and bulge-fraction priors from fits with the size prior
-    fit_bulge = bulge_prior == "estimated" and cfg.n_bulge_fractions > 1
-    fit_size = cfg.size_prior == "estimated"
+    given_bw = None
+    if bulge_weights is not None:
+        given_bw = np.asarray(bulge_weights, dtype=float)
+        nf = cfg.n_bulge_fractions
+        if given_bw.shape != (nf,) or given_bw.min() < 0 or given_bw.sum() <= 0:
+            raise ValueError(f"bulge_weights needs {nf} non-negative weights "
+                             f"(config.n_bulge_fractions), got {bulge_weights!r}")  # fmt: skip
+        given_bw = given_bw / given_bw.sum()
+    fit_bulge = bulge_prior == "estimated" and cfg.n_bulge_fractions > 1 and given_bw is None
+    given_sp = None
+    if size_prior is not None:
+        given_sp = [size_prior] * npsf if isinstance(size_prior, SizePrior) else list(size_prior)
+        if len(given_sp) != npsf or not all(isinstance(s, SizePrior) for s in given_sp):
+            raise ValueError(f"size_prior needs one SizePrior or one per PSF ({npsf})")
+    fit_size = cfg.size_prior == "estimated" and given_sp is None
     prior_given = prior is not None
     ncb = _n_blocks(spec.ncal, spec.block_size) if (prior is None or fit_bulge or fit_size) else 0
     render_s, fit_s = 0.0, 0.0
@@ -839,16 +880,16 @@ def precision(
         if fit_bulge:
             return prior, estimate_bulge_weights(cal["lnL_bulge"], cal["lnL_star"], prior)
         if prior is None:
-            return estimate_prior(cal["lnL"], egrid, method=cfg.prior_method), None
-        return prior, None
+            return estimate_prior(cal["lnL"], egrid, method=cfg.prior_method), given_bw
+        return prior, given_bw
 
-    size_priors: list = [None] * npsf
+    size_priors: list = [None] * npsf if given_sp is None else given_sp
     cal, egrid = calibrate(size_priors, False, "calibration") if ncb else ({}, None)
     prior0 = prior
     if ncb:
         prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
     else:
-        bulge_weights = None
+        bulge_weights = given_bw
     if fit_size:
         from .models import model_bank
         from .prior import estimate_size_prior
@@ -926,8 +967,9 @@ def precision(
     total = time.perf_counter() - t_start
     out.meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D,
                          "given": prior_given}  # fmt: skip
+    bp_method = bulge_prior if given_bw is None else "given"
     out.meta["bulge_prior"] = {
-        "method": bulge_prior if cfg.n_bulge_fractions > 1 else "none",
+        "method": bp_method if cfg.n_bulge_fractions > 1 else "none",
         "fractions": [float(f) for f in np.linspace(0.0, 1.0, int(cfg.n_bulge_fractions))],
         "weights": None if bulge_weights is None else [float(w) for w in bulge_weights],
     }
@@ -936,6 +978,7 @@ def precision(
          "star": sp.star}
         for k, sp in enumerate(size_priors)]  # fmt: skip
     out.meta["size_prior_per_psf"] = bool(size_prior_per_psf)
+    out.meta["size_prior_given"] = given_sp is not None
     out.meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
     out.meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
     out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
@@ -970,10 +1013,12 @@ def _bulge_line(bp: dict | None) -> str:
             f"{f:g}" for f in bp["fractions"]) + ".\n"
     pairs = ", ".join(f"{f:g}: {w:.3f}" for f, w in zip(bp["fractions"], bp["weights"],
                                                          strict=True))
+    if bp.get("method") == "given":
+        return f"Bulge-fraction prior given: {pairs}.\n"
     return f"Bulge-fraction prior estimated from the calibration sample: {pairs}.\n"
 
 
-def _size_line(sps: list | None, spec: dict) -> str:
+def _size_line(sps: list | None, spec: dict, given: bool = False) -> str:
     if not sps:
         return "Size prior: flat (uniform in half-light radius).\n"
     parts = []
@@ -987,7 +1032,8 @@ def _size_line(sps: list | None, spec: dict) -> str:
     if len(sps) > 1:
         shared = all(o["density"] == sps[0]["density"] for o in sps)
         how = " (one for all PSFs)" if shared else " (one per PSF)"
-    return (f"Size prior estimated from the calibration sample{how}, half-light radius "
+    src = "given" if given else "estimated from the calibration sample"
+    return (f"Size prior {src}{how}, half-light radius "
             f"5 / 50 / 95 %: {'; '.join(parts)}. The population: "
             f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g} PSF half-light "
             "radii, log-uniform.\n")
@@ -1025,7 +1071,7 @@ def write_report(res: Table, path: str | Path) -> None:
         f"D={res.meta['prior']['D']:.3f} (true {tuple(spec['prior_params'])}). "
         f"Largest fixed-point Newton step {res.meta['fp_step']:.1e}.", "",
         _bulge_line(res.meta.get("bulge_prior")),
-        _size_line(res.meta.get("size_prior"), spec),
+        _size_line(res.meta.get("size_prior"), spec, res.meta.get("size_prior_given", False)),
         f"Time {tim['total_s']:.0f} s with {tim['jobs']} job(s): {tim['galaxies_per_s']:.0f} "
         f"galaxies/s ({tim['renderings_per_s']:.0f} renderings/s) in the main pass; CPU "
         f"{tim['render_cpu_s']:.0f} s rendering, {tim['fit_cpu_s']:.0f} s fitting.", "",
