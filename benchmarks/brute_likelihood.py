@@ -38,6 +38,7 @@ from pylensfit.models import model_bank, render_models
 from pylensfit.precision import (
     MORPHOLOGIES,
     bias_table,
+    population_size_prior,
     reduce_renderings,
     render_block,
     shape_controls,
@@ -49,13 +50,8 @@ from pylensfit.prior import Prior, SizePrior
 def true_size_prior(spec, size, stamp_size: int = 32) -> SizePrior:
     """Log-uniform in half-light radius over ``size`` times the PSF's half-light radius
     (the precision population's sizes; also ``exact_model_bias.py --size-prior true``)."""
-    _, _, t0 = render_block(spec, 0, 0, stamp_size=stamp_size, calibration=True, noise=False)
-    psf_hlr = float(t0["r"][0] / t0["size_ratio"][0])
-    lo, hi = np.log(np.asarray(size) * psf_hlr)
-    eps = 1e-4 * (hi - lo)
-    knots = np.concatenate([[lo - eps], np.linspace(lo, hi, 50), [hi + eps]])
-    dens = np.concatenate([[0.0], np.full(50, 1.0 / (hi - lo)), [0.0]])
-    return SizePrior(ln_h=knots, density=dens * (1 - 1e-6), star=1e-6)
+    one = dataclasses.replace(spec, size_ratio_range=tuple(float(v) for v in size))
+    return population_size_prior(one, 0, stamp_size=stamp_size)
 
 
 def amplitude_terms(t, snr, slope):
