@@ -12,6 +12,9 @@ with any of them replaced by the population's own:
   Vaucouleurs and Sersic galaxies, whose half-light radius is the one drawn);
 - ``--bulge-weights W0 W05 W1``: the weights of the bulge fractions 0, 0.5, 1.
 
+``--amplitude-prior snr`` fits with the S/N power-law amplitude prior (``t^-2``, the
+population's own) instead of the uniform one.
+
 The seed fixes the renderings and the noise, so runs that differ only in the priors are
 paired and their difference in m is far better measured than either m. It prints the
 fixed-point rows of the ``all``, PSF, S/N, size and morphology breakdowns::
@@ -44,10 +47,13 @@ def main() -> None:
     ap.add_argument("--true-prior", action="store_true")
     ap.add_argument("--true-size-prior", action="store_true")
     ap.add_argument("--bulge-weights", type=float, nargs=3, default=None, metavar="W")
+    ap.add_argument("--amplitude-prior", choices=["uniform", "snr"], default="uniform",
+                    help="Config.amplitude_prior ('snr': t^-2 in the model's S/N)")
     a = ap.parse_args()
     mw = tuple(a.morphology_weights) if a.morphology_weights else None
     spec = spec_with(ngal=a.ngal, seed=a.seed, morphology_weights=mw)
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated")
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
+                 amplitude_prior=a.amplitude_prior)  # fmt: skip
     prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True))) if a.true_prior else None
     sizes = None
     if a.true_size_prior:
@@ -57,6 +63,7 @@ def main() -> None:
     res = precision(spec, config=cfg, jobs=a.jobs, prior=prior, size_prior=sizes,
                     bulge_weights=a.bulge_weights, progress=False)  # fmt: skip
     print(f"{a.ngal} galaxies, seed {a.seed}, morphology weights {spec.morphology_weights}, "
+          f"amplitude prior {cfg.amplitude_prior}, "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
     p, bp = res.meta["prior"], res.meta["bulge_prior"]
     print(f"ellipticity prior {'given' if p['given'] else 'estimated'}: B, C, D = "
