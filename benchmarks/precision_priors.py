@@ -49,11 +49,14 @@ def main() -> None:
     ap.add_argument("--bulge-weights", type=float, nargs=3, default=None, metavar="W")
     ap.add_argument("--amplitude-prior", choices=["uniform", "snr"], default="uniform",
                     help="Config.amplitude_prior ('snr': t^-2 in the model's S/N)")
+    ap.add_argument("--size-prior-smoothing", type=float, default=Config().size_prior_smoothing,
+                    help="Config.size_prior_smoothing of the estimated size prior")
     a = ap.parse_args()
     mw = tuple(a.morphology_weights) if a.morphology_weights else None
     spec = spec_with(ngal=a.ngal, seed=a.seed, morphology_weights=mw)
     cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
-                 amplitude_prior=a.amplitude_prior)  # fmt: skip
+                 amplitude_prior=a.amplitude_prior,
+                 size_prior_smoothing=a.size_prior_smoothing)  # fmt: skip
     prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True))) if a.true_prior else None
     sizes = None
     if a.true_size_prior:
@@ -63,7 +66,8 @@ def main() -> None:
     res = precision(spec, config=cfg, jobs=a.jobs, prior=prior, size_prior=sizes,
                     bulge_weights=a.bulge_weights, progress=False)  # fmt: skip
     print(f"{a.ngal} galaxies, seed {a.seed}, morphology weights {spec.morphology_weights}, "
-          f"amplitude prior {cfg.amplitude_prior}, "
+          f"amplitude prior {cfg.amplitude_prior}, size prior smoothing "
+          f"{cfg.size_prior_smoothing}, "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
     p, bp = res.meta["prior"], res.meta["bulge_prior"]
     print(f"ellipticity prior {'given' if p['given'] else 'estimated'}: B, C, D = "
