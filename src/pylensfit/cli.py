@@ -144,9 +144,12 @@ def _precision(args: argparse.Namespace) -> int:
         prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
     size_prior = None
     if args.true_size_prior:
+        from .config import Config
         from .precision import population_size_prior
 
-        size_prior = [population_size_prior(spec, k) for k in range(len(spec.psfs))]
+        stamp = (_config(args) if args.config else Config()).stamp_size
+        size_prior = [population_size_prior(spec, k, stamp_size=stamp)
+                      for k in range(len(spec.psfs))]  # fmt: skip
     res = precision(spec, config=_config(args) if args.config else None, jobs=args.jobs,
                     scheduler=args.scheduler, report=report, prior=prior,
                     progress=not args.quiet, size_prior=size_prior,

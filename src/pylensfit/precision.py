@@ -880,7 +880,10 @@ def precision(
         if fit_bulge:
             return prior, estimate_bulge_weights(cal["lnL_bulge"], cal["lnL_star"], prior)
         if prior is None:
-            return estimate_prior(cal["lnL"], egrid, method=cfg.prior_method), given_bw
+            lnL = cal["lnL"]
+            if given_bw is not None and cal["lnL_bulge"] is not None:
+                lnL = mix_bulge_fractions(cal["lnL_bulge"], cal["lnL_star"], given_bw)
+            return estimate_prior(lnL, egrid, method=cfg.prior_method), given_bw
         return prior, given_bw
 
     size_priors: list = [None] * npsf if given_sp is None else given_sp
