@@ -38,13 +38,14 @@ from pylensfit.models import model_bank, render_models
 from pylensfit.precision import (
     MORPHOLOGIES,
     bias_table,
+    population_prior,
     population_size_prior,
     reduce_renderings,
     render_block,
     shape_controls,
     spec_with,
 )
-from pylensfit.prior import Prior, SizePrior
+from pylensfit.prior import SizePrior
 
 
 def true_size_prior(spec, size, stamp_size: int = 32) -> SizePrior:
@@ -87,7 +88,7 @@ def main() -> None:
                      snr_range=tuple(a.snr), psfs=[a.psf], morphology_weights=weights,
                      size_ratio_range=tuple(a.size), offset=0.0)  # fmt: skip
     cfg = Config(model=a.morphology, position_prior_sigma=0.01, e_step=a.e_step)
-    prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
+    prior = population_prior(spec)
     sp = true_size_prior(spec, a.size, cfg.stamp_size)
     bank = model_bank(cfg)
     node_w, w_star = sp.node_weights(bank, cfg)

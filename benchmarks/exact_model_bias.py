@@ -28,12 +28,13 @@ from pylensfit.models import model_bank
 from pylensfit.precision import (
     MORPHOLOGIES,
     bias_table,
+    population_prior,
     reduce_renderings,
     render_block,
     shape_controls,
     spec_with,
 )
-from pylensfit.prior import Prior, estimate_bulge_weights, estimate_size_prior
+from pylensfit.prior import estimate_bulge_weights, estimate_size_prior
 
 
 def main() -> None:
@@ -80,7 +81,7 @@ def main() -> None:
         morphology_weights=weights, size_ratio_range=tuple(a.size),
     )
     cfg = Config(stamp_size=a.stamp, **over)
-    prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
+    prior = population_prior(spec)
     t0 = time.time()
     bw = sp = None
     est_bulge = a.bulge_prior == "estimate" and cfg.n_bulge_fractions > 1

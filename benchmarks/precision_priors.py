@@ -33,8 +33,7 @@ import time
 import numpy as np
 
 from pylensfit import Config
-from pylensfit.precision import population_size_prior, precision, spec_with
-from pylensfit.prior import Prior
+from pylensfit.precision import population_prior, population_size_prior, precision, spec_with
 
 
 def main() -> None:
@@ -57,7 +56,7 @@ def main() -> None:
     cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
                  amplitude_prior=a.amplitude_prior,
                  size_prior_smoothing=a.size_prior_smoothing)  # fmt: skip
-    prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True))) if a.true_prior else None
+    prior = population_prior(spec) if a.true_prior else None
     sizes = None
     if a.true_size_prior:
         sizes = [population_size_prior(spec, k, stamp_size=cfg.stamp_size)

@@ -132,20 +132,15 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _precision(args: argparse.Namespace) -> int:
-    from .precision import precision, spec_with
+    from .precision import population_prior, population_size_prior, precision, spec_with
 
     spec = spec_with(ngal=args.ngal or 200_000, seed=args.seed, psfs=args.psf, g=args.g,
                      ncal=args.ncal, block_size=args.block_size)  # fmt: skip
     report = args.report or "precision/report.md"
-    prior = None
-    if args.true_prior:
-        from .prior import Prior
-
-        prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
+    prior = population_prior(spec) if args.true_prior else None
     size_prior = None
     if args.true_size_prior:
         from .config import Config
-        from .precision import population_size_prior
 
         stamp = (_config(args) if args.config else Config()).stamp_size
         size_prior = [population_size_prior(spec, k, stamp_size=stamp)

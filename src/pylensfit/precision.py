@@ -75,6 +75,7 @@ __all__ = [
     "PrecisionSpec",
     "render_block",
     "precision",
+    "population_prior",
     "population_size_prior",
     "bias_table",
     "shape_controls",
@@ -229,6 +230,12 @@ def _profile(morph: str, r: float, bulge_frac: float, sersic_n: float, n_knots: 
     raise ValueError(f"unknown morphology {morph!r}")
 
 
+def population_prior(spec: PrecisionSpec) -> Prior:
+    """The functional ellipticity prior that the population's intrinsic shapes are drawn
+    from (``spec.prior_params``; a diagnostic for :func:`precision`, as ``prior``)."""
+    return Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
+
+
 def population_size_prior(spec: PrecisionSpec, psf_index: int = 0, *,
                           stamp_size: int = 32) -> SizePrior:  # fmt: skip
     """The population's own size prior for one PSF (a diagnostic for :func:`precision`).
@@ -258,8 +265,7 @@ def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Gene
     else:  # inverse CDF of S^-a on [lo, hi]
         snr = (lo ** (1 - a) + u * (hi ** (1 - a) - lo ** (1 - a))) ** (1 / (1 - a))
     ratio = np.exp(rng.uniform(*np.log(spec.size_ratio_range), n))
-    prior = Prior(**dict(zip("BCD", spec.prior_params, strict=True)))
-    e = draw_shapes(prior, n, rng, spec.max_e)
+    e = draw_shapes(population_prior(spec), n, rng, spec.max_e)
     name = np.asarray(MORPHOLOGIES)[morph]
     bf = np.select([name == "exponential", name == "devaucouleurs", name == "bulge+disc",
                     name == "knots"],
