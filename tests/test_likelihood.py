@@ -6,7 +6,7 @@ import pytest
 
 from conftest import PSFS, N, draw, galsim_model
 from pylensfit import Config, fit_stamps
-from pylensfit._kernels_nb import _narrow_peak_factor
+from pylensfit._kernels_nb import _narrow_peak_factor, _run_peak_factor
 from pylensfit.flags import flag_value
 from pylensfit.likelihood import _CHI, _folded_bank, _interior
 from pylensfit.models import half_light_radius, model_bank, rfft_frequencies
@@ -317,6 +317,56 @@ def test_r_quadrature_exact_for_gaussian_peaks(width):
         assert np.ptp(plain) > 0.05
 
 
+def test_prior_edge_is_not_read_as_a_narrow_peak():
+    """At a size prior's edge ``ln(w L)`` falls by ~9 e-folds (the 1e-4 floor): the
+    parabola through it reads a peak a third of a step wide and would inflate the edge
+    node by ~30%. The factor there comes from ``ln L`` alone."""
+    lw_floor = np.log(1e-4)
+    lm, l0, lp = -0.30, -0.20, -0.25  # a broad likelihood, rising toward small sizes
+    assert _narrow_peak_factor(lm + lw_floor, l0, lp) > 1.2  # the cliff read as a peak
+    kink = lw_floor - 2 * 0.0 + 0.0
+    assert _run_peak_factor(lm + lw_floor, l0, lp, lm, l0, lp, kink) == 1.0
+    # a likelihood narrower than the step that peaks at the edge node keeps its factor
+    nm, n0, np_ = -4.0, 0.0, -3.0
+    f = _run_peak_factor(nm + lw_floor, n0, np_, nm, n0, np_, kink)
+    assert f == _narrow_peak_factor(nm, n0, np_) and f != 1.0
+    # ... and one that peaks below the edge gets none
+    assert _run_peak_factor(0.0 + lw_floor, -2.0, -5.0, 0.0, -2.0, -5.0, kink) == 1.0
+    # a smooth prior: the factor of ln(w L), as before
+    lw = (-3.0, 0.0, -2.5)
+    assert _run_peak_factor(*lw, -3.1, 0.0, -2.4, 0.2) == _narrow_peak_factor(*lw)
+
+
+def test_box_size_prior_edge_moves_l_e_continuously(rng):
+    """A box prior's lower edge swept across one node of the size grid: ``L(e)`` of a
+    faint galaxy changes smoothly (each node's share of the box is its hat's overlap),
+    not in one jump when the edge crosses the node, as with the prior read at the
+    nodes alone."""
+    from pylensfit.prior import SizePrior, _node_sizes
+
+    cfg = Config(model="exponential", e_step=0.2)
+    bank = model_bank(cfg)
+    _, _, h = _node_sizes(bank, cfg)
+    x = np.log(h)
+    j = int(np.searchsorted(x, np.log(1.2)))
+    step = x[j + 1] - x[j]
+    psf = draw(PSFS["moffat_round"])
+    img = draw(galsim.Convolve(galsim_model("exponential", 1.3, 0.2, 0.1),
+                               PSFS["moffat_round"]))  # fmt: skip
+    stamp = img * 15.0 / np.sqrt((img**2).sum()) + rng.normal(size=img.shape)
+    hi = np.log(8.0)
+    got = []
+    for lo in x[j] + step * np.linspace(-0.45, 0.45, 7):
+        kn = np.array([lo - 1e-6, lo, hi, hi + 1e-6])
+        sp = SizePrior(ln_h=kn, density=np.array([0.0, 1.0, 1.0, 0.0]) / (hi - lo))
+        f = fit_stamps(stamp, psf, 1.0, config=cfg, size_prior=sp)
+        got.append(f.lnL[0].astype(float) + f.lnL_peak[0])
+    d = np.abs(np.diff(np.array(got), axis=0)).max(axis=1)  # per 0.15 steps of the edge
+    # even steps: the largest within 1.5x of the mean (a jump puts all in one step)
+    assert d.max() < 1.5 * d.mean(), d
+    assert d.mean() > 1e-4  # the edge does move L(e)
+
+
 def test_marginal_bulge_fraction_is_the_mean_of_fixed_fraction_fits():
     """With n bulge fractions, L(e) = the mean over the fractions of the fixed-fraction L(e),
     each weighted by its half-light radius per unit r (a size prior uniform in half-light
@@ -423,7 +473,9 @@ def test_size_prior_uniform_in_half_light_radius_is_the_flat_sum(rng):
     stamps = np.stack([img * f for f in (300.0, 900.0)]) + rng.normal(size=(2, N, N))
     ref = fit_stamps(stamps, psf, 1.0, config=cfg)
     got = fit_stamps(stamps, psf, 1.0, config=cfg, size_prior=flat)
-    # the knots interpolate h linearly in ln h: exact to ~(0.015^2 / 8) relative
+    # the knots interpolate h linearly in ln h: exact to ~(0.015^2 / 8) relative; each
+    # node reads the prior's mean over its hat in ln h (half-width delta <= 0.095), h_j
+    # (1 + delta^2 / 12): within 8e-4 of h_j
     np.testing.assert_allclose(got.lnL, ref.lnL, atol=1e-3)
     np.testing.assert_allclose(got.lnL_bulge, ref.lnL_bulge, atol=1e-3)
     # a prior concentrated on small sizes pulls the mixture to the compact models

@@ -190,8 +190,31 @@ def _narrow_peak_factor(lm, l0, lp):
     return math.sqrt(2.0 * math.pi * s2) / gsum
 
 
+@njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
+def _run_peak_factor(lwm, lw0, lwp, lm, l0, lp, kink):
+    """:func:`_narrow_peak_factor` at the largest ``ln(w_j L_j)`` of a run of sizes.
+
+    ``lwm, lw0, lwp`` are ``ln(w L)`` at that node and its neighbours, ``lm, l0, lp``
+    ``ln L`` there and ``kink`` the second difference of ``ln w``. Where the prior bends
+    by more than :data:`_PRIOR_KINK` (an edge) the factor comes from ``ln L`` alone, and
+    only if ``L`` itself peaks at the node; else it is 1.
+    """
+    if abs(kink) <= _PRIOR_KINK:
+        return _narrow_peak_factor(lwm, lw0, lwp)
+    if l0 >= lm and l0 >= lp:
+        return _narrow_peak_factor(lm, l0, lp)
+    return 1.0
+
+
 #: below this many e-folds under a galaxy's peak, exp() underflows in double precision
 _UNDERFLOW = 700.0
+
+#: a size prior whose ``ln`` weight bends by more than this between neighbouring nodes
+#: has an edge there (a box, the floor of :meth:`pylensfit.prior.SizePrior.node_weights`):
+#: the narrow-peak factor then comes from ``ln L`` alone (where ``L`` peaks at that
+#: node, else none), since the parabola through ``ln(w L)`` would read the cliff as a
+#: peak narrower than the grid and inflate the edge node's weight (by ~30%)
+_PRIOR_KINK = 1.0
 
 
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
@@ -227,7 +250,7 @@ def laplace_grid(
         The r axis of an e cell is ``n_r // n_sub`` runs of ``n_sub`` increasing radii
         (one per bulge fraction); the sum over r is corrected run by run
         (:func:`_narrow_peak_factor`, applied to ``ln(w_j L_j)``: the trapezoid rule in
-        the grid index).
+        the grid index; to ``ln L_j`` at a prior's edge, ``_PRIOR_KINK``).
     s_m, mxx, mxy, myy : (n_models,) arrays
         ``sum m^2`` and the Hessian of the model autocorrelation per model.
     sigma, x0, y0 : (n_gal,) arrays
@@ -330,7 +353,12 @@ def laplace_grid(
                         rmax = lw
                         km = irr
                 if 0 < km < n_sub - 1:
-                    bacc *= _narrow_peak_factor(lwr[km - 1], lwr[km], lwr[km + 1])
+                    ir = ib * n_sub + km
+                    bacc *= _run_peak_factor(
+                        lwr[km - 1], lwr[km], lwr[km + 1], buf[ie * n_r + ir - 1],
+                        buf[ie * n_r + ir], buf[ie * n_r + ir + 1],
+                        ln_w[ir - 1] - 2.0 * ln_w[ir] + ln_w[ir + 1],
+                    )  # fmt: skip
                 if rmax > best - _UNDERFLOW and bacc > 0.0:
                     out_lnlb[g, ie, ib] = best + math.log(bacc)
                 else:

@@ -1107,6 +1107,47 @@ def _node_sizes(bank, config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return r, r_w, r * np.repeat(unit, bank.n_sizes)
 
 
+def _node_basis(h: np.ndarray, n_sizes: int, knots: np.ndarray) -> np.ndarray:
+    """``(n_nodes, K)``: the mean of each knot's hat function over each node's hat.
+
+    A density ``p`` linear between ``knots`` (0 outside, as :meth:`SizePrior.pdf`) is
+    ``sum_k p_k hat_k``. Node ``j`` of a run of sizes (``n_sizes`` increasing ``h``)
+    reads the prior as its mean ``pbar_j`` over a symmetric hat in ``ln h`` whose
+    half-width is the node's spacing ``(ln h_{j+1} - ln h_{j-1}) / 2`` (one-sided at the
+    run's ends): ``p(h_j)`` to ``delta^2 p'' / 12`` where the prior is smooth, and the
+    share of the node's hat inside where a box's edge cuts between nodes, so that the
+    sum over the grid moves smoothly with the edge instead of in node-sized jumps.
+    Row ``j`` holds ``int hat_k phi_j / int phi_j``; two-point Gauss-Legendre on every
+    interval between the knots and the hat's corners is exact for these products of
+    linear functions.
+    """
+    knots = np.asarray(knots, dtype=float)
+    x = np.log(np.asarray(h, dtype=float))
+    out = np.empty((x.size, knots.size))
+    for s0 in range(0, x.size, n_sizes):
+        c = x[s0 : s0 + n_sizes]
+        if c.size > 1:
+            ext = np.concatenate([[2 * c[0] - c[1]], c, [2 * c[-1] - c[-2]]])
+            d = 0.5 * (ext[2:] - ext[:-2])
+        else:
+            d = np.array([0.05])
+        # every function here is linear between these points
+        b = np.unique(np.concatenate([c - d, c, c + d, knots]))
+        mid, half = 0.5 * (b[1:] + b[:-1]), 0.5 * np.diff(b)
+        t = np.concatenate([mid - half / np.sqrt(3.0), mid + half / np.sqrt(3.0)])
+        wt = np.concatenate([half, half])
+        phi = np.maximum(1.0 - np.abs(t[None] - c[:, None]) / d[:, None], 0.0) * wt
+        # the knots' hats at t: two neighbours each, none outside the knots
+        i = np.clip(np.searchsorted(knots, t) - 1, 0, knots.size - 2)
+        f = (t - knots[i]) / (knots[i + 1] - knots[i])
+        inside = (t >= knots[0]) & (t <= knots[-1])
+        H = np.zeros((t.size, knots.size))
+        H[np.arange(t.size), i] = np.where(inside, 1.0 - f, 0.0)
+        H[np.arange(t.size), i + 1] = np.where(inside, f, 0.0)
+        out[s0 : s0 + c.size] = phi @ H / d[:, None]
+    return out
+
+
 @dataclass(frozen=True)
 class SizePrior:
     """Population prior of the galaxies' half-light radius, and of point sources.
@@ -1172,11 +1213,13 @@ class SizePrior:
         """Weights of the model bank's sizes and of the point source in the sum over r.
 
         Node ``j`` (size ``r_j``, quadrature weight ``w_j``, half-light radius ``h_j``)
-        gets the prior mass ``w_j p(ln h_j) / r_j`` (``d ln h = dr / r``), floored at
-        ``1e-4`` of the largest so that every ``ln L`` stays finite.
+        gets the prior mass ``w_j pbar_j / r_j`` (``d ln h = dr / r``), ``pbar_j`` the
+        prior's average over the node's hat in ``ln h`` (:func:`_node_basis`: ``p(h_j)``
+        where the prior is smooth, the exact share of an edge that cuts between nodes),
+        floored at ``1e-4`` of the largest so that every ``ln L`` stays finite.
         """
         r, r_w, h = _node_sizes(bank, config)
-        w = r_w * self.pdf(h) / r
+        w = r_w * (_node_basis(h, bank.n_sizes, self.ln_h) @ self.density) / r
         w = np.maximum(w, 1e-4 * w.max())
         return w, float(max(self.star, 1e-12))
 
@@ -1237,13 +1280,7 @@ def estimate_size_prior(
     pi = np.full(n_b, 1.0 / n_b) if bulge_weights is None else np.asarray(bulge_weights, float)
     lo, hi = np.log(h.min()) - knot_step, np.log(h.max()) + knot_step
     knots = np.arange(lo, hi + knot_step, knot_step)
-    # hat basis of the knots at the nodes: B[j, b]
-    x = (np.log(h) - knots[0]) / knot_step
-    i0 = np.clip(np.floor(x).astype(int), 0, knots.size - 2)
-    f = x - i0
-    B = np.zeros((n_r, knots.size))
-    B[np.arange(n_r), i0] = 1.0 - f
-    B[np.arange(n_r), i0 + 1] = f
+    B = _node_basis(h, bank.n_sizes, knots)  # each knot's share of each node: B[j, k]
     M = (np.repeat(pi, bank.n_sizes) * r_w / r)[:, None] * B  # node mass per knot value
     top = L.max(axis=1, keepdims=True)
     E = np.exp(L - top)
