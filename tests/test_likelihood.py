@@ -324,7 +324,7 @@ def test_prior_edge_is_not_read_as_a_narrow_peak():
     lw_floor = np.log(1e-4)
     lm, l0, lp = -0.30, -0.20, -0.25  # a broad likelihood, rising toward small sizes
     assert _narrow_peak_factor(lm + lw_floor, l0, lp) > 1.2  # the cliff read as a peak
-    kink = lw_floor - 2 * 0.0 + 0.0
+    kink = lw_floor  # second difference of ln w over the floor, 0, 0 at the three nodes
     assert _run_peak_factor(lm + lw_floor, l0, lp, lm, l0, lp, kink) == 1.0
     # a likelihood narrower than the step that peaks at the edge node keeps its factor
     nm, n0, np_ = -4.0, 0.0, -3.0

@@ -1113,10 +1113,11 @@ def _node_basis(h: np.ndarray, n_sizes: int, knots: np.ndarray) -> np.ndarray:
     A density ``p`` linear between ``knots`` (0 outside, as :meth:`SizePrior.pdf`) is
     ``sum_k p_k hat_k``. Node ``j`` of a run of sizes (``n_sizes`` increasing ``h``)
     reads the prior as its mean ``pbar_j`` over a symmetric hat in ``ln h`` whose
-    half-width is the node's spacing ``(ln h_{j+1} - ln h_{j-1}) / 2`` (one-sided at the
-    run's ends): ``p(h_j)`` to ``delta^2 p'' / 12`` where the prior is smooth, and the
-    share of the node's hat inside where a box's edge cuts between nodes, so that the
-    sum over the grid moves smoothly with the edge instead of in node-sized jumps.
+    half-width is the node's spacing ``(ln h_{j+1} - ln h_{j-1}) / 2`` (the neighbour's
+    spacing mirrored at the run's ends): ``p(h_j)`` to ``delta^2 p'' / 12`` where the
+    prior is smooth, and the share of the node's hat inside where a box's edge cuts
+    between nodes, so that the sum over the grid moves smoothly with the edge instead of
+    in node-sized jumps.
     Row ``j`` holds ``int hat_k phi_j / int phi_j``; two-point Gauss-Legendre on every
     interval between the knots and the hat's corners is exact for these products of
     linear functions.
