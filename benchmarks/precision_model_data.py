@@ -53,21 +53,7 @@ def render_block_model(spec, psf_index, block, *, stamp_size=32, calibration=Fal
         img = render_models(_CANVAS, psf_img, c + np.asarray(t["dx"]), c + np.asarray(t["dy"]),
                             e.real, e.imag, scale, np.ones(n), model="exponential")  # fmt: skip
         out[:, k] = img[:, c - h : c + h, c - h : c + h]
-    sig = spec.noise_sigma
-    flux = np.asarray(t["snr"]) * sig / np.sqrt((out[:, 0].astype(float) ** 2).sum(axis=(1, 2)))
-    out *= flux[:, None, None, None].astype(np.float32)
-    t["flux"] = flux
-    if noise:
-        nrng = np.random.default_rng([spec.seed, int(calibration), block, 1])
-        if calibration:
-            out += nrng.normal(scale=sig, size=out.shape).astype(np.float32)
-        else:
-            na = nrng.normal(scale=sig, size=(n, n_stamp, n_stamp)).astype(np.float32)
-            nb = nrng.normal(scale=sig, size=(n, n_stamp, n_stamp)).astype(np.float32)
-            out[:, 0] += na
-            out[:, 2] += na
-            out[:, 1] += nb
-            out[:, 3] += nb
+    PR._flux_and_noise(out, t, spec, block, calibration=calibration, noise=noise)
     return out, psf_img, t
 
 

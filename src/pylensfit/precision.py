@@ -335,13 +335,11 @@ def render_block(
     rng = np.random.default_rng([spec.seed, int(calibration), block])
     t = _population(spec, n, psf_hlr, rng)
     psf = _galsim_psf(p)
-    sig = spec.noise_sigma
     if calibration:
         shears = [(0.0, False)]
     else:
         shears = [(+spec.g, False), (+spec.g, True), (-spec.g, False), (-spec.g, True)]
     out = np.empty((n, len(shears), n_stamp, n_stamp), dtype=np.float32)
-    flux = np.empty(n)
     for a in range(n):  # GalSim renders one profile at a time
         gal = _profile(MORPHOLOGIES[t["morph"][a]], float(t["r"][a]), float(t["bulge_frac"][a]),
                        float(t["sersic_n"][a]), int(t["n_knots"][a]), float(t["knot_frac"][a]),
@@ -351,7 +349,19 @@ def render_block(
         for k, (g, rot) in enumerate(shears):
             obj = gal.rotate(90 * galsim.degrees) if rot else gal
             out[a, k] = _draw(galsim.Convolve(obj.shear(g1=g, g2=g), psf), n_stamp, off)
-        flux[a] = t["snr"][a] * sig / math.sqrt(float(np.sum(out[a, 0].astype(float) ** 2)))
+    _flux_and_noise(out, t, spec, block, calibration=calibration, noise=noise)
+    return out, psf_img, t
+
+
+def _flux_and_noise(out: np.ndarray, t: Table, spec: PrecisionSpec, block: int, *,
+                    calibration: bool, noise: bool) -> None:  # fmt: skip
+    """Scale unit-flux renderings ``out`` (``(n, 1 or 4, N, N)``) in place to each galaxy's
+    S/N (that of its first rendering, ``t["snr"]``; ``t["flux"]`` records the flux) and
+    add the block's noise, the same field at +g and -g."""
+    sig = spec.noise_sigma
+    n, _, n_stamp, _ = out.shape
+    flux = np.array([t["snr"][a] * sig / math.sqrt(float(np.sum(out[a, 0].astype(float) ** 2)))
+                     for a in range(n)])  # fmt: skip
     out *= flux[:, None, None, None].astype(np.float32)
     t["flux"] = flux
     if noise:
@@ -365,7 +375,6 @@ def render_block(
             out[:, 2] += na  # the same noise at +g and -g
             out[:, 1] += nb
             out[:, 3] += nb
-    return out, psf_img, t
 
 
 def _n_blocks(n: int, size: int) -> int:
