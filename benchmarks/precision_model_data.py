@@ -64,13 +64,14 @@ def main() -> None:
     ap.add_argument("--centred", action="store_true", help="no sub-pixel offsets")
     ap.add_argument("--pinned", action="store_true",
                     help="position prior of 0.01 px about the catalogue position")
-    ap.add_argument("--amplitude-prior", choices=["uniform", "snr"], default="uniform")
+    ap.add_argument("--amplitude-prior", choices=["uniform", "snr", "flux"], default="uniform")
+    ap.add_argument("--position-prior-sigma", type=float, default=None)
     ap.add_argument("--e-step", type=float, default=Config().e_step)
     a = ap.parse_args()
     spec = PR.spec_with(ngal=a.ngal, seed=a.seed, morphology_weights=(1, 0, 0, 0, 0))
     if a.centred:
         spec = dataclasses.replace(spec, offset=0.0)
-    pps = 0.01 if a.pinned else Config().position_prior_sigma
+    pps = 0.01 if a.pinned else (a.position_prior_sigma or Config().position_prior_sigma)
     cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
                  amplitude_prior=a.amplitude_prior, e_step=a.e_step,
                  position_prior_sigma=pps)  # fmt: skip

@@ -30,7 +30,7 @@ def _model_images(cfg, cols, P, centres):
     return np.fft.irfft2(G[:, None] * P[None, None] * phase[None], s=(N, N))
 
 
-def brute_force_lnL(cfg, d, sigma, psf_img, x0, cells, amp_pow=None):
+def brute_force_lnL(cfg, d, sigma, psf_img, x0, cells, amp_pow=None, amp_flux=False):
     """ln L(e) of grid cells ``cells`` by direct numerical marginalisation.
 
     For every model: chi-square in real space on a fine grid of sub-pixel positions,
@@ -38,7 +38,8 @@ def brute_force_lnL(cfg, d, sigma, psf_img, x0, cells, amp_pow=None):
     prior about ``x0``, integrated over position by the trapezoid rule; then summed over
     r (the point source included) with weight dr. With ``amp_pow = beta`` the amplitude
     prior is ``t^-beta dt/dA`` in the model's S/N ``t = A sqrt(sum m^2) / sigma``, for
-    ``t >= 1``.
+    ``t >= 1``; with ``amp_flux`` too, it is ``A^-beta`` in the amplitude itself (for the
+    same ``t >= 1``).
     """
     bank = model_bank(cfg)
     P = psf_transform(psf_img, N)
@@ -78,7 +79,9 @@ def brute_force_lnL(cfg, d, sigma, psf_img, x0, cells, amp_pow=None):
         u = np.linspace(0.0, 1.0, 201)
         amp = lo[..., None] + (np.maximum(a_hat, lo) + 10 * w - lo)[..., None] * u
         chi = (ss[..., None] * amp**2 - 2 * hh[..., None] * amp) / (2 * sigma**2)
-        if amp_pow is not None:  # -ln of the prior density in A
+        if amp_pow is not None and amp_flux:  # -ln of the prior density in A
+            chi = chi + amp_pow * np.log(amp)
+        elif amp_pow is not None:
             t = amp / w[..., None]
             chi = chi + amp_pow * np.log(t) + np.log(w)[..., None]
         cmin = chi.min(axis=-1, keepdims=True)
@@ -149,6 +152,14 @@ def test_laplace_matches_brute_force(snr, offset, e_step):
         if snr == 10:  # where it differs from the uniform prior by more than that (the
             # uniform prior weights every model by 1 / sqrt(sum m^2))
             assert np.max(np.abs((bs - bs[ref]) - db)[region]) > 0.1
+        # the power law in the flux, the same for every model
+        cf = cs.replace(amplitude_prior="flux")
+        ef = fit_stamps(d, psf_img, sigma, config=cf).lnL[0].astype(float)
+        bf = brute_force_lnL(cf, d, sigma, psf_img, x0, cells, amp_pow=2.0, amp_flux=True)
+        err = np.abs((ef - ef[ref]) - (bf - bf[ref]))[region]
+        assert err.max() < 0.05, f"flux prior: max |d lnL| = {err.max():.3f} at S/N {snr}"
+        if snr == 10:  # it differs from the S/N power law by sqrt(sum m^2) per model
+            assert np.max(np.abs((bf - bf[ref]) - (bs - bs[ref]))[region]) > 0.1
     # the float32 default agrees with float64 to well within that tolerance: its rounding
     # is a fixed fraction of ln L's range, S/N^2 / 2 (measured 0.0005 at S/N 30, 0.012 at
     # 200: ~6e-7 of it)

@@ -66,7 +66,7 @@ def _amplitude_terms(t):
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
 def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sqs, lns,
-                 mxx, mxy, myy, sig, x0, y0, b2, max_step2, amp_pow):  # fmt: skip
+                 mxx, mxy, myy, sig, x0, y0, b2, max_step2, amp_pow, amp_lns):  # fmt: skip
     """ln L of one model, marginalised over amplitude (> 0) and position (Laplace).
 
     ``s``, ``sqs``, ``lns`` are ``S = sum m^2``, its square root and its log. With
@@ -74,7 +74,9 @@ def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sq
     0.5 ln S`` for the model's S/N ``t = h / (sigma sqrt S)``. With ``amp_pow = beta >=
     0`` it is a power law in the model's S/N, ``p(A | model) ~ t^-beta dt/dA``: the
     amplitude integral is ``0.5 t^2 - beta ln t`` (its peak value times its width, the
-    ``sqrt S`` of the width cancelling that of ``dt/dA``; ``t`` floored at 1). With
+    ``sqrt S`` of the width cancelling that of ``dt/dA``; ``t`` floored at 1), plus
+    ``amp_lns * 0.5 ln S``: ``amp_lns = beta - 1`` makes it a power law ``A^-beta`` in
+    the amplitude (the flux) itself, the same for every model. With
     ``cubic``, the third derivatives ``t...`` of ``h`` refine the peak (two Newton steps
     on the cubic expansion) and give the Hessian at the peak rather than at the origin.
     Returns ``(ln L, h*, X*, Y*)``. See :func:`pylensfit.likelihood.fit_stamps`.
@@ -141,7 +143,7 @@ def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sq
         val -= 0.5 * lns
     else:
         tt = max(t, 1.0)
-        val = 0.5 * t * t - amp_pow * math.log(tt)
+        val = 0.5 * t * t - amp_pow * math.log(tt) + 0.5 * amp_lns * lns
         dl = t - amp_pow / tt if t > 1.0 else t
     dl = -dl * iss
     # Fisher matrix of position, F = -(dl/dh) Hess h, and M = I + b^2 F
@@ -220,7 +222,7 @@ _PRIOR_KINK = 1.0
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
     prod, members, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step,
-    node_w, w_star, ln_pi, e_w, amp_pow, cubic, out_lnle, out_lnlb, out_lnlr, out_best, out_h,
+    node_w, w_star, ln_pi, e_w, amp_pow, amp_lns, cubic, out_lnle, out_lnlb, out_lnlr, out_best, out_h,
     out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
@@ -269,6 +271,9 @@ def laplace_grid(
     amp_pow : float
         The amplitude prior (:func:`_laplace_lnl`): uniform if negative, else the power
         of a power law in the model's S/N.
+    amp_lns : float
+        Coefficient of ``0.5 ln S`` added to a power-law amplitude prior: 0 for a power
+        law in the model's S/N, ``amp_pow - 1`` for one in the flux.
     e_w : (n_e,) array
         Weights of the e cells (summing to 1) in ``L(r) = sum_e e_w L(e, r)``: an
         ellipticity prior's mass per cell.
@@ -320,7 +325,7 @@ def laplace_grid(
                     vals[hm, 0], vals[hm, 1], vals[hm, 2], vals[hm, 3], vals[hm, 4],
                     vals[hm, 5], vals[hm, 6], vals[hm, 7], vals[hm, 8], vals[hm, 9], cubic,
                     s_m[j], sq_m[j], ln_m[j], mxx[j], mxy[j], myy[j], sig, gx0, gy0, b2,
-                    max_step2, amp_pow,
+                    max_step2, amp_pow, amp_lns,
                 )  # fmt: skip
                 buf[j] = l
                 if l > best:

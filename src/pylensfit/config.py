@@ -93,7 +93,9 @@ class Config:
         "uniform",
         "prior of the model amplitude: 'uniform' (the paper's; positive amplitudes) or "
         "'snr' (a power law t^-amplitude_prior_power in the model's S/N t, which does "
-        "not weight models by their sum m^2 as the uniform prior does)",
+        "not weight models by their sum m^2 as the uniform prior does) or 'flux' (a power "
+        "law A^-amplitude_prior_power in the amplitude itself, the same for every model: "
+        "galaxy counts in flux)",
     )
     amplitude_prior_power: float = _f(
         2.0, "power of the 'snr' amplitude prior (dN/dS ~ S^-power; 1: scale-invariant)"
@@ -282,8 +284,8 @@ def _validate(c: Config) -> None:
     need(c.bulge_prior in ("estimated", "uniform"),
          f"bulge_prior must be 'estimated' or 'uniform', got {c.bulge_prior!r}")
     need(c.position_prior_sigma > 0, "position_prior_sigma must be > 0")
-    need(c.amplitude_prior in ("uniform", "snr"),
-         f"amplitude_prior must be 'uniform' or 'snr', got {c.amplitude_prior!r}")
+    need(c.amplitude_prior in ("uniform", "snr", "flux"),
+         f"amplitude_prior must be 'uniform', 'snr' or 'flux', got {c.amplitude_prior!r}")
     need(c.amplitude_prior_power >= 0, "amplitude_prior_power must be >= 0")
     need(0 < c.size_prior_smoothing < 0.5, "size_prior_smoothing must be in (0, 0.5)")
     need(c.max_offset >= 0, "max_offset must be >= 0")
