@@ -87,11 +87,11 @@ def hsm_m_c(e: np.ndarray, blocks: np.ndarray, g: float) -> tuple[np.ndarray, np
 def main() -> None:
     from threadpoolctl import threadpool_limits
 
-    from pylensfit import Config
     from pylensfit.likelihood import fit_stamps
     from pylensfit.precision import (
         _usable,
         bias_table,
+        default_config,
         reduce_renderings,
         render_block,
         spec_with,
@@ -112,7 +112,7 @@ def main() -> None:
     npsf = len(base.psfs)
     bs = 50
     spec = spec_with(base, ngal=a.ngal * npsf, block_size=bs, ncal=a.ncal)
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3)  # the precision mode's default
+    cfg = default_config(spec).replace(size_prior="flat")  # the precision mode's, flat sizes
     print(f"precision population: {a.ngal} galaxies x 4 renderings per PSF, {npsf} PSFs, "
           f"model {cfg.model}, one process, one thread")  # fmt: skip
     # calibration sample and prior (not timed against the peer)

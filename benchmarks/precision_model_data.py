@@ -53,7 +53,8 @@ def render_block_model(spec, psf_index, block, *, stamp_size=32, calibration=Fal
         img = render_models(_CANVAS, psf_img, c + np.asarray(t["dx"]), c + np.asarray(t["dy"]),
                             e.real, e.imag, scale, np.ones(n), model="exponential")  # fmt: skip
         out[:, k] = img[:, c - h : c + h, c - h : c + h]
-    PR._flux_and_noise(out, t, spec, block, calibration=calibration, noise=noise)
+    PR._flux_and_noise(out, t, spec, block, PR.reference_norm(spec, psf_index, n_stamp),
+                       calibration=calibration, noise=noise)  # fmt: skip
     return out, psf_img, t
 
 
@@ -64,17 +65,16 @@ def main() -> None:
     ap.add_argument("--centred", action="store_true", help="no sub-pixel offsets")
     ap.add_argument("--pinned", action="store_true",
                     help="position prior of 0.01 px about the catalogue position")
-    ap.add_argument("--amplitude-prior", choices=["uniform", "snr", "flux"], default="uniform")
+    ap.add_argument("--amplitude-prior", choices=["uniform", "snr", "flux"], default="flux")
     ap.add_argument("--position-prior-sigma", type=float, default=None)
     ap.add_argument("--e-step", type=float, default=Config().e_step)
     a = ap.parse_args()
     spec = PR.spec_with(ngal=a.ngal, seed=a.seed, morphology_weights=(1, 0, 0, 0, 0))
     if a.centred:
         spec = dataclasses.replace(spec, offset=0.0)
-    pps = 0.01 if a.pinned else (a.position_prior_sigma or Config().position_prior_sigma)
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
-                 amplitude_prior=a.amplitude_prior, e_step=a.e_step,
-                 position_prior_sigma=pps)  # fmt: skip
+    cfg = PR.default_config(spec).replace(amplitude_prior=a.amplitude_prior, e_step=a.e_step)
+    if a.pinned or a.position_prior_sigma is not None:
+        cfg = cfg.replace(position_prior_sigma=0.01 if a.pinned else a.position_prior_sigma)
     PR.render_block = render_block_model
     t0 = time.time()
     res = PR.precision(spec, config=cfg, jobs=1, progress=False,
@@ -87,7 +87,8 @@ def main() -> None:
     for col in ("m1", "m1_err", "m2", "m2_err", "c1", "c2"):
         sel[col].format = "+.4f"
     print(f"{a.ngal} galaxies rendered by render_models, seed {a.seed}, centred {a.centred}, "
-          f"pinned {a.pinned}, amplitude prior {a.amplitude_prior}, e_step {a.e_step}, "
+          f"pinned {a.pinned}, amplitude prior {a.amplitude_prior}, position prior "
+          f"{cfg.position_prior_sigma:.3g} px, e_step {a.e_step}, "
           f"{time.time() - t0:.0f} s")  # fmt: skip
     sel["breakdown", "group", "n_gal", "m1", "m1_err", "m2", "m2_err", "c1", "c2"].pprint_all()
 

@@ -12,8 +12,10 @@ with any of them replaced by the population's own:
   Vaucouleurs and Sersic galaxies, whose half-light radius is the one drawn);
 - ``--bulge-weights W0 W05 W1``: the weights of the bulge fractions 0, 0.5, 1.
 
-``--amplitude-prior snr`` fits with the S/N power-law amplitude prior (``t^-2``, the
-population's own) instead of the uniform one.
+The amplitude and position priors are the precision mode's
+(:func:`pylensfit.precision.default_config`: the flux's power law, the catalogue
+positions' scatter) unless ``--amplitude-prior uniform|snr`` (the paper's uniform prior;
+``t^-2`` in each model's S/N) or ``--position-prior-sigma`` say otherwise.
 
 The seed fixes the renderings and the noise, so runs that differ only in the priors are
 paired and their difference in m is far better measured than either m. It prints the
@@ -33,7 +35,13 @@ import time
 import numpy as np
 
 from pylensfit import Config
-from pylensfit.precision import population_prior, population_size_prior, precision, spec_with
+from pylensfit.precision import (
+    default_config,
+    population_prior,
+    population_size_prior,
+    precision,
+    spec_with,
+)
 
 
 def main() -> None:
@@ -46,16 +54,19 @@ def main() -> None:
     ap.add_argument("--true-prior", action="store_true")
     ap.add_argument("--true-size-prior", action="store_true")
     ap.add_argument("--bulge-weights", type=float, nargs=3, default=None, metavar="W")
-    ap.add_argument("--amplitude-prior", choices=["uniform", "snr"], default="uniform",
+    ap.add_argument("--amplitude-prior", choices=["uniform", "snr", "flux"], default="flux",
                     help="Config.amplitude_prior ('snr': t^-2 in the model's S/N)")
+    ap.add_argument("--position-prior-sigma", type=float, default=None,
+                    help="Config.position_prior_sigma (default: offset / sqrt(3))")
     ap.add_argument("--size-prior-smoothing", type=float, default=Config().size_prior_smoothing,
                     help="Config.size_prior_smoothing of the estimated size prior")
     a = ap.parse_args()
     mw = tuple(a.morphology_weights) if a.morphology_weights else None
     spec = spec_with(ngal=a.ngal, seed=a.seed, morphology_weights=mw)
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
-                 amplitude_prior=a.amplitude_prior,
-                 size_prior_smoothing=a.size_prior_smoothing)  # fmt: skip
+    cfg = default_config(spec).replace(amplitude_prior=a.amplitude_prior,
+                                       size_prior_smoothing=a.size_prior_smoothing)  # fmt: skip
+    if a.position_prior_sigma is not None:
+        cfg = cfg.replace(position_prior_sigma=a.position_prior_sigma)
     prior = population_prior(spec) if a.true_prior else None
     sizes = None
     if a.true_size_prior:
@@ -65,7 +76,8 @@ def main() -> None:
     res = precision(spec, config=cfg, jobs=a.jobs, prior=prior, size_prior=sizes,
                     bulge_weights=a.bulge_weights, progress=False)  # fmt: skip
     print(f"{a.ngal} galaxies, seed {a.seed}, morphology weights {spec.morphology_weights}, "
-          f"amplitude prior {cfg.amplitude_prior}, size prior smoothing "
+          f"amplitude prior {cfg.amplitude_prior}, position prior "
+          f"{cfg.position_prior_sigma:.3g} px, size prior smoothing "
           f"{cfg.size_prior_smoothing}, "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
     p, bp = res.meta["prior"], res.meta["bulge_prior"]

@@ -14,6 +14,7 @@ from pylensfit.precision import (
     bias_table,
     precision,
     reduce_likelihoods,
+    reference_norm,
     render_block,
     shape_controls,
     spec_with,
@@ -38,10 +39,26 @@ def test_renderings_share_noise_and_are_reproducible():
     np.testing.assert_allclose(n[:, 0], n[:, 2], atol=1e-4)
     np.testing.assert_allclose(n[:, 1], n[:, 3], atol=1e-4)
     assert np.std(n[:, 0] - n[:, 1]) > 1.0  # independent unit-variance fields
-    # the shear changes the galaxy; S/N of the +g rendering is the drawn one
+    # the shear changes the galaxy; the truth's S/N is that of the +g rendering
     assert np.all(np.abs(clean[:, 0] - clean[:, 2]).max(axis=(1, 2)) > 0)
     snr = np.sqrt((clean[:, 0].astype(float) ** 2).sum(axis=(1, 2))) / spec.noise_sigma
     np.testing.assert_allclose(snr, truth["snr"], rtol=1e-5)
+    # the flux is the galaxy's own, whatever its shape, size and shear: every rendering
+    # holds it (less what the 32-pixel stamp cuts off: 3% of a large de Vaucouleurs
+    # galaxy's), and it is the drawn reference S/N over the PSF's reference norm, one
+    # constant for all galaxies
+    frac = clean.astype(float).sum(axis=(2, 3)) / np.asarray(truth["flux"])[:, None]
+    assert frac.max() < 1.0005 and frac.min() > 0.95 and np.median(frac) > 0.995
+    np.testing.assert_allclose(frac, np.repeat(frac[:, :1], 4, axis=1), rtol=2e-3)
+    np.testing.assert_allclose(truth["flux"] * reference_norm(spec, 1) / spec.noise_sigma,
+                               truth["snr_ref"], rtol=1e-9)  # fmt: skip
+    # so the S/N differs from the reference S/N by the galaxy's size and shape
+    ratio = np.asarray(truth["snr"]) / np.asarray(truth["snr_ref"])
+    assert ratio.max() / ratio.min() > 1.3
+    small = np.asarray(truth["size_ratio"]) < 0.8
+    big = np.asarray(truth["size_ratio"]) > 1.6
+    if small.any() and big.any():
+        assert ratio[small].min() > ratio[big].max()
     assert abs(psf.sum() - 1) < 1e-6
     # the calibration sample is unsheared, one rendering per galaxy, other galaxies
     cal, _, ct = render_block(spec, 1, 2, calibration=True)

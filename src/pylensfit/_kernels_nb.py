@@ -222,8 +222,8 @@ _PRIOR_KINK = 1.0
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
     prod, members, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step,
-    node_w, w_star, ln_pi, e_w, amp_pow, amp_lns, cubic, out_lnle, out_lnlb, out_lnlr, out_best, out_h,
-    out_x, out_y,
+    node_w, w_star, ln_pi, e_w, amp_pow, amp_lns, cubic, out_lnle, out_lnlb, out_lnlr, out_best,
+    out_h, out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 

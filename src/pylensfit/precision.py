@@ -75,6 +75,8 @@ __all__ = [
     "PrecisionSpec",
     "render_block",
     "precision",
+    "default_config",
+    "reference_norm",
     "population_prior",
     "population_size_prior",
     "bias_table",
@@ -116,9 +118,19 @@ class PrecisionSpec:
     psfs : tuple of dict
         PSFs (see :data:`PRECISION_PSFS`); galaxies are shared out among them by block.
     snr_range : tuple of float
-        S/N range, ``sqrt(sum I^2) / sigma`` of the noise-free rendering at ``+g``.
+        Flux range, in units of the S/N (``sqrt(sum I^2) / sigma``) that a round
+        exponential of the population's median size (``sqrt`` of the product of
+        ``size_ratio_range`` times the PSF's half-light radius) has under the galaxy's
+        PSF. The flux is a property of the galaxy alone, as in the sky: it does not
+        depend on the galaxy's shape, size or shear, so a galaxy's own S/N (column
+        ``snr`` of the truth, that of its rendering at ``+g``) is higher for small and
+        round galaxies, lower for large and elongated ones (about 5-300 for the
+        defaults). Earlier versions scaled each galaxy to a drawn S/N of its ``+g``
+        rendering, which made the flux of all four renderings follow the ``+g`` shape;
+        a prior that knows the flux distribution then misreads the ``-g`` and rotated
+        renderings, and m moved by -0.004 to -0.02.
     snr_slope : float
-        ``dN/dS ~ S^-snr_slope`` (2: the faint end of galaxy counts dominates).
+        ``dN/dF ~ F^-snr_slope`` in flux (2: the faint end of galaxy counts dominates).
     size_ratio_range : tuple of float
         Half-light radius over the PSF's half-light radius, log-uniform (the bulge+disc
         and knotty galaxies use their disc's half-light radius).
@@ -272,7 +284,7 @@ def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Gene
                    [0.0, 1.0, rng.uniform(0, 1, n), rng.uniform(0, 0.3, n)], np.nan)  # fmt: skip
     t = Table()
     t["morph"] = morph.astype(np.int16)
-    t["snr"] = snr
+    t["snr_ref"] = snr
     t["size_ratio"] = ratio
     t["r"] = ratio * psf_hlr
     t["e1_int"], t["e2_int"] = e[:, 0], e[:, 1]
@@ -349,21 +361,38 @@ def render_block(
         for k, (g, rot) in enumerate(shears):
             obj = gal.rotate(90 * galsim.degrees) if rot else gal
             out[a, k] = _draw(galsim.Convolve(obj.shear(g1=g, g2=g), psf), n_stamp, off)
-    _flux_and_noise(out, t, spec, block, calibration=calibration, noise=noise)
+    _flux_and_noise(out, t, spec, block, reference_norm(spec, psf_index, n_stamp),
+                    calibration=calibration, noise=noise)  # fmt: skip
     return out, psf_img, t
 
 
-def _flux_and_noise(out: np.ndarray, t: Table, spec: PrecisionSpec, block: int, *,
-                    calibration: bool, noise: bool) -> None:  # fmt: skip
+def reference_norm(spec: PrecisionSpec, psf_index: int, stamp_size: int = 32) -> float:
+    """``sqrt(sum I^2)`` of a unit-flux round exponential of the population's median size
+    (``sqrt`` of the product of ``spec.size_ratio_range`` times the PSF's half-light
+    radius) under PSF ``psf_index``: a flux ``F`` has the reference S/N ``F *
+    reference_norm / noise_sigma`` (see :class:`PrecisionSpec`, ``snr_range``)."""
+    import galsim
+
+    p = spec.psfs[psf_index]
+    _, psf_hlr = _psf_image(p, int(stamp_size))
+    r_ref = math.sqrt(spec.size_ratio_range[0] * spec.size_ratio_range[1]) * psf_hlr
+    img = _draw(galsim.Convolve(galsim.Exponential(half_light_radius=r_ref), _galsim_psf(p)),
+                int(stamp_size))  # fmt: skip
+    return math.sqrt(float(np.sum(img.astype(float) ** 2)))
+
+
+def _flux_and_noise(out: np.ndarray, t: Table, spec: PrecisionSpec, block: int, ref: float,
+                    *, calibration: bool, noise: bool) -> None:  # fmt: skip
     """Scale unit-flux renderings ``out`` (``(n, 1 or 4, N, N)``) in place to each galaxy's
-    S/N (that of its first rendering, ``t["snr"]``; ``t["flux"]`` records the flux) and
-    add the block's noise, the same field at +g and -g."""
+    flux, ``t["snr_ref"] * noise_sigma / ref`` for the PSF's :func:`reference_norm`
+    ``ref`` (``t["flux"]`` records it, ``t["snr"]`` becomes the S/N of the first
+    rendering), and add the block's noise, the same field at +g and -g."""
     sig = spec.noise_sigma
     n, _, n_stamp, _ = out.shape
-    flux = np.array([t["snr"][a] * sig / math.sqrt(float(np.sum(out[a, 0].astype(float) ** 2)))
-                     for a in range(n)])  # fmt: skip
+    flux = np.asarray(t["snr_ref"], dtype=float) * sig / ref
     out *= flux[:, None, None, None].astype(np.float32)
     t["flux"] = flux
+    t["snr"] = np.sqrt(np.sum(out[:, 0].astype(float) ** 2, axis=(1, 2))) / sig
     if noise:
         nrng = np.random.default_rng([spec.seed, int(calibration), block, 1])
         if calibration:
@@ -742,7 +771,7 @@ def shape_controls(e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
 # The run
 # ----------------------------------------------------------------------------------------
 #: Bin edges of the breakdowns (true S/N, size over PSF size, bulge fraction).
-SNR_EDGES = (10.0, 12.5, 15.0, 20.0, 30.0, 50.0, 100.0, 200.0)
+SNR_EDGES = (5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 30.0, 50.0, 100.0, 200.0, 400.0)
 SIZE_EDGES = (0.5, 0.7, 1.0, 1.4, 2.0, 2.5)
 BULGE_EDGES = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 
@@ -765,6 +794,25 @@ def _breakdowns(gal: Table, psfs: tuple[dict, ...]) -> dict[str, dict[str, np.nd
         "morphology": {m: morph == i for i, m in enumerate(MORPHOLOGIES)},
         "bulge_frac": binned("bulge_frac", BULGE_EDGES),
     }
+
+
+def default_config(spec: PrecisionSpec) -> Config:
+    """The configuration :func:`precision` fits with unless given one.
+
+    The bulge+disc model with three bulge fractions and the size prior estimated from
+    the calibration sample; the amplitude and position priors are those that the
+    simulation draws from, as an analysis takes them from its catalogue: the flux's power
+    law (``amplitude_prior="flux"``, the power ``spec.snr_slope``, the slope of the
+    number counts) and the catalogue positions' scatter about the true centres (the
+    standard deviation ``offset / sqrt(3)`` of the uniform offsets; 0.01 px if centred).
+    With the paper's uniform amplitude prior and a 2-pixel position prior instead, each
+    model's likelihood carries ``1 / sqrt(sum m^2)`` and the inverse square root of its
+    position Fisher matrix, which favour elongated models at the faint end
+    (``benchmarks/README.md``, thirteenth session).
+    """
+    return Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
+                  amplitude_prior="flux", amplitude_prior_power=float(spec.snr_slope),
+                  position_prior_sigma=max(spec.offset / math.sqrt(3.0), 0.01))  # fmt: skip
 
 
 def precision(
@@ -842,8 +890,7 @@ def precision(
     from .prior import estimate_bulge_weights, estimate_prior, estimate_prior_and_bulge
 
     spec = spec if spec is not None else PrecisionSpec()
-    cfg = config if config is not None else Config(model="bulge+disc", n_bulge_fractions=3,
-                                                   size_prior="estimated")  # fmt: skip
+    cfg = config if config is not None else default_config(spec)
     bulge_prior = cfg.bulge_prior
     npsf = len(spec.psfs)
     t_start = time.perf_counter()
@@ -1003,7 +1050,10 @@ def precision(
                           "e_step": cfg.e_step, "r_step": cfg.r_step,
                           "stamp_size": cfg.stamp_size,
                           "integration_refine": cfg.integration_refine,
-                          "size_prior": cfg.size_prior}  # fmt: skip
+                          "size_prior": cfg.size_prior,
+                          "amplitude_prior": cfg.amplitude_prior,
+                          "amplitude_prior_power": cfg.amplitude_prior_power,
+                          "position_prior_sigma": cfg.position_prior_sigma}  # fmt: skip
     out.meta["fp_step"] = step
     out.meta["timing"] = {
         "total_s": total, "calibration_s": t_cal, "main_s": t_main,
@@ -1078,8 +1128,10 @@ def write_report(res: Table, path: str | Path) -> None:
     lines = [
         "# pylensfit precision run: paired ±g renderings with rotated twins", "",
         f"{spec['ngal']} galaxies × 4 renderings, g = ±({spec['g']}, {spec['g']}), "
-        f"{len(spec['psfs'])} PSFs, S/N {spec['snr_range'][0]:g}-{spec['snr_range'][1]:g} "
-        f"(dN/dS ∝ S^-{spec['snr_slope']:g}), size/PSF size "
+        f"{len(spec['psfs'])} PSFs, flux of reference S/N {spec['snr_range'][0]:g}-"
+        f"{spec['snr_range'][1]:g} (dN/dF ∝ F^-{spec['snr_slope']:g}; the S/N of a round "
+        "exponential of the median size, independent of each galaxy's shape and size), "
+        "size/PSF size "
         f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g}, seed {spec['seed']}; "
         f"model {res.meta['config']['model']} "
         f"({res.meta['config'].get('n_bulge_fractions', 1)} bulge fraction(s)). ", "",
