@@ -56,6 +56,8 @@ def main() -> None:
     ap.add_argument("--bulge-weights", type=float, nargs=3, default=None, metavar="W")
     ap.add_argument("--amplitude-prior", choices=["uniform", "snr", "flux"], default="flux",
                     help="Config.amplitude_prior ('snr': t^-2 in the model's S/N)")
+    ap.add_argument("--amplitude-prior-power", type=float, default=None,
+                    help="Config.amplitude_prior_power (default: the population's slope)")
     ap.add_argument("--position-prior-sigma", type=float, default=None,
                     help="Config.position_prior_sigma (default: offset / sqrt(3))")
     ap.add_argument("--size-prior-smoothing", type=float, default=Config().size_prior_smoothing,
@@ -67,6 +69,8 @@ def main() -> None:
                                        size_prior_smoothing=a.size_prior_smoothing)  # fmt: skip
     if a.position_prior_sigma is not None:
         cfg = cfg.replace(position_prior_sigma=a.position_prior_sigma)
+    if a.amplitude_prior_power is not None:
+        cfg = cfg.replace(amplitude_prior_power=a.amplitude_prior_power)
     prior = population_prior(spec) if a.true_prior else None
     sizes = None
     if a.true_size_prior:
@@ -76,7 +80,8 @@ def main() -> None:
     res = precision(spec, config=cfg, jobs=a.jobs, prior=prior, size_prior=sizes,
                     bulge_weights=a.bulge_weights, progress=False)  # fmt: skip
     print(f"{a.ngal} galaxies, seed {a.seed}, morphology weights {spec.morphology_weights}, "
-          f"amplitude prior {cfg.amplitude_prior}, position prior "
+          f"amplitude prior {cfg.amplitude_prior} (power {cfg.amplitude_prior_power:g}), "
+          f"position prior "
           f"{cfg.position_prior_sigma:.3g} px, size prior smoothing "
           f"{cfg.size_prior_smoothing}, "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
