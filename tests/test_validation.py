@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -459,3 +460,21 @@ def test_validate_takes_the_size_prior_from_the_zero_shear_field(tmp_path, monke
     calls.clear()
     validate(d, config=cfg, progress=False, bins={})
     assert calls == []
+
+
+def test_step2_flux_does_not_follow_the_shear():
+    """A STEP2 galaxy's flux is that of the unlensed galaxy: the same seed with opposite
+    shears gives the same fluxes (the image differs), and the twin's too. When the flux
+    came from the S/N of the lensed galaxy, galaxies sheared longer got brighter and m
+    rose by about 0.01-0.02."""
+    from pylensfit.simulate import FieldSpec
+    from pylensfit.validation import render_step2_field
+
+    base = FieldSpec(size=160, spacing=40.0, star_fraction=0.0)
+    runs = [render_step2_field(replace(base, g1=g, g2=-g, rotate=rot), seed=7)
+            for g, rot in ((0.05, False), (-0.05, False), (0.05, True))]  # fmt: skip
+    (ia, _, ta), (ib, _, tb), (_, _, tc) = runs
+    assert len(ta) >= 9 and not np.allclose(ia, ib)
+    assert not np.allclose(ta["e1"], tb["e1"])
+    np.testing.assert_allclose(tb["flux"], ta["flux"], rtol=1e-6)
+    np.testing.assert_allclose(tc["flux"], ta["flux"], rtol=1e-6)

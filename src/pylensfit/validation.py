@@ -195,11 +195,13 @@ def render_step2_field(
                 int(n_knots[i]),
                 int(knot_seed[i]),
             )
-            # intrinsic shape: the unrotated ellipse (so that both twins get the same flux)
+            # the flux from the S/N of the unlensed, unrotated galaxy (as step1's): lensing
+            # keeps the flux, and a rotated twin gets the same flux as its original. (The
+            # S/N of the lensed galaxy made the flux follow the shear: galaxies sheared
+            # longer got brighter, which raised m by about 0.01-0.02.)
             e0 = -e_int[i] if spec.rotate else e_int[i]
             gal = gal.shear(g1=e0[0], g2=e0[1])
-            norm = galsim.Convolve(gal.shear(g1=spec.g1, g2=spec.g2), psf)
-            arr = norm.drawImage(nx=_STAMP, ny=_STAMP, scale=1.0).array
+            arr = galsim.Convolve(gal, psf).drawImage(nx=_STAMP, ny=_STAMP, scale=1.0).array
             flux[i] = snr[i] * spec.noise_sigma / np.sqrt((arr**2).sum())
             if spec.rotate:
                 gal = gal.rotate(90 * galsim.degrees)
