@@ -2,7 +2,8 @@
 
 Renders ``--ngal`` galaxies of the precision population (``pylensfit.precision``: four
 renderings each, +-g with shared noise and 90-degree twins, morphologies from
-exponential to knotty discs, S/N 10-200) for every PSF, then measures every rendering
+exponential to knotty discs, fluxes of reference S/N 10-200) for every PSF, then
+measures every rendering
 
 * with pylensfit (``fit_stamps`` + the per-rendering reduction of the precision mode,
   one process, one thread), with the prior estimated from an unsheared calibration

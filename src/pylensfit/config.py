@@ -98,7 +98,8 @@ class Config:
         "galaxy counts in flux)",
     )
     amplitude_prior_power: float = _f(
-        2.0, "power of the 'snr' amplitude prior (dN/dS ~ S^-power; 1: scale-invariant)"
+        2.0, "power of the 'snr' or 'flux' amplitude prior (dN/dS ~ S^-power or dN/dA ~ "
+        "A^-power; 1: scale-invariant)",
     )
     # --- marginalisation over position (paper eq. eq:likelihood) ---
     position_prior_sigma: float = _f(
