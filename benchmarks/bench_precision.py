@@ -97,7 +97,7 @@ def main() -> None:
         render_block,
         spec_with,
     )
-    from pylensfit.prior import estimate_prior
+    from pylensfit.prior import estimate_flux_slope, estimate_prior
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ngal", type=int, default=400, help="galaxies per PSF (x4 renderings)")
@@ -117,15 +117,19 @@ def main() -> None:
     print(f"precision population: {a.ngal} galaxies x 4 renderings per PSF, {npsf} PSFs, "
           f"model {cfg.model}, one process, one thread")  # fmt: skip
     # calibration sample and prior (not timed against the peer)
-    lnl, egrid = [], None
+    lnl, flux, egrid = [], [], None
     for b in range(-(-spec.ncal // bs)):
         st, psf, _ = render_block(spec, b % npsf, b, calibration=True)
         f = fit_stamps(st[:, 0], psf, spec.noise_sigma, config=cfg)
         lnl.append(f.lnL[_usable(f)])
+        flux.append(f.flux[_usable(f)])
         egrid = f.egrid
     prior = estimate_prior(np.concatenate(lnl), egrid)
+    beta, beta_err = estimate_flux_slope(np.concatenate(flux))
+    cfg = cfg.replace(amplitude_prior_power=beta)  # the counts' slope, as precision() does
     print(f"prior from {spec.ncal} unsheared galaxies: B={prior.B:.3f} C={prior.C:.3f} "
-          f"D={prior.D:.3f}; peak memory so far {maxrss_mib():.0f} MiB")  # fmt: skip
+          f"D={prior.D:.3f}, flux slope {beta:.3f} ± {beta_err:.3f}; peak memory so far "
+          f"{maxrss_mib():.0f} MiB")  # fmt: skip
     t_render = t_fit = t_hsm = 0.0
     rows = []
     for ip, pdef in enumerate(spec.psfs):

@@ -74,7 +74,7 @@ def main() -> None:
                     help="position prior of 0.01 px about the catalogue position")
     ap.add_argument("--amplitude-prior", choices=["uniform", "snr", "flux"], default="flux")
     ap.add_argument("--amplitude-prior-power", type=float, default=None,
-                    help="Config.amplitude_prior_power (default: the population's slope)")
+                    help="the amplitude prior's power (default: the population's slope)")
     ap.add_argument("--position-prior-sigma", type=float, default=None)
     ap.add_argument("--e-step", type=float, default=Config().e_step)
     a = ap.parse_args()
@@ -82,8 +82,8 @@ def main() -> None:
     if a.centred:
         spec = dataclasses.replace(spec, offset=0.0)
     cfg = PR.default_config(spec).replace(amplitude_prior=a.amplitude_prior, e_step=a.e_step)
-    if a.amplitude_prior_power is not None:
-        cfg = cfg.replace(amplitude_prior_power=a.amplitude_prior_power)
+    power = spec.snr_slope if a.amplitude_prior_power is None else a.amplitude_prior_power
+    cfg = cfg.replace(amplitude_prior_power=power)
     if a.pinned or a.position_prior_sigma is not None:
         cfg = cfg.replace(position_prior_sigma=0.01 if a.pinned else a.position_prior_sigma)
     PR.render_block = render_block_model
@@ -92,7 +92,7 @@ def main() -> None:
                        prior=PR.population_prior(spec),
                        size_prior=[PR.population_size_prior(spec, k, stamp_size=cfg.stamp_size)
                                    for k in range(len(spec.psfs))],
-                       bulge_weights=[1.0, 0.0, 0.0])  # fmt: skip
+                       bulge_weights=[1.0, 0.0, 0.0], flux_slope=power)  # fmt: skip
     sel = res[(res["estimator"] == "fixed-point")
               & np.isin(res["breakdown"], ["all", "psf", "snr", "size"])]  # fmt: skip
     for col in ("m1", "m1_err", "m2", "m2_err", "c1", "c2"):

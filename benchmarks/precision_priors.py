@@ -13,9 +13,10 @@ with any of them replaced by the population's own:
 - ``--bulge-weights W0 W05 W1``: the weights of the bulge fractions 0, 0.5, 1.
 
 The amplitude and position priors are the precision mode's
-(:func:`pylensfit.precision.default_config`: the flux's power law, the catalogue
-positions' scatter) unless ``--amplitude-prior uniform|snr`` (the paper's uniform prior;
-``t^-2`` in each model's S/N) or ``--position-prior-sigma`` say otherwise.
+(:func:`pylensfit.precision.default_config`: the flux's power law, its power estimated
+from the calibration sample, the catalogue positions' scatter) unless
+``--amplitude-prior uniform|snr`` (the paper's uniform prior; ``t^-2`` in each model's
+S/N), ``--amplitude-prior-power`` or ``--position-prior-sigma`` say otherwise.
 
 The seed fixes the renderings and the noise, so runs that differ only in the priors are
 paired and their difference in m is far better measured than either m. It prints the
@@ -57,7 +58,8 @@ def main() -> None:
     ap.add_argument("--amplitude-prior", choices=["uniform", "snr", "flux"], default="flux",
                     help="Config.amplitude_prior ('snr': t^-2 in the model's S/N)")
     ap.add_argument("--amplitude-prior-power", type=float, default=None,
-                    help="Config.amplitude_prior_power (default: the population's slope)")
+                    help="the amplitude prior's power (default: 'flux' estimated from the "
+                         "calibration sample, 'snr' 2)")  # fmt: skip
     ap.add_argument("--position-prior-sigma", type=float, default=None,
                     help="Config.position_prior_sigma (default: offset / sqrt(3))")
     ap.add_argument("--size-prior-smoothing", type=float, default=Config().size_prior_smoothing,
@@ -78,9 +80,13 @@ def main() -> None:
                  for k in range(len(spec.psfs))]  # fmt: skip
     t0 = time.perf_counter()
     res = precision(spec, config=cfg, jobs=a.jobs, prior=prior, size_prior=sizes,
-                    bulge_weights=a.bulge_weights, progress=False)  # fmt: skip
+                    bulge_weights=a.bulge_weights, progress=False,
+                    flux_slope=a.amplitude_prior_power)  # fmt: skip
+    cfg = cfg.replace(amplitude_prior_power=res.meta["config"]["amplitude_prior_power"])
+    fs = res.meta["flux_slope"]
     print(f"{a.ngal} galaxies, seed {a.seed}, morphology weights {spec.morphology_weights}, "
-          f"amplitude prior {cfg.amplitude_prior} (power {cfg.amplitude_prior_power:g}), "
+          f"amplitude prior {cfg.amplitude_prior} (power {cfg.amplitude_prior_power:.3f}"
+          f"{', estimated' if fs and fs['estimated'] else ''}), "
           f"position prior "
           f"{cfg.position_prior_sigma:.3g} px, size prior smoothing "
           f"{cfg.size_prior_smoothing}, "

@@ -323,6 +323,14 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     assert sps[0]["density"] != sps[1]["density"]
     for sp in sps:
         assert abs(np.trapezoid(sp["density"], sp["ln_h"]) + sp["star"] - 1) < 0.02
+    # the default amplitude prior is a power law in the flux, its power the counts' slope
+    # measured on the calibration sample's fluxes (drawn with power 2), and the fits use it
+    fs = tab.meta["flux_slope"]
+    assert fs["estimated"] and 0 < fs["error"] < 0.5
+    assert abs(fs["value"] - 2.0) < 4 * fs["error"]
+    assert tab.meta["config"]["amplitude_prior"] == "flux"
+    assert tab.meta["config"]["amplitude_prior_power"] == fs["value"] != 2.0
+    assert "estimated from the calibration sample's fluxes" in text
     # a directory or a mode is required
     with pytest.raises(SystemExit):
         main(["validate"])

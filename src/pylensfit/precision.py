@@ -537,6 +537,7 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
                            "render_s": t1 - t0, "fit_s": t2 - t1}  # fmt: skip
     if task["calibration"]:
         res["lnL"] = fits.lnL[ok]
+        res["flux"] = fits.flux[ok]
         res["egrid"] = fits.egrid
         res["n_usable"] = int(ok.sum())
         if fits.lnL_bulge is not None:
@@ -800,18 +801,20 @@ def default_config(spec: PrecisionSpec) -> Config:
     """The configuration :func:`precision` fits with unless given one.
 
     The bulge+disc model with three bulge fractions and the size prior estimated from
-    the calibration sample; the amplitude and position priors are those that the
-    simulation draws from, as an analysis takes them from its catalogue: the flux's power
-    law (``amplitude_prior="flux"``, the power ``spec.snr_slope``, the slope of the
-    number counts) and the catalogue positions' scatter about the true centres (the
-    standard deviation ``offset / sqrt(3)`` of the uniform offsets; 0.01 px if centred).
-    With the paper's uniform amplitude prior and a 2-pixel position prior instead, each
-    model's likelihood carries ``1 / sqrt(sum m^2)`` and the inverse square root of its
-    position Fisher matrix, which favour elongated models at the faint end
-    (``benchmarks/README.md``, thirteenth session).
+    the calibration sample; a power law in the flux as the amplitude prior
+    (``amplitude_prior="flux"``; :func:`precision` estimates its power, the number
+    counts' slope, from the calibration sample's fluxes, and fits the first calibration
+    pass with the Euclidean 2.0 (``Config.amplitude_prior_power``)); and as the position
+    prior the catalogue positions' scatter about the true centres, which an analysis
+    takes from its detection's centroid errors (here the standard deviation ``offset /
+    sqrt(3)`` of the uniform offsets; 0.01 px if centred). With the paper's uniform
+    amplitude prior and a 2-pixel position prior instead, each model's likelihood
+    carries ``1 / sqrt(sum m^2)`` and the inverse square root of its position Fisher
+    matrix, which favour elongated models at the faint end (``benchmarks/README.md``,
+    thirteenth session).
     """
     return Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
-                  amplitude_prior="flux", amplitude_prior_power=float(spec.snr_slope),
+                  amplitude_prior="flux",
                   position_prior_sigma=max(spec.offset / math.sqrt(3.0), 0.01))  # fmt: skip
 
 
@@ -827,6 +830,7 @@ def precision(
     size_prior_per_psf: bool = True,
     size_prior: SizePrior | Sequence[SizePrior] | None = None,
     bulge_weights: Sequence[float] | None = None,
+    flux_slope: float | None = None,
 ) -> Table:
     """Run the paired precision measurement of m and c (see the module docstring).
 
@@ -872,6 +876,13 @@ def precision(
     bulge_weights : sequence of float, optional
         Use these weights of the bulge fractions (``config.n_bulge_fractions`` of them,
         normalised here) instead of estimating them (a diagnostic).
+    flux_slope : float, optional
+        With ``config.amplitude_prior="flux"``, the power ``beta`` of the amplitude prior
+        ``A^-beta``. By default it is estimated from the measured fluxes of the
+        calibration sample's first pass (:func:`~pylensfit.prior.estimate_flux_slope`),
+        as the number counts' slope is in a survey, and the later passes and the
+        renderings are fitted with it; given, it replaces the estimate (a diagnostic:
+        ``spec.snr_slope`` is the population's own).
 
     Returns
     -------
@@ -883,11 +894,18 @@ def precision(
         errors combined); plus the ``all`` rows with independent selection
         (``breakdown = "selection"``) and without the control variates (``breakdown =
         "no controls"``). ``meta``:
-        ``prior``, ``spec``, ``timing`` (seconds and galaxies per second), the largest
+        ``prior``, ``spec``, ``timing`` (seconds and galaxies per second),
+        ``flux_slope`` (the amplitude prior's power, its error and whether it was
+        estimated; with ``amplitude_prior="flux"``), the largest
         fixed-point Newton step ``fp_step`` and ``galaxies`` (per-galaxy truth).
     """
     from .pipeline import _run
-    from .prior import estimate_bulge_weights, estimate_prior, estimate_prior_and_bulge
+    from .prior import (
+        estimate_bulge_weights,
+        estimate_flux_slope,
+        estimate_prior,
+        estimate_prior_and_bulge,
+    )
 
     spec = spec if spec is not None else PrecisionSpec()
     cfg = config if config is not None else default_config(spec)
@@ -913,7 +931,13 @@ def precision(
             raise ValueError(f"size_prior needs one SizePrior or one per PSF ({npsf})")
     fit_size = cfg.size_prior == "estimated" and given_sp is None
     prior_given = prior is not None
-    ncb = _n_blocks(spec.ncal, spec.block_size) if (prior is None or fit_bulge or fit_size) else 0
+    fit_flux = cfg.amplitude_prior == "flux" and flux_slope is None
+    if cfg.amplitude_prior == "flux" and flux_slope is not None:
+        if not flux_slope >= 0:
+            raise ValueError(f"flux_slope must be >= 0, got {flux_slope!r}")
+        cfg = cfg.replace(amplitude_prior_power=float(flux_slope))
+    need_cal = prior is None or fit_bulge or fit_size or fit_flux
+    ncb = _n_blocks(spec.ncal, spec.block_size) if need_cal else 0
     render_s, fit_s = 0.0, 0.0
 
     def calibrate(size_priors, keep_lnL_r, label, marginal_prior=None):
@@ -923,7 +947,7 @@ def precision(
                   "size_marginal_prior": marginal_prior}
                  for b in range(ncb)]  # fmt: skip
         out: dict[str, list] = {"lnL": [], "lnL_bulge": [], "lnL_star": [], "lnL_r": [],
-                                "psf": []}  # fmt: skip
+                                "flux": [], "psf": []}  # fmt: skip
         egrid = None
         for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, label, progress),
                            key=lambda tr: tr[0]["block"]):  # fmt: skip
@@ -950,6 +974,17 @@ def precision(
 
     size_priors: list = [None] * npsf if given_sp is None else given_sp
     cal, egrid = calibrate(size_priors, False, "calibration") if ncb else ({}, None)
+    flux_meta = None
+    if fit_flux:
+        # the counts' slope from the first pass's fluxes (those of the best models, which
+        # the amplitude prior barely moves); the later passes and the renderings use it
+        beta, beta_err = estimate_flux_slope(cal["flux"])
+        cfg = cfg.replace(amplitude_prior_power=float(beta))
+        flux_meta = {"value": float(beta), "error": beta_err, "estimated": True}
+    elif cfg.amplitude_prior == "flux":
+        flux_meta = {"value": cfg.amplitude_prior_power, "error": 0.0, "estimated": False}
+    if fit_flux and ncb and (prior is None or fit_bulge) and not fit_size:
+        cal, egrid = calibrate(size_priors, False, "calibration with the flux prior")
     prior0 = prior
     if ncb:
         prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
@@ -1054,6 +1089,7 @@ def precision(
                           "amplitude_prior": cfg.amplitude_prior,
                           "amplitude_prior_power": cfg.amplitude_prior_power,
                           "position_prior_sigma": cfg.position_prior_sigma}  # fmt: skip
+    out.meta["flux_slope"] = flux_meta
     out.meta["fp_step"] = step
     out.meta["timing"] = {
         "total_s": total, "calibration_s": t_cal, "main_s": t_main,
@@ -1107,6 +1143,20 @@ def _size_line(sps: list | None, spec: dict, given: bool = False) -> str:
             "radii, log-uniform.\n")
 
 
+def _amplitude_line(cfg: dict, flux: dict | None, spec: dict) -> str:
+    kind = cfg.get("amplitude_prior", "uniform")
+    pos = f" Position prior: {cfg.get('position_prior_sigma', float('nan')):.3g} px.\n"
+    if kind == "uniform":
+        return "Amplitude prior: uniform (positive amplitudes)." + pos
+    if kind == "snr" or not flux:
+        return (f"Amplitude prior: {kind}, power {cfg.get('amplitude_prior_power'):.3f}."
+                + pos)  # fmt: skip
+    src = (f"estimated from the calibration sample's fluxes, ± {flux['error']:.3f}"
+           if flux["estimated"] else "given")  # fmt: skip
+    return (f"Amplitude prior: A^-β in the flux, β = {flux['value']:.3f} ({src}; the "
+            f"population's {spec['snr_slope']:g})." + pos)  # fmt: skip
+
+
 def write_report(res: Table, path: str | Path) -> None:
     """Markdown report of :func:`precision`: tables, one PNG per breakdown, the ECSV table.
 
@@ -1142,6 +1192,7 @@ def write_report(res: Table, path: str | Path) -> None:
         f"Largest fixed-point Newton step {res.meta['fp_step']:.1e}.", "",
         _bulge_line(res.meta.get("bulge_prior")),
         _size_line(res.meta.get("size_prior"), spec, res.meta.get("size_prior_given", False)),
+        _amplitude_line(res.meta.get("config", {}), res.meta.get("flux_slope"), spec),
         f"Time {tim['total_s']:.0f} s with {tim['jobs']} job(s): {tim['galaxies_per_s']:.0f} "
         f"galaxies/s ({tim['renderings_per_s']:.0f} renderings/s) in the main pass; CPU "
         f"{tim['render_cpu_s']:.0f} s rendering, {tim['fit_cpu_s']:.0f} s fitting.", "",

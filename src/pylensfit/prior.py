@@ -41,6 +41,7 @@ __all__ = [
     "Prior",
     "SizePrior",
     "estimate_bulge_weights",
+    "estimate_flux_slope",
     "estimate_prior",
     "estimate_prior_and_bulge",
     "estimate_prior_binned",
@@ -1294,3 +1295,60 @@ def estimate_size_prior(
         w[:K] = np.convolve(w[:K], [smooth, 1 - 2 * smooth, smooth], mode="same")
         w /= w.sum()
     return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=float(w[K]))
+
+
+def estimate_flux_slope(
+    flux: np.ndarray, *, quantiles: tuple[float, float] = (0.3, 0.95)
+) -> tuple[float, float]:
+    """The power ``beta`` of the number counts ``dN/dF ~ F^-beta`` from measured fluxes.
+
+    The maximum-likelihood power law truncated to ``[a, b]``, the ``quantiles`` of the
+    fluxes: within it the counts are a power law whatever happens outside (the faint
+    end's noise and incompleteness, a bright cut-off), so the estimate needs neither.
+    With ``x = ln(F / a)`` on ``[0, L = ln(b / a)]`` the law is a truncated exponential
+    of rate ``lambda = beta - 1``, and the likelihood equation is ``mean(x) = 1/lambda -
+    L / (exp(lambda L) - 1)`` (``L / 2`` at ``lambda = 0``). This is the amplitude
+    prior's power for ``Config(amplitude_prior="flux")``.
+
+    Parameters
+    ----------
+    flux : array_like
+        Measured fluxes (any units); non-finite and non-positive values are ignored.
+    quantiles : tuple of float
+        The fluxes' quantiles that bound the range fitted.
+
+    Returns
+    -------
+    beta, beta_err : float
+        The power and its 1-sigma error (Fisher information of the truncated law).
+    """
+    f = np.asarray(flux, dtype=float).ravel()
+    f = f[np.isfinite(f) & (f > 0)]
+    lo_q, hi_q = quantiles
+    if not 0 <= lo_q < hi_q <= 1:
+        raise ValueError(f"quantiles must satisfy 0 <= lower < upper <= 1, got {quantiles}")
+    if f.size < 20:
+        raise ValueError(f"{f.size} usable fluxes: too few to estimate the counts' slope")
+    a, b = np.quantile(f, [lo_q, hi_q])
+    if not b > a:
+        raise ValueError("the fluxes' quantiles coincide: no range to fit a slope on")
+    x = np.log(f[(f >= a) & (f <= b)] / a)
+    L = float(np.log(b / a))
+    xbar = float(x.mean())
+
+    def mean_x(lam: float) -> float:  # E[x] of the truncated exponential of rate lam
+        u = lam * L
+        if abs(u) < 1e-6:
+            return L / 2 - lam * L * L / 12
+        return 1.0 / lam - L / np.expm1(u)
+
+    def var_x(lam: float) -> float:
+        u = lam * L
+        if abs(u) < 1e-6:
+            return L * L / 12
+        return 1.0 / lam**2 - L * L * np.exp(u) / np.expm1(u) ** 2
+
+    # mean_x falls monotonically from L (lam -> -inf) to 0 (lam -> +inf)
+    span = 200.0 / L
+    lam = optimize.brentq(lambda v: mean_x(v) - xbar, -span, span, xtol=1e-12)
+    return 1.0 + lam, float(1.0 / np.sqrt(x.size * var_x(lam)))
