@@ -197,8 +197,9 @@ def render_step2_field(
             )
             # the flux from the S/N of the unlensed, unrotated galaxy (as step1's): lensing
             # keeps the flux, and a rotated twin gets the same flux as its original. (The
-            # S/N of the lensed galaxy made the flux follow the shear: galaxies sheared
-            # longer got brighter, which raised m by about 0.01-0.02.)
+            # S/N of the lensed galaxy made the flux follow the shear, galaxies sheared
+            # longer getting brighter by up to 0.6 %; with the uniform amplitude prior it
+            # moved <m> of the 100k set by -0.0002, but no sky does that.)
             e0 = -e_int[i] if spec.rotate else e_int[i]
             gal = gal.shear(g1=e0[0], g2=e0[1])
             arr = galsim.Convolve(gal, psf).drawImage(nx=_STAMP, ny=_STAMP, scale=1.0).array
@@ -1030,8 +1031,11 @@ def validate(
     directory : str or pathlib.Path
         A set written by :func:`simulate_step`.
     config : Config, optional
-        Pipeline settings (default ``Config(model="bulge+disc", n_bulge_fractions=3)``: the
-        bulge fraction marginalised over 0, 0.5 and 1).
+        Pipeline settings (default ``Config(model="bulge+disc", n_bulge_fractions=3,
+        size_prior="estimated")``: the bulge fraction marginalised over 0, 0.5 and 1, and
+        the size prior estimated per PSF on the zero-shear field, as the ellipticity
+        prior is; with the flat size prior STEP1's <m> is higher by about 0.01 and
+        STEP2's by 0.011, ``benchmarks/README.md``).
     jobs : int
         Local worker processes of :func:`pylensfit.measure`.
     estimator : {"fixed-point", "key2"}
@@ -1084,7 +1088,8 @@ def validate(
         if k not in _BIN_LABEL:
             raise ValueError(f"unknown bin quantity {k!r}; use {sorted(_BIN_LABEL)}")
     man = read_manifest(directory)
-    cfg = config if config is not None else Config(model="bulge+disc", n_bulge_fractions=3)
+    cfg = config if config is not None else Config(model="bulge+disc", n_bulge_fractions=3,
+                                                   size_prior="estimated")  # fmt: skip
     fields = {f["file"]: f for f in man["fields"]}
     by_psf: dict[int, list] = {}
     for f in man["fields"]:
