@@ -409,3 +409,7 @@ def test_given_size_and_bulge_priors_replace_the_estimates(monkeypatch):
         precision(spec, config=cfg, prior=prior, bulge_weights=(1, 1), progress=False)
     with pytest.raises(ValueError, match="size_prior"):
         precision(spec, config=cfg, prior=prior, size_prior=[sp, sp], progress=False)
+    # priors to estimate and no calibration sample: a clear error, not an empty estimate
+    with pytest.raises(ValueError, match="ncal is 0"):
+        precision(spec_with(spec, ncal=0), config=cfg, size_prior=sp, bulge_weights=w,
+                  progress=False)  # fmt: skip

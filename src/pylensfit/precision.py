@@ -938,6 +938,10 @@ def precision(
         cfg = cfg.replace(amplitude_prior_power=float(flux_slope))
     need_cal = prior is None or fit_bulge or fit_size or fit_flux
     ncb = _n_blocks(spec.ncal, spec.block_size) if need_cal else 0
+    if need_cal and ncb == 0:
+        raise ValueError("spec.ncal is 0: a calibration sample is needed to estimate the "
+                         "priors (or give them: prior=, size_prior=, bulge_weights=, "
+                         "flux_slope=)")  # fmt: skip
     render_s, fit_s = 0.0, 0.0
 
     def calibrate(size_priors, keep_lnL_r, label, marginal_prior=None):

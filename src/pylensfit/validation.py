@@ -1548,9 +1548,9 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
 # The quick tier
 # ----------------------------------------------------------------------------------------
 #: Galaxies over the shear fields of the quick tier (set by timing on 2 cores, jobs=2).
-QUICK_NGAL: dict[str, int] = {"step1": 8000, "step2": 8000}
+QUICK_NGAL: dict[str, int] = {"step1": 5000, "step2": 5000}
 #: Galaxies over the zero-shear (prior) fields of the quick tier.
-QUICK_PRIOR_NGAL: dict[str, int] = {"step1": 4000, "step2": 4000}
+QUICK_PRIOR_NGAL: dict[str, int] = {"step1": 2500, "step2": 2500}
 
 
 def quick_validation(
