@@ -932,9 +932,7 @@ def precision(
     fit_size = cfg.size_prior == "estimated" and given_sp is None
     prior_given = prior is not None
     fit_flux = cfg.amplitude_prior == "flux" and flux_slope is None
-    if cfg.amplitude_prior == "flux" and flux_slope is not None:
-        if not flux_slope >= 0:
-            raise ValueError(f"flux_slope must be >= 0, got {flux_slope!r}")
+    if cfg.amplitude_prior == "flux" and flux_slope is not None:  # validated by Config
         cfg = cfg.replace(amplitude_prior_power=float(flux_slope))
     need_cal = prior is None or fit_bulge or fit_size or fit_flux
     ncb = _n_blocks(spec.ncal, spec.block_size) if need_cal else 0
