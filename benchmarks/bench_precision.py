@@ -114,12 +114,14 @@ def main() -> None:
     bs = 50
     spec = spec_with(base, ngal=a.ngal * npsf, block_size=bs, ncal=a.ncal)
     cfg = default_config(spec).replace(size_prior="flat")  # the precision mode's, flat sizes
+    ns = cfg.max_stamp_size or cfg.stamp_size  # rendered as large as the largest stamp tier
     print(f"precision population: {a.ngal} galaxies x 4 renderings per PSF, {npsf} PSFs, "
-          f"model {cfg.model}, one process, one thread")  # fmt: skip
+          f"model {cfg.model}, {ns}-pixel renderings (stamp tiers up to {ns}), one process, "
+          "one thread")  # fmt: skip
     # calibration sample and prior (not timed against the peer)
     lnl, flux, egrid = [], [], None
     for b in range(-(-spec.ncal // bs)):
-        st, psf, _ = render_block(spec, b % npsf, b, calibration=True)
+        st, psf, _ = render_block(spec, b % npsf, b, stamp_size=ns, calibration=True)
         f = fit_stamps(st[:, 0], psf, spec.noise_sigma, config=cfg)
         lnl.append(f.lnL[_usable(f)])
         flux.append(f.flux[_usable(f)])
@@ -136,7 +138,7 @@ def main() -> None:
         Qs, Us, Bs, Hs = [], [], [], []
         for b in range(ip, -(-spec.ngal // bs), npsf):
             t0 = time.perf_counter()
-            st, psf, truth = render_block(spec, ip, b)
+            st, psf, truth = render_block(spec, ip, b, stamp_size=ns)
             t1 = time.perf_counter()
             n = len(st)
             flat = st.reshape(n * 4, *st.shape[2:])

@@ -161,6 +161,10 @@ def test_missing_and_corrupt_files(fields, tmp_path):
     cut.write_bytes(raw[: len(raw) // 2])
     with pytest.raises(InputError, match="truncated.fits"):
         measure([cut], config=CFG, prior=PRIOR, progress=False)
+    # the stamp tiers are fit_stamps' and the precision mode's, not measure's
+    with pytest.raises(InputError, match="max_stamp_size"):
+        measure([d / "a.fits"], config=CFG.replace(max_stamp_size=2 * CFG.stamp_size),
+                prior=PRIOR, progress=False)  # fmt: skip
 
 
 def test_empty_image_and_empty_catalogue(tmp_path):

@@ -328,6 +328,10 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     fs = tab.meta["flux_slope"]
     assert fs["estimated"] and 0 < fs["error"] < 0.5
     assert abs(fs["value"] - 2.0) < 4 * fs["error"]
+    # large galaxies go to larger stamps (default_config: up to 64 pixels)
+    assert tab.meta["config"]["max_stamp_size"] == 64
+    assert set(tab.meta["stamps"]) <= {32, 64} and sum(tab.meta["stamps"].values()) == 16
+    assert "Stamps (the +g rendering's" in text
     assert tab.meta["config"]["amplitude_prior"] == "flux"
     assert tab.meta["config"]["amplitude_prior_power"] == fs["value"] != 2.0
     assert "estimated from the calibration sample's fluxes" in text

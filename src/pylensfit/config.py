@@ -36,6 +36,25 @@ class Config:
 
     # --- model grid (paper section 2.3) ---
     stamp_size: int = _f(32, "postage-stamp side in pixels, also the model and PSF size")
+    max_stamp_size: int = _f(
+        0,
+        "largest stamp side for large galaxies (a multiple of stamp_size; 0: stamp_size, "
+        "one stamp for all). A galaxy whose PSF-convolved half-light radius exceeds stamp_size "
+        "/ stamp_hlr_ratio is fitted on a stamp j times as large, with the frequencies |k| "
+        "<= pi / j: the same cost. On a 32-pixel stamp a galaxy of 2 PSF radii under a "
+        "4-pixel Kolmogorov PSF responds 1.3% more to g2 than to g1 (the edge, "
+        "benchmarks/stamp_edge.py); the stamps given to fit_stamps must be this large",
+    )
+    stamp_hlr_ratio: float = _f(
+        10.0,
+        "the stamp tiers' rule: a galaxy gets the smallest tier at least this many of its "
+        "PSF-convolved half-light radii wide (e1/e2 response differences below ~3e-4)",
+    )
+    k_max: float = _f(
+        0.0,
+        "largest |k| (radians per pixel) of the Fourier terms the likelihood sums; 0: all "
+        "below Nyquist. The stamp tiers set it to pi / j on a stamp j times stamp_size",
+    )
     e_step: float = _f(0.1, "ellipticity grid step Delta e (cell centres, |e| < e_max)")
     e_max: float = _f(1.0, "largest |e| of the ellipticity grid")
     r_min: float = _f(0.0, "smallest model size in pixels (0: the point-source model)")
@@ -263,6 +282,12 @@ def _validate(c: Config) -> None:
             raise ConfigError(msg)
 
     need(c.stamp_size >= 8, f"stamp_size must be >= 8, got {c.stamp_size}")
+    need(c.max_stamp_size == 0 or (c.max_stamp_size >= c.stamp_size
+                                   and c.max_stamp_size % c.stamp_size == 0),
+         f"max_stamp_size must be a multiple of stamp_size ({c.stamp_size}), got "
+         f"{c.max_stamp_size}")  # fmt: skip
+    need(c.stamp_hlr_ratio > 0, f"stamp_hlr_ratio must be > 0, got {c.stamp_hlr_ratio}")
+    need(c.k_max >= 0, f"k_max must be >= 0, got {c.k_max}")
     need(0 < c.e_step <= 0.5, f"e_step must be in (0, 0.5], got {c.e_step}")
     need(0 < c.e_max <= 1, f"e_max must be in (0, 1], got {c.e_max}")
     need(c.r_step > 0, f"r_step must be > 0, got {c.r_step}")

@@ -34,7 +34,7 @@ For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of un
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +42,7 @@ import numpy as np
 from . import flags as _flags
 from ._util import newton_peak, per_object
 from .config import Config
-from .models import fourier_profile, model_bank, rfft_frequencies
+from .models import fourier_profile, half_light_radius, model_bank, rfft_frequencies
 from .prior import Prior
 from .psf import psf_transform
 
@@ -62,13 +62,15 @@ class StampFits:
         maximum is 0; NaN rows for stamps that could not be fitted (see ``flags``).
     lnL_peak : numpy.ndarray
         ``(n,)`` the shift removed from each row (the maximum of the unnormalised
-        ``ln L(e)``, up to a constant common to all stamps of one noise level).
+        ``ln L(e)``, up to a constant common to all stamps of one noise level and stamp
+        size).
     r_best : numpy.ndarray
         Most likely model size in pixels (marginal over the e grid); 0 for stars.
     flux : numpy.ndarray
         Amplitude of the most likely model (data units, total flux of the model).
     x, y : numpy.ndarray
-        Fitted centre of the most likely model, in stamp pixels (0-based).
+        Fitted centre of the most likely model, in the pixels (0-based) of the stamps
+        given to :func:`fit_stamps`.
     snr : numpy.ndarray
         Matched-filter signal-to-noise ``h* / (sigma sqrt S)`` of the most likely model.
     is_star : numpy.ndarray
@@ -99,6 +101,9 @@ class StampFits:
         ``size_marginal_prior`` (every bulge fraction's run of sizes, then the point
         source; no size prior), shifted like ``lnL``: the data of
         :func:`pylensfit.prior.estimate_size_prior`. Not written by :meth:`write`.
+    stamp : numpy.ndarray or None
+        Side of the stamp each galaxy was fitted on (``Config.max_stamp_size``: large
+        galaxies on larger stamps).
     """
 
     egrid: np.ndarray
@@ -119,6 +124,7 @@ class StampFits:
     bulge_fractions: np.ndarray | None = None
     lnL_r: np.ndarray | None = None
     bulge_best: np.ndarray | None = None
+    stamp: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.lnL.shape[0]
@@ -131,6 +137,8 @@ class StampFits:
         from astropy.table import Table
 
         t = Table({name: getattr(self, name) for name in self._COLUMNS})
+        if self.stamp is not None:
+            t["stamp"] = self.stamp
         t["lnL"] = self.lnL
         if self.lnL_bulge is not None:
             t["lnL_bulge"] = self.lnL_bulge
@@ -161,6 +169,8 @@ class StampFits:
             fracs = hdul["FITS"].header.get("BULGEFR")
             egrid = np.array(hdul["EGRID"].data, dtype=float)
         kw = {name: np.asarray(t[name]) for name in cls._COLUMNS}
+        if "stamp" in t.colnames:
+            kw["stamp"] = np.asarray(t["stamp"])
         if "lnL_bulge" in t.colnames:
             kw["lnL_bulge"] = np.asarray(t["lnL_bulge"], dtype=np.float32)
             kw["lnL_star"] = np.asarray(t["lnL_star"], dtype=float)
@@ -179,21 +189,27 @@ class _PSFBank:
     myy: np.ndarray
 
 
-def _interior(n: int) -> np.ndarray:
-    """``rfft2`` frequencies of an ``n x n`` stamp that are not Nyquist (``|j| < n/2``).
+def _interior(n: int, k_max: float = 0.0) -> np.ndarray:
+    """``rfft2`` frequencies of an ``n x n`` stamp that are not Nyquist (``|j| < n/2``),
+    and with ``k_max > 0`` no farther than ``k_max`` from the origin.
 
     The engine sums over these only. A Nyquist frequency stands for both ``+pi`` and
     ``-pi``, where neither an elliptical model nor a shift in position has one value:
     without it the likelihood is exactly covariant under the square's symmetries (a
     90-degree rotation of the data maps ``L(e)`` to ``L(-e)``), which
     :func:`_folded_bank` uses. With the PSF at least Nyquist sampled the dropped
-    frequencies carry a negligible part of the signal.
+    frequencies carry a negligible part of the signal. The disc ``|k| <= k_max`` keeps
+    those symmetries; under white noise the Fourier terms are independent, so the sum
+    over a subset is the exact likelihood of that part of the data.
     """
     kx, ky, _ = rfft_frequencies(n)
     jmax = (n - 1) // 2
     jx = np.rint(kx * n / (2 * np.pi)).astype(int)
     jy = np.rint(ky * n / (2 * np.pi)).astype(int)
-    return ((np.abs(jx) <= jmax) & (np.abs(jy) <= jmax)).ravel()
+    keep = (np.abs(jx) <= jmax) & (np.abs(jy) <= jmax)
+    if k_max > 0:
+        keep &= kx * kx + ky * ky <= k_max * k_max * (1 + 1e-9)
+    return keep.ravel()
 
 
 @dataclass(frozen=True)
@@ -240,7 +256,7 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
     key = (config.stamp_size, config.e_step, config.e_max, config.r_min, config.r_max,
            config.r_step, config.model, config.bulge_fraction, config.bulge_size_ratio,
            config.dtype, int(config.n_bulge_fractions), float(config.r_rel_step),
-           bool(config.truncate_models))  # fmt: skip
+           bool(config.truncate_models), float(config.k_max))  # fmt: skip
     fb = _FOLDED.get(key)
     if fb is not None and fb[0] is bank:
         return fb[1]
@@ -248,6 +264,9 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
     nh = n // 2 + 1
     jmax = (n - 1) // 2
     a, b = np.tril_indices(jmax + 1)  # octant 0 <= b <= a <= jmax
+    if config.k_max > 0:  # the disc |k| <= k_max (the stamp tiers)
+        inside = (a * a + b * b) * (2 * np.pi / n) ** 2 <= config.k_max**2 * (1 + 1e-9)
+        a, b = a[inside], b[inside]
 
     def half(jx, jy):
         neg = jx < 0
@@ -274,7 +293,14 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
     rep_cols = np.append((ie_rep[:, None] * n_r + np.arange(n_r)[None, :]).ravel(),
                          bank.n_models - 1)  # fmt: skip
     Gr = bank.G[:, rep_cols]
-    Gh = np.einsum("ch,hkm->ckm", _CHI, Gr[idx].astype(np.float64))
+    idx_g = idx
+    if bank.rows is not None:  # the bank holds only the disc's frequencies
+        pos = np.full(n * nh, -1, dtype=np.int64)
+        pos[bank.rows] = np.arange(bank.rows.size)
+        idx_g = pos[idx]
+        if (idx_g < 0).any():
+            raise RuntimeError("the model bank lacks frequencies of the likelihood's sums")
+    Gh = np.einsum("ch,hkm->ckm", _CHI, Gr[idx_g].astype(np.float64))
     G = tuple(np.ascontiguousarray(Gh[ch][keep[ch]], dtype=config.dtype) for ch in range(4))
     # the coarse sub-grid: e cells at every other lattice step in both components (a set
     # closed under e1 -> -e1, e2 -> -e2) and every 5th size
@@ -305,10 +331,12 @@ def _psf_bank(psf: np.ndarray, config: Config, bank) -> _PSFBank:
     n = config.stamp_size
     P = psf_transform(psf, n)
     kx, ky, w = rfft_frequencies(n)
-    p2 = (w * np.abs(P) ** 2 / n**2).ravel() * _interior(n)
+    p2 = (w * np.abs(P) ** 2 / n**2).ravel() * _interior(n, config.k_max)
     kx = kx.ravel()
     ky = ky.ravel()
     W = np.stack([p2, -p2 * kx * kx, -p2 * kx * ky, -p2 * ky * ky])
+    if bank.rows is not None:
+        W = W[:, bank.rows]
     out = np.empty((4, bank.G.shape[1]))
     for c0 in range(0, bank.G.shape[1], 4096):  # in chunks: no bank-sized temporary
         out[:, c0 : c0 + 4096] = W @ np.square(bank.G[:, c0 : c0 + 4096], dtype=np.float64)
@@ -382,16 +410,26 @@ def fit_stamps(
 ) -> StampFits:
     """Likelihood ``L(e)`` of every stamp on the ellipticity grid, and the best model.
 
+    With ``config.max_stamp_size`` larger than ``config.stamp_size`` (and stamps that
+    large), each galaxy is fitted on the smallest stamp ``j * stamp_size`` that is
+    ``stamp_hlr_ratio`` of its PSF-convolved half-light radii wide (measured with round
+    exponentials first), with the Fourier terms ``|k| <= pi / j`` only: as many as on
+    the base stamp, and all that a galaxy that large has signal in. On one stamp, the
+    light that the PSF scatters across the edge makes large galaxies respond to shear
+    differently along the pixel axes and the diagonals (``benchmarks/stamp_edge.py``).
+
     Parameters
     ----------
     stamps : numpy.ndarray
         ``(n, N, N)`` (or one ``(N, N)``) background-subtracted images indexed
         ``[k, y, x]``, each galaxy near element ``[N//2, N//2]`` unless ``centres`` is
-        given. ``N`` may differ from ``config.stamp_size``: a window of that size is cut
-        about each centre (zero padded outside the input).
+        given. ``N`` may differ from ``config.stamp_size``: a window of that size (or of
+        a larger tier) is cut about each centre (zero padded outside the input; a tier's
+        window never leaves the input).
     psf : numpy.ndarray
         2-D PSF image including the pixel response, centred on ``[s//2, s//2]``, any size
-        and normalisation; shared by all stamps of the call.
+        and normalisation; shared by all stamps of the call. Cut to each stamp size used,
+        so give it as large as ``max_stamp_size`` for the tiers.
     noise_sigma : float or numpy.ndarray
         Per-pixel noise standard deviation, scalar or one per stamp.
     config : Config, optional
@@ -423,9 +461,6 @@ def fit_stamps(
     if stamps.ndim != 3 or stamps.shape[1] < 2 or stamps.shape[2] < 2:
         raise ValueError(f"stamps must have shape (n, N, N), got {stamps.shape}")
     n_gal = stamps.shape[0]
-    n = cfg.stamp_size
-    bank = model_bank(cfg)
-    pb = _psf_bank(psf, cfg, bank)
     sigma = per_object(noise_sigma, n_gal, "noise_sigma")
     if centres is None:
         cx = np.full(n_gal, stamps.shape[2] // 2, dtype=float)
@@ -433,7 +468,95 @@ def fit_stamps(
     else:
         cx = per_object(centres[0], n_gal, "centres[0]")
         cy = per_object(centres[1], n_gal, "centres[1]")
+    n_tiers = min(cfg.max_stamp_size or cfg.stamp_size, *stamps.shape[1:]) // cfg.stamp_size
+    if n_tiers <= 1 or n_gal == 0:
+        return _fit_window(stamps, psf, sigma, cfg, cx, cy, size_prior, size_marginal_prior)
+    tier = _stamp_tiers(stamps, psf, sigma, cfg, cx, cy, n_tiers)
+    parts = []
+    for t in np.unique(tier):
+        idx = np.flatnonzero(tier == t)
+        sub = cfg if t == 1 else cfg.replace(stamp_size=int(t) * cfg.stamp_size,
+                                             max_stamp_size=0, k_max=np.pi / t)  # fmt: skip
+        parts.append((idx, _fit_window(stamps[idx], psf, sigma[idx], sub, cx[idx], cy[idx],
+                                       size_prior, size_marginal_prior)))  # fmt: skip
+    return _merge_fits(parts, n_gal)
+
+
+def _stamp_tiers(stamps, psf, sigma, cfg: Config, cx, cy, n_tiers: int) -> np.ndarray:
+    """The stamp tier ``j`` (stamp side ``j * cfg.stamp_size``) of every stamp.
+
+    Each galaxy's size is that of the round exponential of largest matched-filter S/N
+    on the largest tier's window (half-light radii 0.1-12 px, about the centre that the
+    fit starts from), its PSF-convolved half-light radius ``R`` measured on the
+    convolved model's image. The tier is the smallest ``j`` with ``j * stamp_size >=
+    stamp_hlr_ratio * R``, at most ``n_tiers`` and at most what the given stamp holds
+    about the galaxy; stamps without a positive peak get tier 1.
+    """
+    n0 = cfg.stamp_size
+    nw = n_tiers * n0
+    kx, ky, w = rfft_frequencies(nw)
+    c = nw // 2
+    P = psf_transform(psf, nw)
+    wcfg = cfg.replace(stamp_size=nw, max_stamp_size=0, k_max=0.0)
+    # round exponentials (and their convolved half-light radii, from their images)
+    M = fourier_profile(np.hypot(kx, ky).ravel()[:, None] * np.geomspace(0.1, 12.0, 24)[None]
+                        / half_light_radius("exponential"), "exponential") * P.ravel()[:, None]
+    wt = w.ravel() * _interior(nw)
+    S = (wt[:, None] * np.abs(M) ** 2).sum(axis=0)
+    img = np.fft.irfft2(M.T.reshape(-1, *kx.shape) * np.exp(-1j * (kx * c + ky * c)),
+                        s=(nw, nw)).reshape(M.shape[1], -1)  # fmt: skip
+    rad = np.hypot(*(np.mgrid[:nw, :nw] - c)).ravel()
+    order = np.argsort(rad)
+    cum = np.cumsum(img[:, order], axis=1)
+    hlr = rad[order][np.argmax(cum >= 0.5 * cum[:, -1:], axis=1)]
+    tier = np.ones(len(stamps), dtype=int)
+    step = 4 * cfg.block_size
+    for s0 in range(0, len(stamps), step):
+        sl = slice(s0, min(s0 + step, len(stamps)))
+        win, wx, wy = _cut_stamps(np.nan_to_num(stamps[sl], nan=0.0, posinf=0.0, neginf=0.0),
+                                  nw, cx[sl], cy[sl])  # fmt: skip
+        D = np.fft.rfft2(win) * np.exp(1j * (kx * c + ky * c))[None]
+        xc, yc, no_peak = _centre(D, P, wcfg, wx - c, wy - c)
+        ph = np.exp(1j * (kx.ravel()[None] * xc[:, None] + ky.ravel()[None] * yc[:, None]))
+        h = ((D.reshape(len(D), -1) * ph * wt) @ np.conj(M)).real
+        best = np.argmax(h / np.sqrt(S), axis=1)
+        j = np.ceil(cfg.stamp_hlr_ratio * hlr[best] / n0).astype(int)
+        ok = ~no_peak & (h[np.arange(len(D)), best] > 0) & np.isfinite(sigma[sl])
+        tier[sl] = np.where(ok, j, 1)
+    # no window beyond the given stamps: n <= 2 min(ic, N - ic) along both axes
+    ix, iy = np.rint(cx).astype(int), np.rint(cy).astype(int)
+    room = np.minimum.reduce([ix, stamps.shape[2] - ix, iy, stamps.shape[1] - iy])
+    return np.clip(tier, 1, np.clip(2 * room // n0, 1, n_tiers))
+
+
+def _merge_fits(parts: list, n_gal: int) -> StampFits:
+    """One :class:`StampFits` from fits of disjoint subsets ``(index, fits)``."""
+    first = parts[0][1]
+    out = {}
+    for f in fields(StampFits):
+        v0 = getattr(first, f.name)
+        if f.name in ("egrid", "meta", "bulge_fractions"):
+            out[f.name] = v0
+        elif isinstance(v0, np.ndarray):
+            arr = np.empty((n_gal, *v0.shape[1:]), dtype=v0.dtype)
+            for idx, fit in parts:
+                arr[idx] = getattr(fit, f.name)
+            out[f.name] = arr
+        else:
+            out[f.name] = v0
+    out["meta"] = dict(first.meta, stamp_sizes=sorted({int(v) for v in out["stamp"]}))
+    return StampFits(**out)
+
+
+def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_marginal_prior):
+    """:func:`fit_stamps` on ``cfg.stamp_size`` windows (one stamp size for all)."""
+    n_gal = stamps.shape[0]
+    n = cfg.stamp_size
+    bank = model_bank(cfg)
+    pb = _psf_bank(psf, cfg, bank)
+    cx_in, cy_in = cx, cy
     stamps, cx, cy = _cut_stamps(stamps, n, cx, cy)
+    shift_x, shift_y = cx_in - cx, cy_in - cy  # window origin in the input stamps
 
     flags = np.zeros(n_gal, dtype=np.int32)
     bad_pix = ~np.isfinite(stamps).all(axis=(1, 2))
@@ -585,8 +708,8 @@ def fit_stamps(
         lnL_peak=np.where(dead, np.nan, peak),
         r_best=r_best * nanif,
         flux=hbest / S_best * nanif,
-        x=(c + xc + xb) * nanif,
-        y=(c + yc + yb) * nanif,
+        x=(c + xc + xb + shift_x) * nanif,
+        y=(c + yc + yb + shift_y) * nanif,
         snr=hbest / (sigma * np.sqrt(S_best)) * nanif,
         is_star=is_star,
         flags=flags,
@@ -599,4 +722,5 @@ def fit_stamps(
         bulge_fractions=None if n_b == 1 else np.unique(bank.bulge),
         lnL_r=lnL_r,
         bulge_best=bulge_best,
+        stamp=np.full(n_gal, n),
     )

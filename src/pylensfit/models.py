@@ -47,6 +47,7 @@ __all__ = [
     "MODEL_TYPES",
     "ModelBank",
     "fourier_profile",
+    "frequency_rows",
     "half_light_radius",
     "model_bank",
     "radius_grid",
@@ -146,6 +147,20 @@ def rfft_frequencies(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return kx, ky, w
 
 
+def frequency_rows(n: int, k_max: float = 0.0) -> np.ndarray | None:
+    """The flattened ``rfft2`` frequencies of an ``n x n`` stamp with ``|k| <= k_max``.
+
+    ``k_max = 0`` (or at least the corner's ``pi sqrt 2``): ``None``, all of them. The
+    stamp tiers of :func:`pylensfit.likelihood.fit_stamps` fit a large galaxy on a stamp
+    ``j`` times the base one with ``k_max = pi / j``: as many terms as the base stamp,
+    where a galaxy that large has no signal left.
+    """
+    if not k_max or k_max >= np.pi * np.sqrt(2.0):
+        return None
+    kx, ky, _ = rfft_frequencies(n)
+    return np.flatnonzero((kx * kx + ky * ky).ravel() <= k_max * k_max * (1 + 1e-9))
+
+
 def sheared_k(kx: np.ndarray, ky: np.ndarray, e1, e2) -> np.ndarray:
     """``|S(e)^T k|`` for the area-preserving shear ``S(e)`` (broadcasting)."""
     e1 = np.asarray(e1, dtype=float)
@@ -224,9 +239,9 @@ class ModelBank:
     ----------
     G : numpy.ndarray
         ``(n_freq, n_models)`` real transforms on the ``rfft2`` frequencies (flattened
-        row-major from ``(n, n // 2 + 1)``). Column ``ie * n_r + ir`` is ellipticity
-        ``egrid[ie]``, radius ``radii[ir]`` and bulge fraction ``bulge[ir]``; the last
-        column is the point source (r = 0).
+        row-major from ``(n, n // 2 + 1)``; only those of ``rows`` if given). Column
+        ``ie * n_r + ir`` is ellipticity ``egrid[ie]``, radius ``radii[ir]`` and bulge
+        fraction ``bulge[ir]``; the last column is the point source (r = 0).
     egrid : numpy.ndarray
         ``(n_e, 2)`` ellipticity cell centres.
     radii : numpy.ndarray
@@ -250,6 +265,9 @@ class ModelBank:
         ``r`` over that of the first fraction (:func:`half_light_radius`), so that the
         size prior is uniform in half-light radius whatever the fraction (``None``:
         one fraction).
+    rows : numpy.ndarray or None
+        The flattened ``rfft2`` frequencies that ``G`` holds, those with ``|k| <=
+        k_max`` (:func:`frequency_rows`); ``None``: all of them.
     """
 
     G: np.ndarray
@@ -262,6 +280,7 @@ class ModelBank:
     r_weights: np.ndarray | None = None
     star_weight: float = 1.0
     run_weights: np.ndarray | None = None
+    rows: np.ndarray | None = None
 
     @property
     def n_sizes(self) -> int:
@@ -302,6 +321,7 @@ def wrap_correction(
     model: str,
     bulge_size_ratio: float,
     n: int,
+    rows: np.ndarray | None = None,
 ) -> np.ndarray:
     """Transforms of the wings that the periodic Fourier models wrap into the stamp.
 
@@ -331,12 +351,15 @@ def wrap_correction(
         Bulge half-light radius over disc scale length (``"bulge+disc"``).
     n : int
         Stamp side.
+    rows : numpy.ndarray, optional
+        Only these of the flattened ``rfft2`` frequencies (:func:`frequency_rows`).
 
     Returns
     -------
     numpy.ndarray
-        ``(n * (n // 2 + 1), n_e * len(fracs) * n_r)`` real transforms, in the column
-        order of :class:`ModelBank` (without the point source).
+        ``(n * (n // 2 + 1), n_e * len(fracs) * n_r)`` real transforms (``(len(rows),
+        ...)`` with ``rows``), in the column order of :class:`ModelBank` (without the
+        point source).
     """
     from scipy.special import gamma, gammainc
 
@@ -358,7 +381,8 @@ def wrap_correction(
     # transposition x <-> y (on the periodic lattice of offsets from the centre n // 2)
     flip = (2 * (n // 2) - np.arange(n)) % n
     key = {(round(e1, 9), round(e2, 9)): k for k, (e1, e2) in enumerate(eg[ie_rep])}
-    W = np.zeros((n * (n // 2 + 1), eg.shape[0] * per_e))
+    sel = np.arange(n * (n // 2 + 1)) if rows is None else np.asarray(rows)
+    W = np.zeros((sel.size, eg.shape[0] * per_e))
     live = np.flatnonzero(np.any(w != 0, axis=(0, 2, 3)))
     if live.size == 0:
         return W
@@ -369,7 +393,7 @@ def wrap_correction(
         if e1 < 0:
             img = np.swapaxes(img, 1, 2)
         tr = np.fft.rfft2(np.fft.ifftshift(img.astype(float), axes=(1, 2)))
-        W[:, ie * per_e + live] = tr.real.reshape(live.size, -1).T
+        W[:, ie * per_e + live] = tr.real.reshape(live.size, -1)[:, sel].T
     return W
 
 
@@ -477,6 +501,7 @@ def _cached_bank(
     n_bulge: int = 1,
     r_rel_step: float = 0.0,
     truncate: bool = False,
+    k_max: float = 0.0,
 ) -> ModelBank:
     egrid = ellipticity_grid(e_step, emax=e_max)
     radii = radius_grid(r_min, r_max, r_step, r_rel_step)
@@ -484,8 +509,9 @@ def _cached_bank(
     fracs = np.array([bulge_fraction]) if n_bulge == 1 else np.linspace(0.0, 1.0, n_bulge)
     n_sub = radii.size
     kx, ky, _ = rfft_frequencies(n)
-    kx = kx.ravel()
-    ky = ky.ravel()
+    rows = frequency_rows(n, k_max)
+    kx = kx.ravel() if rows is None else kx.ravel()[rows]
+    ky = ky.ravel() if rows is None else ky.ravel()[rows]
     n_freq = kx.size
     per_e = n_sub * fracs.size
     G = np.empty((n_freq, egrid.shape[0] * per_e + 1), dtype=dtype)
@@ -499,7 +525,8 @@ def _cached_bank(
             )
     G[:, -1] = 1.0
     if truncate:
-        G[:, :-1] -= wrap_correction(egrid, radii, fracs, model, bulge_size_ratio, n).astype(dtype)
+        G[:, :-1] -= wrap_correction(egrid, radii, fracs, model, bulge_size_ratio, n,
+                                     rows).astype(dtype)  # fmt: skip
     G.setflags(write=False)
     run_w = None
     if fracs.size > 1:
@@ -508,7 +535,7 @@ def _cached_bank(
         run_w = hlr / hlr[0]
     return ModelBank(G=G, egrid=egrid, radii=np.tile(radii, fracs.size), n=n, model=model,
                      bulge=np.repeat(fracs, n_sub), n_sub=n_sub, r_weights=r_w,
-                     star_weight=w_star, run_weights=run_w)  # fmt: skip
+                     star_weight=w_star, run_weights=run_w, rows=rows)  # fmt: skip
 
 
 def model_bank(config=None) -> ModelBank:
@@ -536,4 +563,5 @@ def model_bank(config=None) -> ModelBank:
         int(cfg.n_bulge_fractions),
         float(cfg.r_rel_step),
         bool(cfg.truncate_models),
+        float(cfg.k_max),
     )

@@ -524,7 +524,7 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
     cfg: Config = task["config"]
     t0 = time.perf_counter()
     stamps, psf, truth = render_block(spec, task["psf"], task["block"],
-                                      stamp_size=cfg.stamp_size,
+                                      stamp_size=cfg.max_stamp_size or cfg.stamp_size,
                                       calibration=task["calibration"])  # fmt: skip
     t1 = time.perf_counter()
     n, nr = stamps.shape[:2]
@@ -552,6 +552,7 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
     res["usable"] = usable
     res["r_best"] = fits.r_best.reshape(n, nr)[:, 0].astype(np.float32)
     res["snr_meas"] = fits.snr.reshape(n, nr)[:, 0].astype(np.float32)
+    res["stamp"] = fits.stamp.reshape(n, nr)[:, 0].astype(np.int16)
     res["reduce_s"] = time.perf_counter() - t2
     return res
 
@@ -811,10 +812,14 @@ def default_config(spec: PrecisionSpec) -> Config:
     amplitude prior and a 2-pixel position prior instead, each model's likelihood
     carries ``1 / sqrt(sum m^2)`` and the inverse square root of its position Fisher
     matrix, which favour elongated models at the faint end (``benchmarks/README.md``,
-    thirteenth session).
+    thirteenth session). Large galaxies are fitted on 64-pixel stamps
+    (``Config.max_stamp_size``; the population's largest are 7 px in convolved
+    half-light radius, a ninth of it): on the 32-pixel stamp alone galaxies of 1.5-2.5
+    PSF radii responded 0.5-2.5 % more to g2 than to g1 (m2 - m1 = +0.005 over the
+    population, ``benchmarks/README.md``, fifteenth session).
     """
     return Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
-                  amplitude_prior="flux",
+                  amplitude_prior="flux", max_stamp_size=64,
                   position_prior_sigma=max(spec.offset / math.sqrt(3.0), 0.01))  # fmt: skip
 
 
@@ -1034,6 +1039,7 @@ def precision(
                                 // _JACKKNIFE_GALAXIES for r in res])  # fmt: skip
     gal["r_best"] = np.concatenate([r["r_best"] for r in res])
     gal["snr_meas"] = np.concatenate([r["snr_meas"] for r in res])
+    gal["stamp"] = np.concatenate([r["stamp"] for r in res])
     gal["n_usable"] = usable.sum(axis=1)
     # 3. m and c, with the intrinsic shapes' spin-4 parts as control variates
     X = shape_controls(gal["e1_int"], gal["e2_int"])
@@ -1086,12 +1092,15 @@ def precision(
     out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
                           "e_step": cfg.e_step, "r_step": cfg.r_step,
                           "stamp_size": cfg.stamp_size,
+                          "max_stamp_size": cfg.max_stamp_size or cfg.stamp_size,
                           "integration_refine": cfg.integration_refine,
                           "size_prior": cfg.size_prior,
                           "amplitude_prior": cfg.amplitude_prior,
                           "amplitude_prior_power": cfg.amplitude_prior_power,
                           "position_prior_sigma": cfg.position_prior_sigma}  # fmt: skip
     out.meta["flux_slope"] = flux_meta
+    sizes, counts = np.unique(np.asarray(gal["stamp"]), return_counts=True)
+    out.meta["stamps"] = {int(a): int(b) for a, b in zip(sizes, counts, strict=True)}
     out.meta["fp_step"] = step
     out.meta["timing"] = {
         "total_s": total, "calibration_s": t_cal, "main_s": t_main,
@@ -1145,6 +1154,15 @@ def _size_line(sps: list | None, spec: dict, given: bool = False) -> str:
             "radii, log-uniform.\n")
 
 
+def _stamp_line(stamps: dict | None) -> str:
+    if not stamps:
+        return ""
+    tot = sum(stamps.values())
+    parts = ", ".join(f"{k} px {100 * v / tot:.0f} %" for k, v in sorted(stamps.items()))
+    return (f"Stamps (the +g rendering's; large galaxies on larger stamps, "
+            f"Config.max_stamp_size): {parts}.")  # fmt: skip
+
+
 def _amplitude_line(cfg: dict, flux: dict | None, spec: dict) -> str:
     kind = cfg.get("amplitude_prior", "uniform")
     pos = f" Position prior: {cfg.get('position_prior_sigma', float('nan')):.3g} px.\n"
@@ -1186,7 +1204,8 @@ def write_report(res: Table, path: str | Path) -> None:
         "size/PSF size "
         f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g}, seed {spec['seed']}; "
         f"model {res.meta['config']['model']} "
-        f"({res.meta['config'].get('n_bulge_fractions', 1)} bulge fraction(s)). ", "",
+        f"({res.meta['config'].get('n_bulge_fractions', 1)} bulge fraction(s)). "
+        + _stamp_line(res.meta.get("stamps")), "",
         ("Prior given: " if res.meta["prior"].get("given") else
          f"Prior from {spec['ncal']} unsheared calibration galaxies: ") +
         f"B={res.meta['prior']['B']:.3f}, C={res.meta['prior']['C']:.3f}, "
