@@ -15,6 +15,11 @@ session, ``benchmarks/README.md``)::
 
     python benchmarks/stamp_edge.py
     python benchmarks/stamp_edge.py --psf round kolmogorov --ratio 1 1.5 2 2.5 --snr 200
+    python benchmarks/stamp_edge.py --profile devaucouleurs --psf kolmogorov --ratio 1.5 2
+
+``--profile devaucouleurs`` renders and fits de Vaucouleurs galaxies (truncated at 8
+half-light radii, as the model): their wings need more than the tiers' ten convolved
+half-light radii (the column "128, |k| <= pi/4").
 """
 
 from __future__ import annotations
@@ -36,11 +41,13 @@ SETUPS = (
     ("64", 64, {"stamp_size": 64}),
     ("64, |k| <= pi/2", 64, {"stamp_size": 64, "k_max": np.pi / 2}),
     ("tiers to 96", 96, {"max_stamp_size": 96}),
+    ("128, |k| <= pi/4", 128, {"stamp_size": 128, "k_max": np.pi / 4}),
 )
 
 
 def ring(psf_name: str, ratio: float, n: int, *, renderer: str, snr: float, g: float = 0.02,
-         n_angles: int = 16) -> tuple[np.ndarray, np.ndarray, float]:  # fmt: skip
+         n_angles: int = 16, profile: str = "exponential",
+         ) -> tuple[np.ndarray, np.ndarray, float]:  # fmt: skip
     """The ring's renderings on ``n x n``, the PSF image and the galaxy's half-light radius."""
     import galsim
 
@@ -53,14 +60,14 @@ def ring(psf_name: str, ratio: float, n: int, *, renderer: str, snr: float, g: f
         z = 0.2 * np.exp(2j * a)
         for s in (g, -g, 1j * g, -1j * g):
             if renderer == "galsim":
-                gal = galsim.Exponential(half_light_radius=r).shear(g1=z.real, g2=z.imag)
+                gal = PR._profile(profile, r, 0.0, 4.0, 0, 0.0, 0).shear(g1=z.real, g2=z.imag)
                 imgs.append(PR._draw(galsim.Convolve(gal.shear(g1=s.real, g2=s.imag), gpsf), n))
             else:
                 e = (z + s) / (1 + np.conj(s) * z)
                 c = 96
                 im = render_models(2 * c, psf_img, [c], [c], [e.real], [e.imag],
-                                   [r / half_light_radius("exponential")], [1.0],
-                                   model="exponential")[0]  # fmt: skip
+                                   [r / half_light_radius(profile)], [1.0],
+                                   model=profile)[0]  # fmt: skip
                 imgs.append(im[c - n // 2 : c - n // 2 + n, c - n // 2 : c - n // 2 + n])
     imgs = np.array(imgs)
     return imgs * snr / np.sqrt(np.sum(imgs[0] ** 2)), psf_img, r
@@ -83,9 +90,11 @@ def main() -> None:
                     help="galaxy half-light radius over the PSF's")  # fmt: skip
     ap.add_argument("--snr", type=float, default=40.0)
     ap.add_argument("--renderer", choices=["galsim", "model"], default="galsim")
+    ap.add_argument("--profile", choices=["exponential", "devaucouleurs"],
+                    default="exponential", help="rendered and fitted")  # fmt: skip
     a = ap.parse_args()
-    base = Config(model="exponential", position_prior_sigma=0.01)
-    print(f"exponential ring, S/N {a.snr:g}, renderer {a.renderer}; R2/R1 - 1 per stamp "
+    base = Config(model=a.profile, position_prior_sigma=0.01)
+    print(f"{a.profile} ring, S/N {a.snr:g}, renderer {a.renderer}; R2/R1 - 1 per stamp "
           "setup (stamp sizes used by the tiers in brackets)\n")  # fmt: skip
     print("| PSF | r / PSF r | r (px) | " + " | ".join(s[0] for s in SETUPS) + " |")
     print("|---|---|---|" + "---|" * len(SETUPS))
@@ -94,7 +103,8 @@ def main() -> None:
         for ratio in a.ratio:
             cells = []
             for _label, n, kw in SETUPS:
-                imgs, psf_img, r = ring(psf_name, ratio, n, renderer=a.renderer, snr=a.snr)
+                imgs, psf_img, r = ring(psf_name, ratio, n, renderer=a.renderer, snr=a.snr,
+                                        profile=a.profile)  # fmt: skip
                 r1, r2, fits = responses(imgs, psf_img, base.replace(**kw))
                 cell = f"{r2 / r1 - 1:+.4f}"
                 if "max_stamp_size" in kw:
