@@ -114,7 +114,7 @@ def main() -> None:
     bs = 50
     spec = spec_with(base, ngal=a.ngal * npsf, block_size=bs, ncal=a.ncal)
     cfg = default_config(spec).replace(size_prior="flat")  # the precision mode's, flat sizes
-    ns = cfg.max_stamp_size or cfg.stamp_size  # rendered as large as the largest stamp tier
+    ns = cfg.largest_stamp  # rendered as large as the largest stamp tier
     print(f"precision population: {a.ngal} galaxies x 4 renderings per PSF, {npsf} PSFs, "
           f"model {cfg.model}, {ns}-pixel renderings (stamp tiers up to {ns}), one process, "
           "one thread")  # fmt: skip

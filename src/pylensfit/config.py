@@ -201,6 +201,12 @@ class Config:
         _validate(self)
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def largest_stamp(self) -> int:
+        """The largest stamp side a galaxy is fitted on (``max_stamp_size``, or
+        ``stamp_size`` without tiers): the size stamps and PSF images should have."""
+        return self.max_stamp_size or self.stamp_size
+
     @classmethod
     def describe(cls) -> dict[str, tuple[Any, str]]:
         """``{name: (default, description)}`` for every parameter."""

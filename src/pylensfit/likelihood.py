@@ -42,7 +42,7 @@ import numpy as np
 from . import flags as _flags
 from ._util import newton_peak, per_object
 from .config import Config
-from .models import fourier_profile, half_light_radius, model_bank, rfft_frequencies
+from .models import fourier_profile, half_light_radius, in_disc, model_bank, rfft_frequencies
 from .prior import Prior
 from .psf import psf_transform
 
@@ -208,7 +208,7 @@ def _interior(n: int, k_max: float = 0.0) -> np.ndarray:
     jy = np.rint(ky * n / (2 * np.pi)).astype(int)
     keep = (np.abs(jx) <= jmax) & (np.abs(jy) <= jmax)
     if k_max > 0:
-        keep &= kx * kx + ky * ky <= k_max * k_max * (1 + 1e-9)
+        keep &= in_disc(kx, ky, k_max)
     return keep.ravel()
 
 
@@ -265,7 +265,7 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
     jmax = (n - 1) // 2
     a, b = np.tril_indices(jmax + 1)  # octant 0 <= b <= a <= jmax
     if config.k_max > 0:  # the disc |k| <= k_max (the stamp tiers)
-        inside = (a * a + b * b) * (2 * np.pi / n) ** 2 <= config.k_max**2 * (1 + 1e-9)
+        inside = in_disc(a * (2 * np.pi / n), b * (2 * np.pi / n), config.k_max)
         a, b = a[inside], b[inside]
 
     def half(jx, jy):
@@ -468,7 +468,7 @@ def fit_stamps(
     else:
         cx = per_object(centres[0], n_gal, "centres[0]")
         cy = per_object(centres[1], n_gal, "centres[1]")
-    n_tiers = min(cfg.max_stamp_size or cfg.stamp_size, *stamps.shape[1:]) // cfg.stamp_size
+    n_tiers = min(cfg.largest_stamp, *stamps.shape[1:]) // cfg.stamp_size
     if n_tiers <= 1 or n_gal == 0:
         return _fit_window(stamps, psf, sigma, cfg, cx, cy, size_prior, size_marginal_prior)
     tier = _stamp_tiers(stamps, psf, sigma, cfg, cx, cy, n_tiers)

@@ -147,6 +147,11 @@ def rfft_frequencies(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return kx, ky, w
 
 
+def in_disc(kx, ky, k_max: float) -> np.ndarray:
+    """``|k| <= k_max`` (with a relative tolerance of 1e-9 for the lattice points on it)."""
+    return kx * kx + ky * ky <= k_max * k_max * (1 + 1e-9)
+
+
 def frequency_rows(n: int, k_max: float = 0.0) -> np.ndarray | None:
     """The flattened ``rfft2`` frequencies of an ``n x n`` stamp with ``|k| <= k_max``.
 
@@ -158,7 +163,7 @@ def frequency_rows(n: int, k_max: float = 0.0) -> np.ndarray | None:
     if not k_max or k_max >= np.pi * np.sqrt(2.0):
         return None
     kx, ky, _ = rfft_frequencies(n)
-    return np.flatnonzero((kx * kx + ky * ky).ravel() <= k_max * k_max * (1 + 1e-9))
+    return np.flatnonzero(in_disc(kx, ky, k_max).ravel())
 
 
 def sheared_k(kx: np.ndarray, ky: np.ndarray, e1, e2) -> np.ndarray:

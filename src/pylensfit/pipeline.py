@@ -794,7 +794,7 @@ def measure(
         field without usable stars: one line naming the file and the problem.
     """
     cfg = config if config is not None else Config()
-    if (cfg.max_stamp_size or cfg.stamp_size) > cfg.stamp_size:
+    if cfg.largest_stamp > cfg.stamp_size:
         # the edges, close pairs, neighbours' models and sky are all on one stamp size
         raise InputError(f"measure fits every object on {cfg.stamp_size}-pixel stamps; "
                          f"max_stamp_size ({cfg.max_stamp_size}) is for fit_stamps and "

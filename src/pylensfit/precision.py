@@ -524,7 +524,7 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
     cfg: Config = task["config"]
     t0 = time.perf_counter()
     stamps, psf, truth = render_block(spec, task["psf"], task["block"],
-                                      stamp_size=cfg.max_stamp_size or cfg.stamp_size,
+                                      stamp_size=cfg.largest_stamp,
                                       calibration=task["calibration"])  # fmt: skip
     t1 = time.perf_counter()
     n, nr = stamps.shape[:2]
@@ -1092,7 +1092,7 @@ def precision(
     out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
                           "e_step": cfg.e_step, "r_step": cfg.r_step,
                           "stamp_size": cfg.stamp_size,
-                          "max_stamp_size": cfg.max_stamp_size or cfg.stamp_size,
+                          "max_stamp_size": cfg.largest_stamp,
                           "integration_refine": cfg.integration_refine,
                           "size_prior": cfg.size_prior,
                           "amplitude_prior": cfg.amplitude_prior,
