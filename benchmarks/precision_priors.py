@@ -37,6 +37,7 @@ import numpy as np
 
 from pylensfit import Config
 from pylensfit.precision import (
+    PRECISION_PSFS,
     default_config,
     population_prior,
     population_size_prior,
@@ -64,11 +65,34 @@ def main() -> None:
                     help="Config.position_prior_sigma (default: offset / sqrt(3))")
     ap.add_argument("--size-prior-smoothing", type=float, default=Config().size_prior_smoothing,
                     help="Config.size_prior_smoothing of the estimated size prior")
+    ap.add_argument("--psf", nargs="+", default=None, choices=[p["name"] for p in PRECISION_PSFS],
+                    help="only these PSFs (default: all four)")
+    ap.add_argument("--snr", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="PrecisionSpec.snr_range (the reference S/N of the fluxes)")
+    ap.add_argument("--size", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="PrecisionSpec.size_ratio_range (half-light radius / PSF's)")
+    ap.add_argument("--e-step", type=float, default=None, help="Config.e_step (default 0.1)")
+    ap.add_argument("--model", choices=["bulge+disc", "exponential", "devaucouleurs"],
+                    default="bulge+disc",
+                    help="the fitted model (default: the precision mode's bulge+disc with three "
+                         "bulge fractions; one profile alone costs a third)")  # fmt: skip
     a = ap.parse_args()
-    mw = tuple(a.morphology_weights) if a.morphology_weights else None
-    spec = spec_with(ngal=a.ngal, seed=a.seed, morphology_weights=mw)
+    kw = {}
+    if a.morphology_weights:
+        kw["morphology_weights"] = tuple(a.morphology_weights)
+    if a.psf:
+        kw["psfs"] = tuple(p for p in PRECISION_PSFS if p["name"] in a.psf)
+    if a.snr:
+        kw["snr_range"] = tuple(a.snr)
+    if a.size:
+        kw["size_ratio_range"] = tuple(a.size)
+    spec = spec_with(ngal=a.ngal, seed=a.seed, **kw)
     cfg = default_config(spec).replace(amplitude_prior=a.amplitude_prior,
                                        size_prior_smoothing=a.size_prior_smoothing)  # fmt: skip
+    if a.e_step is not None:
+        cfg = cfg.replace(e_step=a.e_step)
+    if a.model != "bulge+disc":
+        cfg = cfg.replace(model=a.model, n_bulge_fractions=1)
     if a.position_prior_sigma is not None:
         cfg = cfg.replace(position_prior_sigma=a.position_prior_sigma)
     if a.amplitude_prior_power is not None:
@@ -76,7 +100,7 @@ def main() -> None:
     prior = population_prior(spec) if a.true_prior else None
     sizes = None
     if a.true_size_prior:
-        sizes = [population_size_prior(spec, k, stamp_size=cfg.stamp_size)
+        sizes = [population_size_prior(spec, k, stamp_size=cfg.largest_stamp)
                  for k in range(len(spec.psfs))]  # fmt: skip
     t0 = time.perf_counter()
     res = precision(spec, config=cfg, jobs=a.jobs, prior=prior, size_prior=sizes,
@@ -85,6 +109,8 @@ def main() -> None:
     cfg = cfg.replace(amplitude_prior_power=res.meta["config"]["amplitude_prior_power"])
     fs = res.meta["flux_slope"]
     print(f"{a.ngal} galaxies, seed {a.seed}, morphology weights {spec.morphology_weights}, "
+          f"PSFs {', '.join(p['name'] for p in spec.psfs)}, S/N {spec.snr_range}, sizes "
+          f"{spec.size_ratio_range}, model {cfg.model}, e_step {cfg.e_step}, "
           f"amplitude prior {cfg.amplitude_prior} (power {cfg.amplitude_prior_power:.3f}"
           f"{', estimated' if fs and fs['estimated'] else ''}), "
           f"position prior "
