@@ -72,6 +72,9 @@ def main() -> None:
     ap.add_argument("--size", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                     help="PrecisionSpec.size_ratio_range (half-light radius / PSF's)")
     ap.add_argument("--e-step", type=float, default=None, help="Config.e_step (default 0.1)")
+    ap.add_argument("--offset", type=float, default=None,
+                    help="PrecisionSpec.offset (0: centred galaxies, the position prior "
+                         "pinned to 0.01 px)")  # fmt: skip
     ap.add_argument("--model", choices=["bulge+disc", "exponential", "devaucouleurs"],
                     default="bulge+disc",
                     help="the fitted model (default: the precision mode's bulge+disc with three "
@@ -86,6 +89,8 @@ def main() -> None:
         kw["snr_range"] = tuple(a.snr)
     if a.size:
         kw["size_ratio_range"] = tuple(a.size)
+    if a.offset is not None:
+        kw["offset"] = a.offset
     spec = spec_with(ngal=a.ngal, seed=a.seed, **kw)
     cfg = default_config(spec).replace(amplitude_prior=a.amplitude_prior,
                                        size_prior_smoothing=a.size_prior_smoothing)  # fmt: skip
