@@ -594,3 +594,92 @@ def test_max_stamp_size_must_be_a_multiple_of_the_stamp():
         Config(max_stamp_size=40)
     with pytest.raises(ConfigError, match="k_max"):
         Config(k_max=-1.0)
+
+
+# --- the tiled kernel against the per-model reference ---------------------------------
+@pytest.mark.parametrize("n_chi", [1, 4])
+@pytest.mark.parametrize("cubic", [False, True])
+@pytest.mark.parametrize("amp", [(-1.0, 0.0), (2.0, 1.0)])
+def test_tiled_kernel_matches_per_model_laplace(n_chi, cubic, amp):
+    """``laplace_grid`` evaluates the Laplace terms a tile of models at a time, without
+    branches; ``_laplace_lnl`` is the same arithmetic one model at a time, with them.
+    Random products that take every branch (data Hessians that are not maxima, Newton
+    steps beyond the cap, cubic steps that fail, S/N below 1 and negative), more columns
+    than one tile, and slots without a model: every model's ln L, the best model and its
+    peak must agree to rounding. With one size per e cell the kernel's ``ln L_k(e)`` is
+    the model's own ``ln L`` plus the node's log weight, so each model is checked."""
+    from pylensfit._kernels_nb import _TILE, _laplace_lnl, laplace_grid
+
+    rng = np.random.default_rng(7 + n_chi + 2 * cubic)
+    n_gal, n_e = 4, (2 * _TILE + 37) * n_chi
+    n_mod = n_e + 1  # one size per cell, and the point source
+    n_cols = -(-n_mod // n_chi) + 3
+    slots = rng.permutation(n_cols * n_chi)[:n_mod]
+    members = np.full(n_cols * n_chi, -1, dtype=np.int64)
+    members[slots] = np.arange(n_mod)
+    members = members.reshape(n_cols, n_chi)
+    n_q = 10 if cubic else 6
+    q = np.empty((n_chi, n_q, n_gal, n_cols))
+    q[:, 0] = rng.normal(40, 40, q[:, 0].shape)
+    q[:, 1:3] = rng.normal(0, 15, q[:, 1:3].shape)
+    q[:, 3] = -np.abs(rng.normal(25, 12, q[:, 3].shape)) * rng.choice([1, 1, 1, -1], q[:, 3].shape)
+    q[:, 4] = rng.normal(0, 8, q[:, 4].shape)
+    q[:, 5] = -np.abs(rng.normal(25, 12, q[:, 5].shape))
+    if cubic:
+        q[:, 6:] = rng.normal(0, 6, q[:, 6:].shape)
+    prod = np.ascontiguousarray(q.reshape(n_chi, n_q * n_gal, n_cols), dtype=np.float32)
+    s_m = rng.uniform(0.5, 2.0, n_mod)
+    mxx = -rng.uniform(0.1, 0.5, n_mod)
+    myy = -rng.uniform(0.1, 0.5, n_mod)
+    mxy = rng.uniform(-0.05, 0.05, n_mod)
+    sigma = rng.uniform(0.8, 1.5, n_gal)
+    x0 = rng.normal(0, 0.3, n_gal)
+    y0 = rng.normal(0, 0.3, n_gal)
+    b2, max_step = 0.1, 1.2
+    node_w, w_star = np.array([0.7]), 0.3
+    amp_pow, amp_lns = amp
+    outs = (np.empty((n_gal, n_e)), np.empty((n_gal, n_e, 1)), np.empty((n_gal, 2)),
+            np.empty(n_gal, dtype=np.int64), np.empty(n_gal), np.empty(n_gal), np.empty(n_gal))
+    laplace_grid(prod, members, n_gal, n_e, 1, 1, s_m, mxx, mxy, myy, sigma, x0, y0, b2,
+                 max_step, node_w, w_star, np.zeros(1), np.full(n_e, 1.0 / n_e), amp_pow,
+                 amp_lns, cubic, *outs)  # fmt: skip
+    lnlb, lnlr, best, hbest, xb, yb = outs[1:]
+    # the reference: the square's four characters folded as the kernel does (float32)
+    p = prod.reshape(n_chi, n_q, n_gal, n_cols)
+    if n_chi == 4:
+        s02, s13, d02, d13 = p[0] + p[2], p[1] + p[3], p[0] - p[2], p[1] - p[3]
+        vals = np.stack([s02 + s13, s02 - s13, d02 + d13, d02 - d13])
+    else:
+        vals = p
+    vals = vals.astype(float)  # (member, q, galaxy, column)
+    ref = np.empty((n_gal, n_mod, 4))
+    branches = set()
+    for g in range(n_gal):
+        for c in range(n_cols):
+            for hm in range(n_chi):
+                j = members[c, hm]
+                if j < 0:
+                    continue
+                v = vals[hm, :, g, c]
+                t3 = v[6:] if cubic else np.zeros(4)
+                sj = s_m[j]
+                ref[g, j] = _laplace_lnl(*v[:6], *t3, cubic, sj, np.sqrt(sj), np.log(sj),
+                                         mxx[j], mxy[j], myy[j], sigma[g], x0[g], y0[g], b2,
+                                         max_step**2, amp_pow, amp_lns)  # fmt: skip
+                det = v[3] * v[5] - v[4] ** 2
+                branches.add("data" if v[3] < 0 and det > 0 else "expected")
+    assert branches == {"data", "expected"}
+    lnl = ref[..., 0]
+    # a model whose Laplace terms are not finite (S/N < 1 under the flux prior can make
+    # det M negative) drops out of the sum over r: -inf, in the kernel and the reference
+    # alike; it must be rare
+    bad = ~np.isfinite(lnl[:, :n_e])
+    assert bad.mean() < 0.05
+    want = np.where(bad, -np.inf, lnl[:, :n_e])
+    np.testing.assert_allclose(lnlb[:, :, 0] - np.log(node_w[0]), want, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(lnlr[:, 1], lnl[:, n_e], rtol=1e-12, atol=1e-9)
+    jb = np.where(np.isfinite(lnl), lnl, -np.inf).argmax(axis=1)
+    np.testing.assert_array_equal(best, jb)
+    np.testing.assert_allclose(hbest, ref[np.arange(n_gal), jb, 1], rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(xb, ref[np.arange(n_gal), jb, 2], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(yb, ref[np.arange(n_gal), jb, 3], rtol=1e-12, atol=1e-12)

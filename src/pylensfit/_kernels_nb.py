@@ -3,7 +3,10 @@
 Called by :mod:`pylensfit.likelihood` on the outputs of the six matrix products
 (``DESIGN.md`` section 3). One pass over (galaxy, model) pairs, parallel over galaxies,
 with the sum over radius kept as a running log-sum-exp so that nothing of size
-(galaxies x models) is written back.
+(galaxies x models) is written back. :func:`_laplace_lnl` is the per-model reference of
+the Laplace terms; :func:`laplace_grid` evaluates them a tile of models at a time, in
+branch-free loops that LLVM vectorises (``tests/test_likelihood.py`` holds the two
+together).
 """
 
 from __future__ import annotations
@@ -208,6 +211,156 @@ def _run_peak_factor(lwm, lw0, lwp, lm, l0, lp, kink):
     return 1.0
 
 
+#: columns of the model bank handled together by :func:`laplace_grid`: each stage of the
+#: Laplace terms runs over a tile as one loop of independent iterations, which LLVM
+#: vectorises (AVX2) and the CPU overlaps, where one model at a time is one long chain of
+#: dependent divisions and logs (measured on the precision mode's bank, 68,256 models, one
+#: thread: 115 ns per model before, 47 after; the tile's arrays are one per kind, with
+#: the column offset taken out of their indices, or LLVM does not vectorise)
+_TILE = 256
+# rows of a tile's work array ``W``
+_X, _Y, _HS, _AXX, _AXY, _AYY, _T, _ISS, _OK, _VAL, _DL, _QUAD, _DETM = range(13)
+_NW = 13
+
+
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
+def _position_tile(V, cm, sig, max_step2, W):
+    """The position part of :func:`_laplace_lnl` for one member's models of a tile,
+    without branches: the peak ``X*`` (one Newton step, or the expected Hessian's where
+    the data Hessian is not a maximum or the step is too long), ``h*``, the Hessian and
+    the S/N ``t``. ``V`` (q, k): the products; ``cm`` (6, k): ``S, sqrt S, mxx, mxy, myy,
+    ln S``; ``W`` (_NW, k): the results."""
+    for k in range(V.shape[1]):
+        h0 = V[0, k]
+        gx = V[1, k]
+        gy = V[2, k]
+        hxx = V[3, k]
+        hxy = V[4, k]
+        hyy = V[5, k]
+        ss = sig * cm[1, k]
+        iss = 1.0 / ss
+        det = hxx * hyy - hxy * hxy
+        idet = 1.0 / det
+        x1 = (hxy * gy - hyy * gx) * idet
+        y1 = (hxy * gx - hxx * gy) * idet
+        far = x1 * x1 + y1 * y1 > max_step2
+        ok = (hxx < 0.0) & (det > 0.0) & (not far)
+        # the expected Hessian, that of the model's autocorrelation
+        scale = (ss if ss > h0 else h0) / cm[0, k]
+        exx = scale * cm[2, k]
+        exy = scale * cm[3, k]
+        eyy = scale * cm[4, k]
+        eidet = 1.0 / (exx * eyy - exy * exy)
+        x2 = (exy * gy - eyy * gx) * eidet
+        y2 = (exy * gx - exx * gy) * eidet
+        rr = x2 * x2 + y2 * y2
+        f = math.sqrt(max_step2 / rr) if rr > max_step2 else 1.0
+        x = x1 if ok else x2 * f
+        y = y1 if ok else y2 * f
+        hxx = hxx if ok else exx
+        hxy = hxy if ok else exy
+        hyy = hyy if ok else eyy
+        hstar = h0 + gx * x + gy * y + 0.5 * (hxx * x * x + 2.0 * hxy * x * y + hyy * y * y)
+        W[_X, k] = x
+        W[_Y, k] = y
+        W[_HS, k] = hstar
+        W[_AXX, k] = hxx
+        W[_AXY, k] = hxy
+        W[_AYY, k] = hyy
+        W[_ISS, k] = iss
+        W[_OK, k] = 1.0 if ok else 0.0
+
+
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
+def _cubic_tile(V, max_step2, W):
+    """The third-order refinement of :func:`_laplace_lnl` for a tile (where the data
+    Hessian was used): two Newton steps on the cubic expansion, and ``h*`` and the
+    Hessian at the peak."""
+    for k in range(V.shape[1]):
+        h0 = V[0, k]
+        gx = V[1, k]
+        gy = V[2, k]
+        hxx = V[3, k]
+        hxy = V[4, k]
+        hyy = V[5, k]
+        txxx = V[6, k]
+        txxy = V[7, k]
+        txyy = V[8, k]
+        tyyy = V[9, k]
+        ok = W[_OK, k] > 0.0
+        x = W[_X, k]
+        y = W[_Y, k]
+        go = ok
+        for _ in range(2):
+            ax = hxx + txxx * x + txxy * y
+            axy = hxy + txxy * x + txyy * y
+            ay = hyy + txyy * x + tyyy * y
+            d3 = ax * ay - axy * axy
+            go = go & (ax < 0.0) & (d3 > 0.0)
+            rx = gx + hxx * x + hxy * y + 0.5 * (txxx * x * x + 2 * txxy * x * y + txyy * y * y)
+            ry = gy + hxy * x + hyy * y + 0.5 * (txxy * x * x + 2 * txyy * x * y + tyyy * y * y)
+            nx = x + (axy * ry - ay * rx) / d3
+            ny = y + (axy * rx - ax * ry) / d3
+            go = go & (not (nx * nx + ny * ny > max_step2))
+            x = nx if go else x
+            y = ny if go else y
+        ax = hxx + txxx * x + txxy * y
+        axy = hxy + txxy * x + txyy * y
+        ay = hyy + txyy * x + tyyy * y
+        fin = ok & (ax < 0.0) & (ax * ay - axy * axy > 0.0)
+        hc = (
+            h0 + gx * x + gy * y
+            + 0.5 * (hxx * x * x + 2.0 * hxy * x * y + hyy * y * y)
+            + (txxx * x * x * x + 3 * txxy * x * x * y + 3 * txyy * x * y * y
+               + tyyy * y * y * y) / 6.0
+        )  # fmt: skip
+        W[_X, k] = x
+        W[_Y, k] = y
+        W[_HS, k] = hc if fin else W[_HS, k]
+        W[_AXX, k] = ax if fin else W[_AXX, k]
+        W[_AXY, k] = axy if fin else W[_AXY, k]
+        W[_AYY, k] = ay if fin else W[_AYY, k]
+
+
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
+def _amplitude_tile(cm, amp_pow, amp_lns, W):
+    """The amplitude integral of :func:`_laplace_lnl` for a tile: its log ``_VAL`` and
+    ``-(d val / d h)`` (``_DL``). A log or a table per model: scalar."""
+    for k in range(W.shape[1]):
+        t = W[_HS, k] * W[_ISS, k]
+        if amp_pow < 0.0:
+            val, dl = _amplitude_terms(t)
+            val -= 0.5 * cm[5, k]
+        else:
+            tt = max(t, 1.0)
+            val = 0.5 * t * t - amp_pow * math.log(tt) + 0.5 * amp_lns * cm[5, k]
+            dl = t - amp_pow / tt if t > 1.0 else t
+        W[_VAL, k] = val
+        W[_DL, k] = -dl * W[_ISS, k]
+
+
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
+def _fisher_tile(x0, y0, b2, W):
+    """The position prior part of :func:`_laplace_lnl` for a tile: ``det M`` and the
+    quadratic form of the catalogue offset."""
+    for k in range(W.shape[1]):
+        dl = W[_DL, k]
+        f11 = dl * W[_AXX, k]
+        f12 = dl * W[_AXY, k]
+        f22 = dl * W[_AYY, k]
+        detf = f11 * f22 - f12 * f12
+        m11 = 1.0 + b2 * f11
+        m22 = 1.0 + b2 * f22
+        m12 = b2 * f12
+        detm = m11 * m22 - m12 * m12
+        dx = W[_X, k] - x0
+        dy = W[_Y, k] - y0
+        W[_QUAD, k] = (
+            (f11 + b2 * detf) * dx * dx + 2.0 * f12 * dx * dy + (f22 + b2 * detf) * dy * dy
+        ) / detm
+        W[_DETM, k] = detm
+
+
 #: below this many e-folds under a galaxy's peak, exp() underflows in double precision
 _UNDERFLOW = 700.0
 
@@ -228,9 +381,13 @@ def laplace_grid(
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 
     Two passes per galaxy: the first evaluates ``ln L(e, r)`` of every model into a
-    buffer and finds the peak ``M``; the second takes one ``exp(ln L - M)`` per model and
-    accumulates both the sum over r (for ``L(e)``) and the ``e_w``-weighted sum over e
-    (for ``L(r)``).
+    buffer and finds the peak ``M``, a tile of ``_TILE`` columns at a time: each stage of
+    :func:`_laplace_lnl` (the reference, one model at a time) runs over the tile as a
+    loop of independent iterations (:func:`_position_tile`, :func:`_cubic_tile`,
+    :func:`_amplitude_tile`, :func:`_fisher_tile`), which LLVM vectorises, 2.2 times
+    faster than the one long chain of divisions and logs per model; the second takes one
+    ``exp(ln L - M)`` per model and accumulates both the sum over r (for ``L(e)``) and
+    the ``e_w``-weighted sum over e (for ``L(r)``).
     Where a whole e cell lies more than 700 e-folds under the peak (bright galaxies far
     from their ellipticity) its sum underflows and ``ln L(e)`` is replaced by its
     largest weighted term: exact to within ``ln n_r`` at a point whose posterior weight
@@ -292,48 +449,84 @@ def laplace_grid(
     n_cols = prod.shape[2]
     n_memb = members.shape[1]
     n_q = 10 if cubic else 6
+    # the model constants of every (member, column) slot, tile by tile, in the order the
+    # tiles read them (padding: a harmless model, member -1)
+    n_tiles = -(-n_cols // _TILE)
+    cj = np.full((n_tiles, n_memb, _TILE), -1, dtype=np.int64)
+    cm = np.ones((n_tiles, n_memb, 6, _TILE))
+    for it in range(n_tiles):
+        for hm in range(n_memb):
+            for k in range(min(_TILE, n_cols - it * _TILE)):
+                j = members[it * _TILE + k, hm]
+                cj[it, hm, k] = j
+                if j >= 0:
+                    cm[it, hm, 0, k] = s_m[j]
+                    cm[it, hm, 1, k] = sq_m[j]
+                    cm[it, hm, 2, k] = mxx[j]
+                    cm[it, hm, 3, k] = mxy[j]
+                    cm[it, hm, 4, k] = myy[j]
+                    cm[it, hm, 5, k] = ln_m[j]
+                else:
+                    cm[it, hm, 2, k] = -1.0
+                    cm[it, hm, 3, k] = 0.0
+                    cm[it, hm, 4, k] = -1.0
+                    cm[it, hm, 5, k] = 0.0
     for g in prange(n_gal):
-        vals = np.zeros((4, 10))
         sig = sigma[g]
         gx0 = x0[g]
         gy0 = y0[g]
         buf = np.empty(n_mod)
         best = -np.inf
         jb = 0
-        for c in range(n_cols):
-            # the rows of every model of column c: the column's own values (n_chi = 1)
-            # or the four sign combinations of the four characters (n_chi = 4)
-            if n_chi == 4:
-                for q in range(n_q):
-                    row = q * n_gal + g
-                    s02 = prod[0, row, c] + prod[2, row, c]
-                    s13 = prod[1, row, c] + prod[3, row, c]
-                    d02 = prod[0, row, c] - prod[2, row, c]
-                    d13 = prod[1, row, c] - prod[3, row, c]
-                    vals[0, q] = s02 + s13
-                    vals[1, q] = s02 - s13
-                    vals[2, q] = d02 + d13
-                    vals[3, q] = d02 - d13
-            else:
-                for q in range(n_q):
-                    vals[0, q] = prod[0, q * n_gal + g, c]
+        V = np.zeros((n_memb, n_q, _TILE))
+        W = np.empty((n_memb, _NW, _TILE))
+        for it in range(n_tiles):
+            t0 = it * _TILE
+            nt = min(_TILE, n_cols - t0)
+            # the rows of every model of the tile's columns: the column's own values
+            # (n_chi = 1) or the four sign combinations of the four characters (n_chi = 4),
+            # read row by row (contiguous) rather than column by column
+            for q in range(n_q):
+                row = q * n_gal + g
+                if n_chi == 4:
+                    for k in range(nt):
+                        p0 = prod[0, row, t0 + k]
+                        p1 = prod[1, row, t0 + k]
+                        p2 = prod[2, row, t0 + k]
+                        p3 = prod[3, row, t0 + k]
+                        s02 = p0 + p2
+                        s13 = p1 + p3
+                        d02 = p0 - p2
+                        d13 = p1 - p3
+                        V[0, q, k] = s02 + s13
+                        V[1, q, k] = s02 - s13
+                        V[2, q, k] = d02 + d13
+                        V[3, q, k] = d02 - d13
+                else:
+                    for k in range(nt):
+                        V[0, q, k] = prod[0, row, t0 + k]
             for hm in range(n_memb):
-                j = members[c, hm]
-                if j < 0:
-                    continue
-                l, hh, xx, yy = _laplace_lnl(
-                    vals[hm, 0], vals[hm, 1], vals[hm, 2], vals[hm, 3], vals[hm, 4],
-                    vals[hm, 5], vals[hm, 6], vals[hm, 7], vals[hm, 8], vals[hm, 9], cubic,
-                    s_m[j], sq_m[j], ln_m[j], mxx[j], mxy[j], myy[j], sig, gx0, gy0, b2,
-                    max_step2, amp_pow, amp_lns,
-                )  # fmt: skip
-                buf[j] = l
-                if l > best:
-                    best = l
-                    jb = j
-                    out_h[g] = hh
-                    out_x[g] = xx
-                    out_y[g] = yy
+                Vh = V[hm]
+                Wh = W[hm]
+                cmh = cm[it, hm]
+                _position_tile(Vh, cmh, sig, max_step2, Wh)
+                if cubic:
+                    _cubic_tile(Vh, max_step2, Wh)
+                _amplitude_tile(cmh, amp_pow, amp_lns, Wh)
+                _fisher_tile(gx0, gy0, b2, Wh)
+            for k in range(nt):
+                for hm in range(n_memb):
+                    j = cj[it, hm, k]
+                    if j < 0:
+                        continue
+                    l = W[hm, _VAL, k] - 0.5 * math.log(W[hm, _DETM, k]) - 0.5 * W[hm, _QUAD, k]
+                    buf[j] = l
+                    if l > best:
+                        best = l
+                        jb = j
+                        out_h[g] = W[hm, _HS, k]
+                        out_x[g] = W[hm, _X, k]
+                        out_y[g] = W[hm, _Y, k]
         out_best[g] = jb
         lw_star = buf[star] + math.log(w_star)
         ex_star = math.exp(lw_star - best)
