@@ -42,6 +42,7 @@ from pylensfit.precision import (
     population_prior,
     population_size_prior,
     precision,
+    reference_norm,
     spec_with,
 )
 
@@ -79,6 +80,11 @@ def main() -> None:
                     default="bulge+disc",
                     help="the fitted model (default: the precision mode's bulge+disc with three "
                          "bulge fractions; one profile alone costs a third)")  # fmt: skip
+    ap.add_argument("--flux-bounds", action="store_true",
+                    help="bound the flux prior at the population's flux range "
+                         "(Config.amplitude_prior_min/max; one PSF only)")  # fmt: skip
+    ap.add_argument("--out", default=None,
+                    help="also write the result table here (ECSV, without the per-galaxy meta)")
     a = ap.parse_args()
     kw = {}
     if a.morphology_weights:
@@ -102,6 +108,12 @@ def main() -> None:
         cfg = cfg.replace(position_prior_sigma=a.position_prior_sigma)
     if a.amplitude_prior_power is not None:
         cfg = cfg.replace(amplitude_prior_power=a.amplitude_prior_power)
+    if a.flux_bounds:
+        if len(spec.psfs) != 1:
+            ap.error("--flux-bounds needs one PSF (--psf NAME): the flux range is per PSF")
+        f = spec.noise_sigma / reference_norm(spec, 0, cfg.largest_stamp)
+        cfg = cfg.replace(amplitude_prior_min=spec.snr_range[0] * f,
+                          amplitude_prior_max=spec.snr_range[1] * f)  # fmt: skip
     prior = population_prior(spec) if a.true_prior else None
     sizes = None
     if a.true_size_prior:
@@ -111,13 +123,21 @@ def main() -> None:
     res = precision(spec, config=cfg, jobs=a.jobs, prior=prior, size_prior=sizes,
                     bulge_weights=a.bulge_weights, progress=False,
                     flux_slope=a.amplitude_prior_power)  # fmt: skip
+    if a.out:
+        keep = res.copy(copy_data=False)
+        keep.meta.pop("galaxies", None)
+        keep.write(a.out, format="ascii.ecsv", overwrite=True)
     cfg = cfg.replace(amplitude_prior_power=res.meta["config"]["amplitude_prior_power"])
     fs = res.meta["flux_slope"]
+    bounds = ""
+    if a.flux_bounds:
+        bounds = f" within {cfg.amplitude_prior_min:.3g}-{cfg.amplitude_prior_max:.3g}"
     print(f"{a.ngal} galaxies, seed {a.seed}, morphology weights {spec.morphology_weights}, "
           f"PSFs {', '.join(p['name'] for p in spec.psfs)}, S/N {spec.snr_range}, sizes "
           f"{spec.size_ratio_range}, model {cfg.model}, e_step {cfg.e_step}, "
           f"amplitude prior {cfg.amplitude_prior} (power {cfg.amplitude_prior_power:.3f}"
           f"{', estimated' if fs and fs['estimated'] else ''}), "
+          f"{bounds}, "
           f"position prior "
           f"{cfg.position_prior_sigma:.3g} px, size prior smoothing "
           f"{cfg.size_prior_smoothing}, "
@@ -125,7 +145,8 @@ def main() -> None:
     p, bp = res.meta["prior"], res.meta["bulge_prior"]
     print(f"ellipticity prior {'given' if p['given'] else 'estimated'}: B, C, D = "
           f"{p['B']:.3f}, {p['C']:.3f}, {p['D']:.3f}; bulge weights "
-          f"{np.round(bp['weights'], 3).tolist()} ({bp['method']})")  # fmt: skip
+          f"{'none' if bp['weights'] is None else np.round(bp['weights'], 3).tolist()} "
+          f"({bp['method']})")  # fmt: skip
     for one in res.meta["size_prior"] or []:
         cdf = np.cumsum(one["density"]) / np.sum(one["density"])
         q = np.exp(np.interp([0.05, 0.5, 0.95], cdf, one["ln_h"]))

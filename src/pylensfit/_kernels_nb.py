@@ -67,9 +67,38 @@ def _amplitude_terms(t):
     return val, dl
 
 
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
+def _bounded_mass(a, b):
+    """``ln(Phi(a) - Phi(b))`` and its ``a`` derivative, for ``a > b`` (``b`` may be -inf).
+
+    The Gaussian mass of the amplitude between the bounds of a flux prior: with the S/N
+    ``t`` and the bounds ``u_lo < u_hi`` in S/N units, ``a = t - u_lo``, ``b = t - u_hi``.
+    The derivative (``a`` and ``b`` move together with ``t``) is ``(phi(a) - phi(b)) /
+    (Phi(a) - Phi(b))``. Where both are near 1 (``b > 0``) it is written with
+    ``Phi(-b) - Phi(-a)``, which keeps the difference's precision.
+    """
+    va, da = _amplitude_terms(a)
+    lpa = va - 0.5 * a * a
+    la = da - a  # phi(a) / Phi(a)
+    if b == -math.inf:
+        return lpa, la
+    if b > 0.0:
+        vq, dq = _amplitude_terms(-b)
+        lp = vq - 0.5 * b * b  # ln Phi(-b)
+        lam_b = dq + b  # phi(b) / Phi(-b)
+        vq, dq = _amplitude_terms(-a)
+        rho = math.exp(vq - 0.5 * a * a - lp)  # Phi(-a) / Phi(-b)
+        lam_a = dq + a
+        return lp + math.log1p(-rho), (lam_a * rho - lam_b) / (1.0 - rho)
+    vb, db = _amplitude_terms(b)
+    r = math.exp(vb - 0.5 * b * b - lpa)  # Phi(b) / Phi(a)
+    return lpa + math.log1p(-r), (la - (db - b) * r) / (1.0 - r)
+
+
 @njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
 def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sqs, lns,
-                 mxx, mxy, myy, sig, x0, y0, b2, max_step2, amp_pow, amp_lns):  # fmt: skip
+                 mxx, mxy, myy, sig, x0, y0, b2, max_step2, amp_pow, amp_lns, amp_lo=0.0,
+                 amp_hi=math.inf):  # fmt: skip
     """ln L of one model, marginalised over amplitude (> 0) and position (Laplace).
 
     ``s``, ``sqs``, ``lns`` are ``S = sum m^2``, its square root and its log. With
@@ -79,7 +108,9 @@ def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sq
     amplitude integral is ``0.5 t^2 - beta ln t`` (its peak value times its width, the
     ``sqrt S`` of the width cancelling that of ``dt/dA``; ``t`` floored at 1), plus
     ``amp_lns * 0.5 ln S``: ``amp_lns = beta - 1`` makes it a power law ``A^-beta`` in
-    the amplitude (the flux) itself, the same for every model. With
+    the amplitude (the flux) itself, the same for every model. With bounds ``amp_lo``,
+    ``amp_hi`` on the flux of a power-law prior, the integral is multiplied by the
+    Gaussian's mass between them (:func:`_bounded_mass`). With
     ``cubic``, the third derivatives ``t...`` of ``h`` refine the peak (two Newton steps
     on the cubic expansion) and give the Hessian at the peak rather than at the origin.
     Returns ``(ln L, h*, X*, Y*)``. See :func:`pylensfit.likelihood.fit_stamps`.
@@ -148,6 +179,10 @@ def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sq
         tt = max(t, 1.0)
         val = 0.5 * t * t - amp_pow * math.log(tt) + 0.5 * amp_lns * lns
         dl = t - amp_pow / tt if t > 1.0 else t
+        if amp_lo > 0.0 or amp_hi < math.inf:
+            lm, dm = _bounded_mass(t - amp_lo * s * iss, t - amp_hi * s * iss)
+            val += lm
+            dl += dm
     dl = -dl * iss
     # Fisher matrix of position, F = -(dl/dh) Hess h, and M = I + b^2 F
     f11 = dl * hxx
@@ -323,9 +358,10 @@ def _cubic_tile(V, max_step2, W):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def _amplitude_tile(cm, amp_pow, amp_lns, W):
+def _amplitude_tile(cm, amp_pow, amp_lns, amp_lo, amp_hi, W):
     """The amplitude integral of :func:`_laplace_lnl` for a tile: its log ``_VAL`` and
     ``-(d val / d h)`` (``_DL``). A log or a table per model: scalar."""
+    bounded = amp_lo > 0.0 or amp_hi < math.inf
     for k in range(W.shape[1]):
         t = W[_HS, k] * W[_ISS, k]
         if amp_pow < 0.0:
@@ -335,6 +371,11 @@ def _amplitude_tile(cm, amp_pow, amp_lns, W):
             tt = max(t, 1.0)
             val = 0.5 * t * t - amp_pow * math.log(tt) + 0.5 * amp_lns * cm[5, k]
             dl = t - amp_pow / tt if t > 1.0 else t
+            if bounded:  # flux to S/N: sqrt(S) / sigma = S * iss
+                u = cm[0, k] * W[_ISS, k]
+                lm, dm = _bounded_mass(t - amp_lo * u, t - amp_hi * u)
+                val += lm
+                dl += dm
         W[_VAL, k] = val
         W[_DL, k] = -dl * W[_ISS, k]
 
@@ -375,8 +416,8 @@ _PRIOR_KINK = 1.0
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
     prod, members, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step,
-    node_w, w_star, ln_pi, e_w, amp_pow, amp_lns, cubic, out_lnle, out_lnlb, out_lnlr, out_best,
-    out_h, out_x, out_y,
+    node_w, w_star, ln_pi, e_w, amp_pow, amp_lns, amp_lo, amp_hi, cubic, out_lnle, out_lnlb,
+    out_lnlr, out_best, out_h, out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 
@@ -431,6 +472,8 @@ def laplace_grid(
     amp_lns : float
         Coefficient of ``0.5 ln S`` added to a power-law amplitude prior: 0 for a power
         law in the model's S/N, ``amp_pow - 1`` for one in the flux.
+    amp_lo, amp_hi : float
+        Bounds on the flux of a power-law amplitude prior (0 and inf: none).
     e_w : (n_e,) array
         Weights of the e cells (summing to 1) in ``L(r) = sum_e e_w L(e, r)``: an
         ellipticity prior's mass per cell.
@@ -512,7 +555,7 @@ def laplace_grid(
                 _position_tile(Vh, cmh, sig, max_step2, Wh)
                 if cubic:
                     _cubic_tile(Vh, max_step2, Wh)
-                _amplitude_tile(cmh, amp_pow, amp_lns, Wh)
+                _amplitude_tile(cmh, amp_pow, amp_lns, amp_lo, amp_hi, Wh)
                 _fisher_tile(gx0, gy0, b2, Wh)
             for k in range(nt):
                 for hm in range(n_memb):

@@ -12,6 +12,7 @@ values are validated once, when the object is made.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -119,6 +120,15 @@ class Config:
     amplitude_prior_power: float = _f(
         2.0, "power of the 'snr' or 'flux' amplitude prior (dN/dS ~ S^-power or dN/dA ~ "
         "A^-power; 1: scale-invariant)",
+    )
+    amplitude_prior_min: float = _f(
+        0.0, "with amplitude_prior 'flux': the prior's lower bound in flux (0: none); for "
+        "simulated sets whose fluxes are drawn within a hard range (validate --precision), "
+        "where the unbounded power law gives the faintest galaxies' models of low flux a "
+        "weight that the population does not",
+    )
+    amplitude_prior_max: float = _f(
+        math.inf, "with amplitude_prior 'flux': the prior's upper bound in flux (inf: none)"
     )
     # --- marginalisation over position (paper eq. eq:likelihood) ---
     position_prior_sigma: float = _f(
@@ -319,6 +329,8 @@ def _validate(c: Config) -> None:
     need(c.amplitude_prior in ("uniform", "snr", "flux"),
          f"amplitude_prior must be 'uniform', 'snr' or 'flux', got {c.amplitude_prior!r}")
     need(c.amplitude_prior_power >= 0, "amplitude_prior_power must be >= 0")
+    need(0 <= c.amplitude_prior_min < c.amplitude_prior_max,
+         "need 0 <= amplitude_prior_min < amplitude_prior_max")  # fmt: skip
     need(0 < c.size_prior_smoothing < 0.5, "size_prior_smoothing must be in (0, 0.5)")
     need(c.max_offset >= 0, "max_offset must be >= 0")
     need(c.centring_scale > 0, "centring_scale must be > 0")

@@ -627,6 +627,9 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     e_w_c = np.full(coarse.n_e, 1.0 / coarse.n_e)
     amp_pow = -1.0 if cfg.amplitude_prior == "uniform" else float(cfg.amplitude_prior_power)
     amp_lns = amp_pow - 1.0 if cfg.amplitude_prior == "flux" else 0.0
+    flux_prior = cfg.amplitude_prior == "flux"
+    amp_lo = float(cfg.amplitude_prior_min) if flux_prior else 0.0
+    amp_hi = float(cfg.amplitude_prior_max) if flux_prior else np.inf
     lnle = np.empty((n_gal, n_e))
     lnleb = np.empty((n_gal, n_e, n_b))
     lnlr = np.empty((n_gal, n_r + 1))
@@ -651,7 +654,7 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
             folded_products(sl, False, fb.coarse_G), fb.coarse_members, m, coarse.n_e,
             coarse.n_r, coarse.n_r, S_c, mxx_c, mxy_c, myy_c, sigma[sl], x0[sl] - xc[sl],
             y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, e_w_c,
-            amp_pow, amp_lns, False,
+            amp_pow, amp_lns, amp_lo, amp_hi, False,
             *tmp,
         )  # fmt: skip
         step_x, step_y = tmp[5], tmp[6]
@@ -673,7 +676,7 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
                 folded_products(idx, cubic), fb.members, sel.size, n_e, n_r, bank.n_sizes,
                 pb.S, pb.mxx, pb.mxy, pb.myy,
                 sigma[idx], x0[idx] - xc[idx], y0[idx] - yc[idx], b2, cfg.max_newton_step,
-                node_w, w_star, ln_pi, e_w, amp_pow, amp_lns, cubic, *out,
+                node_w, w_star, ln_pi, e_w, amp_pow, amp_lns, amp_lo, amp_hi, cubic, *out,
             )  # fmt: skip
             lnle[idx], lnleb[idx], lnlr[idx], best[idx], hbest[idx], xb[idx], yb[idx] = out
 
