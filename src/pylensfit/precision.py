@@ -1097,6 +1097,8 @@ def precision(
                           "size_prior": cfg.size_prior,
                           "amplitude_prior": cfg.amplitude_prior,
                           "amplitude_prior_power": cfg.amplitude_prior_power,
+                          "amplitude_prior_min": cfg.amplitude_prior_min,
+                          "amplitude_prior_max": cfg.amplitude_prior_max,
                           "position_prior_sigma": cfg.position_prior_sigma}  # fmt: skip
     out.meta["flux_slope"] = flux_meta
     sizes, counts = np.unique(np.asarray(gal["stamp"]), return_counts=True)
@@ -1173,8 +1175,11 @@ def _amplitude_line(cfg: dict, flux: dict | None, spec: dict) -> str:
                 + pos)  # fmt: skip
     src = (f"estimated from the calibration sample's fluxes, ± {flux['error']:.3f}"
            if flux["estimated"] else "given")  # fmt: skip
-    return (f"Amplitude prior: A^-β in the flux, β = {flux['value']:.3f} ({src}; the "
-            f"population's {spec['snr_slope']:g})." + pos)  # fmt: skip
+    lo, hi = cfg.get("amplitude_prior_min", 0.0), cfg.get("amplitude_prior_max", math.inf)
+    bounds = (f", within {lo:.4g}-{hi:.4g} in flux" if lo > 0 or hi < math.inf
+              else ", unbounded")  # fmt: skip
+    return (f"Amplitude prior: A^-β in the flux{bounds}, β = {flux['value']:.3f} ({src}; "
+            f"the population's {spec['snr_slope']:g})." + pos)  # fmt: skip
 
 
 def write_report(res: Table, path: str | Path) -> None:
