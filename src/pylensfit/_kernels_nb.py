@@ -687,6 +687,14 @@ def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trun
             py = iy - h
             for ix in range(n):
                 px = ix - h
+                # the profile is point-symmetric and, off the shared lines, so is the
+                # set of copies kept: the pixel at -p has the value of p
+                my = 2 * h - iy
+                mx = 2 * h - ix
+                off_shared = not shared or (ix > 0 and iy > 0)
+                if off_shared and my < n and mx < n and (my < iy or (my == iy and mx < ix)):
+                    out[i, col, iy, ix] = out[i, col, my, mx]
+                    continue
                 acc = 0.0
                 for a in range(-kmax, kmax + 1):
                     x = px + a * n
