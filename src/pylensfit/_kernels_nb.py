@@ -95,22 +95,61 @@ def _bounded_mass(a, b):
     return lpa + math.log1p(-r), (la - (db - b) * r) / (1.0 - r)
 
 
+#: where no lower bound is given, a power-law amplitude prior starts at this S/N (the
+#: law diverges at 0 for ``beta >= 1``)
+_AMP_FLOOR = 1.0
+#: floor on the curvature ``1 - beta / u0^2`` of the expansion point: reached only for
+#: models of S/N below ~2, which carry no weight
+_AMP_MIN_CURV = 0.5
+
+
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"}, inline="always")
 def _amplitude_integral(t, s, lns, iss, amp_pow, amp_lns, amp_lo, amp_hi):
-    """ln of the amplitude integral of one model and its ``t`` derivative (see
-    :func:`_laplace_lnl`), for the model's S/N ``t``, ``S = sum m^2``, ``ln S`` and
-    ``iss = 1 / (sigma sqrt S)``."""
+    """ln of the amplitude integral of one model and the amplitude's posterior mean in S/N
+    units (see :func:`_laplace_lnl`), for the model's S/N ``t``, ``S = sum m^2``, ``ln
+    S`` and ``iss = 1 / (sigma sqrt S)``.
+
+    Uniform prior (``amp_pow < 0``): ``0.5 t^2 + ln Phi(t)``, exact, and ``t + phi(t) /
+    Phi(t)``. Power law ``u^-beta`` in the S/N ``u`` between bounds ``lo < hi`` (the flux
+    bounds ``amp_lo``, ``amp_hi`` in the model's S/N units, ``lo`` at least
+    ``_AMP_FLOOR``): ``0.5 t^2 + ln int_lo^hi u^-beta phi(u - t) du``, with the log of the
+    integrand ``g(u) = -beta ln u - (u - t)^2 / 2`` expanded to second order about its
+    maximum ``u0`` on ``[lo, hi]`` (the root ``u* = (t + sqrt(t^2 - 4 beta)) / 2`` of
+    ``g'``, or the bound it lies beyond) and the Gaussian so made integrated exactly
+    between the bounds. Within 1e-3 of the exact integral for ``t >= 8`` wherever the
+    bounds lie (3e-3 at ``t = 6``, 1e-2 at ``t = 4``, for ``beta <= 2``); the Laplace form
+    at ``t`` itself, ``0.5 t^2 - beta ln t + ln(Phi(t - lo) - Phi(t - hi))``, was off by
+    0.03 at ``t = 10`` without bounds and by 0.14 (``t = 10``) to 1.9 (``t = 4``) against
+    a bound at ``lo = 10``, where the prior's ``u^-beta`` pulls the integrand's mass onto
+    the bound (``tests/test_likelihood.py``). The second value, ``d val / dt``, is the
+    mean of that Gaussian truncated to the bounds (the posterior mean of ``u``; within
+    5e-3 of it for ``t >= 8``).
+    """
     if amp_pow < 0.0:
         val, dl = _amplitude_terms(t)
         return val - 0.5 * lns, dl
-    tt = max(t, 1.0)
-    val = 0.5 * t * t - amp_pow * math.log(tt) + 0.5 * amp_lns * lns
-    dl = t - amp_pow / tt if t > 1.0 else t
-    if amp_lo > 0.0 or amp_hi < math.inf:  # flux to S/N: sqrt(S) / sigma = S * iss
-        lm, dm = _bounded_mass(t - amp_lo * s * iss, t - amp_hi * s * iss)
-        val += lm
-        dl += dm
-    return val, dl
+    beta = amp_pow
+    lo = max(amp_lo * s * iss, _AMP_FLOOR)  # flux to S/N: sqrt(S) / sigma = S * iss
+    hi = amp_hi * s * iss
+    disc = t * t - 4.0 * beta
+    u0 = lo
+    if disc > 0.0:
+        ustar = 0.5 * (t + math.sqrt(disc))
+        if ustar > lo:  # the interior maximum, unless the bound's (below the minimum
+            # at the smaller root) is higher
+            u0 = min(ustar, hi)
+            if -beta * math.log(lo) - 0.5 * (lo - t) ** 2 > (
+                -beta * math.log(u0) - 0.5 * (u0 - t) ** 2
+            ):
+                u0 = lo
+    g0 = -beta * math.log(u0) - 0.5 * (u0 - t) * (u0 - t)
+    g1 = t - u0 - beta / u0
+    c = max(1.0 - beta / (u0 * u0), _AMP_MIN_CURV)
+    mu = u0 + g1 / c
+    rc = math.sqrt(c)
+    lm, dm = _bounded_mass((mu - lo) * rc, (mu - hi) * rc)
+    val = 0.5 * t * t + g0 + 0.5 * g1 * g1 / c - 0.5 * math.log(c) + lm + 0.5 * amp_lns * lns
+    return val, mu + dm / rc
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"}, inline="always")
@@ -160,13 +199,11 @@ def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sq
     ``s``, ``sqs``, ``lns`` are ``S = sum m^2``, its square root and its log. With
     ``amp_pow < 0`` the amplitude prior is uniform (the paper's): ``0.5 t^2 + ln Phi(t) -
     0.5 ln S`` for the model's S/N ``t = h / (sigma sqrt S)``. With ``amp_pow = beta >=
-    0`` it is a power law in the model's S/N, ``p(A | model) ~ t^-beta dt/dA``: the
-    amplitude integral is ``0.5 t^2 - beta ln t`` (its peak value times its width, the
-    ``sqrt S`` of the width cancelling that of ``dt/dA``; ``t`` floored at 1), plus
-    ``amp_lns * 0.5 ln S``: ``amp_lns = beta - 1`` makes it a power law ``A^-beta`` in
-    the amplitude (the flux) itself, the same for every model. With bounds ``amp_lo``,
-    ``amp_hi`` on the flux of a power-law prior, the integral is multiplied by the
-    Gaussian's mass between them (:func:`_bounded_mass`). With
+    0`` it is a power law in the model's S/N, ``p(A | model) ~ t^-beta dt/dA``, between
+    bounds ``amp_lo``, ``amp_hi`` on the flux (:func:`_amplitude_integral`; the ``sqrt
+    S`` of the Gaussian's width in ``A`` cancels that of ``dt/dA``), plus ``amp_lns * 0.5
+    ln S``: ``amp_lns = beta - 1`` makes it a power law ``A^-beta`` in the amplitude (the
+    flux) itself, the same for every model. With
     ``cubic``, the third derivatives ``t...`` of ``h`` refine the peak (two Newton steps
     on the cubic expansion) and give the Hessian at the peak rather than at the origin.
     Returns ``(ln L, h*, X*, Y*)``. See :func:`pylensfit.likelihood.fit_stamps`.
