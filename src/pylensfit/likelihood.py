@@ -34,6 +34,7 @@ For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of un
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -327,7 +328,28 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
     return fb
 
 
+#: the last few PSFs' banks: a pipeline fits an image's galaxies with one PSF in
+#: several calls (blocks, neighbour subtraction), a precision block its renderings
+_PSF_BANKS: dict = {}
+
+
 def _psf_bank(psf: np.ndarray, config: Config, bank) -> _PSFBank:
+    """:func:`_psf_bank_of` of the PSF image, reused while the same image and bank recur."""
+    psf = np.ascontiguousarray(psf)
+    key = (hashlib.blake2b(psf.tobytes(), digest_size=16).digest(), psf.shape, psf.dtype.str,
+           config.stamp_size, float(config.k_max), id(bank))  # fmt: skip
+    hit = _PSF_BANKS.get(key)
+    if hit is not None and hit[0] is bank:
+        return hit[1]
+    pb = _psf_bank_of(psf, config, bank)
+    if len(_PSF_BANKS) >= 8:
+        _PSF_BANKS.pop(next(iter(_PSF_BANKS)))
+    _PSF_BANKS[key] = (bank, pb)
+    return pb
+
+
+def _psf_bank_of(psf: np.ndarray, config: Config, bank) -> _PSFBank:
+    """The PSF's transform and each model's ``sum m^2`` and autocorrelation Hessian."""
     n = config.stamp_size
     P = psf_transform(psf, n)
     kx, ky, w = rfft_frequencies(n)
