@@ -133,16 +133,16 @@ def _amplitude_integral(t, s, lns, iss, amp_pow, amp_lns, amp_lo, amp_hi):
     hi = amp_hi * s * iss
     disc = t * t - 4.0 * beta
     u0 = lo
+    g0 = -beta * math.log(lo) - 0.5 * (lo - t) * (lo - t)
     if disc > 0.0:
         ustar = 0.5 * (t + math.sqrt(disc))
         if ustar > lo:  # the interior maximum, unless the bound's (below the minimum
             # at the smaller root) is higher
-            u0 = min(ustar, hi)
-            if -beta * math.log(lo) - 0.5 * (lo - t) ** 2 > (
-                -beta * math.log(u0) - 0.5 * (u0 - t) ** 2
-            ):
-                u0 = lo
-    g0 = -beta * math.log(u0) - 0.5 * (u0 - t) * (u0 - t)
+            u = min(ustar, hi)
+            gu = -beta * math.log(u) - 0.5 * (u - t) * (u - t)
+            if gu >= g0:
+                u0 = u
+                g0 = gu
     g1 = t - u0 - beta / u0
     c = max(1.0 - beta / (u0 * u0), _AMP_MIN_CURV)
     mu = u0 + g1 / c
@@ -728,8 +728,8 @@ def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trun
                 # set of copies kept: the pixel at -p has the value of p
                 my = 2 * h - iy
                 mx = 2 * h - ix
-                off_shared = not shared or (ix > 0 and iy > 0)
-                if off_shared and my < n and mx < n and (my < iy or (my == iy and mx < ix)):
+                off_shared = not shared or (ix > 0 and iy > 0)  # then -p is in the stamp
+                if off_shared and (my < iy or (my == iy and mx < ix)):
                     out[i, col, iy, ix] = out[i, col, my, mx]
                     continue
                 acc = 0.0

@@ -322,10 +322,15 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
     fb = _FoldedBank(idx=idx, coef=coef, keep=keep, G=G, members=members, coarse=coarse,
                      coarse_G=tuple(np.ascontiguousarray(g[:, gcols]) for g in G),
                      coarse_members=cmem)  # fmt: skip
-    if len(_FOLDED) >= 4:
-        _FOLDED.pop(next(iter(_FOLDED)))
-    _FOLDED[key] = (bank, fb)
+    _keep(_FOLDED, key, (bank, fb), 4)
     return fb
+
+
+def _keep(cache: dict, key, value, size: int) -> None:
+    """Store ``value`` in ``cache``, dropping the oldest entry beyond ``size``."""
+    if len(cache) >= size:
+        cache.pop(next(iter(cache)))
+    cache[key] = value
 
 
 #: the last few PSFs' banks: a pipeline fits an image's galaxies with one PSF in
@@ -342,9 +347,7 @@ def _psf_bank(psf: np.ndarray, config: Config, bank) -> _PSFBank:
     if hit is not None and hit[0] is bank:
         return hit[1]
     pb = _psf_bank_of(psf, config, bank)
-    if len(_PSF_BANKS) >= 8:
-        _PSF_BANKS.pop(next(iter(_PSF_BANKS)))
-    _PSF_BANKS[key] = (bank, pb)
+    _keep(_PSF_BANKS, key, (bank, pb), 8)
     return pb
 
 
