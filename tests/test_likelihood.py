@@ -138,6 +138,7 @@ def _galaxy(snr, offset, e=(0.25, -0.15), r=2.0, psf="moffat_e1", seed=3):
     return img * flux + rng.normal(size=img.shape), draw(psf_obj)
 
 
+@pytest.mark.xdist_group("bank_e0.025")  # one worker builds the fine grid's bank, once
 @pytest.mark.parametrize(
     "snr,offset,e_step",
     [(10, (0.7, -0.4), 0.1), (30, (3.8, 1.1), 0.1), (100, (0.3, 0.2), 0.025),
@@ -147,9 +148,11 @@ def test_laplace_matches_brute_force(snr, offset, e_step):
     """ln L(e) differences within 0.05 of brute force where L > 1e-3 of its peak.
 
     At S/N 100-200 the likelihood is narrower than the paper's grid step, so those cases
-    use a finer grid (0.025) to have a region worth the name.
+    use a finer grid (0.025) to have a region worth the name, cut at ``|e| < 0.6`` (the
+    galaxy's is 0.29): a third of the models, whose bank takes a third of the time.
     """
-    cfg = Config(model="exponential", r_step=0.5, r_max=6.0, e_step=e_step)
+    e_max = 1.0 if e_step >= 0.1 else 0.6
+    cfg = Config(model="exponential", r_step=0.5, r_max=6.0, e_step=e_step, e_max=e_max)
     sigma = 1.0
     d, psf_img = _galaxy(snr, offset)
     x0 = np.array([N // 2, N // 2], dtype=float)  # catalogue position: the stamp centre
@@ -716,6 +719,56 @@ def test_max_stamp_size_must_be_a_multiple_of_the_stamp():
         Config(k_max=-1.0)
 
 
+@pytest.mark.parametrize("beta", [0.0, 1.0, 2.0, 2.5, 4.0])
+def test_power_law_table_matches_the_direct_integral(beta):
+    """Without flux bounds the power-law amplitude integral depends on the S/N ``t``
+    alone; ``_amplitude_tile`` reads it off a cubic Hermite table from ``t0`` up, and
+    evaluates it directly below ``t0``, above the table and wherever a flux bound is in
+    effect. Table and direct evaluation agree on the value and on the amplitude's mean
+    (which sets the position curvature) to 1e-7 (measured: 2e-8 and 8e-8, both worst
+    just above ``t0``); the models off the table are the direct ones exactly."""
+    from pylensfit._kernels_nb import (
+        _DL,
+        _HS,
+        _ISS,
+        _NW,
+        _PT_MAX,
+        _VAL,
+        _amplitude_tile,
+        _power_law_table,
+    )
+
+    t0, tab = _power_law_table(beta)
+    assert t0 == max(4.0, beta + 1.5)
+    rng = np.random.default_rng(11)
+    n = 512
+    t = np.concatenate([rng.uniform(t0, _PT_MAX - 1, 400), t0 + rng.uniform(0, 0.5, 60),
+                        rng.uniform(-6, t0, 40), rng.uniform(_PT_MAX, 900, 12)])  # fmt: skip
+    cm = np.zeros((6, n))
+    cm[0] = rng.uniform(0.5, 3.0, n)
+    cm[5] = np.log(cm[0])
+    W = np.zeros((_NW, n))
+    W[_ISS] = rng.uniform(0.1, 1.0, n)
+    W[_HS] = t / W[_ISS]
+    direct = W.copy()
+    _amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, t0, tab, W)
+    _amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, 0.0, np.empty((4, 0)), direct)
+    on = (t >= t0) & (t < _PT_MAX - 1)
+    np.testing.assert_allclose(W[_VAL, on], direct[_VAL, on], rtol=0, atol=1e-7)
+    np.testing.assert_allclose(W[_DL, on] / W[_ISS, on], direct[_DL, on] / W[_ISS, on],
+                               rtol=0, atol=1e-7)  # fmt: skip
+    np.testing.assert_array_equal(W[:, ~on], direct[:, ~on])
+    # a lower flux bound takes the models it is in effect for (S/N above 1: the flux 3
+    # in S/N units ``3 S / (sigma sqrt S)``) off the table, and leaves the others on it
+    a, b = W.copy(), W.copy()
+    _amplitude_tile(cm, beta, beta - 1.0, 3.0, np.inf, t0, tab, a)
+    _amplitude_tile(cm, beta, beta - 1.0, 3.0, np.inf, 0.0, np.empty((4, 0)), b)
+    bound = 3.0 * cm[0] * W[_ISS] > 1.0
+    assert 50 < bound.sum() < n - 50
+    np.testing.assert_array_equal(a[:, bound], b[:, bound])
+    np.testing.assert_array_equal(a[:, ~bound], W[:, ~bound])
+
+
 # --- the tiled kernel against the per-model reference ---------------------------------
 @pytest.mark.parametrize("n_chi", [1, 4])
 @pytest.mark.parametrize("cubic", [False, True])
@@ -727,8 +780,10 @@ def test_tiled_kernel_matches_per_model_laplace(n_chi, cubic, amp):
     Random products that take every branch (data Hessians that are not maxima, Newton
     steps beyond the cap, cubic steps that fail, S/N below 1 and negative), more columns
     than one tile, and slots without a model: every model's ln L, the best model and its
-    peak must agree to rounding. With one size per e cell the kernel's ``ln L_k(e)`` is
-    the model's own ``ln L`` plus the node's log weight, so each model is checked."""
+    peak must agree to rounding, except that the kernel reads a power law without flux
+    bounds off a table (``_power_law_table``, within 2e-8 of the direct evaluation).
+    With one size per e cell the kernel's ``ln L_k(e)`` is the model's own ``ln L`` plus
+    the node's log weight, so each model is checked."""
     from pylensfit._kernels_nb import _TILE, _laplace_lnl, laplace_grid
 
     rng = np.random.default_rng(7 + n_chi + 2 * cubic)
@@ -798,10 +853,11 @@ def test_tiled_kernel_matches_per_model_laplace(n_chi, cubic, amp):
     bad = ~np.isfinite(lnl[:, :n_e])
     assert bad.mean() < 0.05
     want = np.where(bad, -np.inf, lnl[:, :n_e])
-    np.testing.assert_allclose(lnlb[:, :, 0] - np.log(node_w[0]), want, rtol=1e-12, atol=1e-9)
-    np.testing.assert_allclose(lnlr[:, 1], lnl[:, n_e], rtol=1e-12, atol=1e-9)
+    tol = 5e-8 if amp_pow >= 0 and amp_hi == np.inf else 1e-9  # the table's, or rounding
+    np.testing.assert_allclose(lnlb[:, :, 0] - np.log(node_w[0]), want, rtol=1e-12, atol=tol)
+    np.testing.assert_allclose(lnlr[:, 1], lnl[:, n_e], rtol=1e-12, atol=tol)
     jb = np.where(np.isfinite(lnl), lnl, -np.inf).argmax(axis=1)
     np.testing.assert_array_equal(best, jb)
-    np.testing.assert_allclose(hbest, ref[np.arange(n_gal), jb, 1], rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(hbest, ref[np.arange(n_gal), jb, 1], rtol=1e-12, atol=tol)
     np.testing.assert_allclose(xb, ref[np.arange(n_gal), jb, 2], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(yb, ref[np.arange(n_gal), jb, 3], rtol=1e-12, atol=1e-12)
