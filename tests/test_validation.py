@@ -233,16 +233,18 @@ def test_fit_m_c_and_quality_factor():
 
 def test_validate_end_to_end(tmp_path):
     from pylensfit.pipeline import InputError
-    from pylensfit.validation import simulate_step, validate
+    from pylensfit.validation import STEP1_PSFS, simulate_step, validate
 
-    d = simulate_step("step1", tmp_path / "s1", ngal=1500, seed=4)
+    # three of the five PSFs (round, elliptical along e1 and along e2), with the fields of
+    # a 1500-galaxy set
+    d = simulate_step("step1", tmp_path / "s1", ngal=900, seed=4, psfs=STEP1_PSFS[:3])
     # the flat size prior: the zero-shear fields of a set this small hold ~30 galaxies
     # per PSF, too few to estimate one (the default)
     with pytest.raises(InputError, match="too few to estimate the size prior"):
         validate(d, progress=False, bins={})
     res = validate(d, config=_flat(), report=tmp_path / "report.md", progress=False)
-    assert list(res["psf"]) == ["0", "1", "2", "3", "4", "all"]
-    assert res["n_gal"][-1] > 1000
+    assert list(res["psf"]) == ["0", "1", "2", "all"]
+    assert res["n_gal"][-1] > 600
     # a small set: m is known only to ~0.3, but it must be consistent with no bias
     assert abs(res["m1"][-1]) < 4 * res["m1_err"][-1]
     assert np.isnan(res["m2"][-1])  # step1 has g2 = 0: only c2 is measured
@@ -266,7 +268,7 @@ def test_validate_end_to_end(tmp_path):
     assert pc["n"] > 100 and np.isfinite(pc["rms_true"])
     # the stacked PSFs against GalSim's pixelised input PSFs, measured alike
     ps = res.meta["psf_check"]
-    assert len(ps) == 5
+    assert len(ps) == 3
     np.testing.assert_allclose(ps["fwhm_meas"], ps["fwhm_true"], rtol=0.02)
     assert np.max(np.abs(ps["e1_meas"] - ps["e1_true"])) < 0.005
     assert np.max(np.abs(ps["e2_meas"] - ps["e2_true"])) < 0.005
@@ -373,13 +375,23 @@ def _flat():
     return Config(model="bulge+disc", n_bulge_fractions=3)
 
 
+def _exponential():
+    """The flat size prior and one model, one bulge fraction: the pairing, bins and kept
+    catalogues work alike for any model, and this one fits three times as fast."""
+    from pylensfit.config import Config
+
+    return Config(model="exponential")
+
+
 @pytest.fixture(scope="module")
 def step2_validated(step2):
     from pylensfit.validation import validate
 
-    return validate(step2["dir"], config=_flat(), progress=False, bins={"mag": 2, "size": 2})
+    return validate(step2["dir"], config=_exponential(), progress=False,
+                    bins={"mag": 2, "size": 2})  # fmt: skip
 
 
+@pytest.mark.xdist_group("step2_validated")  # one worker validates the set
 def test_validate_step2_twins_and_bins(step2, step2_validated):
     res = step2_validated
     m = res.meta
@@ -414,6 +426,7 @@ def test_validate_step2_twins_and_bins(step2, step2_validated):
     assert not any(v["reused"] for v in m["measured"].values())
 
 
+@pytest.mark.xdist_group("step2_validated")  # one worker validates the set
 def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
     from pylensfit import pipeline
     from pylensfit.config import Config
@@ -423,7 +436,8 @@ def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
         raise AssertionError("measure called")
 
     monkeypatch.setattr(pipeline, "measure", boom)
-    again = validate(step2["dir"], config=_flat(), progress=False, bins={"mag": 2, "size": 2})
+    again = validate(step2["dir"], config=_exponential(), progress=False,
+                     bins={"mag": 2, "size": 2})  # fmt: skip
     assert all(v["reused"] for v in again.meta["measured"].values())
     for c in ("m1", "c1", "m2", "c2", "Q", "n_gal"):
         assert np.array_equal(np.asarray(again[c]), np.asarray(step2_validated[c]), equal_nan=True)
@@ -432,7 +446,7 @@ def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
         validate(step2["dir"], progress=False, bins={},
                  config=Config(model="bulge+disc", integration_refine=2))  # fmt: skip
     with pytest.raises(AssertionError, match="measure called"):
-        validate(step2["dir"], config=_flat(), progress=False, bins={}, remeasure=True)
+        validate(step2["dir"], config=_exponential(), progress=False, bins={}, remeasure=True)
 
 
 def test_validate_takes_the_size_prior_from_the_zero_shear_field(tmp_path, monkeypatch):
@@ -442,10 +456,15 @@ def test_validate_takes_the_size_prior_from_the_zero_shear_field(tmp_path, monke
     from pylensfit import pipeline
     from pylensfit.config import Config
     from pylensfit.prior import SizePrior
-    from pylensfit.validation import simulate_step, validate
+    from pylensfit.validation import STEP2_PSFS, simulate_step, validate
 
-    d = simulate_step("step2", tmp_path / "s2", ngal=1500, seed=8, n_shear=1)
+    # two PSFs (the round one and the diagonal, highly elliptical one) with the fields of
+    # a 1500-galaxy five-PSF set, about 150 galaxies each; one model, one bulge fraction:
+    # the plumbing is the same for any model
+    d = simulate_step("step2", tmp_path / "s2", ngal=600, seed=8, n_shear=1,
+                      psfs=STEP2_PSFS[::4])  # fmt: skip
     n_psf = len(read_manifest(d)["psfs"])
+    assert n_psf == 2
     calls = []
     real = pipeline.measure
 
@@ -454,7 +473,7 @@ def test_validate_takes_the_size_prior_from_the_zero_shear_field(tmp_path, monke
         return real(paths, **kw)
 
     monkeypatch.setattr(pipeline, "measure", spy)
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated")
+    cfg = Config(model="exponential", size_prior="estimated")
     res = validate(d, config=cfg, progress=False, bins={})
     assert len(calls) == 2 * n_psf and res["n_gal"][-1] > 100
     mdir = Path(d) / "measured"
