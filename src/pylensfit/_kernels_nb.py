@@ -36,6 +36,19 @@ _LNPHI, _LAM, _DLAM = _phi_table(_T0, _T1, _TH)
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
+def _hermite(x, step):
+    """Knot index and cubic Hermite weights ``(i, h00, h10, h01, h11)`` at ``x`` (in
+    knot spacings from the first knot; knots ``step`` apart): the value is ``h00 f_i +
+    h10 f'_i + h01 f_{i+1} + h11 f'_{i+1}``."""
+    i = int(x)
+    f = x - i
+    f2 = f * f
+    f3 = f2 * f
+    return (i, 2.0 * f3 - 3.0 * f2 + 1.0, (f3 - 2.0 * f2 + f) * step, 3.0 * f2 - 2.0 * f3,
+            (f3 - f2) * step)  # fmt: skip
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
 def _amplitude_terms(t):
     """``0.5 t^2 + ln Phi(t)`` and ``t + phi(t)/Phi(t)`` for the S/N ``t = h / (sigma sqrt S)``.
 
@@ -47,15 +60,7 @@ def _amplitude_terms(t):
         val = 0.5 * t * t
         dl = t
     elif t >= _T0:  # cubic Hermite interpolation of ln Phi and lambda = phi / Phi
-        x = (t - _T0) * (1.0 / _TH)
-        i = int(x)
-        f = x - i
-        f2 = f * f
-        f3 = f2 * f
-        h00 = 2.0 * f3 - 3.0 * f2 + 1.0
-        h10 = (f3 - 2.0 * f2 + f) * _TH
-        h01 = 3.0 * f2 - 2.0 * f3
-        h11 = (f3 - f2) * _TH
+        i, h00, h10, h01, h11 = _hermite((t - _T0) * (1.0 / _TH), _TH)
         val = 0.5 * t * t + (h00 * _LNPHI[i] + h10 * _LAM[i] + h01 * _LNPHI[i + 1]
                              + h11 * _LAM[i + 1])  # fmt: skip
         dl = t + (h00 * _LAM[i] + h10 * _DLAM[i] + h01 * _LAM[i + 1] + h11 * _DLAM[i + 1])
@@ -467,15 +472,7 @@ def _amplitude_tile(cm, amp_pow, amp_lns, amp_lo, amp_hi, t0, tab, W):
         iss = W[_ISS, k]
         t = W[_HS, k] * iss
         if n_tab > 0 and t >= t0 and t < t1 and amp_lo * cm[0, k] * iss <= _AMP_FLOOR:
-            x = (t - t0) * (1.0 / _PT_STEP)
-            i = int(x)
-            f = x - i
-            f2 = f * f
-            f3 = f2 * f
-            h00 = 2.0 * f3 - 3.0 * f2 + 1.0
-            h10 = (f3 - 2.0 * f2 + f) * _PT_STEP
-            h01 = 3.0 * f2 - 2.0 * f3
-            h11 = (f3 - f2) * _PT_STEP
+            i, h00, h10, h01, h11 = _hermite((t - t0) * (1.0 / _PT_STEP), _PT_STEP)
             val = (0.5 * t * t + h00 * tab[0, i] + h10 * tab[1, i] + h01 * tab[0, i + 1]
                    + h11 * tab[1, i + 1] + 0.5 * amp_lns * cm[5, k])  # fmt: skip
             dl = h00 * tab[2, i] + h10 * tab[3, i] + h01 * tab[2, i + 1] + h11 * tab[3, i + 1]
