@@ -492,6 +492,12 @@ def test_folded_products_equal_the_direct_products(cfg):
         (np.einsum("h,rhk->rk", _CHI[c], Rf[:, :, fb.keep[c]]) * fb.coef[fb.keep[c]])
         @ fb.G[c].astype(float) for c in range(4)
     ])  # fmt: skip
+    # the mixed bulge fractions: from the pure disc's and pure bulge's columns
+    f = fb.mix_f[None, None, :]
+    A = np.concatenate([A, (1 - f) * A[:, :, fb.mix_a] + f * A[:, :, fb.mix_b]], axis=2)
+    assert A.shape[2] == fb.members.shape[0]
+    if cfg.model == "bulge+disc" and cfg.n_bulge_fractions == 3:
+        assert fb.mix_a.size == fb.members.shape[0] // 3  # a third of the columns mixed
     folded = np.full_like(direct, np.nan)
     for h in range(4):
         ok = fb.members[:, h] >= 0
@@ -501,6 +507,32 @@ def test_folded_products_equal_the_direct_products(cfg):
     # a quarter of the operations: the octant's characters against the half-plane
     n_ops = sum(g.size for g in fb.G)
     assert n_ops < 0.3 * _interior(n, cfg.k_max).sum() * bank.n_models
+
+
+def test_mixed_bulge_fractions_equal_their_own_products(rng, monkeypatch):
+    """The kernel's mixed columns (the middle bulge fraction from the pure disc's and
+    pure bulge's products) give the fits that the fraction's own columns give."""
+    import pylensfit.likelihood as lk
+
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
+    psf = draw(PSFS["moffat_e1"])
+    imgs = [draw(galsim.Convolve(galsim_model("bulge+disc", r, *e, bulge_fraction=bf),
+                                 PSFS["moffat_e1"]))
+            for r, e, bf in ((1.5, (0.3, -0.2), 0.5), (0.8, (-0.1, 0.4), 0.2))]  # fmt: skip
+    stamps = np.stack([img * f for img, f in zip(imgs, (25.0, 150.0), strict=True)])
+    stamps += rng.normal(size=stamps.shape)
+    mixed = fit_stamps(stamps, psf, 1.0, config=cfg)
+    assert lk._folded_bank(cfg, model_bank(cfg)).mix_a.size > 0
+    lk._FOLDED.clear()
+    monkeypatch.setattr(lk, "_mixed_columns", lambda bank, n_orb: (
+        np.arange(n_orb * bank.n_r + 1), *lk._NO_MIX[:1] * 2, lk._NO_MIX[1]))  # fmt: skip
+    own = fit_stamps(stamps, psf, 1.0, config=cfg)
+    assert lk._FOLDED[next(iter(lk._FOLDED))][1].mix_a.size == 0
+    lk._FOLDED.clear()
+    # float32 products of the mixed columns against the mix of float32 products
+    np.testing.assert_allclose(mixed.lnL_bulge, own.lnL_bulge, atol=2e-3)
+    np.testing.assert_allclose(mixed.lnL, own.lnL, atol=2e-3)
+    np.testing.assert_array_equal(mixed.r_best, own.r_best)
 
 
 def test_size_prior_uniform_in_half_light_radius_is_the_flat_sum(rng):
@@ -534,6 +566,41 @@ def test_size_prior_uniform_in_half_light_radius_is_the_flat_sum(rng):
 
     np.testing.assert_allclose(rel(sm), rel(ref), atol=1e-3)
     assert not np.allclose(sm.lnL, ref.lnL, atol=0.1)
+
+
+def test_lnL_r_by_annulus_reweights_to_another_prior(rng):
+    """L(r) kept per group of equal |e| sums to the ordinary L(r), and reweighted to
+    another prior it is what a fit marginalised with that prior gives (the precision
+    mode's calibration takes its size prior's data this way, without a second pass)."""
+    from pylensfit.likelihood import e_annuli, reweight_lnL_r
+    from pylensfit.prior import Prior
+
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
+    psf = draw(PSFS["moffat_round"])
+    imgs = [draw(galsim.Convolve(galsim_model("bulge+disc", r, *e, bulge_fraction=0.3),
+                                 PSFS["moffat_round"]))
+            for r, e in ((1.0, (0.3, -0.2)), (2.5, (-0.1, 0.5)), (0.6, (0.0, 0.1)))]  # fmt: skip
+    stamps = np.stack([img * f for img, f in zip(imgs, (40.0, 300.0, 15.0), strict=True)])
+    stamps += rng.normal(size=stamps.shape)
+    egrid = model_bank(cfg).egrid
+    grp = e_annuli(egrid)
+    ee = np.hypot(*egrid.T)
+    assert grp.max() + 1 == np.unique(np.round(ee, 9)).size
+    assert all(np.ptp(ee[grp == a]) < 1e-9 for a in range(grp.max() + 1))
+    other = Prior(B=0.3, C=1.2, D=3.0)
+    ref = fit_stamps(stamps, psf, 1.0, config=cfg)
+    got = fit_stamps(stamps, psf, 1.0, config=cfg, lnL_r_groups=grp)
+    direct = fit_stamps(stamps, psf, 1.0, config=cfg, size_marginal_prior=other)
+    assert ref.lnL_r_grouped is None
+    assert got.lnL_r_grouped.shape == (3, grp.max() + 1, ref.lnL_r.shape[1])
+    np.testing.assert_array_equal(got.lnL, ref.lnL)  # the groups change nothing else
+    np.testing.assert_allclose(got.lnL_r, ref.lnL_r, atol=2e-5)
+    rw = reweight_lnL_r(got.lnL_r_grouped, egrid, grp, None, other)
+    np.testing.assert_allclose(rw, direct.lnL_r, atol=2e-5)
+    # the other prior moves L(r) by far more than that: the test can fail
+    assert np.abs(direct.lnL_r - ref.lnL_r).max() > 0.05
+    with pytest.raises(ValueError, match="not constant"):
+        reweight_lnL_r(got.lnL_r_grouped, egrid, np.arange(egrid.shape[0]) % 2, None, other)
 
 
 def test_amplitude_terms_match_scipy():
@@ -814,12 +881,15 @@ def test_tiled_kernel_matches_per_model_laplace(n_chi, cubic, amp):
     b2, max_step = 0.1, 1.2
     node_w, w_star = np.array([0.7]), 0.3
     amp_pow, amp_lns, amp_lo, amp_hi = amp
-    outs = (np.empty((n_gal, n_e)), np.empty((n_gal, n_e, 1)), np.empty((n_gal, 2)),
+    outs = (np.empty((n_gal, n_e)), np.empty((n_gal, n_e, 1)), np.empty((n_gal, 1, 2)),
             np.empty(n_gal, dtype=np.int64), np.empty(n_gal), np.empty(n_gal), np.empty(n_gal))
-    laplace_grid(prod, members, n_gal, n_e, 1, 1, s_m, mxx, mxy, myy, sigma, x0, y0, b2,
-                 max_step, node_w, w_star, np.zeros(1), np.full(n_e, 1.0 / n_e), amp_pow,
-                 amp_lns, amp_lo, amp_hi, cubic, *outs)  # fmt: skip
+    no_mix = np.zeros(0, dtype=np.int64)
+    laplace_grid(prod, members, no_mix, no_mix, np.zeros(0), n_gal, n_e, 1, 1, s_m, mxx,
+                 mxy, myy, sigma, x0, y0, b2, max_step, node_w, w_star, np.zeros(1),
+                 np.full(n_e, 1.0 / n_e), np.zeros(n_e, dtype=np.int64), amp_pow, amp_lns,
+                 amp_lo, amp_hi, cubic, *outs)  # fmt: skip
     lnlb, lnlr, best, hbest, xb, yb = outs[1:]
+    lnlr = lnlr[:, 0]
     # the reference: the square's four characters folded as the kernel does (float32)
     p = prod.reshape(n_chi, n_q, n_gal, n_cols)
     if n_chi == 4:

@@ -493,9 +493,10 @@ _PRIOR_KINK = 1.0
 
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def laplace_grid(
-    prod, members, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma, x0, y0, b2, max_step,
-    node_w, w_star, ln_pi, e_w, amp_pow, amp_lns, amp_lo, amp_hi, cubic, out_lnle, out_lnlb,
-    out_lnlr, out_best, out_h, out_x, out_y,
+    prod, members, mix_a, mix_b, mix_f, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma,
+    x0, y0, b2, max_step,
+    node_w, w_star, ln_pi, e_w, e_grp, amp_pow, amp_lns, amp_lo, amp_hi, cubic, out_lnle,
+    out_lnlb, out_lnlr, out_best, out_h, out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 
@@ -524,6 +525,10 @@ def laplace_grid(
         = 1, s1, s2, s1 s2) has ``sum_chi chi(h) prod[chi, :, c]``.
     members : (n_cols, 1 or 4) int array
         The models of each column (-1: none).
+    mix_a, mix_b, mix_f : (n_cols - n_base,) arrays
+        Columns ``c >= n_base = prod.shape[2]`` are not in ``prod``: their products are
+        ``(1 - f) prod[.., a] + f prod[.., b]`` with ``a = mix_a[c - n_base]`` etc. (the
+        bulge+disc fractions between the pure disc and the pure bulge; empty: none).
     n_sub : int
         The r axis of an e cell is ``n_r // n_sub`` runs of ``n_sub`` increasing radii
         (one per bulge fraction); the sum over r is corrected run by run
@@ -555,6 +560,12 @@ def laplace_grid(
     e_w : (n_e,) array
         Weights of the e cells (summing to 1) in ``L(r) = sum_e e_w L(e, r)``: an
         ellipticity prior's mass per cell.
+    e_grp : (n_e,) int array
+        Group of each e cell (``0 .. n_grp - 1``, ``n_grp = out_lnlr.shape[1]``): the sum
+        over e of ``L(r)`` is kept per group (all zeros: one sum).
+    out_lnlr : (n_gal, n_grp, n_r + 1) array
+        ``ln L(r)`` per group of e cells; the point source's ``ln L`` in the last column
+        of every group.
     out_lnlb : (n_gal, n_e, n_r // n_sub) array
         ``ln L_k(e)`` of each run (bulge fraction) alone, without the point source.
     """
@@ -567,9 +578,18 @@ def laplace_grid(
     ln_w = np.log(node_w)
     pi = np.exp(ln_pi)
     n_chi = prod.shape[0]
-    n_cols = prod.shape[2]
+    n_cols = members.shape[0]
+    n_base = prod.shape[2]
+    # runs of mixed columns whose base columns are consecutive and whose fraction is one
+    n_mix = mix_a.size
+    mix_run = np.ones(n_mix, dtype=np.int64)
+    for d in range(n_mix - 2, -1, -1):
+        if (mix_a[d + 1] == mix_a[d] + 1 and mix_b[d + 1] == mix_b[d] + 1
+                and mix_f[d + 1] == mix_f[d]):  # fmt: skip
+            mix_run[d] = mix_run[d + 1] + 1
     n_memb = members.shape[1]
     n_q = 10 if cubic else 6
+    n_grp = out_lnlr.shape[1]
     # the model constants of every (member, column) slot, tile by tile, in the order the
     # tiles read them (padding: a harmless model, member -1)
     n_tiles = -(-n_cols // _TILE)
@@ -612,7 +632,7 @@ def laplace_grid(
             # read row by row (contiguous) rather than column by column
             for q in range(n_q):
                 row = q * n_gal + g
-                if n_chi == 4:
+                if n_chi == 4 and t0 + nt <= n_base:  # a tile of base columns
                     for k in range(nt):
                         p0 = prod[0, row, t0 + k]
                         p1 = prod[1, row, t0 + k]
@@ -626,9 +646,65 @@ def laplace_grid(
                         V[1, q, k] = s02 - s13
                         V[2, q, k] = d02 + d13
                         V[3, q, k] = d02 - d13
+                elif n_chi == 4 and t0 >= n_base:  # a tile of mixed columns, in runs
+                    k = 0
+                    while k < nt:
+                        d0 = t0 + k - n_base
+                        ca = mix_a[d0]
+                        cb = mix_b[d0]
+                        # in prod's precision, as the columns read directly are
+                        fm = prod.dtype.type(mix_f[d0])
+                        fa = prod.dtype.type(1.0 - mix_f[d0])
+                        ln = min(mix_run[d0], nt - k)
+                        for kk in range(ln):
+                            p0 = fa * prod[0, row, ca + kk] + fm * prod[0, row, cb + kk]
+                            p1 = fa * prod[1, row, ca + kk] + fm * prod[1, row, cb + kk]
+                            p2 = fa * prod[2, row, ca + kk] + fm * prod[2, row, cb + kk]
+                            p3 = fa * prod[3, row, ca + kk] + fm * prod[3, row, cb + kk]
+                            s02 = p0 + p2
+                            s13 = p1 + p3
+                            d02 = p0 - p2
+                            d13 = p1 - p3
+                            V[0, q, k + kk] = s02 + s13
+                            V[1, q, k + kk] = s02 - s13
+                            V[2, q, k + kk] = d02 + d13
+                            V[3, q, k + kk] = d02 - d13
+                        k += ln
+                elif n_chi == 4:
+                    for k in range(nt):
+                        c = t0 + k
+                        if c < n_base:
+                            p0 = prod[0, row, c]
+                            p1 = prod[1, row, c]
+                            p2 = prod[2, row, c]
+                            p3 = prod[3, row, c]
+                        else:
+                            ca = mix_a[c - n_base]
+                            cb = mix_b[c - n_base]
+                            fm = mix_f[c - n_base]
+                            fa = 1.0 - fm
+                            # in prod's precision, as the columns read directly are
+                            p0 = prod.dtype.type(fa * prod[0, row, ca] + fm * prod[0, row, cb])
+                            p1 = prod.dtype.type(fa * prod[1, row, ca] + fm * prod[1, row, cb])
+                            p2 = prod.dtype.type(fa * prod[2, row, ca] + fm * prod[2, row, cb])
+                            p3 = prod.dtype.type(fa * prod[3, row, ca] + fm * prod[3, row, cb])
+                        s02 = p0 + p2
+                        s13 = p1 + p3
+                        d02 = p0 - p2
+                        d13 = p1 - p3
+                        V[0, q, k] = s02 + s13
+                        V[1, q, k] = s02 - s13
+                        V[2, q, k] = d02 + d13
+                        V[3, q, k] = d02 - d13
                 else:
                     for k in range(nt):
-                        V[0, q, k] = prod[0, row, t0 + k]
+                        c = t0 + k
+                        if c < n_base:
+                            V[0, q, k] = prod[0, row, c]
+                        else:
+                            fm = mix_f[c - n_base]
+                            V[0, q, k] = ((1.0 - fm) * prod[0, row, mix_a[c - n_base]]
+                                          + fm * prod[0, row, mix_b[c - n_base]])  # fmt: skip
             for hm in range(n_memb):
                 Vh = V[hm]
                 Wh = W[hm]
@@ -654,9 +730,11 @@ def laplace_grid(
         out_best[g] = jb
         lw_star = buf[star] + math.log(w_star)
         ex_star = math.exp(lw_star - best)
-        rsum = np.zeros(n_r)
+        rsum = np.zeros((n_grp, n_r))
         lwr = np.empty(n_sub)
         for ie in range(n_e):
+            ge = e_grp[ie]
+            ew = e_w[ie]
             acc = ex_star
             emax = lw_star
             for ib in range(n_blk):  # runs of increasing r, one per bulge fraction
@@ -668,7 +746,7 @@ def laplace_grid(
                     l = buf[ie * n_r + ir]
                     ex = math.exp(l - best)
                     bacc += ex * node_w[ir]
-                    rsum[ir] += ex * e_w[ie]
+                    rsum[ge, ir] += ex * ew
                     lw = l + ln_w[ir]
                     lwr[irr] = lw
                     if lw > rmax:
@@ -692,12 +770,13 @@ def laplace_grid(
                 out_lnle[g, ie] = best + math.log(acc)
             else:
                 out_lnle[g, ie] = emax
-        for ir in range(n_r):
-            if rsum[ir] > 0.0:
-                out_lnlr[g, ir] = best + math.log(rsum[ir])
-            else:
-                out_lnlr[g, ir] = -np.inf
-        out_lnlr[g, n_r] = buf[star]
+        for a in range(n_grp):
+            for ir in range(n_r):
+                if rsum[a, ir] > 0.0:
+                    out_lnlr[g, a, ir] = best + math.log(rsum[a, ir])
+                else:
+                    out_lnlr[g, a, ir] = -np.inf
+            out_lnlr[g, a, n_r] = buf[star]
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")

@@ -102,6 +102,13 @@ class StampFits:
         ``size_marginal_prior`` (every bulge fraction's run of sizes, then the point
         source; no size prior), shifted like ``lnL``: the data of
         :func:`pylensfit.prior.estimate_size_prior`. Not written by :meth:`write`.
+    lnL_r_grouped : numpy.ndarray or None
+        ``(n, n_groups, n_r + 1)`` float32 the sums of ``lnL_r`` over each group of e
+        cells apart (``fit_stamps(lnL_r_groups=...)``; the point source in the last
+        column of every group): ``lnL_r`` is their ``logsumexp`` over the groups. With
+        the cells grouped by ``|e|`` (:func:`e_annuli`), ``L(r)`` under another prior
+        that depends on ``|e|`` alone is a reweighting of the groups
+        (:func:`reweight_lnL_r`), without a second fit. Not written by :meth:`write`.
     stamp : numpy.ndarray or None
         Side of the stamp each galaxy was fitted on (``Config.max_stamp_size``: large
         galaxies on larger stamps).
@@ -126,6 +133,7 @@ class StampFits:
     lnL_r: np.ndarray | None = None
     bulge_best: np.ndarray | None = None
     stamp: np.ndarray | None = None
+    lnL_r_grouped: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.lnL.shape[0]
@@ -235,22 +243,33 @@ class _FoldedBank:
     Ghat_chi,e(k0)``: four products over an octant for the four models ``(+-e1, +-e2)``
     instead of one product over the half-plane per model, a quarter of the operations,
     exactly (``DESIGN.md`` section 3).
+
+    A bulge+disc bank's fractions between 0 and 1 are linear in the two ends' transforms
+    (:func:`pylensfit.models.model_bank`), and so are their products: ``G`` holds the
+    pure disc's and the pure bulge's columns (and the point source's), and the kernel
+    mixes the others from them (``mix_a``, ``mix_b``, ``mix_f``): a third fewer
+    operations in the matrix products for three fractions.
     """
 
     idx: np.ndarray  # (4, n_k0) half-plane index of h k0 for h = 1, s1, s2, s1 s2
     coef: np.ndarray  # (n_k0,) orbit weight c(k0) / 4 / n^2
     keep: tuple  # per character, the octant points where it can be non-zero
-    G: tuple  # per character, (len(keep), n_cols) folded model transforms
+    G: tuple  # per character, (len(keep), n_base) folded transforms of the base columns
     members: np.ndarray  # (n_cols, 4) model with h . (representative) in column c, or -1
     coarse: _Coarse  # the coarse sub-grid of the centring pass, closed under the symmetries
-    coarse_G: tuple  # per character, its columns of G
+    coarse_G: tuple  # per character, its columns (all of them base columns)
     coarse_members: np.ndarray  # (n_cols_c, 4) as members, in the coarse models' numbering
+    # columns c >= n_base are (1 - f) column a + f column b: a = mix_a[c - n_base], ...
+    mix_a: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    mix_b: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    mix_f: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 #: characters chi[c, h] of the group h = (1, s1, s2, s1 s2): (+-1)^(a i + b j)
 _CHI = np.array([[1, 1, 1, 1], [1, -1, 1, -1], [1, 1, -1, -1], [1, -1, -1, 1]], dtype=float)
 
 _FOLDED: dict = {}
+_NO_MIX = (np.zeros(0, dtype=np.int64), np.zeros(0))
 
 
 def _folded_bank(config: Config, bank) -> _FoldedBank:
@@ -319,11 +338,49 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
     cmem[-1, 0] = n_ec * n_rc
     gcols = np.append((orb[rep_c][:, None] * n_r + ir_c[None, :]).ravel(), ie_rep.size * n_r)
     coarse = _Coarse(cols=ccols, n_e=n_ec, n_r=n_rc)
+    coarse_G = tuple(np.ascontiguousarray(g[:, gcols]) for g in G)
+    perm, mix_a, mix_b, mix_f = _mixed_columns(bank, ie_rep.size)
+    if mix_a.size:
+        G = tuple(np.ascontiguousarray(g[:, perm[: perm.size - mix_a.size]]) for g in G)
+        members = np.ascontiguousarray(members[perm])
     fb = _FoldedBank(idx=idx, coef=coef, keep=keep, G=G, members=members, coarse=coarse,
-                     coarse_G=tuple(np.ascontiguousarray(g[:, gcols]) for g in G),
-                     coarse_members=cmem)  # fmt: skip
+                     coarse_G=coarse_G, coarse_members=cmem, mix_a=mix_a, mix_b=mix_b,
+                     mix_f=mix_f)  # fmt: skip
     _keep(_FOLDED, key, (bank, fb), 4)
     return fb
+
+
+def _mixed_columns(bank, n_orb: int):
+    """The folded bank's column order with the mixed bulge fractions last.
+
+    Returns ``perm`` (new column -> old, the old order ``orbit * n_r + ir`` and the
+    point source last), and for the mixed columns (``perm[n_base:]``) the base columns
+    ``a`` (pure disc) and ``b`` (pure bulge) and the fraction ``f``: column ``(1 - f) a +
+    f b``. No mixed columns (``perm`` the identity) unless the bank is bulge+disc with
+    the fractions 0 and 1 and others between.
+    """
+    n_r = bank.n_r
+    n_old = n_orb * n_r + 1
+    none = (np.arange(n_old), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    if bank.model != "bulge+disc" or bank.bulge is None:
+        return none
+    n_sub = bank.n_sizes
+    n_b = n_r // n_sub
+    fr = np.asarray(bank.bulge, float)[::n_sub]
+    if n_b < 3 or fr[0] != 0.0 or fr[-1] != 1.0:
+        return none
+    orb = np.arange(n_orb)[:, None, None]
+    size = np.arange(n_sub)[None, None, :]
+    ends = orb * n_r + np.array([0, n_b - 1])[None, :, None] * n_sub + size
+    mids = orb * n_r + np.arange(1, n_b - 1)[None, :, None] * n_sub + size
+    perm = np.concatenate([ends.ravel(), [n_orb * n_r], mids.ravel()])
+    pos = np.empty(n_old, dtype=np.int64)
+    pos[perm] = np.arange(n_old)
+    base_of = orb * n_r + np.zeros((1, n_b - 2, 1), dtype=np.int64) + size  # run 0's column
+    mix_a = pos[base_of.ravel()]
+    mix_b = pos[(base_of + (n_b - 1) * n_sub).ravel()]
+    mix_f = np.broadcast_to(fr[1:-1][None, :, None], mids.shape).ravel().copy()
+    return perm, mix_a, mix_b, mix_f
 
 
 def _keep(cache: dict, key, value, size: int) -> None:
@@ -432,6 +489,7 @@ def fit_stamps(
     centres: tuple[np.ndarray, np.ndarray] | None = None,
     size_prior=None,
     size_marginal_prior=None,
+    lnL_r_groups: np.ndarray | None = None,
 ) -> StampFits:
     """Likelihood ``L(e)`` of every stamp on the ellipticity grid, and the best model.
 
@@ -472,6 +530,10 @@ def fit_stamps(
         functional form with the STEP-like parameters). A uniform weight over e cells
         favours the small sizes that elongated models prefer: it estimated the sizes of
         exponential discs ~6% small.
+    lnL_r_groups : numpy.ndarray, optional
+        ``(n_e,)`` integer group (0, 1, ...) of each cell of the ellipticity grid: keep
+        the sum over e of ``L(r)`` per group as well (``StampFits.lnL_r_grouped``; for
+        the groups of equal ``|e|``, :func:`e_annuli`).
 
     Returns
     -------
@@ -495,7 +557,8 @@ def fit_stamps(
         cy = per_object(centres[1], n_gal, "centres[1]")
     n_tiers = min(cfg.largest_stamp, *stamps.shape[1:]) // cfg.stamp_size
     if n_tiers <= 1 or n_gal == 0:
-        return _fit_window(stamps, psf, sigma, cfg, cx, cy, size_prior, size_marginal_prior)
+        return _fit_window(stamps, psf, sigma, cfg, cx, cy, size_prior, size_marginal_prior,
+                           lnL_r_groups)  # fmt: skip
     tier = _stamp_tiers(stamps, psf, sigma, cfg, cx, cy, n_tiers)
     parts = []
     for t in np.unique(tier):
@@ -503,7 +566,8 @@ def fit_stamps(
         sub = cfg if t == 1 else cfg.replace(stamp_size=int(t) * cfg.stamp_size,
                                              max_stamp_size=0, k_max=np.pi / t)  # fmt: skip
         parts.append((idx, _fit_window(stamps[idx], psf, sigma[idx], sub, cx[idx], cy[idx],
-                                       size_prior, size_marginal_prior)))  # fmt: skip
+                                       size_prior, size_marginal_prior,
+                                       lnL_r_groups)))  # fmt: skip
     return _merge_fits(parts, n_gal)
 
 
@@ -573,7 +637,78 @@ def _merge_fits(parts: list, n_gal: int) -> StampFits:
     return StampFits(**out)
 
 
-def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_marginal_prior):
+def e_annuli(egrid: np.ndarray) -> np.ndarray:
+    """The group of every ellipticity cell by its ``|e|`` (``fit_stamps(lnL_r_groups=)``).
+
+    Cells of equal ``|e|`` (to 1e-9) share a group, numbered by increasing ``|e|``:
+    36 groups for the 316 cells of ``e_step = 0.1``. A prior that depends on ``|e|``
+    alone, as the functional form does (:class:`pylensfit.prior.Prior`), is constant
+    on each group.
+    """
+    ee = np.round(np.hypot(egrid[:, 0], egrid[:, 1]), 9)
+    return np.unique(ee, return_inverse=True)[1].astype(np.int64).reshape(-1)
+
+
+def reweight_lnL_r(lnL_r_grouped: np.ndarray, egrid: np.ndarray, groups: np.ndarray,
+                   prior_from, prior_to) -> np.ndarray:  # fmt: skip
+    """``L(r) = sum_e P_to(e) L(e, r)`` from fits that kept ``sum_e P_from(e) L(e, r)``
+    per group of equal ``|e|`` (:func:`e_annuli`).
+
+    Parameters
+    ----------
+    lnL_r_grouped : numpy.ndarray
+        ``(n, n_groups, n_r + 1)`` ``StampFits.lnL_r_grouped`` of fits with
+        ``size_marginal_prior=prior_from`` (``None``: the default ``Prior()``) and
+        ``lnL_r_groups=groups``.
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` the fits' ellipticity grid.
+    groups : numpy.ndarray
+        ``(n_e,)`` the cells' groups (:func:`e_annuli`).
+    prior_from, prior_to : pylensfit.prior.Prior or None
+        Priors that depend on ``|e|`` alone (checked: each must be constant on every
+        group, to 1e-9 relative).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, n_r + 1)`` float32, what ``StampFits.lnL_r`` of the same fits with
+        ``size_marginal_prior=prior_to`` holds (to float32 rounding), shifted alike.
+    """
+    def cell_weights(p):
+        w = (p if p is not None else Prior()).pdf(egrid[:, 0], egrid[:, 1])
+        return w / w.sum()
+
+    groups = np.asarray(groups)
+    w_from, w_to = cell_weights(prior_from), cell_weights(prior_to)
+    n_grp = int(groups.max()) + 1
+    ratio = np.zeros(n_grp)
+    for w in (w_from, w_to):
+        lo = np.full(n_grp, np.inf)
+        hi = np.zeros(n_grp)
+        np.minimum.at(lo, groups, w)
+        np.maximum.at(hi, groups, w)
+        if np.any(hi - lo > 1e-9 * hi):
+            raise ValueError("reweight_lnL_r: a prior is not constant on a group of e cells "
+                             "(it depends on more than |e|, or the groups are not annuli)")
+    ratio[groups] = w_to / np.where(w_from > 0, w_from, np.nan)
+    L = np.asarray(lnL_r_grouped, dtype=float)
+    with np.errstate(divide="ignore"):
+        lnw = np.log(ratio)
+    out = L[:, 0].copy()
+    out[:, :-1] = _logsumexp_groups(L[:, :, :-1] + lnw[None, :, None])
+    return out.astype(np.float32)
+
+
+def _logsumexp_groups(a: np.ndarray) -> np.ndarray:
+    """``log sum exp`` over axis 1 of ``(n, n_groups, m)`` (``-inf`` where all are)."""
+    top = np.max(a, axis=1)
+    safe = np.where(np.isfinite(top), top, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.log(np.sum(np.exp(a - safe[:, None]), axis=1)) + safe
+
+
+def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_marginal_prior,
+                lnL_r_groups=None):  # fmt: skip
     """:func:`fit_stamps` on ``cfg.stamp_size`` windows (one stamp size for all)."""
     n_gal = stamps.shape[0]
     n = cfg.stamp_size
@@ -650,6 +785,15 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     e_w = mp.pdf(bank.egrid[:, 0], bank.egrid[:, 1])
     e_w = e_w / e_w.sum()
     e_w_c = np.full(coarse.n_e, 1.0 / coarse.n_e)
+    if lnL_r_groups is None:
+        e_grp = np.zeros(n_e, dtype=np.int64)
+    else:
+        e_grp = np.asarray(lnL_r_groups)
+        if e_grp.shape != (n_e,) or e_grp.dtype.kind not in "iu" or e_grp.min() < 0:
+            raise ValueError(f"lnL_r_groups needs {n_e} non-negative integers (one per e "
+                             f"cell), got shape {e_grp.shape}, dtype {e_grp.dtype}")  # fmt: skip
+        e_grp = e_grp.astype(np.int64)
+    n_grp = int(e_grp.max()) + 1
     amp_pow = -1.0 if cfg.amplitude_prior == "uniform" else float(cfg.amplitude_prior_power)
     amp_lns = amp_pow - 1.0 if cfg.amplitude_prior == "flux" else 0.0
     flux_prior = cfg.amplitude_prior == "flux"
@@ -657,7 +801,7 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     amp_hi = float(cfg.amplitude_prior_max) if flux_prior else np.inf
     lnle = np.empty((n_gal, n_e))
     lnleb = np.empty((n_gal, n_e, n_b))
-    lnlr = np.empty((n_gal, n_r + 1))
+    lnlr = np.empty((n_gal, n_grp, n_r + 1))
     best = np.empty(n_gal, dtype=np.int64)
     hbest = np.empty(n_gal)
     xb = np.empty(n_gal)
@@ -673,13 +817,14 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
         # pass 1, on a coarse subset of models: move the origin to the peak of the most
         # likely model, so that the Laplace step of every model near it is short
         tmp = (np.empty((m, coarse.n_e)), np.empty((m, coarse.n_e, 1)),
-               np.empty((m, coarse.n_r + 1)), np.empty(m, dtype=np.int64), np.empty(m),
+               np.empty((m, 1, coarse.n_r + 1)), np.empty(m, dtype=np.int64), np.empty(m),
                np.empty(m), np.empty(m))  # fmt: skip
         laplace_grid(
-            folded_products(sl, False, fb.coarse_G), fb.coarse_members, m, coarse.n_e,
+            folded_products(sl, False, fb.coarse_G), fb.coarse_members, _NO_MIX[0],
+            _NO_MIX[0], _NO_MIX[1], m, coarse.n_e,
             coarse.n_r, coarse.n_r, S_c, mxx_c, mxy_c, myy_c, sigma[sl], x0[sl] - xc[sl],
             y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, e_w_c,
-            amp_pow, amp_lns, amp_lo, amp_hi, False,
+            np.zeros(coarse.n_e, dtype=np.int64), amp_pow, amp_lns, amp_lo, amp_hi, False,
             *tmp,
         )  # fmt: skip
         step_x, step_y = tmp[5], tmp[6]
@@ -695,16 +840,25 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
                 continue
             idx = sel + s0
             out = (np.empty((sel.size, n_e)), np.empty((sel.size, n_e, n_b)),
-                   np.empty((sel.size, n_r + 1)), np.empty(sel.size, dtype=np.int64),
+                   np.empty((sel.size, n_grp, n_r + 1)), np.empty(sel.size, dtype=np.int64),
                    np.empty(sel.size), np.empty(sel.size), np.empty(sel.size))  # fmt: skip
             laplace_grid(
-                folded_products(idx, cubic), fb.members, sel.size, n_e, n_r, bank.n_sizes,
+                folded_products(idx, cubic), fb.members, fb.mix_a, fb.mix_b, fb.mix_f,
+                sel.size, n_e, n_r, bank.n_sizes,
                 pb.S, pb.mxx, pb.mxy, pb.myy,
                 sigma[idx], x0[idx] - xc[idx], y0[idx] - yc[idx], b2, cfg.max_newton_step,
-                node_w, w_star, ln_pi, e_w, amp_pow, amp_lns, amp_lo, amp_hi, cubic, *out,
+                node_w, w_star, ln_pi, e_w, e_grp, amp_pow, amp_lns, amp_lo, amp_hi, cubic,
+                *out,
             )  # fmt: skip
             lnle[idx], lnleb[idx], lnlr[idx], best[idx], hbest[idx], xb[idx], yb[idx] = out
 
+    lnlr_grp = None
+    if n_grp > 1:  # the sum over all cells, and the groups apart
+        lnlr_grp = lnlr
+        lnlr = lnlr[:, 0].copy()
+        lnlr[:, :n_r] = _logsumexp_groups(lnlr_grp[:, :, :n_r])
+    else:
+        lnlr = lnlr[:, 0]
     peak = lnle.max(axis=1)
     failed = ~np.isfinite(peak) | ~np.isfinite(lnle).all(axis=1)
     flags[failed & ~bad] |= _flags.flag_value("FIT_FAILED")
@@ -718,6 +872,9 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
         lnL_star = np.where(dead, np.nan, lnlr[:, n_r] + np.log(w_star) - peak)
     lnL_r = (lnlr - peak[:, None]).astype(np.float32)
     lnL_r[dead] = np.nan
+    if lnlr_grp is not None:
+        lnlr_grp = (lnlr_grp - peak[:, None, None]).astype(np.float32)
+        lnlr_grp[dead] = np.nan
 
     ir_best = lnlr.argmax(axis=1)
     radii = np.append(bank.radii, 0.0)
@@ -751,4 +908,5 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
         lnL_r=lnL_r,
         bulge_best=bulge_best,
         stamp=np.full(n_gal, n),
+        lnL_r_grouped=lnlr_grp,
     )

@@ -378,10 +378,17 @@ def wrap_correction(
     rep = (eg[:, 0] > 0) & (eg[:, 1] > 0)
     ie_rep = np.flatnonzero(rep)
     fr = np.asarray(fracs, float) if model == "bulge+disc" else np.zeros(1)
-    per_e = fr.size * radii.size
-    w = np.zeros((ie_rep.size, per_e, n, n), dtype=np.float32)
-    wrapped_wings(eg[ie_rep, 0].copy(), eg[ie_rep, 1].copy(), np.asarray(radii, float), fr,
+    n_r = radii.size
+    per_e = fr.size * n_r
+    # the wings of a bulge+disc model are linear in its fraction: the pure disc's and the
+    # pure bulge's make every fraction's (half the profile evaluations for three)
+    base = np.array([0.0, 1.0]) if model == "bulge+disc" and fr.size > 2 else fr
+    w = np.zeros((ie_rep.size, base.size * n_r, n, n), dtype=np.float32)
+    wrapped_wings(eg[ie_rep, 0].copy(), eg[ie_rep, 1].copy(), np.asarray(radii, float), base,
                   code, float(bulge_size_ratio), b, norm, t, int(n), _WRAP_COPIES, w)  # fmt: skip
+    if base is not fr:
+        w0, w1 = w[:, :n_r], w[:, n_r:]
+        w = np.concatenate([(1.0 - f) * w0 + f * w1 for f in fr], axis=1)
     # the other cells by the square's symmetries: e2 -> -e2 is y -> -y, e1 -> -e1 is the
     # transposition x <-> y (on the periodic lattice of offsets from the centre n // 2)
     flip = (2 * (n // 2) - np.arange(n)) % n
@@ -520,14 +527,17 @@ def _cached_bank(
     n_freq = kx.size
     per_e = n_sub * fracs.size
     G = np.empty((n_freq, egrid.shape[0] * per_e + 1), dtype=dtype)
+    mix = model == "bulge+disc" and fracs.size > 1
     for ie, (e1, e2) in enumerate(egrid):  # one vectorised (freq x r) block per e and B/T
         ks = sheared_k(kx, ky, e1, e2)
         q = ks[:, None] * radii[None, :]
+        if mix:  # each fraction's transform is linear in the two components' (exact)
+            disc = fourier_profile(q, "exponential")
+            bulge = fourier_profile(q * bulge_size_ratio, "devaucouleurs")
         for ib, bf in enumerate(fracs):
             c0 = ie * per_e + ib * n_sub
-            G[:, c0 : c0 + n_sub] = fourier_profile(
-                q, model, bulge_fraction=float(bf), bulge_size_ratio=bulge_size_ratio
-            )
+            G[:, c0 : c0 + n_sub] = (bf * bulge + (1.0 - bf) * disc if mix else fourier_profile(
+                q, model, bulge_fraction=float(bf), bulge_size_ratio=bulge_size_ratio))
     G[:, -1] = 1.0
     if truncate:
         G[:, :-1] -= wrap_correction(egrid, radii, fracs, model, bulge_size_ratio, n,

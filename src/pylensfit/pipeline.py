@@ -659,9 +659,29 @@ def _read_part(path: Path) -> dict[str, Any]:
 # ----------------------------------------------------------------------------------------
 # Running tasks: in-process, local process pool, or dask.distributed
 # ----------------------------------------------------------------------------------------
+@contextmanager
+def _pool(jobs: int, scheduler: str | None = None) -> Iterator[ProcessPoolExecutor | None]:
+    """One pool of ``jobs`` local worker processes for several :func:`_run` calls.
+
+    Workers keep what they build between tasks (the model banks: 30-40 s per process
+    for the precision mode's bulge+disc banks on two stamp tiers), so a run of several
+    passes pays for it once per worker instead of once per pass. ``None`` (nothing to
+    share) with a scheduler or one job.
+    """
+    if scheduler or jobs <= 1:
+        yield None
+        return
+    import multiprocessing as mp
+
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
+        yield ex
+
+
 def _run(fn, tasks: Sequence[dict], jobs: int, scheduler: str | None, desc: str,
-         progress: bool) -> Iterator[tuple[dict, Any]]:  # fmt: skip
-    """Yield ``(task, result)`` as tasks finish; exceptions propagate."""
+         progress: bool, pool: ProcessPoolExecutor | None = None,
+         ) -> Iterator[tuple[dict, Any]]:  # fmt: skip
+    """Yield ``(task, result)`` as tasks finish; exceptions propagate. With ``pool``
+    (:func:`_pool`) the tasks run on its workers."""
     from tqdm import tqdm
 
     bar = tqdm(total=len(tasks), desc=desc, unit="image", disable=not progress or not tasks,
@@ -678,6 +698,15 @@ def _run(fn, tasks: Sequence[dict], jobs: int, scheduler: str | None, desc: str,
                 for f in dask_completed(futs):
                     yield futs[f], f.result()
                     bar.update()
+        elif pool is not None:
+            futs = {pool.submit(fn, {**t, "single_thread": True}): t for t in tasks}
+            try:
+                for f in as_completed(futs):
+                    yield futs[f], f.result()
+                    bar.update()
+            finally:  # a failed task: the rest of this call's tasks are not wanted
+                for f in futs:
+                    f.cancel()
         elif jobs <= 1 or len(tasks) == 1:
             for t in tasks:
                 yield t, fn(t)
@@ -828,51 +857,54 @@ def measure(
     if psf_dir is not None:
         Path(psf_dir).mkdir(parents=True, exist_ok=True)
 
-    # star fields first: their PSFs go to every image
-    star_psfs = []
-    st_tasks = [{"path": p, "config": cfgd, "index": i} for i, p in enumerate(stars)]
-    for _, res in _run(_starfield_task, st_tasks, jobs, scheduler, "star fields", progress):
-        star_psfs.append(res)
-    star_psfs.sort(key=lambda r: stars.index(r.source))
+    with _pool(jobs, scheduler) as pool:  # one set of workers for every pass
+        # star fields first: their PSFs go to every image
+        star_psfs = []
+        st_tasks = [{"path": p, "config": cfgd, "index": i} for i, p in enumerate(stars)]
+        for _, res in _run(_starfield_task, st_tasks, jobs, scheduler, "star fields",
+                            progress, pool):
+            star_psfs.append(res)
+        star_psfs.sort(key=lambda r: stars.index(r.source))
 
-    tasks = [
-        {"path": p, "weight": w, "mask": m, "catalogue": c, "config": cfgd, "index": i,
-         "star_psfs": star_psfs, "star_column": star_column,
-         "psf_dir": None if psf_dir is None else str(psf_dir)}
-        for i, (p, w, m, c) in enumerate(zip(images, weights, masks, catalogues, strict=True))
-    ]  # fmt: skip
-    results: dict[int, dict] = {}
-    todo = tasks
-    sp_file = parts / "size_prior.json" if parts is not None else None
-    if size_prior is None and cfg.size_prior == "estimated":
-        if sp_file is not None and sp_file.exists():  # a resumed run keeps its size prior
-            size_prior = SizePrior.load(sp_file)
-        else:
-            size_prior = _estimate_size_prior(tasks, cfg, prior, jobs, scheduler, progress)
-    if size_prior is not None:
-        for t in tasks:
-            t["size_prior"] = size_prior.to_dict()
-    if parts is not None:
-        parts.mkdir(parents=True, exist_ok=True)
-        if size_prior is not None:  # for a resumed run (the same prior if it was read here)
-            size_prior.save(sp_file)
-        todo = []
-        for t in tasks:
-            pp = _part_path(parts, t)
-            if pp.exists():
-                try:
-                    results[t["index"]] = _read_part(pp)
-                    log.info("%s: resumed from %s", t["path"], pp)
-                    continue
-                except Exception as err:  # a damaged part is redone
-                    log.warning("%s: unreadable part file %s (%s); redoing", t["path"], pp, err)
-            todo.append(t)
-    for t, res in _run(_image_task, todo, jobs, scheduler, "images", progress):
+        tasks = [
+            {"path": p, "weight": w, "mask": m, "catalogue": c, "config": cfgd, "index": i,
+             "star_psfs": star_psfs, "star_column": star_column,
+             "psf_dir": None if psf_dir is None else str(psf_dir)}
+            for i, (p, w, m, c) in enumerate(zip(images, weights, masks, catalogues, strict=True))
+        ]  # fmt: skip
+        results: dict[int, dict] = {}
+        todo = tasks
+        sp_file = parts / "size_prior.json" if parts is not None else None
+        if size_prior is None and cfg.size_prior == "estimated":
+            if sp_file is not None and sp_file.exists():  # a resumed run keeps its size prior
+                size_prior = SizePrior.load(sp_file)
+            else:
+                size_prior = _estimate_size_prior(tasks, cfg, prior, jobs, scheduler, progress,
+                                                  pool)
+        if size_prior is not None:
+            for t in tasks:
+                t["size_prior"] = size_prior.to_dict()
         if parts is not None:
-            _write_part(_part_path(parts, t), res)
-        results[t["index"]] = res
-        log.info("%s: %d objects, %s", t["path"], len(res["rows"]["x"]),
-                 ", ".join(f"{k} {v:.2f} s" for k, v in res["timing"].items()))  # fmt: skip
+            parts.mkdir(parents=True, exist_ok=True)
+            if size_prior is not None:  # for a resumed run (the same prior if it was read here)
+                size_prior.save(sp_file)
+            todo = []
+            for t in tasks:
+                pp = _part_path(parts, t)
+                if pp.exists():
+                    try:
+                        results[t["index"]] = _read_part(pp)
+                        log.info("%s: resumed from %s", t["path"], pp)
+                        continue
+                    except Exception as err:  # a damaged part is redone
+                        log.warning("%s: unreadable part file %s (%s); redoing", t["path"], pp, err)
+                todo.append(t)
+        for t, res in _run(_image_task, todo, jobs, scheduler, "images", progress, pool):
+            if parts is not None:
+                _write_part(_part_path(parts, t), res)
+            results[t["index"]] = res
+            log.info("%s: %d objects, %s", t["path"], len(res["rows"]["x"]),
+                     ", ".join(f"{k} {v:.2f} s" for k, v in res["timing"].items()))  # fmt: skip
     cat = _assemble([results[i] for i in range(len(tasks))], cfg, prior)
     cat.meta["size_prior"] = size_prior
     if out is not None:
@@ -882,7 +914,8 @@ def measure(
 
 
 def _estimate_size_prior(tasks: list[dict], cfg: Config, prior: Prior | None, jobs: int,
-                         scheduler: str | None, progress: bool) -> SizePrior:  # fmt: skip
+                         scheduler: str | None, progress: bool,
+                         pool: ProcessPoolExecutor | None = None) -> SizePrior:  # fmt: skip
     """First pass of ``size_prior="estimated"``: fit with the flat size prior, estimate it.
 
     Each galaxy's ``L(r)`` is marginalised over e with ``prior`` if one is given, else
@@ -893,7 +926,7 @@ def _estimate_size_prior(tasks: list[dict], cfg: Config, prior: Prior | None, jo
 
     first = [dict(t, keep_lnL_r=True, psf_dir=None, size_marginal_prior=prior) for t in tasks]
     lnL_r, lnL_b, lnL_s, egrid = [], [], [], None
-    for _, res in _run(_image_task, first, jobs, scheduler, "size prior", progress):
+    for _, res in _run(_image_task, first, jobs, scheduler, "size prior", progress, pool):
         rows = res["rows"]
         gal = ((rows["flags"] == 0) & (rows["fitclass"] == FITCLASS["galaxy"])
                & np.isfinite(res["lnL_r"]).all(axis=1))  # fmt: skip

@@ -528,9 +528,16 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
                                       calibration=task["calibration"])  # fmt: skip
     t1 = time.perf_counter()
     n, nr = stamps.shape[:2]
+    groups = None
+    if task.get("keep_lnL_r") == "annuli":  # L(r) per |e|, for any prior of |e| later
+        from .likelihood import e_annuli
+        from .models import model_bank
+
+        groups = e_annuli(model_bank(cfg).egrid)
     fits = fit_stamps(stamps.reshape(n * nr, *stamps.shape[2:]), psf, spec.noise_sigma,
                       config=cfg, size_prior=task.get("size_prior"),
-                      size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
+                      size_marginal_prior=task.get("size_marginal_prior"),
+                      lnL_r_groups=groups)  # fmt: skip
     t2 = time.perf_counter()
     ok = _usable(fits)
     res: dict[str, Any] = {"block": task["block"], "psf": task["psf"], "truth": truth,
@@ -543,7 +550,9 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
         if fits.lnL_bulge is not None:
             res["lnL_bulge"] = fits.lnL_bulge[ok]
             res["lnL_star"] = fits.lnL_star[ok]
-        if task.get("keep_lnL_r"):
+        if task.get("keep_lnL_r") == "annuli":
+            res["lnL_r_grouped"] = fits.lnL_r_grouped[ok]
+        elif task.get("keep_lnL_r"):
             res["lnL_r"] = fits.lnL_r[ok]
         return res
     Q, usable = reduce_renderings(fits, task["prior"], spec.g, refine=cfg.integration_refine,
@@ -850,11 +859,12 @@ def precision(
         from the calibration sample with the ellipticity prior
         (:func:`~pylensfit.prior.estimate_prior_and_bulge`; with a given ``prior``, the
         weights alone under it). With ``size_prior="estimated"`` the calibration sample
-        is fitted three times: with the flat size prior, for a first ellipticity prior;
-        again, each galaxy's ``L(r)`` marginalised over e with that prior, for the size
-        prior (:func:`~pylensfit.prior.estimate_size_prior`); then with the size prior,
-        for the ellipticity and bulge-fraction priors. The renderings are fitted with
-        all three.
+        is fitted twice: with the flat size prior, for a first ellipticity prior and
+        each galaxy's ``L(r)`` marginalised over e with it (kept per ``|e|`` in the fit,
+        :func:`~pylensfit.likelihood.reweight_lnL_r`, then reweighted to that prior),
+        for the size prior (:func:`~pylensfit.prior.estimate_size_prior`); then with
+        the size prior, for the ellipticity and bulge-fraction priors. The renderings
+        are fitted with all three. One pool of ``jobs`` workers serves every pass.
     jobs : int
         Local worker processes.
     scheduler : str, optional
@@ -904,7 +914,7 @@ def precision(
         estimated; with ``amplitude_prior="flux"``), the largest
         fixed-point Newton step ``fp_step`` and ``galaxies`` (per-galaxy truth).
     """
-    from .pipeline import _run
+    from .pipeline import _pool, _run
     from .prior import (
         estimate_bulge_weights,
         estimate_flux_slope,
@@ -954,16 +964,18 @@ def precision(
                   "size_marginal_prior": marginal_prior}
                  for b in range(ncb)]  # fmt: skip
         out: dict[str, list] = {"lnL": [], "lnL_bulge": [], "lnL_star": [], "lnL_r": [],
-                                "flux": [], "psf": []}  # fmt: skip
+                                "lnL_r_grouped": [], "flux": [], "psf": []}  # fmt: skip
         egrid = None
-        for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, label, progress),
+        for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, label, progress, pool),
                            key=lambda tr: tr[0]["block"]):  # fmt: skip
             for k in out:
                 out[k].append(np.full(r["n_usable"], r["psf"]) if k == "psf" else r.get(k))
             egrid = r["egrid"]
             render_s += r["render_s"]
             fit_s += r["fit_s"]
-        cat = {k: (np.concatenate(v) if v and v[0] is not None else None) for k, v in out.items()}
+        # the per-|e| L(r) stay in their blocks (~16 MB each) until they are reweighted
+        cat = {k: (v if k == "lnL_r_grouped" else np.concatenate(v))
+               if v and v[0] is not None else None for k, v in out.items()}  # fmt: skip
         return cat, egrid
 
     def ellipticity_priors(cal, egrid, prior):
@@ -979,51 +991,60 @@ def precision(
             return estimate_prior(lnL, egrid, method=cfg.prior_method), given_bw
         return prior, given_bw
 
-    size_priors: list = [None] * npsf if given_sp is None else given_sp
-    cal, egrid = calibrate(size_priors, False, "calibration") if ncb else ({}, None)
-    flux_meta = None
-    if fit_flux:
-        # the counts' slope from the first pass's fluxes (those of the best models, which
-        # the amplitude prior barely moves); the later passes and the renderings use it
-        beta, beta_err = estimate_flux_slope(cal["flux"])
-        cfg = cfg.replace(amplitude_prior_power=float(beta))
-        flux_meta = {"value": float(beta), "error": beta_err, "estimated": True}
-    elif cfg.amplitude_prior == "flux":
-        flux_meta = {"value": cfg.amplitude_prior_power, "error": 0.0, "estimated": False}
-    if fit_flux and ncb and (prior is None or fit_bulge) and not fit_size:
-        cal, egrid = calibrate(size_priors, False, "calibration with the flux prior")
-    prior0 = prior
-    if ncb:
-        prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
-    else:
-        bulge_weights = given_bw
-    if fit_size:
-        from .models import model_bank
-        from .prior import estimate_size_prior
-
-        # each galaxy's L(r) marginalised over e with the ellipticity prior just
-        # estimated (not the fits' default, which is the population's own here)
-        cal, _ = calibrate(size_priors, True, "calibration: L(r)", marginal_prior=prior)
-        bank = model_bank(cfg)
-        if size_prior_per_psf:
-            size_priors = [estimate_size_prior(cal["lnL_r"][cal["psf"] == k], bank, cfg,
-                                               bulge_weights=bulge_weights)
-                           for k in range(npsf)]  # fmt: skip
+    with _pool(jobs, scheduler) as pool:  # one set of workers for every pass
+        size_priors: list = [None] * npsf if given_sp is None else given_sp
+        # with the size prior to estimate, the first pass keeps L(r) per |e| as well
+        first_keep = "annuli" if fit_size else False
+        cal, egrid = calibrate(size_priors, first_keep, "calibration") if ncb else ({}, None)
+        flux_meta = None
+        if fit_flux:
+            # the counts' slope from the first pass's fluxes (those of the best models, which
+            # the amplitude prior barely moves); the later passes and the renderings use it
+            beta, beta_err = estimate_flux_slope(cal["flux"])
+            cfg = cfg.replace(amplitude_prior_power=float(beta))
+            flux_meta = {"value": float(beta), "error": beta_err, "estimated": True}
+        elif cfg.amplitude_prior == "flux":
+            flux_meta = {"value": cfg.amplitude_prior_power, "error": 0.0, "estimated": False}
+        if fit_flux and ncb and (prior is None or fit_bulge) and not fit_size:
+            cal, egrid = calibrate(size_priors, False, "calibration with the flux prior")
+        prior0 = prior
+        if ncb:
+            prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
         else:
-            size_priors = [estimate_size_prior(cal["lnL_r"], bank, cfg,
-                                               bulge_weights=bulge_weights)] * npsf  # fmt: skip
-        cal, egrid = calibrate(size_priors, False, "calibration with the size prior")
-        prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
-    t_cal = time.perf_counter() - t_start
-    # 2. the four renderings of every galaxy, streamed block by block
-    nb = _n_blocks(spec.ngal, spec.block_size)
-    tasks = [{"spec": spec, "config": cfg, "prior": prior, "bulge_weights": bulge_weights,
-              "size_prior": size_priors[b % npsf], "psf": b % npsf, "block": b,
-              "calibration": False}
-             for b in range(nb)]  # fmt: skip
-    parts: dict[int, dict] = {}
-    for t, r in _run(_block_task, tasks, jobs, scheduler, "precision", progress):
-        parts[t["block"]] = r
+            bulge_weights = given_bw
+        if fit_size:
+            from .likelihood import e_annuli, reweight_lnL_r
+            from .models import model_bank
+            from .prior import estimate_size_prior
+
+            # each galaxy's L(r) marginalised over e with the ellipticity prior just
+            # estimated (not the fits' default, which is the population's own here): the
+            # first pass's L(r) per |e| reweighted, what a second pass with that prior as
+            # size_marginal_prior gives (its amplitude prior the first pass's power)
+            groups = e_annuli(egrid)
+            cal["lnL_r"] = np.concatenate([reweight_lnL_r(g, egrid, groups, None, prior)
+                                           for g in cal.pop("lnL_r_grouped")])  # fmt: skip
+            bank = model_bank(cfg)
+            if size_prior_per_psf:
+                size_priors = [estimate_size_prior(cal["lnL_r"][cal["psf"] == k], bank, cfg,
+                                                   bulge_weights=bulge_weights)
+                               for k in range(npsf)]  # fmt: skip
+            else:
+                size_priors = [estimate_size_prior(cal["lnL_r"], bank, cfg,
+                                                   bulge_weights=bulge_weights)] * npsf  # fmt: skip
+            cal, egrid = calibrate(size_priors, False, "calibration with the size prior")
+            prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
+        t_cal = time.perf_counter() - t_start
+        # 2. the four renderings of every galaxy, streamed block by block
+        nb = _n_blocks(spec.ngal, spec.block_size)
+        tasks = [{"spec": spec, "config": cfg, "prior": prior, "bulge_weights": bulge_weights,
+                  "size_prior": size_priors[b % npsf], "psf": b % npsf, "block": b,
+                  "calibration": False}
+                 for b in range(nb)]  # fmt: skip
+        parts: dict[int, dict] = {}
+        for t, r in _run(_block_task, tasks, jobs, scheduler, "precision", progress,
+                         pool):
+            parts[t["block"]] = r
     res = [parts[b] for b in range(nb)]
     t_main = time.perf_counter() - t_start - t_cal
     Q = np.concatenate([r["Q"] for r in res])
