@@ -28,18 +28,22 @@ def newton_peak(D: np.ndarray, R: np.ndarray, X: np.ndarray, Y: np.ndarray, n_st
     """
     big = D.shape[-2]
     kx, ky, w = rfft_frequencies(big)
+    kx1, ky1 = kx[0], ky[:, 0]  # kx varies along the columns, ky along the rows
     base = D * np.conj(R) * (w / big**2)
     X = X.astype(float)
     Y = Y.astype(float)
     for _ in range(n_steps):
-        ramp = np.exp(1j * (kx[None] * X[:, None, None] + ky[None] * Y[:, None, None]))
-        Dp = base * ramp
+        # the phase ramp is separable: one exp per row and per column, not per frequency
+        ex = np.exp(1j * kx1[None, :] * X[:, None])
+        ey = np.exp(1j * ky1[None, :] * Y[:, None])
+        Dp = base * ey[:, :, None] * ex[:, None, :]
         re, im = Dp.real, Dp.imag
-        gx = -(kx * im).sum(axis=(1, 2))
-        gy = -(ky * im).sum(axis=(1, 2))
-        hxx = -(kx * kx * re).sum(axis=(1, 2))
-        hxy = -(kx * ky * re).sum(axis=(1, 2))
-        hyy = -(ky * ky * re).sum(axis=(1, 2))
+        re_x = re @ kx1  # (n, rows): sums over the columns weighted by kx
+        gx = -(im @ kx1).sum(axis=1)
+        hxx = -(re @ (kx1 * kx1)).sum(axis=1)
+        gy = -(im.sum(axis=2) @ ky1)
+        hyy = -(re.sum(axis=2) @ (ky1 * ky1))
+        hxy = -(re_x @ ky1)
         det = hxx * hyy - hxy * hxy
         good = (hxx < 0) & (det > 0)
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -606,7 +606,10 @@ def _stamp_tiers(stamps, psf, sigma, cfg: Config, cx, cy, n_tiers: int) -> np.nd
                                   nw, cx[sl], cy[sl])  # fmt: skip
         D = np.fft.rfft2(win) * np.exp(1j * (kx * c + ky * c))[None]
         xc, yc, no_peak = _centre(D, P, wcfg, wx - c, wy - c)
-        ph = np.exp(1j * (kx.ravel()[None] * xc[:, None] + ky.ravel()[None] * yc[:, None]))
+        # the phase ramp, separable: one exp per row and per column of the frequencies
+        ph = (np.exp(1j * ky[:, 0][None, :, None] * yc[:, None, None])
+              * np.exp(1j * kx[0][None, None, :] * xc[:, None, None]))  # fmt: skip
+        ph = ph.reshape(len(D), -1)
         h = ((D.reshape(len(D), -1) * ph * wt) @ np.conj(M)).real
         best = np.argmax(h / np.sqrt(S), axis=1)
         j = np.ceil(cfg.stamp_hlr_ratio * hlr[best] / n0).astype(int)
