@@ -317,6 +317,20 @@ def _run_peak_factor(lwm, lw0, lwp, lm, l0, lp, kink):
 #: thread: 115 ns per model before, 47 after; the tile's arrays are one per kind, with
 #: the column offset taken out of their indices, or LLVM does not vectorise)
 _TILE = 256
+@njit(cache=True, inline="always")
+def _fold(V, q, k, p0, p1, p2, p3):
+    """The four models of a folded column from its four characters' products
+    (:func:`pylensfit.likelihood._folded_bank`), into ``V[:, q, k]``."""
+    s02 = p0 + p2
+    s13 = p1 + p3
+    d02 = p0 - p2
+    d13 = p1 - p3
+    V[0, q, k] = s02 + s13
+    V[1, q, k] = s02 - s13
+    V[2, q, k] = d02 + d13
+    V[3, q, k] = d02 - d13
+
+
 # rows of a tile's work array ``W``
 _X, _Y, _HS, _AXX, _AXY, _AYY, _ISS, _OK, _VAL, _DL, _QUAD, _DETM = range(12)
 _NW = 12
@@ -584,6 +598,8 @@ def laplace_grid(
     n_chi = prod.shape[0]
     n_cols = members.shape[0]
     n_base = prod.shape[2]
+    one = prod.dtype.type(1.0)
+    zero = prod.dtype.type(0.0)
     # runs of mixed columns whose base columns are consecutive and whose fraction is one
     n_mix = mix_a.size
     mix_run = np.ones(n_mix, dtype=np.int64)
@@ -636,79 +652,42 @@ def laplace_grid(
             # read row by row (contiguous) rather than column by column
             for q in range(n_q):
                 row = q * n_gal + g
-                if n_chi == 4 and t0 + nt <= n_base:  # a tile of base columns
-                    for k in range(nt):
-                        p0 = prod[0, row, t0 + k]
-                        p1 = prod[1, row, t0 + k]
-                        p2 = prod[2, row, t0 + k]
-                        p3 = prod[3, row, t0 + k]
-                        s02 = p0 + p2
-                        s13 = p1 + p3
-                        d02 = p0 - p2
-                        d13 = p1 - p3
-                        V[0, q, k] = s02 + s13
-                        V[1, q, k] = s02 - s13
-                        V[2, q, k] = d02 + d13
-                        V[3, q, k] = d02 - d13
-                elif n_chi == 4 and t0 >= n_base:  # a tile of mixed columns, in runs
-                    k = 0
-                    while k < nt:
-                        d0 = t0 + k - n_base
-                        ca = mix_a[d0]
-                        cb = mix_b[d0]
-                        # in prod's precision, as the columns read directly are
-                        fm = prod.dtype.type(mix_f[d0])
-                        fa = prod.dtype.type(1.0 - mix_f[d0])
-                        ln = min(mix_run[d0], nt - k)
+                # runs of base columns, read directly, and of mixed columns, each the
+                # mix of two runs of base columns in prod's precision
+                k = 0
+                while k < nt:
+                    c = t0 + k
+                    if c < n_base:
+                        ca, cb = c, c
+                        fa, fm = one, zero  # unused: the base columns are read as they are
+                        ln = min(n_base - c, nt - k)
+                    else:
+                        ca = mix_a[c - n_base]
+                        cb = mix_b[c - n_base]
+                        fm = prod.dtype.type(mix_f[c - n_base])
+                        fa = prod.dtype.type(1.0 - mix_f[c - n_base])
+                        ln = min(mix_run[c - n_base], nt - k)
+                    if c < n_base and n_chi == 4:
                         for kk in range(ln):
-                            p0 = fa * prod[0, row, ca + kk] + fm * prod[0, row, cb + kk]
-                            p1 = fa * prod[1, row, ca + kk] + fm * prod[1, row, cb + kk]
-                            p2 = fa * prod[2, row, ca + kk] + fm * prod[2, row, cb + kk]
-                            p3 = fa * prod[3, row, ca + kk] + fm * prod[3, row, cb + kk]
-                            s02 = p0 + p2
-                            s13 = p1 + p3
-                            d02 = p0 - p2
-                            d13 = p1 - p3
-                            V[0, q, k + kk] = s02 + s13
-                            V[1, q, k + kk] = s02 - s13
-                            V[2, q, k + kk] = d02 + d13
-                            V[3, q, k + kk] = d02 - d13
-                        k += ln
-                elif n_chi == 4:
-                    for k in range(nt):
-                        c = t0 + k
-                        if c < n_base:
-                            p0 = prod[0, row, c]
-                            p1 = prod[1, row, c]
-                            p2 = prod[2, row, c]
-                            p3 = prod[3, row, c]
-                        else:
-                            ca = mix_a[c - n_base]
-                            cb = mix_b[c - n_base]
-                            fm = mix_f[c - n_base]
-                            fa = 1.0 - fm
-                            # in prod's precision, as the columns read directly are
-                            p0 = prod.dtype.type(fa * prod[0, row, ca] + fm * prod[0, row, cb])
-                            p1 = prod.dtype.type(fa * prod[1, row, ca] + fm * prod[1, row, cb])
-                            p2 = prod.dtype.type(fa * prod[2, row, ca] + fm * prod[2, row, cb])
-                            p3 = prod.dtype.type(fa * prod[3, row, ca] + fm * prod[3, row, cb])
-                        s02 = p0 + p2
-                        s13 = p1 + p3
-                        d02 = p0 - p2
-                        d13 = p1 - p3
-                        V[0, q, k] = s02 + s13
-                        V[1, q, k] = s02 - s13
-                        V[2, q, k] = d02 + d13
-                        V[3, q, k] = d02 - d13
-                else:
-                    for k in range(nt):
-                        c = t0 + k
-                        if c < n_base:
-                            V[0, q, k] = prod[0, row, c]
-                        else:
-                            fm = mix_f[c - n_base]
-                            V[0, q, k] = ((1.0 - fm) * prod[0, row, mix_a[c - n_base]]
-                                          + fm * prod[0, row, mix_b[c - n_base]])  # fmt: skip
+                            ia = ca + kk
+                            _fold(V, q, k + kk, prod[0, row, ia], prod[1, row, ia],
+                                  prod[2, row, ia], prod[3, row, ia])  # fmt: skip
+                    elif n_chi == 4:
+                        for kk in range(ln):
+                            ia = ca + kk
+                            ib = cb + kk
+                            _fold(V, q, k + kk, fa * prod[0, row, ia] + fm * prod[0, row, ib],
+                                  fa * prod[1, row, ia] + fm * prod[1, row, ib],
+                                  fa * prod[2, row, ia] + fm * prod[2, row, ib],
+                                  fa * prod[3, row, ia] + fm * prod[3, row, ib])  # fmt: skip
+                    elif c < n_base:
+                        for kk in range(ln):
+                            V[0, q, k + kk] = prod[0, row, ca + kk]
+                    else:
+                        for kk in range(ln):
+                            V[0, q, k + kk] = (fa * prod[0, row, ca + kk]
+                                               + fm * prod[0, row, cb + kk])  # fmt: skip
+                    k += ln
             for hm in range(n_memb):
                 Vh = V[hm]
                 Wh = W[hm]
