@@ -121,6 +121,35 @@ def test_refinement_survives_a_cliff_in_lnL():
         assert abs(t[c][0] - clean[c][0]) < 1e-6, c
 
 
+def test_refinement_survives_a_kink_at_the_grid_edge():
+    """A faint galaxy's ln L is bumpy far from its peak; a dip next to the edge cell of
+    the grid made the quadratic extrapolation beyond ``|e| = 1`` rise without bound
+    (``3 a - 3 b + c`` from a convex run), and the interpolant's spurious peak there
+    (ln L +25 over the real one, at e = (-0.54, -0.84)) took the posterior mean with it.
+    The limited extrapolation (``_fill_lattice``) keeps the mean and the sensitivity of
+    the likelihood without the dip, to 1e-5."""
+    lnL = gaussian_lnL(np.array([[0.55, 0.1]]), np.array([0.3]))
+    clean = shapes(lnL, EGRID, PRIOR)
+    dip = np.argmin(np.hypot(EGRID[:, 0] + 0.55, EGRID[:, 1] + 0.65))
+    edge = np.argmin(np.hypot(EGRID[:, 0] + 0.55, EGRID[:, 1] + 0.75))
+    assert np.hypot(*EGRID[edge]) < 1 < np.hypot(EGRID[edge, 0], EGRID[edge, 1] - 0.1)
+    kink = lnL.copy()
+    kink[0, dip] -= 15.0
+    lf, fine = refine_lnL(kink, EGRID, refine=DEFAULT_REFINE)
+    assert lf.max() < 0.1  # the real peak's cell holds 0
+    t = shapes(kink, EGRID, PRIOR)
+    for c in ("e1", "e2", "sens1", "sens2"):
+        assert abs(t[c][0] - clean[c][0]) < 1e-5, c
+    # and a concave run beyond the edge (a peak outside the grid) is still extrapolated
+    # exactly: refine_lnL of a Gaussian centred at |e| = 1.05
+    out = gaussian_lnL(np.array([[-0.6, -0.86]]), np.array([0.1]))
+    lo, fo = refine_lnL(out, EGRID, refine=DEFAULT_REFINE)
+    direct = gaussian_lnL(np.array([[-0.6, -0.86]]), np.array([0.1]), fo)
+    near = direct[0] > -30
+    d = lo[0, near] - direct[0, near]
+    assert np.ptp(d) < 1e-9
+
+
 def test_refined_integration_equals_direct_evaluation_on_the_fine_grid():
     # ln L of a Gaussian is quadratic: the interpolation from de = 0.1 is then exact, so
     # refine=4 must equal evaluating the likelihood directly on the de = 0.025 grid.

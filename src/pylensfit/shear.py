@@ -117,15 +117,15 @@ def _keys_weights(t: np.ndarray, a: float = -0.5) -> tuple[np.ndarray, np.ndarra
 class _Refiner:
     """Precomputed pieces of the grid refinement (see :func:`refine_lnL`).
 
-    ``F (m*m, n_e)`` maps grid values to the padded square lattice (side ``m``, row-major
-    in ``(e2, e1)``); ``j0, w`` are the Keys stencils of the fine 1-D coordinates (the
+    ``cell`` places the grid values on the padded square lattice (side ``m``, row-major
+    in ``(e2, e1)``) and ``fill (n_out, 4)`` fills the rest (:func:`_fill_lattice`);
+    ``j0, w`` are the Keys stencils of the fine 1-D coordinates (the
     same on both axes); ``fx, fy`` index the fine cells kept (inside the disc) into the
     fine 1-D coordinates; ``fine`` holds their centres; ``cell`` is the lattice index of
     each grid cell.
     """
 
     fine: np.ndarray
-    F: np.ndarray
     m: int
     j0: np.ndarray
     w: np.ndarray
@@ -135,10 +135,16 @@ class _Refiner:
     row_lo: np.ndarray
     row_hi: np.ndarray
     cell: np.ndarray
+    fill: np.ndarray
 
     def lattice(self, x: np.ndarray) -> np.ndarray:
-        """``ln L`` rows ``x (n, n_e)`` on the padded lattice ``(n, m*m)``."""
-        return x @ self.F.T
+        """``ln L`` rows ``x (n, n_e)`` on the padded lattice ``(n, m*m)``: the grid's
+        cells, and outside them the limited quadratic extrapolation of
+        :func:`_fill_lattice`."""
+        X = np.zeros((x.shape[0], self.m * self.m))
+        X[:, self.cell] = x
+        _fill_lattice(X, self.fill, _LNL_FLOOR)
+        return X
 
     def excess(self, X: np.ndarray) -> np.ndarray:
         """Largest rise of the interpolant inside a cell above the cell's corners, per row.
@@ -204,15 +210,13 @@ def _build_refiner(egrid: np.ndarray, refine: int) -> _Refiner:
     xc = (np.arange(m) + lo + 0.5) * step  # padded lattice centres (both axes)
     ix = np.round(egrid[:, 0] / step - 0.5).astype(int) - lo
     iy = np.round(egrid[:, 1] / step - 0.5).astype(int) - lo
-    n_e = egrid.shape[0]
 
-    # Fill operator F: lattice cell -> linear combination of the grid values. Cells that
-    # are not on the grid (outside |e| < 1, and the padding) are filled, in order of
-    # increasing radius, by quadratic extrapolation along the axis of the larger |coord|
-    # from the three cells next to them towards the centre: exact for quadratic ln L.
-    F = np.zeros((m, m, n_e))
+    # The lattice cells that are not on the grid (outside |e| < 1, and the padding) are
+    # filled, in order of increasing radius, by (limited) quadratic extrapolation along
+    # the axis of the larger |coord| from the three cells next to them towards the
+    # centre: exact for quadratic ln L (_fill_lattice).
+    fill: list[list[int]] = []  # (target, a, b, c): target from a, b, c (nearest first)
     have = np.zeros((m, m), dtype=bool)
-    F[iy, ix, np.arange(n_e)] = 1.0
     have[iy, ix] = True
     X, Y = np.meshgrid(xc, xc, indexing="xy")
     missing = np.argwhere(~have)
@@ -226,8 +230,8 @@ def _build_refiner(egrid: np.ndarray, refine: int) -> _Refiner:
             src = [(jy - s, jx), (jy - 2 * s, jx), (jy - 3 * s, jx)]
         if not all(0 <= a < m and 0 <= b < m and have[a, b] for a, b in src):
             raise ValueError("cannot extend the ellipticity grid for refinement")
-        F[jy, jx] = 3.0 * F[src[0]] - 3.0 * F[src[1]] + F[src[2]]
         have[jy, jx] = True
+        fill.append([jy * m + jx] + [a * m + b for a, b in src])
 
     # Fine grid: cell centres of side step/refine inside the disc covered by the grid.
     rmax = min(1.0, float(np.max(np.hypot(egrid[:, 0], egrid[:, 1]))) + step / math.sqrt(2.0))
@@ -249,7 +253,6 @@ def _build_refiner(egrid: np.ndarray, refine: int) -> _Refiner:
         raise ValueError("cannot extend the ellipticity grid for refinement")
     return _Refiner(
         fine=fine,
-        F=np.ascontiguousarray(F.reshape(m * m, n_e)),
         m=m,
         j0=j0.astype(np.int64),
         w=np.ascontiguousarray(w),
@@ -259,7 +262,30 @@ def _build_refiner(egrid: np.ndarray, refine: int) -> _Refiner:
         row_lo=row_lo.astype(np.int64),
         row_hi=row_hi.astype(np.int64),
         cell=(iy * m + ix).astype(np.int64),
+        fill=np.array(fill, dtype=np.int64).reshape(-1, 4),
     )
+
+
+@numba.njit(cache=True)
+def _fill_lattice(X, fill, floor):  # pragma: no cover
+    """Fill the lattice cells outside the grid, row by row, in ``fill``'s order.
+
+    Cell ``t`` from the three cells ``a, b, c`` inward of it: the quadratic extrapolation
+    ``3 a - 3 b + c``, limited to ``a + max(0, min(a - b, b - c))`` and floored at
+    ``floor``. A concave run (a peak, ``a - 2 b + c <= 0``) never meets the limit, so a
+    Gaussian likelihood is still extrapolated exactly; a convex one (a kink or a cliff in
+    a faint galaxy's bumpy ``ln L`` near ``|e| = 1``) would otherwise rise without bound
+    beyond the grid (``+29`` over the grid's maximum from cells at ``-31``, ``-15``: the
+    interpolant's spurious peak then moved that galaxy's mean e by 1.0).
+    """
+    for g in range(X.shape[0]):
+        for k in range(fill.shape[0]):
+            a = X[g, fill[k, 1]]
+            b = X[g, fill[k, 2]]
+            c = X[g, fill[k, 3]]
+            v = 3.0 * a - 3.0 * b + c
+            lim = a + max(0.0, min(a - b, b - c))
+            X[g, fill[k, 0]] = max(min(v, lim), floor)
 
 
 def refine_lnL(
@@ -269,7 +295,8 @@ def refine_lnL(
 
     Each row (shifted to a maximum of 0 and floored at -200) is interpolated with the
     Keys (1981) cubic convolution on the square lattice of the grid; lattice cells
-    outside the grid (``|e| >= 1``) are first filled by quadratic extrapolation. Both
+    outside the grid (``|e| >= 1``) are first filled by quadratic extrapolation
+    (limited where ``ln L`` is convex: :func:`_fill_lattice`). Both
     steps reproduce a quadratic ``ln L`` (a Gaussian likelihood) exactly; the interpolant
     assumes a likelihood resolved by the grid (a width of at least about half a cell).
     :func:`shapes` applies the same map block by block inside a compiled kernel.
@@ -890,7 +917,7 @@ def _sums_with(lnL, egrid, K, refine, block_size):
         return S
     r = _refiner(egrid, refine)
     K = np.ascontiguousarray(K)
-    nb = block_size or max(1, _BLOCK_ELEMENTS // r.F.shape[0])
+    nb = block_size or max(1, _BLOCK_ELEMENTS // (r.m * r.m))
     for i in range(0, n, nb):
         X = r.lattice(_relative_lnL(lnL[i : i + nb]))
         _fine_sums_kernel(X, r.excess(X), r.m, r.j0, r.w, r.row_y, r.row_lo, r.row_hi, K,
