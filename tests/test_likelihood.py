@@ -535,6 +535,47 @@ def test_mixed_bulge_fractions_equal_their_own_products(rng, monkeypatch):
     np.testing.assert_array_equal(mixed.r_best, own.r_best)
 
 
+def test_sizes_outside_the_size_prior_are_not_evaluated(rng, monkeypatch):
+    """The sizes a size prior leaves out (``size_prior_cut``) have no columns in the
+    matrix products or the kernel, except the pure fractions' that feed a mixed column:
+    the fits are those of the whole bank with the same weights, bit for bit (float64),
+    and ``L(r)`` is 0 at the sizes left out."""
+    import pylensfit.likelihood as lk
+    from pylensfit.prior import SizePrior
+
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2, dtype="float64")
+    bank = model_bank(cfg)
+    knots = np.linspace(np.log(0.3), np.log(6.0), 40)
+    sp = SizePrior(ln_h=knots, density=np.exp(-0.5 * ((knots - np.log(1.5)) / 0.4) ** 2),
+                   star=1e-4)  # fmt: skip
+    w, _ = sp.node_weights(bank, cfg)
+    on = w > 0
+    assert 0.3 * on.size < on.sum() < 0.8 * on.size
+    psf = draw(PSFS["moffat_e1"])
+    imgs = [draw(galsim.Convolve(galsim_model("bulge+disc", r, *e, bulge_fraction=bf),
+                                 PSFS["moffat_e1"]))
+            for r, e, bf in ((1.5, (0.3, -0.2), 0.5), (0.8, (-0.1, 0.4), 0.2),
+                             (3.0, (0.1, 0.1), 0.9))]  # fmt: skip
+    stamps = np.stack([img * f for img, f in zip(imgs, (25.0, 150.0, 60.0), strict=True)])
+    stamps += rng.normal(size=stamps.shape)
+    cut = fit_stamps(stamps, psf, 1.0, config=cfg, size_prior=sp)
+    fb = lk._folded_bank(cfg, bank)
+    sub = lk._active_columns(fb, bank, on)
+    n_on = on.reshape(3, -1)
+    # the kernel's columns: the active sizes' (one per e orbit) and the point source
+    n_orb = (fb.members.shape[0] - 1) // bank.n_r
+    assert sub.members.shape[0] == n_orb * on.sum() + 1
+    # the products: the pure fractions' active sizes and those the middle one needs
+    feeds = (n_on[0] | n_on[1]).sum() + (n_on[2] | n_on[1]).sum()
+    assert sub.G[0].shape[1] == n_orb * feeds + 1 < fb.G[0].shape[1]
+    monkeypatch.setattr(lk, "_active_columns", lambda fb, bank, active: fb)
+    every = fit_stamps(stamps, psf, 1.0, config=cfg, size_prior=sp)
+    for k in ("lnL", "lnL_bulge", "lnL_r", "lnL_star"):
+        np.testing.assert_array_equal(getattr(cut, k), getattr(every, k))
+    assert np.isneginf(cut.lnL_r[:, :-1][:, ~on]).all()
+    assert np.isfinite(cut.lnL_r[:, :-1][:, on]).all()
+
+
 def test_size_prior_uniform_in_half_light_radius_is_the_flat_sum(rng):
     """A SizePrior of density ~ h per unit ln h reproduces the default sum over r."""
     from pylensfit.prior import SizePrior, _node_sizes
@@ -560,11 +601,16 @@ def test_size_prior_uniform_in_half_light_radius_is_the_flat_sum(rng):
     # a prior concentrated on small sizes pulls the mixture to the compact models
     small = SizePrior(ln_h=knots, density=np.exp(-0.5 * ((knots - np.log(0.3)) / 0.1) ** 2))
     sm = fit_stamps(stamps, psf, 1.0, config=cfg, size_prior=small)
-    # L(r) is the data's alone: the same under any prior, up to the shift of each row
-    def rel(f):
-        return f.lnL_r - f.lnL_r.max(axis=1, keepdims=True)
+    # L(r) is the data's alone: the same under any prior, up to the shift of each row,
+    # at the sizes evaluated (those above the prior's mode and its tail are not)
+    on = np.append(small.node_weights(bank, cfg)[0] > 0, True)
+    assert (~on).sum() > 0 and on.sum() > 20 and np.isneginf(sm.lnL_r[:, ~on]).all()
 
-    np.testing.assert_allclose(rel(sm), rel(ref), atol=1e-3)
+    def rel(f):
+        return f.lnL_r[:, on] - f.lnL_r[:, on].max(axis=1, keepdims=True)
+
+    # (fewer columns, other float32 roundings in the matrix products: 3e-6 at ln L -539)
+    np.testing.assert_allclose(rel(sm), rel(ref), atol=1e-3, rtol=1e-5)
     assert not np.allclose(sm.lnL, ref.lnL, atol=0.1)
 
 

@@ -422,7 +422,7 @@ def _size_sample(n, cfg, rng, mu=0.405, sd=0.35, width=(0.05, 0.4), star_frac=0.
 def test_size_prior_recovers_a_lognormal_population():
     """Smoothed EM deconvolves the measurement widths: mean and spread of ln h."""
     from pylensfit import Config
-    from pylensfit.prior import estimate_size_prior
+    from pylensfit.prior import _node_sizes, estimate_size_prior
 
     cfg = Config(model="exponential")
     rng = np.random.default_rng(5)
@@ -437,9 +437,19 @@ def test_size_prior_recovers_a_lognormal_population():
     # 0.35 plus the smoothing's broadening (a knot step of 0.1, ~0.03 in quadrature)
     assert abs(sd - lnh.std()) < 0.02, (sd, lnh.std())
     assert abs(sp.star - 0.05) < 0.004 and abs(mass + sp.star - 1) < 1e-6
-    # node weights: the prior mass per size of the bank, zero-free
+    # node weights: the prior mass per size of the bank; its tails (size_prior_cut of the
+    # largest) floored below the mode, cut above it (those sizes are not evaluated)
     w, ws = sp.node_weights(bank, cfg)
-    assert w.shape == (bank.n_r,) and np.all(w > 0) and ws == pytest.approx(sp.star)
+    assert w.shape == (bank.n_r,) and ws == pytest.approx(sp.star)
+    _, _, h = _node_sizes(bank, cfg)
+    tail = cfg.size_prior_cut * w.max()
+    above = h > np.exp(sp.ln_h[np.argmax(sp.density)])
+    assert np.all(w[~above] >= tail * (1 - 1e-12)) and np.any(w[~above] == tail)
+    assert np.any(w[above] == 0) and np.all(w[w > 0] >= tail * (1 - 1e-12))
+    lo, hi = np.percentile(lnh, [0.5, 99.5])
+    assert np.all(w[(np.log(h) > lo) & (np.log(h) < hi)] > tail)
+    raw = sp.node_weights(bank, cfg.replace(size_prior_cut=0.0))[0]
+    np.testing.assert_array_equal(w[w > tail], raw[w > tail])
     with pytest.raises(ValueError, match="shape"):
         estimate_size_prior(lnL_r[:, :-1], bank, cfg)
 

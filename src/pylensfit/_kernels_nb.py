@@ -502,7 +502,7 @@ _UNDERFLOW = 700.0
 _EXP_ZERO = 746.0
 
 #: a size prior whose ``ln`` weight bends by more than this between neighbouring nodes
-#: has an edge there (a box, the floor of :meth:`pylensfit.prior.SizePrior.node_weights`):
+#: has an edge there (a box, a steep population edge):
 #: the narrow-peak factor then comes from ``ln L`` alone (where ``L`` peaks at that
 #: node, else none), since the parabola through ``ln(w L)`` would read the cliff as a
 #: peak narrower than the grid and inflate the edge node's weight (by ~30%)
@@ -544,9 +544,12 @@ def laplace_grid(
     members : (n_cols, 1 or 4) int array
         The models of each column (-1: none).
     mix_a, mix_b, mix_f : (n_cols - n_base,) arrays
-        Columns ``c >= n_base = prod.shape[2]`` are not in ``prod``: their products are
-        ``(1 - f) prod[.., a] + f prod[.., b]`` with ``a = mix_a[c - n_base]`` etc. (the
-        bulge+disc fractions between the pure disc and the pure bulge; empty: none).
+        Columns ``c < n_base = n_cols - mix_a.size`` are ``prod``'s columns ``c``; the
+        others are not in ``prod``: their products are ``(1 - f) prod[.., a] + f
+        prod[.., b]`` with ``a = mix_a[c - n_base]`` etc. (the bulge+disc fractions
+        between the pure disc and the pure bulge; empty: none). ``prod``'s columns from
+        ``n_base`` on are read only as such ``a`` or ``b`` (a pure fraction's size that
+        the size prior leaves out where the mixed fraction's is in).
     n_sub : int
         The r axis of an e cell is ``n_r // n_sub`` runs of ``n_sub`` increasing radii
         (one per bulge fraction); the sum over r is corrected run by run
@@ -563,6 +566,8 @@ def laplace_grid(
         radius ``h`` for every bulge fraction, a run's weights carry the Jacobian ``dh /
         dr`` of its fraction (relative to the first run's); for an estimated prior
         (:class:`pylensfit.prior.SizePrior`) they are the prior mass of each node.
+        Sizes of weight 0 are left out: their models need no column (``members``), and
+        a run's narrow-peak factor stops at them as at the run's ends.
     ln_pi : (n_r // n_sub,) array
         Log prior weight of each bulge fraction (summing to 1): ``L(e) = sum_k pi_k
         L_k(e) + w_star L_star``, where ``L_k(e)`` is the weighted sum over the sizes of
@@ -597,7 +602,7 @@ def laplace_grid(
     pi = np.exp(ln_pi)
     n_chi = prod.shape[0]
     n_cols = members.shape[0]
-    n_base = prod.shape[2]
+    n_base = n_cols - mix_a.size  # prod's further columns only feed mixed ones
     one = prod.dtype.type(1.0)
     zero = prod.dtype.type(0.0)
     # runs of mixed columns whose base columns are consecutive and whose fraction is one
@@ -726,6 +731,9 @@ def laplace_grid(
                 km = 0
                 for irr in range(n_sub):
                     ir = ib * n_sub + irr
+                    if not node_w[ir] > 0.0:  # outside the size prior: not evaluated
+                        lwr[irr] = -np.inf
+                        continue
                     l = buf[ie * n_r + ir]
                     dlb = l - best
                     ex = math.exp(dlb) if dlb > -_EXP_ZERO else 0.0
@@ -736,8 +744,8 @@ def laplace_grid(
                     if lw > rmax:
                         rmax = lw
                         km = irr
-                if 0 < km < n_sub - 1:
-                    ir = ib * n_sub + km
+                ir = ib * n_sub + km
+                if 0 < km < n_sub - 1 and node_w[ir - 1] > 0.0 and node_w[ir + 1] > 0.0:
                     bacc *= _run_peak_factor(
                         lwr[km - 1], lwr[km], lwr[km + 1], buf[ie * n_r + ir - 1],
                         buf[ie * n_r + ir], buf[ie * n_r + ir + 1],

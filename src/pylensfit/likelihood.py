@@ -35,7 +35,7 @@ For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of un
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -381,6 +381,42 @@ def _mixed_columns(bank, n_orb: int):
     mix_b = pos[(base_of + (n_b - 1) * n_sub).ravel()]
     mix_f = np.broadcast_to(fr[1:-1][None, :, None], mids.shape).ravel().copy()
     return perm, mix_a, mix_b, mix_f
+
+
+_ACTIVE: dict = {}
+
+
+def _active_columns(fb: _FoldedBank, bank, active: np.ndarray) -> _FoldedBank:
+    """``fb`` with the columns of the sizes ``active`` (``(n_r,)`` bool) only.
+
+    The columns of the sizes left out are dropped from the matrix products and from the
+    kernel's loop (``members``), except the pure fractions' columns that an active mixed
+    column is made from: those stay in ``G`` after the active base columns, read only
+    through ``mix_a`` and ``mix_b``. The coarse sub-grid is unchanged.
+    """
+    key = (id(fb), active.tobytes())
+    hit = _ACTIVE.get(key)
+    if hit is not None and hit[0] is fb:
+        return hit[1]
+    n_r = bank.n_r
+    n_mix = fb.mix_a.size
+    n_base = fb.members.shape[0] - n_mix
+    j = fb.members.max(axis=1)  # any model of the column: all share its size
+    keep = np.where(j == bank.n_models - 1, True, active[j % n_r])
+    kb = np.flatnonzero(keep[:n_base])
+    km = np.flatnonzero(keep[n_base:])
+    feed = np.setdiff1d(np.union1d(fb.mix_a[km], fb.mix_b[km]), kb)
+    order = np.concatenate([kb, feed])  # new prod column -> old
+    pos = np.full(n_base, -1, dtype=np.int64)
+    pos[order] = np.arange(order.size)
+    sub = replace(
+        fb,
+        G=tuple(np.ascontiguousarray(g[:, order]) for g in fb.G),
+        members=np.ascontiguousarray(np.concatenate([fb.members[kb], fb.members[n_base + km]])),
+        mix_a=pos[fb.mix_a[km]], mix_b=pos[fb.mix_b[km]], mix_f=fb.mix_f[km].copy(),
+    )  # fmt: skip
+    _keep(_ACTIVE, key, (fb, sub), 2)
+    return sub
 
 
 def _keep(cache: dict, key, value, size: int) -> None:
@@ -763,9 +799,10 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     # one buffer for every block's products, so that the pages are mapped once
     store = np.empty(4 * 10 * min(cfg.block_size, n_gal) * n_cols, dtype=dtype)
 
-    def folded_products(sl, cubic, Gf=fb.G):
+    def folded_products(sl, cubic, Gf=None):
         """The products with every model (or the coarse ones), folded by the square's
         symmetries (_FoldedBank)."""
+        Gf = fb.G if Gf is None else Gf
         R = rows(sl, cubic)[:, fb.idx]  # (q m, 4, octant)
         nc = Gf[0].shape[1]
         out = store[: 4 * R.shape[0] * nc].reshape(4, R.shape[0], nc)
@@ -784,6 +821,8 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
         w_star = float(bank.star_weight)
     else:
         node_w, w_star = size_prior.node_weights(bank, cfg)
+        if not (node_w > 0).all():  # the sizes outside the prior: no models to evaluate
+            fb = _active_columns(fb, bank, node_w > 0)
     mp = size_marginal_prior if size_marginal_prior is not None else Prior()
     e_w = mp.pdf(bank.egrid[:, 0], bank.egrid[:, 1])
     e_w = e_w / e_w.sum()
