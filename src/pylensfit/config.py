@@ -113,8 +113,8 @@ class Config:
         "the tails of an estimated size prior (SizePrior.node_weights), relative to its "
         "largest node's mass: below the prior's mode the mass is floored here (compact "
         "models keep a say); above it the sizes of less mass are left out of the sum over "
-        "r and their models are not evaluated (a disc's largest sizes: a fit 25% faster "
-        "in the precision mode). 0: no floor, every size of non-zero mass",
+        "r and their models are not evaluated (a disc's largest sizes: a fifth of the "
+        "precision mode's models). 0: no floor, every size of non-zero mass",
     )
     # --- marginalisation over amplitude (paper eqs. likee1, likee) ---
     amplitude_prior: str = _f(
