@@ -58,6 +58,9 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "scalelength": ("pix", "most likely model size r (marginal over e); 0 for a point "
                     "source; scale length (exponential, bulge+disc) or half-light radius "
                     "(de Vaucouleurs)"),
+    "stamp_size": ("pix", "side of the postage stamp the object was fitted on: "
+                   "Config.stamp_size, or for a large galaxy a larger tier up to "
+                   "Config.max_stamp_size; 0 if not fitted"),
     "e1": ("", "posterior mean ellipticity <e1> (paper eq. expecte), e = (a-b)/(a+b)"),
     "e2": ("", "posterior mean ellipticity <e2>"),
     "e1_var": ("", "posterior variance of e1"),

@@ -44,7 +44,9 @@ class Config:
         "/ stamp_hlr_ratio is fitted on a stamp j times as large, with the frequencies |k| "
         "<= pi / j: the same cost. On a 32-pixel stamp a galaxy of 2 PSF radii under a "
         "4-pixel Kolmogorov PSF responds 1.3% more to g2 than to g1 (the edge, "
-        "benchmarks/stamp_edge.py); the stamps given to fit_stamps must be this large",
+        "benchmarks/stamp_edge.py); the stamps given to fit_stamps must be this large. "
+        "measure cuts them where they lie in the image with no bad pixel (else the base "
+        "stamp); flags and close pairs stay the base stamp's",
     )
     stamp_hlr_ratio: float = _f(
         10.0,

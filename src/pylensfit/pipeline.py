@@ -267,7 +267,7 @@ def _single_thread(on: bool) -> None:
 
 def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     """Measure one image: every detected object gets a row, measured or flagged."""
-    from .likelihood import fit_stamps
+    from .likelihood import _merge_fits, fit_stamps
     from .models import model_bank
 
     t0 = time.perf_counter()
@@ -307,6 +307,18 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     noise = np.asarray(det["noise_sigma"], dtype=float)
     stamps, cx, cy, sflags = cut_stamps(sub, x, y, cfg.stamp_size, bad=img.bad)
     flags |= sflags
+    # the stamp tiers (Config.max_stamp_size): an object whose larger stamp lies in the
+    # image with no bad pixel is fitted on it, fit_stamps choosing its tier; the flags,
+    # close pairs and everything else stay those of the base stamp
+    n_big = cfg.largest_stamp
+    if n_big > cfg.stamp_size:
+        bstamps, bcx, bcy, bflags = cut_stamps(sub, x, y, n_big, bad=img.bad)
+        use_big = bflags == 0
+        base_cfg = cfg.replace(max_stamp_size=0)
+    else:
+        bstamps, bcx, bcy, use_big, base_cfg = stamps, cx, cy, np.zeros(n, bool), cfg
+    o = n_big // 2 - cfg.stamp_size // 2  # the base stamp's origin in the larger one
+    fcx, fcy = np.where(use_big, bcx, cx), np.where(use_big, bcy, cy)
     if n:
         from .detection import close_pairs
 
@@ -334,18 +346,32 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         size_prior = SizePrior.from_dict(size_prior)
     cols = {k: np.full(n, np.nan) for k in ("model_flux", "model_SNratio", "scalelength",
                                             "e1_best", "e2_best")}  # fmt: skip
+    cols["stamp_size"] = np.zeros(n, dtype=np.int32)
     xf, yf = x.copy(), y.copy()
     is_star = np.zeros(n, dtype=bool)
     todo = np.flatnonzero(flags == 0)
 
-    def fit(idx, less=0.0):
-        """Fit the stamps of objects ``idx`` (less ``less``: the neighbours' light)."""
-        return fit_stamps(stamps[idx] - less, psf.image, noise[idx], config=cfg,
-                          centres=(cx[idx], cy[idx]), size_prior=size_prior,
-                          size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
+    def fit(idx, less=None):
+        """Fit the stamps of objects ``idx``, less ``less`` (``(len(idx), n_big, n_big)``:
+        the neighbours' light and the sky's change, about each object)."""
+        parts = []
+        for sel, st, c in ((~use_big[idx], stamps, base_cfg), (use_big[idx], bstamps, cfg)):
+            if not sel.any():
+                continue
+            j = idx[sel]
+            data = st[j]
+            if less is not None:
+                lj = less[sel]
+                data = data - (lj if st.shape[1] == n_big else
+                               lj[:, o : o + cfg.stamp_size, o : o + cfg.stamp_size])  # fmt: skip
+            parts.append((np.flatnonzero(sel), fit_stamps(
+                data, psf.image, noise[j], config=c, centres=(fcx[j], fcy[j]),
+                size_prior=size_prior,
+                size_marginal_prior=task.get("size_marginal_prior"))))  # fmt: skip
+        return parts[0][1] if len(parts) == 1 else _merge_fits(parts, idx.size)
 
     def store(f, idx):
-        _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
+        _store_fit(f, idx, x, y, fcx, fcy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
                    xf, yf, is_star)  # fmt: skip
 
     if todo.size:
@@ -422,13 +448,14 @@ def _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, col
     cols["scalelength"][idx] = f.r_best
     cols["e1_best"][idx] = f.e1_best
     cols["e2_best"][idx] = f.e2_best
+    cols["stamp_size"][idx] = f.stamp
     ok = np.isfinite(f.x)
     xf[idx[ok]] = f.x[ok] + (x[idx[ok]] - cx[idx[ok]])
     yf[idx[ok]] = f.y[ok] + (y[idx[ok]] - cy[idx[ok]])
     is_star[idx] = f.is_star
 
 
-_MODEL_KEYS = ("flux", "x", "y", "is_star", "r_best", "lnL", "bulge_best", "flags")
+_MODEL_KEYS = ("flux", "x", "y", "is_star", "r_best", "lnL", "bulge_best", "flags", "stamp")
 
 
 def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Config, refit,
@@ -491,7 +518,13 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
     dsky = None
 
     def _chi2(light):  # the light taken out of each fitted stamp, in units of its noise
-        return np.sum(light[fitted] ** 2, axis=(1, 2)) / noise[fitted] ** 2
+        # (the window each object was fitted on: the base stamp or a larger tier)
+        out = np.empty(fitted.size)
+        nl, win = light.shape[1], np.asarray(cur["stamp"])
+        for s in np.unique(win):
+            a, i = nl // 2 - int(s) // 2, np.flatnonzero(win == s)
+            out[i] = np.sum(light[fitted[i], a : a + int(s), a : a + int(s)] ** 2, axis=(1, 2))
+        return out / noise[fitted] ** 2
 
     for _ in range(int(cfg.neighbour_iterations)):
         f = SimpleNamespace(**cur)
@@ -499,7 +532,7 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
         if not cfg.subtract_neighbours:
             others[:] = 0.0
         if sky is not None:
-            dsky = cut_stamps(sky(field), x, y, cfg.stamp_size)[0]
+            dsky = cut_stamps(sky(field), x, y, cfg.largest_stamp)[0]
         near = _chi2(others) > cfg.neighbour_min_chi2
         less = others if dsky is None else others + dsky
         sel = np.flatnonzero(ok & (near if dsky is None else _chi2(less) > cfg.neighbour_min_chi2))
@@ -543,8 +576,8 @@ def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: in
     from .models import render_models
     from .stamps import add_patches, patch_origins
 
-    n_stamp = cfg.stamp_size
-    big = 4 * n_stamp
+    n_stamp = cfg.largest_stamp  # the stamps of the tiers (Config.max_stamp_size)
+    big = max(4 * cfg.stamp_size, 2 * n_stamp)
     good = np.isfinite(f.flux) & (f.flux > 0) & np.isfinite(f.x) & np.isfinite(f.y)
     obj = fitted[good]
     r = np.where(f.is_star[good], 0.0, np.nan_to_num(f.r_best[good]))
@@ -823,11 +856,6 @@ def measure(
         field without usable stars: one line naming the file and the problem.
     """
     cfg = config if config is not None else Config()
-    if cfg.largest_stamp > cfg.stamp_size:
-        # the edges, close pairs, neighbours' models and sky are all on one stamp size
-        raise InputError(f"measure fits every object on {cfg.stamp_size}-pixel stamps; "
-                         f"max_stamp_size ({cfg.max_stamp_size}) is for fit_stamps and "
-                         "validate --precision. Set stamp_size instead")  # fmt: skip
     if isinstance(images, (str, os.PathLike)):
         images = [images]
     images = [str(p) for p in images]
