@@ -199,14 +199,14 @@ def test_large_galaxies_are_fitted_on_the_stamp_tiers(tmp_path):
     near = la > la.max(axis=1, keepdims=True) - 20
     assert np.abs(la - lb)[small[:, None] & near].max() < 1e-3
     # the large galaxies' centres, in image pixels, nearer the truth on the larger stamps
-    # (on 32 pixels they err by 0.2 px rms, up to 0.5)
+    # (0.06 px rms, at most 0.12; on 32 pixels 0.13 px rms, up to 0.53)
     def centre_rms(t):
         dx = np.asarray(t["x"])[big] - np.asarray(truth["x"])[j[big]]
         dy = np.asarray(t["y"])[big] - np.asarray(truth["y"])[j[big]]
         return np.sqrt(np.mean(dx**2 + dy**2))
 
     assert centre_rms(b) < 0.6 * centre_rms(a)
-    assert np.median(b["model_SNratio"][big] / a["model_SNratio"][big]) > 1.002
+    assert np.median(b["model_SNratio"][big] / a["model_SNratio"][big]) > 1.0  # 1.0024
     # the neighbours' light and the sky's change are taken out of the larger stamps too
     assert np.array_equal(c["flags"], b["flags"]) and c["refit_neighbours"].any()
     assert np.array_equal(c["stamp_size"][gal], b["stamp_size"][gal])
