@@ -569,9 +569,10 @@ def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: in
     point source for stars) on a canvas of four times the stamp side about its position
     (the models are periodic on it: a de Vaucouleurs model has 13-28 % of its light
     beyond 16 px at r = 4 px, which a canvas of twice the stamp wraps back), and
-    the canvases are added into an image of the field. Returns ``(n, N, N)``: that image
-    cut about every object's position as :func:`~pylensfit.stamps.cut_stamps` cuts the
-    stamps, less the object's own model; and the image of the field.
+    the canvases are added into an image of the field (and at least twice the largest
+    stamp tier). Returns ``(n, N, N)``, ``N = cfg.largest_stamp``: that image cut about
+    every object's position as :func:`~pylensfit.stamps.cut_stamps` cuts the stamps,
+    less the object's own model; and the image of the field.
     """
     from .models import render_models
     from .stamps import add_patches, patch_origins
