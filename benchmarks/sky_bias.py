@@ -31,24 +31,31 @@ from astropy.table import vstack
 MODES = ("sep", "true", "model")
 
 
+def patch_true_sky(sky: float) -> None:
+    """Make ``pylensfit.detection.measure_background`` return the constant ``sky`` (its
+    noise map kept), in this process, for every later call of ``measure``."""
+    from pylensfit import detection
+
+    orig = detection.measure_background
+
+    def true_sky(*a, **k):
+        b = orig(*a, **k)
+        return detection.Background(back=np.full_like(b.back, sky), rms=b.rms, global_back=sky,
+                                    global_rms=b.global_rms, bad=b.bad)  # fmt: skip
+
+    detection.measure_background = true_sky
+
+
 def _measure(args):
     """Measure one field in one mode (in a forked worker: the patch stays in it)."""
     mode, path, star, cfg_dict, sky = args
-    from pylensfit import detection, pipeline
+    from pylensfit import pipeline
     from pylensfit.config import Config
     from pylensfit.prior import Prior
 
     cfg = Config.from_dict({**cfg_dict, "model_background": mode == "model"})
     if mode == "true":
-        orig = detection.measure_background
-
-        def true_sky(*a, **k):
-            b = orig(*a, **k)
-            return detection.Background(back=np.full_like(b.back, sky), rms=b.rms,
-                                        global_back=sky, global_rms=b.global_rms,
-                                        bad=b.bad)  # fmt: skip
-
-        detection.measure_background = true_sky
+        patch_true_sky(sky)
     cat = pipeline.measure([path], stars=[star], config=cfg, prior=Prior(), progress=False)
     cat.meta.pop("psfs", None)
     return mode, path, cat
