@@ -242,7 +242,7 @@ def _table(fn, info, title: str) -> None:
 
 def main(argv=None) -> int:
     from pylensfit.config import Config
-    from pylensfit.validation import STEP2_PSFS
+    from pylensfit.validation import STEP2_PSFS, step_config
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", required=True, help="work directory (renderings, catalogues)")
@@ -269,8 +269,7 @@ def main(argv=None) -> int:
     base = Path(a.out) / (f"psf{a.psf}_s{a.seed}_sp{a.spacing:g}_n{size}"
                           f"_snr{a.snr[0]:g}-{a.snr[1]:g}")  # fmt: skip
     base.mkdir(parents=True, exist_ok=True)
-    cfg = (Config.from_yaml(a.config) if a.config else
-           Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated"))  # fmt: skip
+    cfg = Config.from_yaml(a.config) if a.config else step_config()
     cfgs = [cfg] + ([Config.from_yaml(a.compare)] if a.compare else [])
     rng = np.random.default_rng([a.seed, a.psf])
     geo = (a.psf, size, a.spacing, list(a.snr))
