@@ -4,7 +4,8 @@ With the true profile in the model family, the population's true prior and a hig
 m should vanish apart from engine error (grids, quadrature, interpolation). Prints m, c
 for all galaxies and by size (in PSF half-light radii), plain and (rows ``cv``) with the
 intrinsic shapes' spin-4 parts as control variates (precision.shape_controls), which
-take out the shape noise that the rotated twins leave. The bins by true size are
+take out the shape noise that the rotated twins leave; rows ``n`` bin the Sersic
+galaxies by index. The bins by true size are
 conditional on the truth: with a size prior, a Bayesian estimate is biased low for the
 smallest and high for the largest galaxies of the population while the whole is not::
 
@@ -120,7 +121,7 @@ def main() -> None:
                 bw = estimate_bulge_weights(lb, ls, prior)
         if est_bulge:
             print(f"bulge-fraction prior {np.round(bw, 4).tolist()} from {spec.ncal} galaxies")
-    Q, U, S, X = [], [], [], []
+    Q, U, S, X, N = [], [], [], [], []
     for b in range(-(-a.ngal // spec.block_size)):
         st, psf, t = render_block(spec, 0, b, stamp_size=a.stamp, noise=not a.noise_free)
         st = st + np.float32(a.pedestal * spec.noise_sigma)
@@ -132,8 +133,9 @@ def main() -> None:
         Q.append(q)
         U.append(u)
         S.append(np.asarray(t["size_ratio"]))
+        N.append(np.asarray(t["sersic_n"]))
         X.append(shape_controls(t["e1_int"], t["e2_int"]))
-    Q, U, S, X = map(np.concatenate, (Q, U, S, X))
+    Q, U, S, X, N = map(np.concatenate, (Q, U, S, X, N))
     B = np.arange(S.size) * 40 // S.size  # 40 jackknife groups (a few render blocks are too few)
     print(f"{a.morphology}, model {cfg.model}, {a.ngal} galaxies, S/N {a.snr}, "
           f"{time.time() - t0:.0f} s")  # fmt: skip
@@ -141,6 +143,8 @@ def main() -> None:
     groups = [("all", np.ones(S.size, bool))]
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         groups.append((f"size {lo:g}-{hi:g}", (S >= lo) & (S < hi)))
+    for lo, hi in ((0.5, 0.9), (0.9, 1.3), (1.3, 2.0), (2.0, 3.0), (3.0, 4.01)):  # Sersic index
+        groups.append((f"n {lo:g}-{hi:g}", (N >= lo) & (N < hi)))
     for label, sel in groups:
         if sel.sum() < 2 * spec.block_size // 10:
             continue
