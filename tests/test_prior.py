@@ -439,7 +439,7 @@ def test_size_prior_recovers_a_lognormal_population():
     assert abs(sp.star - 0.05) < 0.004 and abs(mass + sp.star - 1) < 1e-6
     # node weights: the prior mass per size of the bank; its tails (size_prior_cut of the
     # largest) floored below the mode, cut above it (those sizes are not evaluated)
-    w, ws = sp.node_weights(bank, cfg)
+    w, ws = sp.node_weights(bank, cfg.replace(size_prior_floor_stride=1))
     assert w.shape == (bank.n_r,) and ws == pytest.approx(sp.star)
     _, _, h = _node_sizes(bank, cfg)
     tail = cfg.size_prior_cut * w.max()
@@ -450,6 +450,19 @@ def test_size_prior_recovers_a_lognormal_population():
     assert np.all(w[(np.log(h) > lo) & (np.log(h) < hi)] > tail)
     raw = sp.node_weights(bank, cfg.replace(size_prior_cut=0.0))[0]
     np.testing.assert_array_equal(w[w > tail], raw[w > tail])
+    # the floor on every third size (the default stride): each kept size carries the
+    # floor of the sizes nearest to it, the total is the same, the rest unchanged
+    floored = ~above & (raw < tail)
+    j = np.arange(bank.n_r) % bank.n_sizes
+    assert floored.sum() >= 5
+    w3 = sp.node_weights(bank, cfg)[0]
+    assert cfg.size_prior_floor_stride == 3
+    np.testing.assert_array_equal(w3[~floored], w[~floored])
+    assert np.all(w3[floored & (j % 3 != 2)] == 0)
+    kept = floored & (j % 3 == 2)
+    np.testing.assert_allclose(w3[kept] / tail, np.round(w3[kept] / tail), rtol=1e-12)
+    assert np.all(w3[kept] >= tail) and w3[kept].sum() == pytest.approx(tail * floored.sum())
+    assert w3.sum() == pytest.approx(w.sum(), rel=1e-13)
     with pytest.raises(ValueError, match="shape"):
         estimate_size_prior(lnL_r[:, :-1], bank, cfg)
 

@@ -1,0 +1,158 @@
+"""Two configurations on the same precision renderings: m of each, B - A paired, fit time.
+
+The precision mode's blocks (``pylensfit.precision``: four renderings per galaxy, +-g,
+unrotated and rotated by 90 degrees) are fitted and reduced twice, once with the
+default configuration (``precision.default_config``, changed by ``--a KEY=VALUE``) and
+once with ``--b KEY=VALUE`` on top of it, with the same priors: the population's own
+(its ellipticity prior, its log-uniform size prior per PSF, equal bulge-fraction
+weights), or with ``--estimated`` those a calibration of config A estimates
+(:func:`pylensfit.precision.precision` on the same seed). The renderings and their noise
+are the same, so the difference B - A is measured far better than either m: its error
+is the jackknife (groups of 100 galaxies) of the paired difference of the fixed-point
+estimates, without control variates (the shape noise is common to both).
+
+It prints, per PSF and for the mean of PSFs, m1 and m2 of A and B (fixed point, with the
+precision mode's control variates) and B - A, and the fit's CPU seconds of each::
+
+    python benchmarks/precision_ab.py --ngal 20000 --seed 5 --b size_prior_floor_stride=1
+    python benchmarks/precision_ab.py --ngal 4000 --b cubic_snr=0 --jobs 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+
+from pylensfit import precision as P
+from pylensfit.pipeline import _pool, _run
+from pylensfit.prior import Prior, SizePrior
+
+
+def _priors(spec, cfg, estimated: bool, jobs: int):
+    """Ellipticity prior, size prior per PSF, bulge weights and config (flux slope)."""
+    npsf = len(spec.psfs)
+    if not estimated:
+        bw = np.full(cfg.n_bulge_fractions, 1.0 / cfg.n_bulge_fractions)
+        return (P.population_prior(spec), [P.population_size_prior(spec, k) for k in range(npsf)],
+                bw, cfg)  # fmt: skip
+    t0 = time.perf_counter()
+    out = P.precision(P.spec_with(spec, ngal=2 * npsf), config=cfg, jobs=jobs, progress=False)
+    meta = out.meta
+    prior = Prior(**{k: meta["prior"][k] for k in "BCD"})
+    sps = [SizePrior(ln_h=np.asarray(s["ln_h"]), density=np.asarray(s["density"]),
+                     star=s["star"]) for s in meta["size_prior"]]  # fmt: skip
+    bw = meta["bulge_prior"]["weights"]
+    if meta["flux_slope"] is not None:
+        cfg = cfg.replace(amplitude_prior_power=meta["flux_slope"]["value"])
+    print(f"calibration of A: {time.perf_counter() - t0:.0f} s; prior B C D = "
+          f"{prior.B:.3f} {prior.C:.3f} {prior.D:.3f}; bulge weights {bw}")  # fmt: skip
+    return prior, sps, bw, cfg
+
+
+def _paired(QA, QB, ok, jk, g):
+    """B - A of the fixed-point m1, m2 with the jackknife over ``jk`` groups."""
+    ug, gi = np.unique(jk, return_inverse=True)
+    k = ug.size
+
+    def m_of(Q):
+        sums = np.stack([np.stack([np.bincount(gi, weights=np.where(ok, Q[:, r, q], 0.0),
+                                               minlength=k) for q in range(Q.shape[2])], -1)
+                         for r in range(4)], 1)  # (k, 4, n_q) fmt: skip
+        n = np.bincount(gi, weights=ok.astype(float), minlength=k)
+        tot, ntot = sums.sum(0), n.sum()
+        T = np.concatenate([tot[None], tot[None] - sums])  # full, then leave one out
+        N = np.concatenate([[ntot], ntot - n])
+        gv = np.array([g, g])
+        gp = P._shear_from_sums(T[:, 0] + T[:, 1], 2 * N, gv, "fixed-point")
+        gm = P._shear_from_sums(T[:, 2] + T[:, 3], 2 * N, -gv, "fixed-point")
+        return (gp - gm) / (2 * g) - 1.0  # (1 + k, 2)
+
+    d = m_of(QB) - m_of(QA)
+    jkv = d[1:]
+    err = np.sqrt((k - 1) / k * ((jkv - jkv.mean(0)) ** 2).sum(0))
+    return d[0], err
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ngal", type=int, default=20_000)
+    ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--psf", nargs="*", default=None, help="PSF names or indices (default all)")
+    ap.add_argument("--a", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="changes to precision.default_config for A")
+    ap.add_argument("--b", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="changes to A's configuration for B")
+    ap.add_argument("--estimated", action="store_true",
+                    help="the priors a calibration of A estimates (else the population's)")
+    a = ap.parse_args()
+    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf)
+    cfg_a = P.default_config(spec).replace(**dict(s.split("=", 1) for s in a.a))
+    prior, sps, bw, cfg_a = _priors(spec, cfg_a, a.estimated, a.jobs)
+    cfg_b = cfg_a.replace(**dict(s.split("=", 1) for s in a.b))
+    npsf = len(spec.psfs)
+    nb = -(-spec.ngal // spec.block_size)
+    tasks = [{"spec": spec, "config": cfg, "prior": prior, "bulge_weights": bw,
+              "size_prior": sps[b % npsf], "psf": b % npsf, "block": b, "calibration": False,
+              "which": w}
+             for b in range(nb) for w, cfg in (("A", cfg_a), ("B", cfg_b))]  # fmt: skip
+    res: dict = {"A": {}, "B": {}}
+    t0 = time.perf_counter()
+    with _pool(a.jobs) as pool:
+        for t, r in _run(P._block_task, tasks, a.jobs, None, "A/B", True, pool):
+            res[t["which"]][t["block"]] = r
+    print(f"{len(tasks)} block fits in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs)")
+    cat = {w: [res[w][b] for b in range(nb)] for w in "AB"}
+    Q = {w: np.concatenate([r["Q"] for r in cat[w]]).astype(float) for w in "AB"}
+    ok = np.concatenate([r["usable"] for r in cat["A"]]).all(1) & np.concatenate(
+        [r["usable"] for r in cat["B"]]).all(1)
+    truth = [r["truth"] for r in cat["A"]]
+    psf = np.concatenate([np.full(len(t), r["psf"]) for t, r in zip(truth, cat["A"], strict=True)])
+    per = -(-spec.block_size // P._JACKKNIFE_GALAXIES)
+    jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P._JACKKNIFE_GALAXIES
+                         for t, r in zip(truth, cat["A"], strict=True)])  # fmt: skip
+    X = P.shape_controls(np.concatenate([t["e1_int"] for t in truth]),
+                         np.concatenate([t["e2_int"] for t in truth]))  # fmt: skip
+    groups = {p["name"]: psf == i for i, p in enumerate(spec.psfs)}
+    tab = {w: P.bias_table(Q[w], np.repeat(ok[:, None], 4, 1), jk, spec.g, groups=groups,
+                           controls=X) for w in "AB"}  # fmt: skip
+    print(f"A: {dict(s.split('=', 1) for s in a.a) or 'default_config'}; "
+          f"B: A with {dict(s.split('=', 1) for s in a.b)}")
+    print(f"{spec.ngal} galaxies, seed {spec.seed}, {int(ok.sum())} with all four renderings "
+          f"measured in both; priors {'estimated' if a.estimated else 'the population'}'s")
+    from pylensfit.models import model_bank
+
+    for w, cfg in (("A", cfg_a), ("B", cfg_b)):
+        bank = model_bank(cfg)
+        n_on = [int((sp.node_weights(bank, cfg)[0] > 0).sum()) for sp in sps]
+        print(f"{w}: sizes evaluated per PSF {n_on} of {bank.n_r}")
+    print(f"| PSF | m1 A | m1 B | m2 A | m2 B | B - A, m1 | B - A, m2 |\n|{'---|' * 7}")
+    diffs = []
+    for name in groups:
+        row = {w: tab[w][(tab[w]["group"] == name) & (tab[w]["estimator"] == "fixed-point")][0]
+               for w in "AB"}  # fmt: skip
+        sel = groups[name] & ok
+        d, e = _paired(Q["A"][sel], Q["B"][sel], ok[sel], jk[sel], spec.g)
+        diffs.append((d, e))
+        cells = [f"{row[w][q]:+.4f} ± {row[w][q + '_err']:.4f}" for q in ("m1", "m2") for w in "AB"]
+        print(f"| {name} | " + " | ".join(cells) +
+              f" | {d[0]:+.5f} ± {e[0]:.5f} | {d[1]:+.5f} ± {e[1]:.5f} |")  # fmt: skip
+    d = np.mean([x[0] for x in diffs], 0)
+    e = np.sqrt(np.sum([x[1] ** 2 for x in diffs], 0)) / len(diffs)
+    mean = {w: [np.mean([tab[w][(tab[w]["group"] == n) & (tab[w]["estimator"] == "fixed-point")]
+                         [0][q] for n in groups]) for q in ("m1", "m2")] for w in "AB"}  # fmt: skip
+    print(f"| mean of PSFs | {mean['A'][0]:+.4f} | {mean['B'][0]:+.4f} | {mean['A'][1]:+.4f} | "
+          f"{mean['B'][1]:+.4f} | {d[0]:+.5f} ± {e[0]:.5f} | {d[1]:+.5f} ± {e[1]:.5f} |")
+    for w in "AB":
+        fit = sum(r["fit_s"] for r in cat[w])
+        ren = sum(r["render_s"] for r in cat[w])
+        print(f"{w}: fit {fit:.0f} s CPU ({fit / nb:.2f} s per block), render {ren:.0f} s")
+    if not math.isfinite(float(d[0])):
+        raise SystemExit("the paired difference is not finite")
+
+
+if __name__ == "__main__":
+    main()
