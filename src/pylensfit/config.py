@@ -123,8 +123,9 @@ class Config:
         "the floored sizes below an estimated size prior's mode (size_prior_cut) are "
         "summed on every stride-th size of the bank, each carrying the floor's mass of "
         "the stride sizes about it: a coarser quadrature where the models are compact and "
-        "the weights 1e-4 of the prior's peak. 1: every size. Three take a third of the "
-        "precision mode's models out, m unchanged within 1e-4 (benchmarks/precision_ab.py)",
+        "the weights 1e-4 of the prior's peak. 1: every size. Three take 15 % of the "
+        "precision mode's models out (estimated size priors), m moved by 1e-5 "
+        "(benchmarks/precision_ab.py)",
     )
     # --- marginalisation over amplitude (paper eqs. likee1, likee) ---
     amplitude_prior: str = _f(

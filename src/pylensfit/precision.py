@@ -827,7 +827,7 @@ def default_config(spec: PrecisionSpec) -> Config:
     PSF radii responded 0.5-2.5 % more to g2 than to g1 (m2 - m1 = +0.005 over the
     population, ``benchmarks/README.md``, fifteenth session). The size grid is
     geometric (10 %) up to 4 px in scale length and uniform in 0.4 px above
-    (``r_step=0.4``; the default's 0.2 px steps above 2 px are 2-5 % apart where the
+    (``r_step=0.4``; the default's 0.2 px steps above 2 px are 2-10 % apart where the
     population's galaxies are few and large): 47 sizes per fraction instead of 72, the
     fit a quarter cheaper, and m moved by +0.0005 +- 0.0004 / +0.0002 +- 0.0006 on the
     same renderings (``benchmarks/precision_ab.py --b r_step=0.4``, twenty-fourth

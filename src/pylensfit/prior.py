@@ -1234,10 +1234,11 @@ class SizePrior:
         bulge fraction, so that a mixed fraction's columns are the pure ones' at the
         same size), each carrying the floor's mass of the floored nodes nearest to it:
         the total mass is unchanged, and the fit evaluates a third of those models with
-        the default stride of three (about a third of the precision mode's models in
-        all). The models there are compact and weigh 1e-4 of the prior's peak; the
-        coarser sum moves the precision run's ``m`` by less than 1e-4
-        (``benchmarks/precision_ab.py``).
+        the default stride of three (in the precision mode 15 % of the models with the
+        estimated size priors, a third with the population's own). The models there are
+        compact and weigh 1e-4 of the prior's peak; the coarser sum moved the precision
+        run's ``m`` by 1e-5 (``benchmarks/precision_ab.py``). A bright galaxy far below
+        the prior, whose size those models resolve, is the case it is not for.
         """
         r, r_w, h = _node_sizes(bank, config)
         w = r_w * (_node_basis(h, bank.n_sizes, self.ln_h) @ self.density) / r
