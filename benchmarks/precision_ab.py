@@ -6,7 +6,8 @@ default configuration (``precision.default_config``, changed by ``--a KEY=VALUE`
 once with ``--b KEY=VALUE`` on top of it, with the same priors: the population's own
 (its ellipticity prior, its log-uniform size prior per PSF, equal bulge-fraction
 weights), or with ``--estimated`` those a calibration of config A estimates
-(:func:`pylensfit.precision.precision` on the same seed). The renderings and their noise
+(:func:`pylensfit.precision.precision` on the same seed; with ``--own-priors`` B gets
+its own, as a change of the bulge fractions needs). The renderings and their noise
 are the same, so the difference B - A is measured far better than either m: its error
 is the jackknife (groups of 100 galaxies) of the paired difference of the fixed-point
 estimates, without control variates (the shape noise is common to both).
@@ -16,6 +17,8 @@ precision mode's control variates) and B - A, and the fit's CPU seconds of each:
 
     python benchmarks/precision_ab.py --ngal 20000 --seed 5 --b size_prior_floor_stride=1
     python benchmarks/precision_ab.py --ngal 4000 --b cubic_snr=0 --jobs 2
+    python benchmarks/precision_ab.py --ngal 20000 --estimated --by-morphology \
+        --b stamp_hlr_ratio=14
 """
 
 from __future__ import annotations
@@ -31,25 +34,44 @@ from pylensfit.pipeline import _pool, _run
 from pylensfit.prior import Prior, SizePrior
 
 
-def _priors(spec, cfg, estimated: bool, jobs: int):
-    """Ellipticity prior, size prior per PSF, bulge weights and config (flux slope)."""
+def _priors(spec, cfg, estimated: bool, jobs: int, bounds: str):
+    """Ellipticity prior, size prior per PSF, bulge weights and config per PSF (the flux
+    prior's power and bounds: ``bounds`` none, oracle (the population's) or estimated)."""
     npsf = len(spec.psfs)
+    cfgs = [cfg] * npsf
+    if bounds == "oracle":
+        ref = [P.reference_norm(spec, k, cfg.largest_stamp) for k in range(npsf)]
+        cfgs = [cfg.replace(amplitude_prior_min=spec.snr_range[0] * spec.noise_sigma / r,
+                            amplitude_prior_max=spec.snr_range[1] * spec.noise_sigma / r)
+                for r in ref]  # fmt: skip
     if not estimated:
+        if bounds == "estimated":
+            raise SystemExit("estimated flux bounds need --estimated (a calibration)")
         bw = np.full(cfg.n_bulge_fractions, 1.0 / cfg.n_bulge_fractions)
         return (P.population_prior(spec), [P.population_size_prior(spec, k) for k in range(npsf)],
-                bw, cfg)  # fmt: skip
+                bw, cfgs)  # fmt: skip
     t0 = time.perf_counter()
-    out = P.precision(P.spec_with(spec, ngal=2 * npsf), config=cfg, jobs=jobs, progress=False)
+    out = P.precision(P.spec_with(spec, ngal=2 * npsf), config=cfg, jobs=jobs, progress=False,
+                      flux_bounds=bounds == "estimated")  # fmt: skip
     meta = out.meta
     prior = Prior(**{k: meta["prior"][k] for k in "BCD"})
     sps = [SizePrior(ln_h=np.asarray(s["ln_h"]), density=np.asarray(s["density"]),
                      star=s["star"]) for s in meta["size_prior"]]  # fmt: skip
     bw = meta["bulge_prior"]["weights"]
     if meta["flux_slope"] is not None:
-        cfg = cfg.replace(amplitude_prior_power=meta["flux_slope"]["value"])
-    print(f"calibration of A: {time.perf_counter() - t0:.0f} s; prior B C D = "
+        cfgs = [c.replace(amplitude_prior_power=meta["flux_slope"]["value"]) for c in cfgs]
+    if meta.get("flux_bounds"):
+        cfgs = [c.replace(amplitude_prior_min=b["lo"], amplitude_prior_max=b["hi"])
+                for c, b in zip(cfgs, meta["flux_bounds"], strict=True)]  # fmt: skip
+        print("estimated flux bounds (population's): " + "; ".join(
+            f"{b['lo']:.4g} ± {b['lo_err']:.2g} ({b['true'][0]:.4g}), {b['hi']:.4g} ± "
+            f"{b['hi_err']:.2g} ({b['true'][1]:.4g})" for b in meta["flux_bounds"]))
+    if meta["flux_slope"] is not None:
+        print(f"flux prior power {meta['flux_slope']['value']:.3f} ± "
+              f"{meta['flux_slope']['error']:.3f}")  # fmt: skip
+    print(f"calibration: {time.perf_counter() - t0:.0f} s; prior B C D = "
           f"{prior.B:.3f} {prior.C:.3f} {prior.D:.3f}; bulge weights {bw}")  # fmt: skip
-    return prior, sps, bw, cfg
+    return prior, sps, bw, cfgs
 
 
 def _paired(QA, QB, ok, jk, g):
@@ -86,19 +108,54 @@ def main() -> None:
                     help="changes to precision.default_config for A")
     ap.add_argument("--b", nargs="*", default=[], metavar="KEY=VALUE",
                     help="changes to A's configuration for B")
+    ap.add_argument("--own-priors", action="store_true",
+                    help="B's priors from a calibration of B (needed when B has other bulge "
+                         "fractions); else A's priors for both")
+    ap.add_argument("--a-flux-bounds", choices=["none", "estimated", "oracle"], default="none",
+                    help="A's flux prior bounds per PSF: none (default), estimated by the "
+                         "calibration (precision's default; needs --estimated) or the "
+                         "population's flux range (an oracle)")
+    ap.add_argument("--b-flux-bounds", choices=["none", "estimated", "oracle"], default=None,
+                    help="B's (default A's)")
+    ap.add_argument("--b-prior", nargs=3, type=float, default=None, metavar=("B", "C", "D"),
+                    help="B's ellipticity prior (eq. funcprior's B, C, D) instead of A's")
+    ap.add_argument("--b-true-size-prior", action="store_true",
+                    help="B's size priors the population's own (log-uniform per PSF)")
+    ap.add_argument("--by-morphology", action="store_true",
+                    help="also print B - A per morphology, per PSF and for the mean of PSFs")
     ap.add_argument("--estimated", action="store_true",
                     help="the priors a calibration of A estimates (else the population's)")
     a = ap.parse_args()
     spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf)
     cfg_a = P.default_config(spec).replace(**dict(s.split("=", 1) for s in a.a))
-    prior, sps, bw, cfg_a = _priors(spec, cfg_a, a.estimated, a.jobs)
     cfg_b = cfg_a.replace(**dict(s.split("=", 1) for s in a.b))
+    b_bounds = a.b_flux_bounds or a.a_flux_bounds
+    pri = {"A": _priors(spec, cfg_a, a.estimated, a.jobs, a.a_flux_bounds)}
+    if a.own_priors:  # B's priors from its own calibration (or its own bulge fractions)
+        pri["B"] = _priors(spec, cfg_b, a.estimated, a.jobs, b_bounds)
+    else:  # A's priors; B's bounds A's, the oracle's, or estimated by a calibration of B
+        if b_bounds == "estimated" and a.a_flux_bounds != "estimated":
+            raise SystemExit("--b-flux-bounds estimated needs --own-priors")
+        ca = pri["A"][3]
+        cb = [c.replace(**dict(s.split("=", 1) for s in a.b)) for c in ca]
+        if b_bounds != a.a_flux_bounds:
+            cb = _priors(spec, cfg_b, False, a.jobs, b_bounds)[3]
+            cb = [c.replace(amplitude_prior_power=ca[0].amplitude_prior_power) for c in cb]
+        pri["B"] = pri["A"][:3] + (cb,)
+    if a.b_prior:  # B's ellipticity prior given
+        pri["B"] = (Prior(**dict(zip("BCD", a.b_prior, strict=True))),) + tuple(pri["B"][1:])
+    if a.b_true_size_prior:  # B's size priors the population's own, per PSF
+        sp_true = [P.population_size_prior(spec, k, stamp_size=pri["B"][3][0].largest_stamp)
+                   for k in range(len(spec.psfs))]  # fmt: skip
+        pri["B"] = (pri["B"][0], sp_true) + tuple(pri["B"][2:])
+    cfg_a, cfg_b = pri["A"][3][0], pri["B"][3][0]
     npsf = len(spec.psfs)
     nb = -(-spec.ngal // spec.block_size)
-    tasks = [{"spec": spec, "config": cfg, "prior": prior, "bulge_weights": bw,
-              "size_prior": sps[b % npsf], "psf": b % npsf, "block": b, "calibration": False,
-              "which": w}
-             for b in range(nb) for w, cfg in (("A", cfg_a), ("B", cfg_b))]  # fmt: skip
+    cfgs = {w: pri[w][3] for w in "AB"}
+    tasks = [{"spec": spec, "config": cfgs[w][b % npsf], "prior": pri[w][0],
+              "bulge_weights": pri[w][2], "size_prior": pri[w][1][b % npsf], "psf": b % npsf,
+              "block": b, "calibration": False, "which": w}
+             for b in range(nb) for w in "AB"]  # fmt: skip
     res: dict = {"A": {}, "B": {}}
     t0 = time.perf_counter()
     with _pool(a.jobs) as pool:
@@ -120,14 +177,17 @@ def main() -> None:
     tab = {w: P.bias_table(Q[w], np.repeat(ok[:, None], 4, 1), jk, spec.g, groups=groups,
                            controls=X) for w in "AB"}  # fmt: skip
     print(f"A: {dict(s.split('=', 1) for s in a.a) or 'default_config'}; "
-          f"B: A with {dict(s.split('=', 1) for s in a.b)}")
+          f"B: A with {dict(s.split('=', 1) for s in a.b)}"
+          f"; flux bounds A {a.a_flux_bounds}, B {b_bounds}"
+          f"{'; B prior ' + str(a.b_prior) if a.b_prior else ''}"
+          f"{'; B size priors the population' + chr(39) + 's' if a.b_true_size_prior else ''}")
     print(f"{spec.ngal} galaxies, seed {spec.seed}, {int(ok.sum())} with all four renderings "
           f"measured in both; priors {'estimated' if a.estimated else 'the population'}'s")
     from pylensfit.models import model_bank
 
     for w, cfg in (("A", cfg_a), ("B", cfg_b)):
         bank = model_bank(cfg)
-        n_on = [int((sp.node_weights(bank, cfg)[0] > 0).sum()) for sp in sps]
+        n_on = [int((sp.node_weights(bank, cfg)[0] > 0).sum()) for sp in pri[w][1]]
         print(f"{w}: sizes evaluated per PSF {n_on} of {bank.n_r}")
     print(f"| PSF | m1 A | m1 B | m2 A | m2 B | B - A, m1 | B - A, m2 |\n|{'---|' * 7}")
     diffs = []
@@ -146,6 +206,25 @@ def main() -> None:
                          [0][q] for n in groups]) for q in ("m1", "m2")] for w in "AB"}  # fmt: skip
     print(f"| mean of PSFs | {mean['A'][0]:+.4f} | {mean['B'][0]:+.4f} | {mean['A'][1]:+.4f} | "
           f"{mean['B'][1]:+.4f} | {d[0]:+.5f} ± {e[0]:.5f} | {d[1]:+.5f} ± {e[1]:.5f} |")
+    if a.by_morphology:
+        morph = np.concatenate([t["morph"] for t in truth])
+        print(f"| B - A, m1 / m2 | {' | '.join(groups)} | mean of PSFs |\n|{'---|' * (npsf + 2)}")
+        for im, mname in enumerate(P.MORPHOLOGIES):
+            cells, ds, es = [], [], []
+            for name in groups:
+                sel = groups[name] & ok & (morph == im)
+                if sel.sum() < 200:
+                    cells.append("")
+                    continue
+                d, e = _paired(Q["A"][sel], Q["B"][sel], ok[sel], jk[sel], spec.g)
+                ds.append(d)
+                es.append(e)
+                cells.append(f"{d[0]:+.4f} / {d[1]:+.4f} ± {e[0]:.4f} / {e[1]:.4f}")
+            if ds:
+                d = np.mean(ds, 0)
+                e = np.sqrt(np.sum(np.square(es), 0)) / len(es)
+                cells.append(f"{d[0]:+.4f} / {d[1]:+.4f} ± {e[0]:.4f} / {e[1]:.4f}")
+            print(f"| {mname} | " + " | ".join(cells) + " |")
     for w in "AB":
         fit = sum(r["fit_s"] for r in cat[w])
         ren = sum(r["render_s"] for r in cat[w])

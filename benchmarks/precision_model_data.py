@@ -92,7 +92,8 @@ def main() -> None:
                        prior=PR.population_prior(spec),
                        size_prior=[PR.population_size_prior(spec, k, stamp_size=cfg.stamp_size)
                                    for k in range(len(spec.psfs))],
-                       bulge_weights=[1.0, 0.0, 0.0], flux_slope=power)  # fmt: skip
+                       bulge_weights=[1.0, 0.0, 0.0], flux_slope=power,
+                       flux_bounds=False)  # fmt: skip
     sel = res[(res["estimator"] == "fixed-point")
               & np.isin(res["breakdown"], ["all", "psf", "snr", "size"])]  # fmt: skip
     for col in ("m1", "m1_err", "m2", "m2_err", "c1", "c2"):

@@ -127,7 +127,8 @@ def main() -> None:
     t0 = time.perf_counter()
     res = precision(spec, config=cfg, jobs=a.jobs, prior=prior, size_prior=sizes,
                     bulge_weights=a.bulge_weights, progress=False,
-                    flux_slope=a.amplitude_prior_power)  # fmt: skip
+                    flux_slope=a.amplitude_prior_power,
+                    flux_bounds=False)  # fmt: skip
     if a.out:
         keep = res.copy(copy_data=False)
         keep.meta.pop("galaxies", None)

@@ -318,6 +318,34 @@ def test_estimated_bulge_prior_finds_a_disc_population():
         Config(model="bulge+disc", n_bulge_fractions=3, bulge_prior="flat")
 
 
+def test_flux_prior_bounds_are_estimated_from_the_calibration_fluxes(tmp_path):
+    """With ``flux_bounds=True``, ``precision`` bounds the flux prior at each PSF's flux
+    range as the calibration galaxies' fluxes and errors give it: within 3 errors (and
+    10 %) of the population's limits for exponentials fitted as such, the faint one
+    measured from galaxies at S/N 5-20, and the report says so; by default the prior is
+    unbounded."""
+    from pylensfit.precision import reference_norm, write_report
+
+    spec = spec_with(ngal=20, block_size=20, ncal=1000, seed=4, psfs=["round"],
+                     snr_range=(10.0, 200.0), size_ratio_range=(0.5, 1.5),
+                     morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
+    cfg = Config(model="exponential", amplitude_prior="flux", max_stamp_size=64)
+    res = precision(spec, config=cfg, progress=False, prior=Prior(B=0.19, C=0.58, D=2.4),
+                    flux_bounds=True)  # fmt: skip
+    (b,) = res.meta["flux_bounds"]
+    ref = spec.noise_sigma / reference_norm(spec, 0, 64)
+    assert b["true"] == pytest.approx([10.0 * ref, 200.0 * ref])
+    for k, key in enumerate(("lo", "hi")):
+        assert abs(b[key] - b["true"][k]) < 3 * b[f"{key}_err"] + 1e-9, b
+        assert abs(b[key] / b["true"][k] - 1) < 0.1, b
+    assert 0 < b["lo_err"] < 0.05 * b["lo"]
+    write_report(res, tmp_path / "r.md")
+    assert "within each PSF's flux range as estimated" in (tmp_path / "r.md").read_text()
+    res0 = precision(spec_with(spec, ncal=200), config=cfg, progress=False,
+                     prior=Prior(B=0.19, C=0.58, D=2.4))  # fmt: skip
+    assert res0.meta["flux_bounds"] is None
+
+
 def test_cli_precision_writes_report(tmp_path, capsys):
     from astropy.table import Table
 

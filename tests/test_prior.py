@@ -11,6 +11,7 @@ from pylensfit.models import model_bank
 from pylensfit.prior import (
     PRIOR_BOUNDS,
     Prior,
+    estimate_flux_range,
     estimate_flux_slope,
     estimate_prior,
     estimate_prior_binned,
@@ -530,3 +531,32 @@ def test_flux_slope_recovers_the_counts_power_law(beta):
         estimate_flux_slope(np.r_[f[:10], np.nan, -1.0])
     with pytest.raises(ValueError, match="quantiles"):
         estimate_flux_slope(f, quantiles=(0.9, 0.1))
+
+
+def test_flux_range_deconvolves_the_limits_from_the_flux_errors():
+    """The limits of a truncated power law from fluxes with errors of S/N 7-17 at the
+    faint end: the maximum likelihood of the law convolved with each flux's error finds
+    both limits within 3 of their errors, where the measured fluxes' own extremes are
+    many errors off; a few failed fits far outside do not move them, and the power comes
+    out with the limits when not given."""
+    rng = np.random.default_rng(5)
+    lo, hi, n = 10.0, 200.0, 4000
+    F = _power_law(rng, 2.0, lo, hi, n)
+    s = rng.uniform(0.6, 1.5, n)
+    f = F + s * rng.normal(size=n)
+    r = estimate_flux_range(f, s, beta=2.0)
+    assert abs(r["lo"] - lo) < 3 * r["lo_err"] and abs(r["hi"] - hi) < 3 * r["hi_err"]
+    assert r["lo_err"] < 0.1 and r["hi_err"] < 2.0 and r["n"] == n
+    # the naive limit (the smallest measured flux) is off by the noise's tail
+    assert lo - f.min() > 20 * r["lo_err"]
+    # outliers: twenty fits with a tenth or ten times the flux
+    bad = np.r_[f, F[:10] / 10, F[10:20] * 10]
+    rb = estimate_flux_range(bad, np.r_[s, s[:20]], beta=2.0)
+    assert abs(rb["lo"] - r["lo"]) < r["lo_err"] and abs(rb["hi"] - r["hi"]) < r["hi_err"]
+    # the power fitted with the limits
+    rj = estimate_flux_range(f, s)
+    assert abs(rj["beta"] - 2.0) < 0.1 and abs(rj["lo"] - lo) < 3 * rj["lo_err"]
+    with pytest.raises(ValueError, match="too few"):
+        estimate_flux_range(f[:20], s[:20])
+    with pytest.raises(ValueError, match="shape"):
+        estimate_flux_range(f, s[:-1])

@@ -148,7 +148,8 @@ def _precision(args: argparse.Namespace) -> int:
     res = precision(spec, config=_config(args) if args.config else None, jobs=args.jobs,
                     scheduler=args.scheduler, report=report, prior=prior,
                     progress=not args.quiet, size_prior=size_prior,
-                    size_prior_per_psf=not args.one_size_prior)  # fmt: skip
+                    size_prior_per_psf=not args.one_size_prior,
+                    flux_bounds=args.flux_bounds)  # fmt: skip
     show = res[np.isin(res["breakdown"], ["all", "psf", "no controls"])]
     show = show[show["estimator"] == "fixed-point"]
     for c in ("m1", "m1_err", "m2", "m2_err", "c1", "c1_err", "c2", "c2_err"):
@@ -379,6 +380,9 @@ def build_parser() -> argparse.ArgumentParser:
     pv.add_argument("--true-size-prior", action="store_true",
                     help="diagnostic: use the population's own size prior per PSF "
                          "(log-uniform over the sizes drawn) instead of estimating it")
+    pv.add_argument("--flux-bounds", action="store_true",
+                    help="bound the flux prior at each PSF's flux range, estimated from the "
+                         "calibration sample's fluxes and their errors")  # fmt: skip
     pv.add_argument("--one-size-prior", action="store_true",
                     help="diagnostic: one size prior for all PSFs instead of one per PSF "
                          "(the population's sizes are drawn relative to each PSF's)")  # fmt: skip

@@ -545,6 +545,7 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
     if task["calibration"]:
         res["lnL"] = fits.lnL[ok]
         res["flux"] = fits.flux[ok]
+        res["flux_err"] = (fits.flux / fits.snr)[ok]  # sigma / sqrt(S) of the best model
         res["egrid"] = fits.egrid
         res["n_usable"] = int(ok.sum())
         if fits.lnL_bulge is not None:
@@ -851,6 +852,7 @@ def precision(
     size_prior: SizePrior | Sequence[SizePrior] | None = None,
     bulge_weights: Sequence[float] | None = None,
     flux_slope: float | None = None,
+    flux_bounds: bool = False,
 ) -> Table:
     """Run the paired precision measurement of m and c (see the module docstring).
 
@@ -904,6 +906,20 @@ def precision(
         as the number counts' slope is in a survey, and the later passes and the
         renderings are fitted with it; given, it replaces the estimate (a diagnostic:
         ``spec.snr_slope`` is the population's own).
+    flux_bounds : bool
+        With ``config.amplitude_prior="flux"`` and no bounds in the configuration
+        (``amplitude_prior_min`` 0, ``amplitude_prior_max`` infinite), estimate the flux
+        range of each PSF's calibration galaxies from the first pass's fluxes and their
+        errors (:func:`~pylensfit.prior.estimate_flux_range`: the power law's limits,
+        deconvolved from the noise) and fit the later passes and the renderings with
+        the prior bounded there. The population's flux range is finite, and a prior
+        without its lower bound keeps a weight, at the faint end, for models that fit a
+        galaxy with less flux than it has: m +0.003 for exponential galaxies fitted with
+        their own model (``benchmarks/README.md``, seventeenth session). Off by default:
+        on the precision population (five morphologies, the bulge+disc family) the
+        estimated lower limits lie 5 % below the true ones (the family's fluxes of
+        galaxies outside it), m rose by +0.005 / +0.004 with them, and the fit took 1.8
+        times as long (twenty-fifth session).
 
     Returns
     -------
@@ -917,12 +933,14 @@ def precision(
         "no controls"``). ``meta``:
         ``prior``, ``spec``, ``timing`` (seconds and galaxies per second),
         ``flux_slope`` (the amplitude prior's power, its error and whether it was
-        estimated; with ``amplitude_prior="flux"``), the largest
+        estimated; with ``amplitude_prior="flux"``), ``flux_bounds`` (per PSF, those
+        estimated, with their errors, and the population's), the largest
         fixed-point Newton step ``fp_step`` and ``galaxies`` (per-galaxy truth).
     """
     from .pipeline import _pool, _run
     from .prior import (
         estimate_bulge_weights,
+        estimate_flux_range,
         estimate_flux_slope,
         estimate_prior,
         estimate_prior_and_bulge,
@@ -955,22 +973,27 @@ def precision(
     fit_flux = cfg.amplitude_prior == "flux" and flux_slope is None
     if cfg.amplitude_prior == "flux" and flux_slope is not None:  # validated by Config
         cfg = cfg.replace(amplitude_prior_power=float(flux_slope))
-    need_cal = prior is None or fit_bulge or fit_size or fit_flux
+    fit_bounds = (flux_bounds and cfg.amplitude_prior == "flux" and cfg.amplitude_prior_min == 0
+                  and not math.isfinite(cfg.amplitude_prior_max))  # fmt: skip
+    need_cal = prior is None or fit_bulge or fit_size or fit_flux or fit_bounds
     ncb = _n_blocks(spec.ncal, spec.block_size) if need_cal else 0
     if need_cal and ncb == 0:
         raise ValueError("spec.ncal is 0: a calibration sample is needed to estimate the "
                          "priors (or give them: prior=, size_prior=, bulge_weights=, "
                          "flux_slope=)")  # fmt: skip
     render_s, fit_s = 0.0, 0.0
+    cfgs = [cfg] * npsf  # per PSF: the flux prior's bounds are in each PSF's flux units
 
     def calibrate(size_priors, keep_lnL_r, label, marginal_prior=None):
         nonlocal render_s, fit_s
-        tasks = [{"spec": spec, "config": cfg, "psf": b % npsf, "block": b, "calibration": True,
+        tasks = [{"spec": spec, "config": cfgs[b % npsf], "psf": b % npsf, "block": b,
+                  "calibration": True,
                   "size_prior": size_priors[b % npsf], "keep_lnL_r": keep_lnL_r,
                   "size_marginal_prior": marginal_prior}
                  for b in range(ncb)]  # fmt: skip
         out: dict[str, list] = {"lnL": [], "lnL_bulge": [], "lnL_star": [], "lnL_r": [],
-                                "lnL_r_grouped": [], "flux": [], "psf": []}  # fmt: skip
+                                "lnL_r_grouped": [], "flux": [], "flux_err": [],
+                                "psf": []}  # fmt: skip
         egrid = None
         for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, label, progress, pool),
                            key=lambda tr: tr[0]["block"]):  # fmt: skip
@@ -1011,7 +1034,23 @@ def precision(
             flux_meta = {"value": float(beta), "error": beta_err, "estimated": True}
         elif cfg.amplitude_prior == "flux":
             flux_meta = {"value": cfg.amplitude_prior_power, "error": 0.0, "estimated": False}
-        if fit_flux and ncb and (prior is None or fit_bulge) and not fit_size:
+        cfgs = [cfg] * npsf
+        bounds_meta = None
+        if fit_bounds:
+            # each PSF's flux range from the first pass's fluxes and their errors, at the
+            # power just estimated (the same law as the prior's); later passes use it
+            bounds_meta = []
+            for k in range(npsf):
+                sel = cal["psf"] == k
+                fr = estimate_flux_range(cal["flux"][sel], cal["flux_err"][sel],
+                                         beta=cfg.amplitude_prior_power)  # fmt: skip
+                ref = spec.noise_sigma / reference_norm(spec, k, cfg.largest_stamp)
+                bounds_meta.append({"psf": spec.psfs[k]["name"], "lo": fr["lo"],
+                                    "hi": fr["hi"], "lo_err": fr["lo_err"],
+                                    "hi_err": fr["hi_err"],
+                                    "true": [spec.snr_range[0] * ref, spec.snr_range[1] * ref]})
+                cfgs[k] = cfg.replace(amplitude_prior_min=fr["lo"], amplitude_prior_max=fr["hi"])
+        if (fit_flux or fit_bounds) and ncb and (prior is None or fit_bulge) and not fit_size:
             cal, egrid = calibrate(size_priors, False, "calibration with the flux prior")
         prior0 = prior
         if ncb:
@@ -1043,9 +1082,9 @@ def precision(
         t_cal = time.perf_counter() - t_start
         # 2. the four renderings of every galaxy, streamed block by block
         nb = _n_blocks(spec.ngal, spec.block_size)
-        tasks = [{"spec": spec, "config": cfg, "prior": prior, "bulge_weights": bulge_weights,
-                  "size_prior": size_priors[b % npsf], "psf": b % npsf, "block": b,
-                  "calibration": False}
+        tasks = [{"spec": spec, "config": cfgs[b % npsf], "prior": prior,
+                  "bulge_weights": bulge_weights, "size_prior": size_priors[b % npsf],
+                  "psf": b % npsf, "block": b, "calibration": False}
                  for b in range(nb)]  # fmt: skip
         parts: dict[int, dict] = {}
         for t, r in _run(_block_task, tasks, jobs, scheduler, "precision", progress,
@@ -1128,6 +1167,7 @@ def precision(
                           "amplitude_prior_max": cfg.amplitude_prior_max,
                           "position_prior_sigma": cfg.position_prior_sigma}  # fmt: skip
     out.meta["flux_slope"] = flux_meta
+    out.meta["flux_bounds"] = bounds_meta
     sizes, counts = np.unique(np.asarray(gal["stamp"]), return_counts=True)
     out.meta["stamps"] = {int(a): int(b) for a, b in zip(sizes, counts, strict=True)}
     out.meta["fp_step"] = step
@@ -1192,7 +1232,8 @@ def _stamp_line(stamps: dict | None) -> str:
             f"Config.max_stamp_size): {parts}.")  # fmt: skip
 
 
-def _amplitude_line(cfg: dict, flux: dict | None, spec: dict) -> str:
+def _amplitude_line(cfg: dict, flux: dict | None, spec: dict,
+                    bounds: list | None = None) -> str:  # fmt: skip
     kind = cfg.get("amplitude_prior", "uniform")
     pos = f" Position prior: {cfg.get('position_prior_sigma', float('nan')):.3g} px.\n"
     if kind == "uniform":
@@ -1203,9 +1244,15 @@ def _amplitude_line(cfg: dict, flux: dict | None, spec: dict) -> str:
     src = (f"estimated from the calibration sample's fluxes, ± {flux['error']:.3f}"
            if flux["estimated"] else "given")  # fmt: skip
     lo, hi = cfg.get("amplitude_prior_min", 0.0), cfg.get("amplitude_prior_max", math.inf)
-    bounds = (f", within {lo:.4g}-{hi:.4g} in flux" if lo > 0 or hi < math.inf
+    within = (f", within {lo:.4g}-{hi:.4g} in flux" if lo > 0 or hi < math.inf
               else ", unbounded")  # fmt: skip
-    return (f"Amplitude prior: A^-β in the flux{bounds}, β = {flux['value']:.3f} ({src}; "
+    if bounds:
+        parts = "; ".join(f"{b['psf']} {b['lo']:.4g} ± {b['lo_err']:.2g} to {b['hi']:.4g} ± "
+                          f"{b['hi_err']:.2g} (the population's {b['true'][0]:.4g} to "
+                          f"{b['true'][1]:.4g})" for b in bounds)  # fmt: skip
+        within = (", within each PSF's flux range as estimated from the calibration "
+                  f"sample's fluxes and their errors: {parts}")  # fmt: skip
+    return (f"Amplitude prior: A^-β in the flux{within}, β = {flux['value']:.3f} ({src}; "
             f"the population's {spec['snr_slope']:g})." + pos)  # fmt: skip
 
 
@@ -1245,7 +1292,8 @@ def write_report(res: Table, path: str | Path) -> None:
         f"Largest fixed-point Newton step {res.meta['fp_step']:.1e}.", "",
         _bulge_line(res.meta.get("bulge_prior")),
         _size_line(res.meta.get("size_prior"), spec, res.meta.get("size_prior_given", False)),
-        _amplitude_line(res.meta.get("config", {}), res.meta.get("flux_slope"), spec),
+        _amplitude_line(res.meta.get("config", {}), res.meta.get("flux_slope"), spec,
+                        res.meta.get("flux_bounds")),
         f"Time {tim['total_s']:.0f} s with {tim['jobs']} job(s): {tim['galaxies_per_s']:.0f} "
         f"galaxies/s ({tim['renderings_per_s']:.0f} renderings/s) in the main pass; CPU "
         f"{tim['render_cpu_s']:.0f} s rendering, {tim['fit_cpu_s']:.0f} s fitting.", "",

@@ -41,6 +41,7 @@ __all__ = [
     "Prior",
     "SizePrior",
     "estimate_bulge_weights",
+    "estimate_flux_range",
     "estimate_flux_slope",
     "estimate_prior",
     "estimate_prior_and_bulge",
@@ -1405,3 +1406,114 @@ def estimate_flux_slope(
     span = 200.0 / L
     lam = optimize.brentq(lambda v: mean_x(v) - xbar, -span, span, xtol=1e-12)
     return 1.0 + lam, float(1.0 / np.sqrt(x.size * var_x(lam)))
+
+
+def _flux_range_loglike(f: np.ndarray, s: np.ndarray, lo: float, hi: float, beta: float,
+                        nodes: tuple[np.ndarray, np.ndarray]) -> np.ndarray:  # fmt: skip
+    """ln p(f_i) of measured fluxes under ``F^-beta`` on ``[lo, hi]`` and Gaussian errors.
+
+    Each galaxy's integral over the true flux runs over ``[lo, hi]`` within 8 of its
+    errors of the measured flux (Gauss-Legendre ``nodes`` on that interval), where all
+    of its mass lies; the power law's normalisation on ``[lo, hi]`` is analytic.
+    """
+    x, w = nodes
+    a = np.clip(f - 8.0 * s, lo, hi)
+    b = np.clip(f + 8.0 * s, lo, hi)
+    half = 0.5 * (b - a)
+    F = 0.5 * (a + b)[:, None] + half[:, None] * x[None, :]
+    z = (f[:, None] - F) / s[:, None]
+    # the power law relative to lo (exponent <= 0), times the Gaussian
+    lnterm = -beta * np.log(F / lo) - 0.5 * z * z
+    top = lnterm.max(axis=1)
+    integ = np.sum(w[None, :] * np.exp(lnterm - top[:, None]), axis=1) * half
+    with np.errstate(divide="ignore"):
+        ln_int = np.log(integ) + top - np.log(s) - 0.5 * math.log(2.0 * math.pi)
+    lam = 1.0 - beta  # normalisation of (F / lo)^-beta on [lo, hi]
+    L = math.log(hi / lo)
+    norm = lo * L if abs(lam * L) < 1e-8 else lo * math.expm1(lam * L) / lam
+    return ln_int - math.log(norm)
+
+
+def estimate_flux_range(
+    flux: np.ndarray,
+    flux_err: np.ndarray,
+    *,
+    beta: float | None = None,
+    outlier_fraction: float = 1e-3,
+) -> dict[str, float]:
+    """The bounds of the flux distribution from measured fluxes with their errors.
+
+    A population whose counts are a power law ``dN/dF ~ F^-beta`` between two limits
+    ``[lo, hi]`` (a simulation's flux range; a catalogue cut in true flux) gives
+    measured fluxes ``f_i = F_i + n_i`` with Gaussian errors ``sigma_i``. The maximum of
+    ``sum_i ln int_lo^hi F^-beta N(f_i; F, sigma_i) dF / Z(lo, hi, beta)`` over
+    ``(lo, hi)`` (and ``beta`` unless given) deconvolves the errors: near a limit the
+    measured fluxes spill across it by their errors, and the limit sits where the
+    counts' edge does. A fraction ``outlier_fraction`` of the density is log-uniform
+    over the measured range, so that a few failed fits cannot pin a limit. These are
+    the bounds of :class:`~pylensfit.Config`'s ``amplitude_prior_min`` and
+    ``amplitude_prior_max``: a flux prior that allows fluxes the population never has
+    keeps a weight at the faint end for models that fit a galaxy with less flux than
+    it has (``benchmarks/README.md``, seventeenth session).
+
+    Parameters
+    ----------
+    flux : array_like
+        Measured fluxes (the most likely model's amplitude, ``StampFits.flux``).
+    flux_err : array_like
+        Their 1-sigma errors (``flux / snr`` for the best model's S/N).
+    beta : float, optional
+        The counts' power; fitted together with the bounds if omitted.
+    outlier_fraction : float
+        Weight of the log-uniform outlier density.
+
+    Returns
+    -------
+    dict
+        ``lo``, ``hi``, ``beta`` (fitted or given), ``n`` (galaxies used) and ``lo_err``,
+        ``hi_err`` (1-sigma, marginal: from the inverse of the log-likelihood's Hessian).
+    """
+    f = np.asarray(flux, dtype=float).ravel()
+    s = np.asarray(flux_err, dtype=float).ravel()
+    if f.shape != s.shape:
+        raise ValueError(f"flux and flux_err differ in shape: {f.shape} against {s.shape}")
+    ok = np.isfinite(f) & np.isfinite(s) & (s > 0) & (f > 0)
+    f, s = f[ok], s[ok]
+    if f.size < 50:
+        raise ValueError(f"{f.size} usable fluxes: too few to estimate the flux range")
+    nodes = np.polynomial.legendre.leggauss(48)
+    fmin, fmax = float(f.min()), float(f.max())
+    ln_out = math.log(outlier_fraction) - np.log(f * math.log(fmax / fmin))
+    b0 = estimate_flux_slope(f)[0] if beta is None else float(beta)
+    lo0, hi0 = float(np.quantile(f, 0.002)), float(np.quantile(f, 0.9995))
+
+    def nll(p: np.ndarray) -> float:
+        lo, hi = math.exp(p[0]), math.exp(p[1])
+        bt = float(p[2]) if beta is None else b0
+        if not hi > lo * 1.01:
+            return 1e300
+        lp = _flux_range_loglike(f, s, lo, hi, bt, nodes) + math.log1p(-outlier_fraction)
+        return -float(np.sum(np.logaddexp(lp, ln_out)))
+
+    x0 = [math.log(lo0), math.log(hi0)] + ([b0] if beta is None else [])
+    res = optimize.minimize(nll, np.array(x0), method="Nelder-Mead",
+                            options={"xatol": 1e-5, "fatol": 1e-4, "maxiter": 4000})  # fmt: skip
+    p = res.x
+    lo, hi = math.exp(p[0]), math.exp(p[1])
+    # the Hessian by central differences; the errors are the marginal ones (the bounds
+    # correlate with the power when it is fitted)
+    k, h = p.size, 2e-3
+    H = np.empty((k, k))
+    for i in range(k):
+        for j in range(i, k):
+            di, dj = np.eye(k)[i] * h, np.eye(k)[j] * h
+            H[i, j] = H[j, i] = (nll(p + di + dj) - nll(p + di - dj) - nll(p - di + dj)
+                                 + nll(p - di - dj)) / (4 * h * h)  # fmt: skip
+    try:
+        cov = np.linalg.inv(H)
+        var = np.diag(cov)[:2]
+    except np.linalg.LinAlgError:
+        var = np.full(2, np.nan)
+    errs = [math.exp(p[i]) * math.sqrt(var[i]) if var[i] > 0 else math.inf for i in (0, 1)]
+    return {"lo": lo, "hi": hi, "beta": float(p[2]) if beta is None else b0,
+            "n": int(f.size), "lo_err": errs[0], "hi_err": errs[1]}  # fmt: skip
