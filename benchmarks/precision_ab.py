@@ -119,6 +119,9 @@ def main() -> None:
                     help="B's (default A's)")
     ap.add_argument("--b-prior", nargs=3, type=float, default=None, metavar=("B", "C", "D"),
                     help="B's ellipticity prior (eq. funcprior's B, C, D) instead of A's")
+    ap.add_argument("--b-calibration-seed", type=int, default=None,
+                    help="B's priors from the calibration sample of this seed (the same "
+                         "population, other galaxies and noise): the priors' sampling noise")
     ap.add_argument("--b-true-size-prior", action="store_true",
                     help="B's size priors the population's own (log-uniform per PSF)")
     ap.add_argument("--by-morphology", action="store_true",
@@ -131,7 +134,10 @@ def main() -> None:
     cfg_b = cfg_a.replace(**dict(s.split("=", 1) for s in a.b))
     b_bounds = a.b_flux_bounds or a.a_flux_bounds
     pri = {"A": _priors(spec, cfg_a, a.estimated, a.jobs, a.a_flux_bounds)}
-    if a.own_priors:  # B's priors from its own calibration (or its own bulge fractions)
+    if a.b_calibration_seed is not None:  # B's priors from another calibration sample
+        pri["B"] = _priors(P.spec_with(spec, seed=a.b_calibration_seed), cfg_b, True, a.jobs,
+                           b_bounds)  # fmt: skip
+    elif a.own_priors:  # B's priors from its own calibration (or its own bulge fractions)
         pri["B"] = _priors(spec, cfg_b, a.estimated, a.jobs, b_bounds)
     else:  # A's priors; B's bounds A's, the oracle's, or estimated by a calibration of B
         if b_bounds == "estimated" and a.a_flux_bounds != "estimated":
@@ -180,6 +186,7 @@ def main() -> None:
           f"B: A with {dict(s.split('=', 1) for s in a.b)}"
           f"; flux bounds A {a.a_flux_bounds}, B {b_bounds}"
           f"{'; B prior ' + str(a.b_prior) if a.b_prior else ''}"
+          f"{'' if a.b_calibration_seed is None else f'; B priors of seed {a.b_calibration_seed}'}"
           f"{'; B size priors the population' + chr(39) + 's' if a.b_true_size_prior else ''}")
     print(f"{spec.ngal} galaxies, seed {spec.seed}, {int(ok.sum())} with all four renderings "
           f"measured in both; priors {'estimated' if a.estimated else 'the population'}'s")

@@ -43,10 +43,13 @@ Three shear estimators are reported side by side:
 Errors are delete-one-group jackknife over groups of 100 galaxies (each block of work
 cut into runs), and m and c are corrected with control variates, the intrinsic shapes'
 spin-4 parts (:func:`shape_controls`), which take out the shape noise that the rotated
-twins leave. A galaxy is used only if all four renderings are measured (``paired`` selection,
-the default and the reported numbers); the ``independent`` selection, where each
-rendering's own flags decide, is reported too: the difference is the bias that a
-selection responding to the shear adds (stars, failed fits).
+twins leave. The errors hold the priors fixed; the calibration sample's own noise,
+mostly that of each PSF's size prior, adds about 0.002 to the mean of PSFs' m and up to
+0.005 to one PSF's with 20,000 calibration galaxies (``benchmarks/precision_ab.py
+--b-calibration-seed``). A galaxy is used only if all four renderings are measured
+(``paired`` selection, the default and the reported numbers); the ``independent``
+selection, where each rendering's own flags decide, is reported too: the difference is
+the bias that a selection responding to the shear adds (stars, failed fits).
 
 The work streams: each block is rendered, fitted and reduced to 12 numbers per
 rendering in a worker; nothing is written to disk and memory grows by ~0.3 kB per
@@ -1297,8 +1300,11 @@ def write_report(res: Table, path: str | Path) -> None:
         f"Time {tim['total_s']:.0f} s with {tim['jobs']} job(s): {tim['galaxies_per_s']:.0f} "
         f"galaxies/s ({tim['renderings_per_s']:.0f} renderings/s) in the main pass; CPU "
         f"{tim['render_cpu_s']:.0f} s rendering, {tim['fit_cpu_s']:.0f} s fitting.", "",
-        "Errors are delete-one-group jackknife over groups of 100 galaxies (1 sigma). m "
-        "and c are corrected with "
+        "Errors are delete-one-group jackknife over groups of 100 galaxies (1 sigma), "
+        "with the priors held fixed: the calibration sample's own sampling noise is not in "
+        "them (with 20,000 calibration galaxies, another calibration sample moved m by "
+        "0.002 on the mean of PSFs and by up to 0.005 on one PSF, through its size prior; "
+        "benchmarks/README.md, twenty-fifth session). m and c are corrected with "
         "control variates, the spin-4 parts of the intrinsic ellipticity (e1² - e2², "
         "2 e1 e2), whose population mean is zero: they remove the shape noise that the "
         "rotated twins leave, not the bias (column cv; groups of galaxies split into fewer "
