@@ -44,12 +44,13 @@ Errors are delete-one-group jackknife over groups of 100 galaxies (each block of
 cut into runs), and m and c are corrected with control variates, the intrinsic shapes'
 spin-4 parts (:func:`shape_controls`), which take out the shape noise that the rotated
 twins leave. The errors hold the priors fixed; the calibration sample's own noise,
-mostly that of each PSF's size prior, adds about 0.002 to the mean of PSFs' m and up to
-0.005 to one PSF's with 20,000 calibration galaxies (``benchmarks/precision_ab.py
---b-calibration-seed``). A galaxy is used only if all four renderings are measured
-(``paired`` selection, the default and the reported numbers); the ``independent``
-selection, where each rendering's own flags decide, is reported too: the difference is
-the bias that a selection responding to the shear adds (stars, failed fits).
+mostly that of each PSF's size prior, adds about 0.001 to the mean of PSFs' m and
+0.001-0.003 to one PSF's with 20,000 calibration galaxies (standard deviation over three
+calibration samples, ``benchmarks/precision_ab.py --b-calibration-seed``). A galaxy is
+used only if all four renderings are measured (``paired`` selection, the default and
+the reported numbers); the ``independent`` selection, where each rendering's own flags
+decide, is reported too: the difference is the bias that a selection responding to the
+shear adds (stars, failed fits).
 
 The work streams: each block is rendered, fitted and reduced to 12 numbers per
 rendering in a worker; nothing is written to disk and memory grows by ~0.3 kB per
@@ -921,8 +922,9 @@ def precision(
         their own model (``benchmarks/README.md``, seventeenth session). Off by default:
         on the precision population (five morphologies, the bulge+disc family) the
         estimated lower limits lie 5 % below the true ones (the family's fluxes of
-        galaxies outside it), m rose by +0.005 / +0.004 with them, and the fit took 1.8
-        times as long (twenty-fifth session).
+        galaxies outside it), m rose by +0.005 / +0.004 with them (each configuration
+        with the priors of its own calibration, whose bulge weights moved too), and the
+        fit took 1.8 times as long (twenty-fifth session).
 
     Returns
     -------
@@ -1302,9 +1304,10 @@ def write_report(res: Table, path: str | Path) -> None:
         f"{tim['render_cpu_s']:.0f} s rendering, {tim['fit_cpu_s']:.0f} s fitting.", "",
         "Errors are delete-one-group jackknife over groups of 100 galaxies (1 sigma), "
         "with the priors held fixed: the calibration sample's own sampling noise is not in "
-        "them (with 20,000 calibration galaxies, another calibration sample moved m by "
-        "0.002 on the mean of PSFs and by up to 0.005 on one PSF, through its size prior; "
-        "benchmarks/README.md, twenty-fifth session). m and c are corrected with "
+        "them (with 20,000 calibration galaxies, m varied by 0.001 on the mean of PSFs "
+        "and by 0.001-0.003 on one PSF between three calibration samples, through the "
+        "size priors; benchmarks/README.md, twenty-fifth session). m and c are corrected "
+        "with "
         "control variates, the spin-4 parts of the intrinsic ellipticity (e1² - e2², "
         "2 e1 e2), whose population mean is zero: they remove the shape noise that the "
         "rotated twins leave, not the bias (column cv; groups of galaxies split into fewer "
