@@ -34,16 +34,19 @@ from pylensfit.pipeline import _pool, _run
 from pylensfit.prior import Prior, SizePrior
 
 
+def _oracle(spec, cfg) -> list:
+    """``cfg`` per PSF with the flux prior bounded at the population's flux range."""
+    return [cfg.replace(**dict(zip(("amplitude_prior_min", "amplitude_prior_max"),
+                                   P.population_flux_range(spec, k, stamp_size=cfg.largest_stamp),
+                                   strict=True)))
+            for k in range(len(spec.psfs))]  # fmt: skip
+
+
 def _priors(spec, cfg, estimated: bool, jobs: int, bounds: str):
     """Ellipticity prior, size prior per PSF, bulge weights and config per PSF (the flux
     prior's power and bounds: ``bounds`` none, oracle (the population's) or estimated)."""
     npsf = len(spec.psfs)
-    cfgs = [cfg] * npsf
-    if bounds == "oracle":
-        ref = [P.reference_norm(spec, k, cfg.largest_stamp) for k in range(npsf)]
-        cfgs = [cfg.replace(amplitude_prior_min=spec.snr_range[0] * spec.noise_sigma / r,
-                            amplitude_prior_max=spec.snr_range[1] * spec.noise_sigma / r)
-                for r in ref]  # fmt: skip
+    cfgs = _oracle(spec, cfg) if bounds == "oracle" else [cfg] * npsf
     if not estimated:
         if bounds == "estimated":
             raise SystemExit("estimated flux bounds need --estimated (a calibration)")
@@ -112,9 +115,9 @@ def main() -> None:
                     help="B's priors from a calibration of B (needed when B has other bulge "
                          "fractions); else A's priors for both")
     ap.add_argument("--a-flux-bounds", choices=["none", "estimated", "oracle"], default="none",
-                    help="A's flux prior bounds per PSF: none (default), estimated by the "
-                         "calibration (precision's default; needs --estimated) or the "
-                         "population's flux range (an oracle)")
+                    help="A's flux prior bounds per PSF: none (default, as precision's), "
+                         "estimated by the calibration (precision(flux_bounds=True); needs "
+                         "--estimated) or the population's flux range (an oracle)")
     ap.add_argument("--b-flux-bounds", choices=["none", "estimated", "oracle"], default=None,
                     help="B's (default A's)")
     ap.add_argument("--b-prior", nargs=3, type=float, default=None, metavar=("B", "C", "D"),
@@ -144,9 +147,10 @@ def main() -> None:
             raise SystemExit("--b-flux-bounds estimated needs --own-priors")
         ca = pri["A"][3]
         cb = [c.replace(**dict(s.split("=", 1) for s in a.b)) for c in ca]
-        if b_bounds != a.a_flux_bounds:
-            cb = _priors(spec, cfg_b, False, a.jobs, b_bounds)[3]
-            cb = [c.replace(amplitude_prior_power=ca[0].amplitude_prior_power) for c in cb]
+        if b_bounds != a.a_flux_bounds:  # none or the oracle's
+            cb = [cfg_b.replace(amplitude_prior_power=ca[0].amplitude_prior_power)] * len(ca)
+            if b_bounds == "oracle":
+                cb = _oracle(spec, cb[0])
         pri["B"] = pri["A"][:3] + (cb,)
     if a.b_prior:  # B's ellipticity prior given
         pri["B"] = (Prior(**dict(zip("BCD", a.b_prior, strict=True))),) + tuple(pri["B"][1:])

@@ -39,10 +39,10 @@ from pylensfit import Config
 from pylensfit.precision import (
     PRECISION_PSFS,
     default_config,
+    population_flux_range,
     population_prior,
     population_size_prior,
     precision,
-    reference_norm,
     spec_with,
 )
 
@@ -116,9 +116,8 @@ def main() -> None:
     if a.flux_bounds:
         if len(spec.psfs) != 1:
             ap.error("--flux-bounds needs one PSF (--psf NAME): the flux range is per PSF")
-        f = spec.noise_sigma / reference_norm(spec, 0, cfg.largest_stamp)
-        cfg = cfg.replace(amplitude_prior_min=spec.snr_range[0] * f,
-                          amplitude_prior_max=spec.snr_range[1] * f)  # fmt: skip
+        lo, hi = population_flux_range(spec, 0, stamp_size=cfg.largest_stamp)
+        cfg = cfg.replace(amplitude_prior_min=lo, amplitude_prior_max=hi)
     prior = population_prior(spec) if a.true_prior else None
     sizes = None
     if a.true_size_prior:

@@ -81,6 +81,7 @@ __all__ = [
     "precision",
     "default_config",
     "reference_norm",
+    "population_flux_range",
     "population_prior",
     "population_size_prior",
     "bias_table",
@@ -383,6 +384,15 @@ def reference_norm(spec: PrecisionSpec, psf_index: int, stamp_size: int = 32) ->
     img = _draw(galsim.Convolve(galsim.Exponential(half_light_radius=r_ref), _galsim_psf(p)),
                 int(stamp_size))  # fmt: skip
     return math.sqrt(float(np.sum(img.astype(float) ** 2)))
+
+
+def population_flux_range(spec: PrecisionSpec, psf_index: int = 0, *,
+                          stamp_size: int = 32) -> tuple[float, float]:  # fmt: skip
+    """The population's flux limits under PSF ``psf_index`` (``spec.snr_range`` in flux
+    units, :func:`reference_norm`): a diagnostic, the bounds of a flux prior that knows
+    the population."""
+    f = spec.noise_sigma / reference_norm(spec, psf_index, stamp_size)
+    return spec.snr_range[0] * f, spec.snr_range[1] * f
 
 
 def _flux_and_noise(out: np.ndarray, t: Table, spec: PrecisionSpec, block: int, ref: float,
@@ -1049,11 +1059,11 @@ def precision(
                 sel = cal["psf"] == k
                 fr = estimate_flux_range(cal["flux"][sel], cal["flux_err"][sel],
                                          beta=cfg.amplitude_prior_power)  # fmt: skip
-                ref = spec.noise_sigma / reference_norm(spec, k, cfg.largest_stamp)
                 bounds_meta.append({"psf": spec.psfs[k]["name"], "lo": fr["lo"],
                                     "hi": fr["hi"], "lo_err": fr["lo_err"],
                                     "hi_err": fr["hi_err"],
-                                    "true": [spec.snr_range[0] * ref, spec.snr_range[1] * ref]})
+                                    "true": list(population_flux_range(
+                                        spec, k, stamp_size=cfg.largest_stamp))})
                 cfgs[k] = cfg.replace(amplitude_prior_min=fr["lo"], amplitude_prior_max=fr["hi"])
         if (fit_flux or fit_bounds) and ncb and (prior is None or fit_bulge) and not fit_size:
             cal, egrid = calibrate(size_priors, False, "calibration with the flux prior")
