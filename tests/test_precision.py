@@ -112,6 +112,40 @@ def test_offset_places_the_galaxies_about_the_stamp_centre():
         PrecisionSpec(offset=-1)
 
 
+def test_calibration_sample_is_stratified_in_morphology_flux_and_size():
+    """The calibration sample's morphologies come in proportion and, within each, its
+    fluxes and sizes fill every one of ``n_k`` equal strata of their distributions once
+    (the draws at random do not); the main sample is the same with the option on or off."""
+    spec = PrecisionSpec(ngal=40, block_size=400, ncal=800, seed=3, snr_slope=2.0)
+    w = np.asarray(spec.morphology_weights) / np.sum(spec.morphology_weights)
+    lo, hi = spec.snr_range
+    lr = np.log(spec.size_ratio_range)
+
+    def strata(t):
+        """For each morphology: whether the flux's and size's CDF values fill the strata."""
+        out = []
+        for k in range(w.size):
+            s = np.asarray(t["morph"]) == k
+            u = (lo**-1 - np.asarray(t["snr_ref"][s]) ** -1) / (lo**-1 - hi**-1)  # S^-2's CDF
+            v = (np.log(np.asarray(t["size_ratio"][s])) - lr[0]) / (lr[1] - lr[0])
+            full = np.arange(s.sum())
+            out.append(all(np.array_equal(np.sort(np.floor(x * s.sum())), full) for x in (u, v)))
+        return out
+
+    _, _, t = render_block(spec, 0, 1, calibration=True, noise=False)
+    np.testing.assert_array_equal(np.bincount(t["morph"], minlength=w.size), 400 * w)
+    assert all(strata(t))
+    rnd = spec_with(spec, stratified_calibration=False)
+    _, _, t0 = render_block(rnd, 0, 1, calibration=True, noise=False)
+    assert not any(strata(t0))
+    assert not np.array_equal(np.bincount(t0["morph"], minlength=w.size), 400 * w)
+    main = render_block(spec, 0, 0, stamp_size=24)
+    main0 = render_block(rnd, 0, 0, stamp_size=24)
+    np.testing.assert_array_equal(main[0], main0[0])
+    for c in main[2].colnames:
+        np.testing.assert_array_equal(main[2][c], main0[2][c])  # NaN where a column is unused
+
+
 def _gaussian_lnL(e_obs, s):
     d2 = (EGRID[None, :, 0] - e_obs[:, :1]) ** 2 + (EGRID[None, :, 1] - e_obs[:, 1:]) ** 2
     return -d2 / (2.0 * s[:, None] ** 2)

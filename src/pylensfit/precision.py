@@ -43,10 +43,12 @@ Three shear estimators are reported side by side:
 Errors are delete-one-group jackknife over groups of 100 galaxies (each block of work
 cut into runs), and m and c are corrected with control variates, the intrinsic shapes'
 spin-4 parts (:func:`shape_controls`), which take out the shape noise that the rotated
-twins leave. The errors hold the priors fixed; the calibration sample's own noise,
-mostly that of each PSF's size prior, adds about 0.001 to the mean of PSFs' m and
-0.001-0.003 to one PSF's with 20,000 calibration galaxies (standard deviation over three
-calibration samples, ``benchmarks/precision_ab.py --b-calibration-seed``). A galaxy is
+twins leave. The errors hold the priors fixed. The calibration sample's own noise,
+mostly that of each PSF's size prior, is not in them: with 20,000 calibration galaxies
+drawn stratified (:class:`PrecisionSpec` ``stratified_calibration``) m's standard
+deviation over six calibration samples was 0.0004 on the mean of PSFs and 0.0005-0.0008
+on one PSF; drawn at random, 0.0009 and 0.0008-0.0019
+(``benchmarks/precision_size_prior_noise.py``). A galaxy is
 used only if all four renderings are measured (``paired`` selection, the default and
 the reported numbers); the ``independent`` selection, where each rendering's own flags
 decide, is reported too: the difference is the bias that a selection responding to the
@@ -155,6 +157,19 @@ class PrecisionSpec:
         Galaxies per block (unit of work and of the jackknife).
     ncal : int
         Galaxies of the unsheared calibration sample for the prior.
+    stratified_calibration : bool
+        Draw the calibration sample's morphologies, fluxes and sizes stratified within
+        each block (:func:`_population`): the morphologies in proportion, and a Latin
+        hypercube in flux and size within each morphology. The sample then follows the
+        population's distributions to ``1 / n`` instead of ``1 / sqrt(n)``, and its
+        priors, estimated from 5,000 galaxies per PSF, carry the noise of the pixels
+        alone, not that of which galaxies happened to be drawn. A survey estimates its
+        priors from the galaxies it measures; a simulation that draws them anew from the
+        population adds a noise of its own to m, which the jackknife does not see. Over
+        six calibration samples the standard deviation of m on the mean of PSFs fell
+        from 0.0009 to 0.0004 (per PSF from 0.0008-0.0019 to 0.0005-0.0008), its mean
+        unchanged (``benchmarks/precision_size_prior_noise.py``, twenty-sixth session).
+        False: drawn at random, as the main sample.
     seed : int
         Seed: everything is a function of it.
     """
@@ -172,6 +187,7 @@ class PrecisionSpec:
     offset: float = 0.5
     block_size: int = 500
     ncal: int = 20_000
+    stratified_calibration: bool = True
     seed: int = 1
     extra: dict = field(default_factory=dict)
 
@@ -270,18 +286,41 @@ def population_size_prior(spec: PrecisionSpec, psf_index: int = 0, *,
     return SizePrior(ln_h=knots, density=dens * (1 - 1e-6), star=1e-6)
 
 
-def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Generator) -> Table:
-    """Per-galaxy parameters of one block (all drawn from ``rng``)."""
+def _stratified(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``n`` uniform deviates on [0, 1), one in each of ``n`` equal strata, shuffled."""
+    return (rng.permutation(n) + rng.random(n)) / max(n, 1)
+
+
+def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Generator,
+                stratified: bool = False) -> Table:  # fmt: skip
+    """Per-galaxy parameters of one block (all drawn from ``rng``).
+
+    With ``stratified``, the morphologies are drawn in proportion to their weights
+    (systematic sampling) and, within each morphology, the flux and the size as a Latin
+    hypercube (one galaxy in each of the ``n_k`` equal strata of each, paired at
+    random); the other parameters are drawn at random either way.
+    """
     w = np.asarray(spec.morphology_weights, float)
-    morph = rng.choice(len(MORPHOLOGIES), n, p=w / w.sum())
+    lsr = np.log(spec.size_ratio_range)
+    if stratified:
+        cum = np.cumsum(w / w.sum())
+        morph = np.minimum(np.searchsorted(cum, _stratified(rng, n), side="right"), w.size - 1)
+        u, v = np.empty(n), np.empty(n)
+        for k in range(w.size):  # five morphologies
+            sel = np.flatnonzero(morph == k)
+            u[sel], v[sel] = _stratified(rng, sel.size), _stratified(rng, sel.size)
+        ratio = np.exp(lsr[0] + v * (lsr[1] - lsr[0]))
+    else:
+        morph = rng.choice(len(MORPHOLOGIES), n, p=w / w.sum())
+        u = rng.random(n)
     lo, hi = spec.snr_range
-    u = rng.random(n)
     a = spec.snr_slope
     if abs(a - 1.0) < 1e-9:
         snr = lo * (hi / lo) ** u
     else:  # inverse CDF of S^-a on [lo, hi]
         snr = (lo ** (1 - a) + u * (hi ** (1 - a) - lo ** (1 - a))) ** (1 / (1 - a))
-    ratio = np.exp(rng.uniform(*np.log(spec.size_ratio_range), n))
+    if not stratified:
+        ratio = np.exp(rng.uniform(*lsr, n))
     e = draw_shapes(population_prior(spec), n, rng, spec.max_e)
     name = np.asarray(MORPHOLOGIES)[morph]
     bf = np.select([name == "exponential", name == "devaucouleurs", name == "bulge+disc",
@@ -350,7 +389,7 @@ def render_block(
     if n <= 0 or block >= nblocks:
         raise ValueError(f"block {block} is outside the set ({nblocks} blocks)")
     rng = np.random.default_rng([spec.seed, int(calibration), block])
-    t = _population(spec, n, psf_hlr, rng)
+    t = _population(spec, n, psf_hlr, rng, stratified=calibration and spec.stratified_calibration)
     psf = _galsim_psf(p)
     if calibration:
         shears = [(0.0, False)]
@@ -1301,7 +1340,8 @@ def write_report(res: Table, path: str | Path) -> None:
         f"({res.meta['config'].get('n_bulge_fractions', 1)} bulge fraction(s)). "
         + _stamp_line(res.meta.get("stamps")), "",
         ("Prior given: " if res.meta["prior"].get("given") else
-         f"Prior from {spec['ncal']} unsheared calibration galaxies: ") +
+         f"Prior from {spec['ncal']} unsheared calibration galaxies"
+         f"{' (stratified)' if spec.get('stratified_calibration') else ''}: ") +
         f"B={res.meta['prior']['B']:.3f}, C={res.meta['prior']['C']:.3f}, "
         f"D={res.meta['prior']['D']:.3f} (true {tuple(spec['prior_params'])}). "
         f"Largest fixed-point Newton step {res.meta['fp_step']:.1e}.", "",
@@ -1313,11 +1353,12 @@ def write_report(res: Table, path: str | Path) -> None:
         f"galaxies/s ({tim['renderings_per_s']:.0f} renderings/s) in the main pass; CPU "
         f"{tim['render_cpu_s']:.0f} s rendering, {tim['fit_cpu_s']:.0f} s fitting.", "",
         "Errors are delete-one-group jackknife over groups of 100 galaxies (1 sigma), "
-        "with the priors held fixed: the calibration sample's own sampling noise is not in "
-        "them (with 20,000 calibration galaxies, m varied by 0.001 on the mean of PSFs "
-        "and by 0.001-0.003 on one PSF between three calibration samples, through the "
-        "size priors; benchmarks/README.md, twenty-fifth session). m and c are corrected "
-        "with "
+        "with the priors held fixed: the calibration sample's own noise is not in them "
+        "(with 20,000 calibration galaxies drawn stratified in morphology, flux and size, "
+        "m's standard deviation over six calibration samples was 0.0004 on the mean of "
+        "PSFs and 0.0005-0.0008 on one PSF, through the size priors; drawn at random, "
+        "0.0009 and 0.0008-0.0019; benchmarks/README.md, twenty-sixth session). m and c "
+        "are corrected with "
         "control variates, the spin-4 parts of the intrinsic ellipticity (e1² - e2², "
         "2 e1 e2), whose population mean is zero: they remove the shape noise that the "
         "rotated twins leave, not the bias (column cv; groups of galaxies split into fewer "
