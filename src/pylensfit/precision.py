@@ -319,7 +319,7 @@ def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Gene
         snr = lo * (hi / lo) ** u
     else:  # inverse CDF of S^-a on [lo, hi]
         snr = (lo ** (1 - a) + u * (hi ** (1 - a) - lo ** (1 - a))) ** (1 / (1 - a))
-    if not stratified:
+    if not stratified:  # after the flux: the random draws keep their order (main sample)
         ratio = np.exp(rng.uniform(*lsr, n))
     e = draw_shapes(population_prior(spec), n, rng, spec.max_e)
     name = np.asarray(MORPHOLOGIES)[morph]
