@@ -24,6 +24,7 @@ precision mode's control variates) and B - A, and the fit's CPU seconds of each:
 from __future__ import annotations
 
 import argparse
+import ast
 import math
 import time
 
@@ -77,28 +78,53 @@ def _priors(spec, cfg, estimated: bool, jobs: int, bounds: str):
     return prior, sps, bw, cfgs
 
 
-def _paired(QA, QB, ok, jk, g):
-    """B - A of the fixed-point m1, m2 with the jackknife over ``jk`` groups."""
+def _kv(items: list[str]) -> dict:
+    """``KEY=VALUE`` strings as a dict, the values Python literals where they parse."""
+    out = {}
+    for s in items:
+        k, v = s.split("=", 1)
+        try:
+            out[k] = ast.literal_eval(v)
+        except (ValueError, SyntaxError):
+            out[k] = v
+    return out
+
+
+def _m_jk(Q, ok, jk, g):
+    """Fixed-point m1, m2 of all galaxies, then of each delete-one-group jackknife
+    sample (``(1 + k, 2)``, ``k`` groups of ``jk``), without control variates."""
     ug, gi = np.unique(jk, return_inverse=True)
     k = ug.size
+    sums = np.stack([np.stack([np.bincount(gi, weights=np.where(ok, Q[:, r, q], 0.0),
+                                           minlength=k) for q in range(Q.shape[2])], -1)
+                     for r in range(4)], 1)  # (k, 4, n_q) fmt: skip
+    n = np.bincount(gi, weights=ok.astype(float), minlength=k)
+    tot, ntot = sums.sum(0), n.sum()
+    T = np.concatenate([tot[None], tot[None] - sums])  # full, then leave one out
+    N = np.concatenate([[ntot], ntot - n])
+    gv = np.array([g, g])
+    gp = P._shear_from_sums(T[:, 0] + T[:, 1], 2 * N, gv, "fixed-point")
+    gm = P._shear_from_sums(T[:, 2] + T[:, 3], 2 * N, -gv, "fixed-point")
+    return (gp - gm) / (2 * g) - 1.0
 
-    def m_of(Q):
-        sums = np.stack([np.stack([np.bincount(gi, weights=np.where(ok, Q[:, r, q], 0.0),
-                                               minlength=k) for q in range(Q.shape[2])], -1)
-                         for r in range(4)], 1)  # (k, 4, n_q) fmt: skip
-        n = np.bincount(gi, weights=ok.astype(float), minlength=k)
-        tot, ntot = sums.sum(0), n.sum()
-        T = np.concatenate([tot[None], tot[None] - sums])  # full, then leave one out
-        N = np.concatenate([[ntot], ntot - n])
-        gv = np.array([g, g])
-        gp = P._shear_from_sums(T[:, 0] + T[:, 1], 2 * N, gv, "fixed-point")
-        gm = P._shear_from_sums(T[:, 2] + T[:, 3], 2 * N, -gv, "fixed-point")
-        return (gp - gm) / (2 * g) - 1.0  # (1 + k, 2)
 
-    d = m_of(QB) - m_of(QA)
-    jkv = d[1:]
-    err = np.sqrt((k - 1) / k * ((jkv - jkv.mean(0)) ** 2).sum(0))
-    return d[0], err
+def _jk_err(v: np.ndarray) -> np.ndarray:
+    """The jackknife error of the statistic ``v[0]`` from its delete-one values ``v[1:]``."""
+    k = len(v) - 1
+    return np.sqrt((k - 1) / k * ((v[1:] - v[1:].mean(0)) ** 2).sum(0))
+
+
+def _paired(QA, QB, ok, jk, g):
+    """B - A of the fixed-point m1, m2 with the jackknife over ``jk`` groups."""
+    d = _m_jk(QB, ok, jk, g) - _m_jk(QA, ok, jk, g)
+    return d[0], _jk_err(d)
+
+
+def _split(Q, ok, jk, g):
+    """m2 - m1 of one configuration with its jackknife error."""
+    m = _m_jk(Q, ok, jk, g)
+    d = m[:, 1] - m[:, 0]
+    return d[0], _jk_err(d)
 
 
 def main() -> None:
@@ -111,6 +137,12 @@ def main() -> None:
                     help="changes to precision.default_config for A")
     ap.add_argument("--b", nargs="*", default=[], metavar="KEY=VALUE",
                     help="changes to A's configuration for B")
+    ap.add_argument("--spec", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="changes to PrecisionSpec for both (values as Python literals: "
+                         "snr_range=10,20)")
+    ap.add_argument("--b-spec", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="changes to the spec for B's renderings (offset_shape=gaussian): "
+                         "the same galaxies and noise, drawn otherwise")
     ap.add_argument("--own-priors", action="store_true",
                     help="B's priors from a calibration of B (needed when B has other bulge "
                          "fractions); else A's priors for both")
@@ -129,10 +161,17 @@ def main() -> None:
                     help="B's size priors the population's own (log-uniform per PSF)")
     ap.add_argument("--by-morphology", action="store_true",
                     help="also print B - A per morphology, per PSF and for the mean of PSFs")
+    ap.add_argument("--noise-free", action="store_true",
+                    help="fit noise-free renderings (the likelihood still assumes the "
+                         "spec's noise): the deterministic part of m, without pixel noise")
+    ap.add_argument("--by", nargs="*", default=[], choices=["snr", "size"],
+                    help="also print A's and B's m2 - m1 and B - A per bin of true S/N or "
+                         "size (all PSFs together)")
     ap.add_argument("--estimated", action="store_true",
                     help="the priors a calibration of A estimates (else the population's)")
     a = ap.parse_args()
-    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf)
+    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **_kv(a.spec))
+    spec_b = P.spec_with(spec, **_kv(a.b_spec))
     cfg_a = P.default_config(spec).replace(**dict(s.split("=", 1) for s in a.a))
     cfg_b = cfg_a.replace(**dict(s.split("=", 1) for s in a.b))
     b_bounds = a.b_flux_bounds or a.a_flux_bounds
@@ -162,9 +201,9 @@ def main() -> None:
     npsf = len(spec.psfs)
     nb = -(-spec.ngal // spec.block_size)
     cfgs = {w: pri[w][3] for w in "AB"}
-    tasks = [{"spec": spec, "config": cfgs[w][b % npsf], "prior": pri[w][0],
+    tasks = [{"spec": spec_b if w == "B" else spec, "config": cfgs[w][b % npsf], "prior": pri[w][0],
               "bulge_weights": pri[w][2], "size_prior": pri[w][1][b % npsf], "psf": b % npsf,
-              "block": b, "calibration": False, "which": w}
+              "block": b, "calibration": False, "which": w, "noise": not a.noise_free}
              for b in range(nb) for w in "AB"]  # fmt: skip
     res: dict = {"A": {}, "B": {}}
     t0 = time.perf_counter()
@@ -191,7 +230,9 @@ def main() -> None:
           f"; flux bounds A {a.a_flux_bounds}, B {b_bounds}"
           f"{'; B prior ' + str(a.b_prior) if a.b_prior else ''}"
           f"{'' if a.b_calibration_seed is None else f'; B priors of seed {a.b_calibration_seed}'}"
-          f"{'; B size priors the population' + chr(39) + 's' if a.b_true_size_prior else ''}")
+          f"{'; B size priors the population' + chr(39) + 's' if a.b_true_size_prior else ''}"
+          f"{'; spec ' + str(_kv(a.spec)) if a.spec else ''}"
+          f"{'; B spec ' + str(_kv(a.b_spec)) if a.b_spec else ''}")
     print(f"{spec.ngal} galaxies, seed {spec.seed}, {int(ok.sum())} with all four renderings "
           f"measured in both; priors {'estimated' if a.estimated else 'the population'}'s")
     from pylensfit.models import model_bank
@@ -217,6 +258,32 @@ def main() -> None:
                          [0][q] for n in groups]) for q in ("m1", "m2")] for w in "AB"}  # fmt: skip
     print(f"| mean of PSFs | {mean['A'][0]:+.4f} | {mean['B'][0]:+.4f} | {mean['A'][1]:+.4f} | "
           f"{mean['B'][1]:+.4f} | {d[0]:+.5f} ± {e[0]:.5f} | {d[1]:+.5f} ± {e[1]:.5f} |")
+    print("m2 - m1 (jackknife, no controls):\n| PSF | A | B |\n|---|---|---|")
+    sp = {w: [] for w in "AB"}
+    for name in groups:
+        sel = groups[name] & ok
+        cells = []
+        for w in "AB":
+            sp[w].append(_split(Q[w][sel], ok[sel], jk[sel], spec.g))
+            cells.append(f"{sp[w][-1][0]:+.5f} ± {sp[w][-1][1]:.5f}")
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    print("| mean of PSFs | " + " | ".join(
+        f"{np.mean([x[0] for x in sp[w]]):+.5f} ± "
+        f"{np.sqrt(np.sum([x[1] ** 2 for x in sp[w]])) / len(sp[w]):.5f}" for w in "AB") + " |")
+    for by in a.by:  # bins of true S/N or size, all PSFs together
+        col, edges = {"snr": ("snr", P.SNR_EDGES), "size": ("size_ratio", P.SIZE_EDGES)}[by]
+        v = np.concatenate([np.asarray(t[col], float) for t in truth])
+        print(f"by {by}:\n| bin | galaxies | m2 - m1, A | m2 - m1, B | B - A, m1 | B - A, m2 |"
+              f"\n|{'---|' * 6}")  # fmt: skip
+        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+            sel = ok & (v >= lo) & (v < hi)
+            if sel.sum() < 200:
+                continue
+            cells = [f"{x[0]:+.4f} ± {x[1]:.4f}"
+                     for x in (_split(Q[w][sel], ok[sel], jk[sel], spec.g) for w in "AB")]
+            d, e = _paired(Q["A"][sel], Q["B"][sel], ok[sel], jk[sel], spec.g)
+            print(f"| {lo:g}-{hi:g} | {int(sel.sum())} | " + " | ".join(cells) +
+                  f" | {d[0]:+.4f} ± {e[0]:.4f} | {d[1]:+.4f} ± {e[1]:.4f} |")  # fmt: skip
     if a.by_morphology:
         morph = np.concatenate([t["morph"] for t in truth])
         print(f"| B - A, m1 / m2 | {' | '.join(groups)} | mean of PSFs |\n|{'---|' * (npsf + 2)}")

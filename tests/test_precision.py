@@ -10,6 +10,7 @@ from pylensfit.likelihood import fit_stamps
 from pylensfit.models import model_bank
 from pylensfit.precision import (
     PrecisionSpec,
+    _population,
     _shear_from_sums,
     bias_table,
     precision,
@@ -110,6 +111,30 @@ def test_offset_places_the_galaxies_about_the_stamp_centre():
         assert np.all(np.abs(t["dx"]) <= off) and (off == 0 or np.ptp(t["dx"]) > 0.5)
     with pytest.raises(ValueError, match="offset"):
         PrecisionSpec(offset=-1)
+
+
+def test_gaussian_offsets_are_isotropic_with_the_square_variance():
+    """``offset_shape="gaussian"`` draws isotropic offsets of variance ``offset^2 / 3`` per
+    axis: their spin-4 moment ``<r^4 cos 4 phi> / <r^4>`` is zero (the square's is -0.42,
+    aligned with the pixel axes); every other column of the truth is unchanged."""
+    n = 40_000
+    spin4 = {}
+    tabs = {}
+    for shape in ("square", "gaussian"):
+        spec = PrecisionSpec(offset=0.5, offset_shape=shape, seed=4)
+        t = _population(spec, n, 2.0, np.random.default_rng(7), stratified=False)
+        x, y = np.asarray(t["dx"]), np.asarray(t["dy"])
+        np.testing.assert_allclose([x.var(), y.var()], 0.25 / 3, rtol=0.03)
+        r4 = (x * x + y * y) ** 2
+        spin4[shape] = np.mean(r4 * np.cos(4 * np.arctan2(y, x))) / np.mean(r4)
+        tabs[shape] = t
+    assert abs(spin4["gaussian"]) < 0.03
+    assert spin4["square"] == pytest.approx(-0.42, abs=0.03)  # (2/80 - 6/144) / (2/80 + 2/144)
+    for c in tabs["square"].colnames:
+        if c not in ("dx", "dy"):
+            np.testing.assert_array_equal(tabs["square"][c], tabs["gaussian"][c])
+    with pytest.raises(ValueError, match="offset_shape"):
+        PrecisionSpec(offset_shape="disc")
 
 
 def test_calibration_sample_is_stratified_in_morphology_flux_and_size():

@@ -153,6 +153,12 @@ class PrecisionSpec:
         Each galaxy's centre lies uniformly within ``+-offset`` pixels of the stamp's
         centre along both axes (0: centred, for tests of the likelihood at a known
         position).
+    offset_shape : str
+        ``"square"``: the offsets uniform in the square ``+-offset`` (as a galaxy's true
+        centre lies within its pixel); ``"gaussian"``: isotropic Gaussian offsets of the
+        same variance per axis (``offset / sqrt 3``), drawn from the same two uniforms
+        (Box-Muller), the distribution of a centroid's errors about its catalogue
+        position and the one the position prior assumes.
     block_size : int
         Galaxies per block (unit of work and of the jackknife).
     ncal : int
@@ -185,6 +191,7 @@ class PrecisionSpec:
     max_e: float = 0.99
     noise_sigma: float = 1.0
     offset: float = 0.5
+    offset_shape: str = "square"
     block_size: int = 500
     ncal: int = 20_000
     stratified_calibration: bool = True
@@ -196,6 +203,9 @@ class PrecisionSpec:
             raise ValueError("precision needs at least two galaxies per PSF and block_size >= 1")
         if not 0 <= self.offset <= 4:
             raise ValueError(f"offset must be in [0, 4] pixels, got {self.offset}")
+        if self.offset_shape not in ("square", "gaussian"):
+            raise ValueError(f"offset_shape must be 'square' or 'gaussian', got "
+                             f"{self.offset_shape!r}")  # fmt: skip
         if not 0 < self.g < 0.2:
             raise ValueError(f"g must be in (0, 0.2), got {self.g}")
         if len(self.morphology_weights) != len(MORPHOLOGIES):
@@ -337,8 +347,13 @@ def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Gene
     t["n_knots"] = np.where(name == "knots", rng.integers(10, 30, n), 0)
     t["knot_frac"] = rng.uniform(0.2, 0.5, n)
     t["knot_seed"] = rng.integers(1, 2**31 - 1, n)
-    t["dx"] = rng.uniform(-0.5, 0.5, n) * (2.0 * spec.offset)
-    t["dy"] = rng.uniform(-0.5, 0.5, n) * (2.0 * spec.offset)
+    ux, uy = rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)
+    if spec.offset_shape == "gaussian":  # Box-Muller from the same two uniforms
+        rad = spec.offset / math.sqrt(3.0) * np.sqrt(-2.0 * np.log(0.5 - ux))
+        ux, uy = rad * np.cos(2 * np.pi * uy), rad * np.sin(2 * np.pi * uy)
+    else:
+        ux, uy = ux * (2.0 * spec.offset), uy * (2.0 * spec.offset)
+    t["dx"], t["dy"] = ux, uy
     return t
 
 
@@ -578,7 +593,8 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     stamps, psf, truth = render_block(spec, task["psf"], task["block"],
                                       stamp_size=cfg.largest_stamp,
-                                      calibration=task["calibration"])  # fmt: skip
+                                      calibration=task["calibration"],
+                                      noise=task.get("noise", True))  # fmt: skip
     t1 = time.perf_counter()
     n, nr = stamps.shape[:2]
     groups = None
