@@ -439,6 +439,7 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     # and the size prior, estimated from the calibration set too
     # one per PSF: the population's sizes are drawn relative to the PSF's
     assert "Size prior estimated from the calibration sample (one per PSF)" in text
+    assert "(the true centres: uniform within ±0.5 px along both axes)" in text
     sps = tab.meta["size_prior"]
     assert [sp["psf"] for sp in sps] == ["round", "e=0.10"] and tab.meta["size_prior_per_psf"]
     assert sps[0]["density"] != sps[1]["density"]

@@ -1305,7 +1305,11 @@ def _stamp_line(stamps: dict | None) -> str:
 def _amplitude_line(cfg: dict, flux: dict | None, spec: dict,
                     bounds: list | None = None) -> str:  # fmt: skip
     kind = cfg.get("amplitude_prior", "uniform")
-    pos = f" Position prior: {cfg.get('position_prior_sigma', float('nan')):.3g} px.\n"
+    off, shape = spec.get("offset", 0.5), spec.get("offset_shape", "square")
+    where = ("all centred" if off == 0 else f"uniform within ±{off:g} px along both axes"
+             if shape == "square" else f"isotropic Gaussian, {off / math.sqrt(3):.3g} px per axis")
+    pos = (f" Position prior: Gaussian, {cfg.get('position_prior_sigma', float('nan')):.3g} px"
+           f" (the true centres: {where}).\n")  # fmt: skip
     if kind == "uniform":
         return "Amplitude prior: uniform (positive amplitudes)." + pos
     if kind == "snr" or not flux:
