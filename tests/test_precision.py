@@ -430,6 +430,11 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     assert len(per) == 2 and mean["breakdown"] == "all"
     assert abs(mean["m1"] - np.mean(per["m1"])) < 1e-12
     assert abs(mean["c2_err"] - np.hypot(*per["c2_err"]) / 2) < 1e-12
+    # morphology per PSF: every galaxy of each PSF in one of its morphologies' groups
+    pm = fp[fp["breakdown"] == "psf_morphology"]
+    for name, n in zip(per["group"], per["n_gal"], strict=True):
+        assert sum(r["n_gal"] for r in pm if r["group"].startswith(name + " ")) == n
+    assert "## psf_morphology" in text
     assert tab.meta["spec"]["ngal"] == 16
     # --true-prior: no calibration sample, the population's own prior
     assert "Prior given: B=0.190, C=0.580, D=2.400" in text and tab.meta["prior"]["given"]

@@ -868,13 +868,18 @@ def _breakdowns(gal: Table, psfs: tuple[dict, ...]) -> dict[str, dict[str, np.nd
 
     psf = np.asarray(gal["psf"])
     morph = np.asarray(gal["morph"])
-    return {
+    out = {
         "psf": {p["name"]: psf == i for i, p in enumerate(psfs)},
         "snr": binned("snr", SNR_EDGES),
         "size": binned("size_ratio", SIZE_EDGES),
         "morphology": {m: morph == i for i, m in enumerate(MORPHOLOGIES)},
         "bulge_frac": binned("bulge_frac", BULGE_EDGES),
     }
+    if len(psfs) > 1:  # the model bias's mix per PSF: m of each morphology under each PSF
+        pm = {f"{p['name']} {m}": (psf == i) & (morph == j)
+              for i, p in enumerate(psfs) for j, m in enumerate(MORPHOLOGIES)}  # fmt: skip
+        out["psf_morphology"] = {k: v for k, v in pm.items() if v.any()}
+    return out
 
 
 def default_config(spec: PrecisionSpec) -> Config:
@@ -995,7 +1000,10 @@ def precision(
     -------
     astropy.table.Table
         :func:`bias_table` rows for the breakdowns ``all``, per PSF, S/N, size,
-        morphology and bulge fraction (column ``breakdown``), paired selection, with the
+        morphology, bulge fraction and (with several PSFs) morphology per PSF
+        (``psf_morphology``, groups ``"<psf> <morphology>"``: the model family's bias
+        differs by morphology by several per cent, and how it cancels in the mix can
+        differ between PSFs) (column ``breakdown``), paired selection, with the
         intrinsic shapes as control variates (:func:`shape_controls`); the ``all``
         breakdown also has the group ``mean of PSFs`` (the PSFs' m and c averaged, the
         errors combined); plus the ``all`` rows with independent selection
@@ -1405,8 +1413,9 @@ def write_report(res: Table, path: str | Path) -> None:
             )
         if bd not in ("all", "selection", "no controls"):
             png = path.with_name(f"{path.stem}_{bd}.png")
-            fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
             labels = list(dict.fromkeys(t["group"]))
+            fig, axes = plt.subplots(1, 2, figsize=(max(10.0, 0.45 * len(labels)), 3.6),
+                                     sharey=True)  # fmt: skip
             x = np.arange(len(labels))
             for i, ax in zip((1, 2), axes, strict=True):
                 for j, est in enumerate(_ESTIMATORS):
