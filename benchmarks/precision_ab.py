@@ -258,6 +258,12 @@ def main() -> None:
                          [0][q] for n in groups]) for q in ("m1", "m2")] for w in "AB"}  # fmt: skip
     print(f"| mean of PSFs | {mean['A'][0]:+.4f} | {mean['B'][0]:+.4f} | {mean['A'][1]:+.4f} | "
           f"{mean['B'][1]:+.4f} | {d[0]:+.5f} ± {e[0]:.5f} | {d[1]:+.5f} ± {e[1]:.5f} |")
+    print(f"c (fixed point, with controls):\n| PSF | c1 A | c1 B | c2 A | c2 B |\n|{'---|' * 5}")
+    for name in groups:
+        row = {w: tab[w][(tab[w]["group"] == name) & (tab[w]["estimator"] == "fixed-point")][0]
+               for w in "AB"}  # fmt: skip
+        print(f"| {name} | " + " | ".join(f"{row[w][q]:+.5f} ± {row[w][q + '_err']:.5f}"
+                                          for q in ("c1", "c2") for w in "AB") + " |")
     print("m2 - m1 (jackknife, no controls):\n| PSF | A | B |\n|---|---|---|")
     sp = {w: [] for w in "AB"}
     for name in groups:
