@@ -120,6 +120,17 @@ def _paired(QA, QB, ok, jk, g):
     return d[0], _jk_err(d)
 
 
+def _fp(tab, name: str):
+    """The fixed-point row of group ``name`` in a :func:`pylensfit.precision.bias_table`."""
+    return tab[(tab["group"] == name) & (tab["estimator"] == "fixed-point")][0]
+
+
+def _mean_err(pairs: list) -> tuple[np.ndarray, np.ndarray]:
+    """The mean of ``(value, error)`` pairs (one per PSF) and its error."""
+    v, e = np.asarray([p[0] for p in pairs]), np.asarray([p[1] for p in pairs])
+    return v.mean(0), np.sqrt((e**2).sum(0)) / len(pairs)
+
+
 def _split(Q, ok, jk, g):
     """m2 - m1 of one configuration with its jackknife error."""
     m = _m_jk(Q, ok, jk, g)
@@ -172,8 +183,9 @@ def main() -> None:
     a = ap.parse_args()
     spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **_kv(a.spec))
     spec_b = P.spec_with(spec, **_kv(a.b_spec))
-    cfg_a = P.default_config(spec).replace(**dict(s.split("=", 1) for s in a.a))
-    cfg_b = cfg_a.replace(**dict(s.split("=", 1) for s in a.b))
+    kv_a, kv_b = _kv(a.a), _kv(a.b)
+    cfg_a = P.default_config(spec).replace(**kv_a)
+    cfg_b = cfg_a.replace(**kv_b)
     b_bounds = a.b_flux_bounds or a.a_flux_bounds
     pri = {"A": _priors(spec, cfg_a, a.estimated, a.jobs, a.a_flux_bounds)}
     if a.b_calibration_seed is not None:  # B's priors from another calibration sample
@@ -185,7 +197,7 @@ def main() -> None:
         if b_bounds == "estimated" and a.a_flux_bounds != "estimated":
             raise SystemExit("--b-flux-bounds estimated needs --own-priors")
         ca = pri["A"][3]
-        cb = [c.replace(**dict(s.split("=", 1) for s in a.b)) for c in ca]
+        cb = [c.replace(**kv_b) for c in ca]
         if b_bounds != a.a_flux_bounds:  # none or the oracle's
             cb = [cfg_b.replace(amplitude_prior_power=ca[0].amplitude_prior_power)] * len(ca)
             if b_bounds == "oracle":
@@ -225,8 +237,7 @@ def main() -> None:
     groups = {p["name"]: psf == i for i, p in enumerate(spec.psfs)}
     tab = {w: P.bias_table(Q[w], np.repeat(ok[:, None], 4, 1), jk, spec.g, groups=groups,
                            controls=X) for w in "AB"}  # fmt: skip
-    print(f"A: {dict(s.split('=', 1) for s in a.a) or 'default_config'}; "
-          f"B: A with {dict(s.split('=', 1) for s in a.b)}"
+    print(f"A: {kv_a or 'default_config'}; B: A with {kv_b}"
           f"; flux bounds A {a.a_flux_bounds}, B {b_bounds}"
           f"{'; B prior ' + str(a.b_prior) if a.b_prior else ''}"
           f"{'' if a.b_calibration_seed is None else f'; B priors of seed {a.b_calibration_seed}'}"
@@ -244,24 +255,21 @@ def main() -> None:
     print(f"| PSF | m1 A | m1 B | m2 A | m2 B | B - A, m1 | B - A, m2 |\n|{'---|' * 7}")
     diffs = []
     for name in groups:
-        row = {w: tab[w][(tab[w]["group"] == name) & (tab[w]["estimator"] == "fixed-point")][0]
-               for w in "AB"}  # fmt: skip
+        row = {w: _fp(tab[w], name) for w in "AB"}
         sel = groups[name] & ok
         d, e = _paired(Q["A"][sel], Q["B"][sel], ok[sel], jk[sel], spec.g)
         diffs.append((d, e))
         cells = [f"{row[w][q]:+.4f} ± {row[w][q + '_err']:.4f}" for q in ("m1", "m2") for w in "AB"]
         print(f"| {name} | " + " | ".join(cells) +
               f" | {d[0]:+.5f} ± {e[0]:.5f} | {d[1]:+.5f} ± {e[1]:.5f} |")  # fmt: skip
-    d = np.mean([x[0] for x in diffs], 0)
-    e = np.sqrt(np.sum([x[1] ** 2 for x in diffs], 0)) / len(diffs)
-    mean = {w: [np.mean([tab[w][(tab[w]["group"] == n) & (tab[w]["estimator"] == "fixed-point")]
-                         [0][q] for n in groups]) for q in ("m1", "m2")] for w in "AB"}  # fmt: skip
+    d_mean, e = _mean_err(diffs)
+    mean = {w: [np.mean([_fp(tab[w], n)[q] for n in groups]) for q in ("m1", "m2")]
+            for w in "AB"}  # fmt: skip
     print(f"| mean of PSFs | {mean['A'][0]:+.4f} | {mean['B'][0]:+.4f} | {mean['A'][1]:+.4f} | "
-          f"{mean['B'][1]:+.4f} | {d[0]:+.5f} ± {e[0]:.5f} | {d[1]:+.5f} ± {e[1]:.5f} |")
+          f"{mean['B'][1]:+.4f} | {d_mean[0]:+.5f} ± {e[0]:.5f} | {d_mean[1]:+.5f} ± {e[1]:.5f} |")
     print(f"c (fixed point, with controls):\n| PSF | c1 A | c1 B | c2 A | c2 B |\n|{'---|' * 5}")
     for name in groups:
-        row = {w: tab[w][(tab[w]["group"] == name) & (tab[w]["estimator"] == "fixed-point")][0]
-               for w in "AB"}  # fmt: skip
+        row = {w: _fp(tab[w], name) for w in "AB"}
         print(f"| {name} | " + " | ".join(f"{row[w][q]:+.5f} ± {row[w][q + '_err']:.5f}"
                                           for q in ("c1", "c2") for w in "AB") + " |")
     print("m2 - m1 (jackknife, no controls):\n| PSF | A | B |\n|---|---|---|")
@@ -274,46 +282,44 @@ def main() -> None:
             cells.append(f"{sp[w][-1][0]:+.5f} ± {sp[w][-1][1]:.5f}")
         print(f"| {name} | " + " | ".join(cells) + " |")
     print("| mean of PSFs | " + " | ".join(
-        f"{np.mean([x[0] for x in sp[w]]):+.5f} ± "
-        f"{np.sqrt(np.sum([x[1] ** 2 for x in sp[w]])) / len(sp[w]):.5f}" for w in "AB") + " |")
+        "{:+.5f} ± {:.5f}".format(*_mean_err(sp[w])) for w in "AB") + " |")
+    gal = {c: np.concatenate([np.asarray(t[c]) for t in truth])
+           for c in ("snr", "size_ratio", "bulge_frac", "morph")}  # fmt: skip
+    gal["psf"] = psf
+    bins = P._breakdowns(gal, spec.psfs)  # the precision report's bins
     for by in a.by:  # bins of true S/N or size, all PSFs together
-        col, edges = {"snr": ("snr", P.SNR_EDGES), "size": ("size_ratio", P.SIZE_EDGES)}[by]
-        v = np.concatenate([np.asarray(t[col], float) for t in truth])
         print(f"by {by}:\n| bin | galaxies | m2 - m1, A | m2 - m1, B | B - A, m1 | B - A, m2 |"
               f"\n|{'---|' * 6}")  # fmt: skip
-        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-            sel = ok & (v >= lo) & (v < hi)
+        for label, in_bin in bins[by].items():
+            sel = ok & in_bin
             if sel.sum() < 200:
                 continue
             cells = [f"{x[0]:+.4f} ± {x[1]:.4f}"
                      for x in (_split(Q[w][sel], ok[sel], jk[sel], spec.g) for w in "AB")]
             d, e = _paired(Q["A"][sel], Q["B"][sel], ok[sel], jk[sel], spec.g)
-            print(f"| {lo:g}-{hi:g} | {int(sel.sum())} | " + " | ".join(cells) +
+            print(f"| {label} | {int(sel.sum())} | " + " | ".join(cells) +
                   f" | {d[0]:+.4f} ± {e[0]:.4f} | {d[1]:+.4f} ± {e[1]:.4f} |")  # fmt: skip
     if a.by_morphology:
-        morph = np.concatenate([t["morph"] for t in truth])
         print(f"| B - A, m1 / m2 | {' | '.join(groups)} | mean of PSFs |\n|{'---|' * (npsf + 2)}")
         for im, mname in enumerate(P.MORPHOLOGIES):
-            cells, ds, es = [], [], []
+            cells, pairs = [], []
             for name in groups:
-                sel = groups[name] & ok & (morph == im)
+                sel = groups[name] & ok & (gal["morph"] == im)
                 if sel.sum() < 200:
                     cells.append("")
                     continue
                 d, e = _paired(Q["A"][sel], Q["B"][sel], ok[sel], jk[sel], spec.g)
-                ds.append(d)
-                es.append(e)
+                pairs.append((d, e))
                 cells.append(f"{d[0]:+.4f} / {d[1]:+.4f} ± {e[0]:.4f} / {e[1]:.4f}")
-            if ds:
-                d = np.mean(ds, 0)
-                e = np.sqrt(np.sum(np.square(es), 0)) / len(es)
+            if pairs:
+                d, e = _mean_err(pairs)
                 cells.append(f"{d[0]:+.4f} / {d[1]:+.4f} ± {e[0]:.4f} / {e[1]:.4f}")
             print(f"| {mname} | " + " | ".join(cells) + " |")
     for w in "AB":
         fit = sum(r["fit_s"] for r in cat[w])
         ren = sum(r["render_s"] for r in cat[w])
         print(f"{w}: fit {fit:.0f} s CPU ({fit / nb:.2f} s per block), render {ren:.0f} s")
-    if not math.isfinite(float(d[0])):
+    if not math.isfinite(float(d_mean[0])):
         raise SystemExit("the paired difference is not finite")
 
 
