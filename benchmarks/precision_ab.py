@@ -170,6 +170,11 @@ def main() -> None:
                          "population, other galaxies and noise): the priors' sampling noise")
     ap.add_argument("--b-true-size-prior", action="store_true",
                     help="B's size priors the population's own (log-uniform per PSF)")
+    ap.add_argument("--a-stencil", type=int, default=None, choices=[4, 6],
+                    help="A's interpolation onto the integration grid: 4 (Keys cubic) or 6 "
+                         "(quintic Lagrange; default pylensfit.shear.DEFAULT_STENCIL)")
+    ap.add_argument("--b-stencil", type=int, default=None, choices=[4, 6],
+                    help="B's (default A's)")
     ap.add_argument("--by-morphology", action="store_true",
                     help="also print B - A per morphology, per PSF and for the mean of PSFs")
     ap.add_argument("--noise-free", action="store_true",
@@ -215,7 +220,8 @@ def main() -> None:
     cfgs = {w: pri[w][3] for w in "AB"}
     tasks = [{"spec": spec_b if w == "B" else spec, "config": cfgs[w][b % npsf], "prior": pri[w][0],
               "bulge_weights": pri[w][2], "size_prior": pri[w][1][b % npsf], "psf": b % npsf,
-              "block": b, "calibration": False, "which": w, "noise": not a.noise_free}
+              "block": b, "calibration": False, "which": w, "noise": not a.noise_free,
+              "stencil": a.b_stencil or a.a_stencil if w == "B" else a.a_stencil}
              for b in range(nb) for w in "AB"]  # fmt: skip
     res: dict = {"A": {}, "B": {}}
     t0 = time.perf_counter()
@@ -243,7 +249,9 @@ def main() -> None:
           f"{'' if a.b_calibration_seed is None else f'; B priors of seed {a.b_calibration_seed}'}"
           f"{'; B size priors the population' + chr(39) + 's' if a.b_true_size_prior else ''}"
           f"{'; spec ' + str(_kv(a.spec)) if a.spec else ''}"
-          f"{'; B spec ' + str(_kv(a.b_spec)) if a.b_spec else ''}")
+          f"{'; B spec ' + str(_kv(a.b_spec)) if a.b_spec else ''}"
+          f"{'; stencil A ' + str(a.a_stencil) if a.a_stencil else ''}"
+          f"{'; stencil B ' + str(a.b_stencil) if a.b_stencil else ''}")
     print(f"{spec.ngal} galaxies, seed {spec.seed}, {int(ok.sum())} with all four renderings "
           f"measured in both; priors {'estimated' if a.estimated else 'the population'}'s")
     from pylensfit.models import model_bank

@@ -118,19 +118,23 @@ def test_catalogue_file_roundtrip_and_columns(fields, reference, tmp_path):
 
 
 def test_parallel_run_equals_serial(fields, reference):
+    """Workers run with one BLAS thread; a serial run with one BLAS thread gives the same
+    catalogue bit for bit. (With several BLAS threads the float32 matrix products round
+    otherwise, and the sky measured again less the models, whose source masks and clipping
+    are discontinuous, can carry that to 0.2 in ``ln L`` and 1e-4 in e: the output depends
+    on the BLAS threads, not on the number of jobs.)"""
+    from threadpoolctl import threadpool_limits
+
     d, *_ = fields
     cat = measure([d / "a.fits", d / "b.fits"], stars=[d / "stars.fits"], config=CFG,
                   prior=PRIOR, jobs=2, progress=False)  # fmt: skip
-    assert len(cat) == len(reference)
+    with threadpool_limits(1):
+        one = measure([d / "a.fits", d / "b.fits"], stars=[d / "stars.fits"], config=CFG,
+                      prior=PRIOR, progress=False)  # fmt: skip
+    assert len(cat) == len(reference) == len(one)
     np.testing.assert_array_equal(cat["flags"], reference["flags"])
-    np.testing.assert_allclose(cat["e1"], reference["e1"], atol=1e-4)
-    # float32 matrix products summed in another order (BLAS threads): within the 0.01 that
-    # test_likelihood allows float32 against float64
-    a, b = np.asarray(cat["lnL"]), np.asarray(reference["lnL"])
-    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
-    near = b > -50
-    np.testing.assert_allclose(a[near], b[near], atol=1e-2)
-    np.testing.assert_allclose(a[~near], b[~near], rtol=3e-4)
+    for c in ("flags", "e1", "e2", "sens1", "weight", "x", "y", "lnL"):
+        np.testing.assert_array_equal(np.asarray(cat[c]), np.asarray(one[c]), err_msg=c)
 
 
 def test_dask_local_cluster_equals_local_run(fields, reference):

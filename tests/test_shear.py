@@ -127,7 +127,9 @@ def test_refinement_survives_a_kink_at_the_grid_edge():
     (``3 a - 3 b + c`` from a convex run), and the interpolant's spurious peak there
     (ln L +25 over the real one, at e = (-0.54, -0.84)) took the posterior mean with it.
     The limited extrapolation (``_fill_lattice``) keeps the mean and the sensitivity of
-    the likelihood without the dip, to 1e-5."""
+    the likelihood without the dip, to 3e-5 (the dip itself moves them by that much: the
+    quintic interpolant spreads its -15 over three cells each way, 1.7e-5 in sens1, the
+    Keys cubic over two, 1e-5)."""
     lnL = gaussian_lnL(np.array([[0.55, 0.1]]), np.array([0.3]))
     clean = shapes(lnL, EGRID, PRIOR)
     dip = np.argmin(np.hypot(EGRID[:, 0] + 0.55, EGRID[:, 1] + 0.65))
@@ -139,7 +141,7 @@ def test_refinement_survives_a_kink_at_the_grid_edge():
     assert lf.max() < 0.1  # the real peak's cell holds 0
     t = shapes(kink, EGRID, PRIOR)
     for c in ("e1", "e2", "sens1", "sens2"):
-        assert abs(t[c][0] - clean[c][0]) < 1e-5, c
+        assert abs(t[c][0] - clean[c][0]) < 3e-5, c
     # and a concave run beyond the edge (a peak outside the grid) is still extrapolated
     # exactly: refine_lnL of a Gaussian centred at |e| = 1.05
     out = gaussian_lnL(np.array([[-0.6, -0.86]]), np.array([0.1]))
@@ -150,7 +152,8 @@ def test_refinement_survives_a_kink_at_the_grid_edge():
     assert np.ptp(d) < 1e-9
 
 
-def test_refined_integration_equals_direct_evaluation_on_the_fine_grid():
+@pytest.mark.parametrize("stencil", [4, 6])
+def test_refined_integration_equals_direct_evaluation_on_the_fine_grid(stencil):
     # ln L of a Gaussian is quadratic: the interpolation from de = 0.1 is then exact, so
     # refine=4 must equal evaluating the likelihood directly on the de = 0.025 grid.
     rng = np.random.default_rng(2)
@@ -158,7 +161,8 @@ def test_refined_integration_equals_direct_evaluation_on_the_fine_grid():
     e_obs = rng.uniform(-1.1, 1.1, (n, 2))
     s = rng.uniform(0.05, 0.4, n)
     fine = ellipticity_grid(0.1 / DEFAULT_REFINE)
-    lf, grid_f = refine_lnL(gaussian_lnL(e_obs, s), EGRID, refine=DEFAULT_REFINE)
+    lf, grid_f = refine_lnL(gaussian_lnL(e_obs, s), EGRID, refine=DEFAULT_REFINE,
+                            stencil=stencil)  # fmt: skip
     assert np.allclose(grid_f, fine)
     direct = gaussian_lnL(e_obs, s, fine)
     # rows differ by a constant only (each is relative to its own coarse maximum)
@@ -171,6 +175,39 @@ def test_refined_integration_equals_direct_evaluation_on_the_fine_grid():
     for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
         assert np.allclose(t[c], t_ref[c], rtol=1e-7, atol=1e-9), c
     assert t.meta["refine"] == DEFAULT_REFINE and t.meta["sensitivity"] == "exact"
+
+
+def test_quintic_interpolation_integrates_a_non_gaussian_likelihood():
+    """A faint galaxy's ``ln L`` is not quadratic over a cell of 0.1: the models
+    degenerate towards ``|e| = 1``. For Gaussians of width 0.1-0.3 times ``(1 -
+    |e|^2)^3``, the posterior means and sensitivities from the grid of 0.1 (refined by 4)
+    match direct evaluation on the fine grid to 3e-5 rms, and the mean sensitivity to
+    1e-5, with the default quintic stencil; the Keys cubic misses both (7e-5 and 2e-5,
+    the bias in m that ``benchmarks/README.md`` measured on galaxies, twenty-eighth
+    session). The compiled kernel of :func:`shapes` gives what :func:`refine_lnL` does."""
+    rng = np.random.default_rng(7)
+    n = 400
+    e0 = rng.uniform(-0.6, 0.6, (n, 2))
+    s = rng.uniform(0.1, 0.3, n)
+
+    def lnl(grid):
+        d2 = (grid[None, :, 0] - e0[:, :1]) ** 2 + (grid[None, :, 1] - e0[:, 1:]) ** 2
+        return -d2 / (2 * s[:, None] ** 2) + 3.0 * np.log1p(-np.hypot(*grid.T) ** 2)[None]
+
+    fine = ellipticity_grid(0.1 / DEFAULT_REFINE)
+    ref = shapes(lnl(fine), fine, PRIOR, refine=1)
+    rms, bias = {}, {}
+    for stencil in (4, 6):
+        lf, grid_f = refine_lnL(lnl(EGRID), EGRID, refine=DEFAULT_REFINE, stencil=stencil)
+        t = shapes(lf, grid_f, PRIOR, refine=1)
+        rms[stencil] = max(np.sqrt(np.mean((t[c] - ref[c]) ** 2))
+                           for c in ("e1", "e2", "sens1", "sens2"))  # fmt: skip
+        bias[stencil] = max(abs(np.mean(t[c] - ref[c])) for c in ("sens1", "sens2"))
+    assert rms[6] < 3e-5 < rms[4]
+    assert bias[6] < 1e-5 < bias[4]
+    t = shapes(lnl(EGRID), EGRID, PRIOR)  # the kernel, default stencil and refinement
+    for c in ("e1", "e2", "sens1", "sens2"):
+        assert np.allclose(t[c], shapes(lf, grid_f, PRIOR, refine=1)[c], rtol=0, atol=1e-9), c
 
 
 def test_block_size_and_row_offsets_do_not_matter():

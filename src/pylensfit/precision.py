@@ -482,7 +482,8 @@ def _n_blocks(n: int, size: int) -> int:
 # Per-rendering reduction: the 12 numbers the estimators need
 # ----------------------------------------------------------------------------------------
 def reduce_likelihoods(
-    lnL: np.ndarray, egrid: np.ndarray, prior: Prior, g_nominal, *, refine: int = 4
+    lnL: np.ndarray, egrid: np.ndarray, prior: Prior, g_nominal, *, refine: int = 4,
+    stencil: int | None = None,
 ) -> np.ndarray:
     """The per-rendering quantities of every estimator, one pass over the posteriors.
 
@@ -498,6 +499,9 @@ def reduce_likelihoods(
         ``(g1, g2)`` about which the fixed-point estimator is linearised.
     refine : int
         Integration refinement (as :func:`pylensfit.shear.shapes`).
+    stencil : int, optional
+        Points per axis of the interpolation onto the integration grid
+        (:func:`pylensfit.shear.refine_lnL`; default :data:`pylensfit.shear.DEFAULT_STENCIL`).
 
     Returns
     -------
@@ -508,6 +512,7 @@ def reduce_likelihoods(
         J22``).
     """
     from .shear import (
+        DEFAULT_STENCIL,
         _kernel_columns,
         _moments_from_sums,
         _refiner,
@@ -516,12 +521,13 @@ def reduce_likelihoods(
         _sums_with,
     )
 
-    grid = egrid if refine == 1 else _refiner(egrid, refine).fine
+    stencil = DEFAULT_STENCIL if stencil is None else int(stencil)
+    grid = egrid if refine == 1 else _refiner(egrid, refine, stencil).fine
     K0 = _kernel_columns(prior, grid)
     P, d1, d2 = _sheared_prior_columns(prior, grid, np.asarray(g_nominal, float))
     e1, e2 = grid[:, 0], grid[:, 1]
     K1 = np.column_stack([P, e1 * P, e2 * P, d1, e1 * d1, e2 * d1, d2, e1 * d2, e2 * d2])
-    S = _sums_with(lnL, egrid, np.hstack([K0, K1]), refine, None)
+    S = _sums_with(lnL, egrid, np.hstack([K0, K1]), refine, None, stencil)
     S0, S1 = S[:, :14], S[:, 14:]
     mom = _moments_from_sums(S0)
     sx = _sensitivity_from_sums(S0, "exact")
@@ -536,7 +542,8 @@ def reduce_likelihoods(
 
 
 def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4,
-                      bulge_weights: np.ndarray | None = None):  # fmt: skip
+                      bulge_weights: np.ndarray | None = None,
+                      stencil: int | None = None):  # fmt: skip
     """:func:`reduce_likelihoods` of the fits of ``n`` galaxies' four renderings.
 
     Parameters
@@ -553,6 +560,8 @@ def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4,
     bulge_weights : numpy.ndarray, optional
         Prior probabilities of the bulge fractions (:func:`~pylensfit.prior.
         estimate_bulge_weights`); the fits' uniform mixture if ``None``.
+    stencil : int, optional
+        As :func:`reduce_likelihoods`.
 
     Returns
     -------
@@ -573,7 +582,8 @@ def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4,
         sel &= ok
         if np.any(sel):
             gn = (g, g) if k < 2 else (-g, -g)
-            Q[sel] = reduce_likelihoods(lnL[sel], fits.egrid, prior, gn, refine=refine)
+            Q[sel] = reduce_likelihoods(lnL[sel], fits.egrid, prior, gn, refine=refine,
+                                        stencil=stencil)  # fmt: skip
     return Q.reshape(n, 4, _NQ), ok.reshape(n, 4)
 
 
@@ -626,7 +636,8 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
             res["lnL_r"] = fits.lnL_r[ok]
         return res
     Q, usable = reduce_renderings(fits, task["prior"], spec.g, refine=cfg.integration_refine,
-                                  bulge_weights=task.get("bulge_weights"))  # fmt: skip
+                                  bulge_weights=task.get("bulge_weights"),
+                                  stencil=task.get("stencil"))  # fmt: skip
     res["Q"] = Q.astype(np.float32)
     res["usable"] = usable
     res["r_best"] = fits.r_best.reshape(n, nr)[:, 0].astype(np.float32)
