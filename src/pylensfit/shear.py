@@ -40,6 +40,7 @@ __all__ = [
     "FLAG_BAD_LIKELIHOOD",
     "FLAG_NAMES",
     "DEFAULT_REFINE",
+    "DEFAULT_STENCIL",
     "ShearEstimate",
     "apply_shear",
     "estimate_shear",
@@ -195,7 +196,7 @@ class _Refiner:
         peak are used, plus 1. :func:`refine_lnL` and the posterior sums cap every fine
         value there: a likelihood that falls off a cliff (a bright galaxy's near
         ``|e| = 1``, where the models degenerate, or its floor) would otherwise be
-        interpolated, through the negative lobes of the cubic kernel, into a spurious
+        interpolated, through the negative lobes of the kernel, into a spurious
         peak far from its own (per-galaxy responses of -10 at S/N 100).
         """
         m = self.m
