@@ -63,12 +63,14 @@ DEFAULT_REFINE = 4
 #: Points per axis of the stencil that interpolates ``ln L`` onto the integration grid:
 #: 6, the quintic Lagrange interpolant. The Keys cubic (4) reproduces quadratics only:
 #: between nodes 0.1 apart the likelihood of a galaxy at S/N 10-30 is not quadratic
-#: enough, and its interpolation raised m by +0.0006 (``benchmarks/README.md``,
-#: twenty-eighth session); the quintic leaves +0.0002.
+#: enough, and its interpolation raised m by +0.0006; the quintic's moves it by -0.00005
+#: +- 0.00003 (``benchmarks/egrid_interpolation.py``, twenty-eighth session).
 DEFAULT_STENCIL = 6
 
 #: Before interpolation ``ln L - max ln L`` is floored here (``-inf`` entries included):
-#: ``exp(-200)`` is negligible, and the floor keeps the interpolation finite.
+#: the floor keeps the interpolation finite, and lies deep enough that the quintic
+#: stencil, three cells each way, still sees a likelihood of width 0.01 on the grid of
+#: 0.1 exactly (-450 three cells from its peak).
 _LNL_FLOOR = -1000.0
 #: Elements (galaxies x fine cells) processed per block.
 _BLOCK_ELEMENTS = 1 << 22
