@@ -30,6 +30,7 @@ import argparse
 import importlib.util
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -95,14 +96,10 @@ def _task(t: dict) -> dict:
     off = np.where(sel, XA - B, 0.0).sum(1) / np.maximum(sel.sum(1), 1)
     X["inside exact"] = np.where(inner[None], B + off[:, None], XA)
     X["outside exact"] = np.where(inner[None], XA, B + off[:, None])
-    ks = np.tile(np.arange(nr), int(ok.sum()))
-    Q = {}
-    for name, L in X.items():
-        q = np.empty((L.shape[0], 12))
-        for r in range(nr):  # the nominal shear of each rendering
-            gn = (spec.g, spec.g) if r < 2 else (-spec.g, -spec.g)
-            q[ks == r] = P.reduce_likelihoods(L[ks == r], fine, t["prior"], gn, refine=2)
-        Q[name] = q.reshape(-1, nr, 12)
+    none = np.zeros(rows.sum(), dtype=bool)  # no flags, no stars
+    Q = {name: P.reduce_renderings(SimpleNamespace(lnL=L, egrid=fine, flags=none, is_star=none),
+                                   t["prior"], spec.g, refine=2)[0]
+         for name, L in X.items()}  # fmt: skip
     return {"block": b, "psf": k, "Q": Q, "snr": np.asarray(truth["snr"])[ok]}
 
 
