@@ -308,6 +308,19 @@ def main() -> None:
             print(f"| {label} | {int(sel.sum())} | " + " | ".join(cells) +
                   f" | {d[0]:+.4f} ± {e[0]:.4f} | {d[1]:+.4f} ± {e[1]:.4f} |")  # fmt: skip
     if a.by_morphology:
+        mg = {f"{name} {mname}": groups[name] & (gal["morph"] == im)
+              for name in groups for im, mname in enumerate(P.MORPHOLOGIES)}
+        mtab = {w: P.bias_table(Q[w], np.repeat(ok[:, None], 4, 1), jk, spec.g, groups=mg,
+                                controls=X) for w in "AB"}  # fmt: skip
+        print(f"each (fixed point, with controls):\n| PSF, morphology | galaxies | m1 A | m1 B "
+              f"| m2 A | m2 B |\n|{'---|' * 6}")  # fmt: skip
+        for key, sel in mg.items():
+            if (sel & ok).sum() < 200:
+                continue
+            row = {w: _fp(mtab[w], key) for w in "AB"}
+            print(f"| {key} | {int((sel & ok).sum())} | " + " | ".join(
+                f"{row[w][q]:+.4f} ± {row[w][q + '_err']:.4f}" for q in ("m1", "m2")
+                for w in "AB") + " |")  # fmt: skip
         print(f"| B - A, m1 / m2 | {' | '.join(groups)} | mean of PSFs |\n|{'---|' * (npsf + 2)}")
         for im, mname in enumerate(P.MORPHOLOGIES):
             cells, pairs = [], []

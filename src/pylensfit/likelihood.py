@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, field, fields, replace
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -579,7 +580,35 @@ def fit_stamps(
     StampFits
         One row per stamp. Stamps with non-finite pixels or a bad noise value are
         flagged and get NaN ``lnL``; they never raise.
+
+    Notes
+    -----
+    The matrix products run on one BLAS thread whatever the caller's setting (the
+    compiled kernels keep their threads, each galaxy on one of them): a threaded
+    float32 ``sgemm`` sums in another order, and ``ln L`` would depend on the machine's
+    thread count by about 1e-4, which the sky measured again less the models can carry
+    much further. So the result is the same bit for bit in a serial run, under
+    ``jobs > 1`` and on a cluster's workers.
     """
+    with _one_blas_thread():
+        return _fit_stamps(stamps, psf, noise_sigma, config, centres, size_prior,
+                           size_marginal_prior, lnL_r_groups)  # fmt: skip
+
+
+@lru_cache(maxsize=1)
+def _blas_controller():
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
+
+
+def _one_blas_thread():
+    """A context in which the BLAS libraries run on one thread (see :func:`fit_stamps`)."""
+    return _blas_controller().limit(limits=1, user_api="blas")
+
+
+def _fit_stamps(stamps, psf, noise_sigma, config, centres, size_prior, size_marginal_prior,
+                lnL_r_groups) -> StampFits:  # fmt: skip
     cfg = config if config is not None else Config()
     stamps = np.asarray(stamps, dtype=float)
     if stamps.ndim == 2:
