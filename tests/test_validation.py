@@ -259,6 +259,7 @@ def test_validate_end_to_end(tmp_path):
     assert res["n_gal"][-1] == res.meta["images"]["n"].sum()
     # bins of equal counts partition the galaxies (every usable galaxy has a magnitude, S/N)
     b = res.meta["bins"]
+    assert "morphology" not in set(b["kind"])  # STEP1's galaxies have no kinds
     for kind in ("mag", "snr"):
         a = b[(b["kind"] == kind) & (b["psf"] == "all")]
         assert len(a) == 4 and a["n_gal"].sum() == res["n_gal"][-1]
@@ -388,7 +389,7 @@ def step2_validated(step2):
     from pylensfit.validation import validate
 
     return validate(step2["dir"], config=_exponential(), progress=False,
-                    bins={"mag": 2, "size": 2})  # fmt: skip
+                    bins={"mag": 2, "size": 2, "morphology": (-0.5, 0.5, 1.5, 2.5)})  # fmt: skip
 
 
 @pytest.mark.xdist_group("step2_validated")  # one worker validates the set
@@ -422,6 +423,14 @@ def test_validate_step2_twins_and_bins(step2, step2_validated):
             assert t[(t["bin"] == i) & (t["psf"] != "all")]["n_gal"].sum() == a["n_gal"][i]
         assert np.all(a["n_prior"] > 0)
     assert m["bin_edges"]["size"][0] > 0  # r / FWHM
+    # one bin per STEP2 kind (Sersic, bulge+disc, knots; drawn 40/30/30 %), the galaxies'
+    # kinds from the truth: together the truth-matched galaxies, as the size bins
+    t = b[(b["kind"] == "morphology") & (b["psf"] == "all")]
+    assert list(t["bin"]) == [0, 1, 2]
+    n_size = b[(b["kind"] == "size") & (b["psf"] == "all")]["n_gal"].sum()
+    assert t["n_gal"].sum() == n_size
+    frac = t["n_gal"] / n_size
+    assert np.all(np.abs(frac - [0.4, 0.3, 0.3]) < 0.1), frac
     assert set(m["measured"]) == {f"psf{k}_{r}" for k in range(n_psf) for r in ("prior", "shear")}
     assert not any(v["reused"] for v in m["measured"].values())
 

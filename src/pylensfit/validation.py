@@ -525,7 +525,12 @@ _BIN_LABEL = {
     "mag": "magnitude (measured, zeropoint 0)",
     "snr": "S/N (measured model_SNratio)",
     "size": "size r_true / PSF FWHM",
+    "morphology": "morphology (STEP2: 0 Sersic, 1 bulge+disc, 2 knotty disc)",
 }
+#: The galaxy kinds of a STEP2-like set, in the order of their ``morphology`` code.
+STEP2_KINDS: tuple[str, ...] = ("sersic", "bulge+disc", "knots")
+#: The ``morphology`` bins that :func:`validate` adds on a STEP2-like set: one per kind.
+_MORPHOLOGY_EDGES = (-0.5, 0.5, 1.5, 2.5)
 _MATCH_RADIUS = 5.0  # px: detections farther than this from every truth object are unmatched
 
 
@@ -672,8 +677,9 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
     pixels of its fitted centre (one detection per truth object: the nearest). Returns
     the rows with ``flags == 0``, ``fitclass == 0`` (galaxy) and a finite ``ln L`` grid,
     with ``psf``, ``truth_index`` (-1: unmatched), ``truth_star``, ``e1_int, e2_int``,
-    ``size`` (truth ``r`` / PSF FWHM; NaN when unmatched or matched to a star), ``mag``,
-    ``snr`` (``model_SNratio``) and ``lnL``.
+    ``size`` (truth ``r`` / PSF FWHM; NaN when unmatched or matched to a star),
+    ``morphology`` (the index in :data:`STEP2_KINDS` of a STEP2 galaxy's kind; NaN
+    otherwise), ``mag``, ``snr`` (``model_SNratio``) and ``lnL``.
     """
     from scipy.spatial import cKDTree
 
@@ -686,6 +692,7 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
     tidx = np.full(n, -1, dtype=np.int64)
     tstar = np.zeros(n, dtype=bool)
     r, e1, e2 = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    morph = np.full(n, np.nan)
     for name in np.unique(images):
         truth = Table.read(fields[name]["path"], hdu="TRUTH")
         sel = np.flatnonzero(images == name)
@@ -702,6 +709,9 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
         r[rows] = np.asarray(truth["r"])[jj]
         e1[rows] = np.asarray(truth["e1_int"])[jj]
         e2[rows] = np.asarray(truth["e2_int"])[jj]
+        if "kind" in truth.colnames:
+            kinds = np.asarray(truth["kind"]).astype(str)[jj]
+            morph[rows] = [STEP2_KINDS.index(k) if k in STEP2_KINDS else np.nan for k in kinds]
     out = Table()
     out["psf"] = np.full(n, psf, dtype=np.int64)
     out["image"] = images
@@ -709,6 +719,7 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
     out["truth_star"] = tstar
     out["e1_int"], out["e2_int"] = e1, e2
     out["size"] = np.where(tstar, np.nan, r / psf_fwhm)
+    out["morphology"] = np.where(tstar, np.nan, morph)
     out["mag"] = np.asarray(g["mag"], dtype=float)
     out["snr"] = np.asarray(g["model_SNratio"], dtype=float)
     out["lnL"] = np.asarray(g["lnL"], dtype=np.float32)
@@ -1044,6 +1055,8 @@ def validate(
       the ellipticity and so add a selection bias that belongs to the cut, not to the
       method; galaxies without a truth match (spurious detections) drop out of these
       bins only.
+    - ``"morphology"``: a STEP2 galaxy's kind (Sersic, bulge+disc, knotty disc), from
+      the truth: where the model family fits worst. Its prior per bin is the kind's own.
 
     For twins, a pair's bin is that of the mean of its two members' values (the size is
     the same), so a pair never straddles two bins. Bins partition the usable galaxies
@@ -1072,9 +1085,11 @@ def validate(
     remeasure : bool
         Measure again even if kept catalogues match.
     bins : dict, optional
-        ``{quantity: n_bins or edges}`` for quantities ``"mag"``, ``"snr"``, ``"size"``
-        (default :data:`DEFAULT_BINS`; ``{}`` for none). An integer gives bins of equal
-        counts of shear-field galaxies, the outer edges widened to every galaxy.
+        ``{quantity: n_bins or edges}`` for quantities ``"mag"``, ``"snr"``, ``"size"``,
+        ``"morphology"`` (default :data:`DEFAULT_BINS`, and on a STEP2-like set one bin
+        per galaxy kind of :data:`STEP2_KINDS`; ``{}`` for none). An integer gives bins
+        of equal counts of shear-field galaxies, the outer edges widened to every galaxy.
+        A quantity that no galaxy has (``"morphology"`` on a STEP1-like set) is skipped.
     bin_min_count : int
         Fewest prior-field galaxies for a bin to get its own prior.
 
@@ -1103,11 +1118,15 @@ def validate(
 
     if estimator not in ("key2", "fixed-point"):
         raise ValueError(f"estimator must be 'key2' or 'fixed-point', got {estimator!r}")
-    bins = dict(DEFAULT_BINS if bins is None else bins)
+    man = read_manifest(directory)
+    if bins is None:
+        bins = dict(DEFAULT_BINS)
+        if man.get("fieldspec", {}).get("model") == "step2":
+            bins["morphology"] = _MORPHOLOGY_EDGES
+    bins = dict(bins)
     for k in bins:
         if k not in _BIN_LABEL:
             raise ValueError(f"unknown bin quantity {k!r}; use {sorted(_BIN_LABEL)}")
-    man = read_manifest(directory)
     cfg = config if config is not None else step_config()
     fields = {f["file"]: f for f in man["fields"]}
     by_psf: dict[int, list] = {}
@@ -1194,6 +1213,8 @@ def validate(
     bin_rows, bin_edges = [], {}
     for kind, spec in bins.items():
         v = np.asarray(sg[kind], float)
+        if not np.isfinite(v).any():  # a quantity that this set's galaxies lack
+            continue
         vb = v.copy()
         vb[has] = 0.5 * (v[has] + v[partner[has]])
         use = has if pairs else np.ones(len(sg), bool)
@@ -1523,8 +1544,10 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
                   "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
         for r in b[b["psf"] == "all"]:
             fb = " (global prior)" if r["prior_fallback"] else ""
+            span = (STEP2_KINDS[int(r["bin"])] if r["kind"] == "morphology"
+                    else f"[{r['lo']:.3g}, {r['hi']:.3g})")  # fmt: skip
             lines.append(
-                f"| {r['kind']} | [{r['lo']:.3g}, {r['hi']:.3g}) | {r['n_gal']} | "
+                f"| {r['kind']} | {span} | {r['n_gal']} | "
                 f"{r['n_prior']}{fb} | {r['mean_m']:+.4f} +- {r['mean_m_err']:.4f} | "
                 f"{r['m1']:+.4f} +- {r['m1_err']:.4f} | {r['c1']:+.5f} +- {r['c1_err']:.5f} | "
                 f"{r['m2']:+.4f} +- {r['m2_err']:.4f} | {r['c2']:+.5f} +- {r['c2_err']:.5f} | "
