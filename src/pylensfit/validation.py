@@ -1086,10 +1086,11 @@ def validate(
         Measure again even if kept catalogues match.
     bins : dict, optional
         ``{quantity: n_bins or edges}`` for quantities ``"mag"``, ``"snr"``, ``"size"``,
-        ``"morphology"`` (default :data:`DEFAULT_BINS`, and on a STEP2-like set one bin
-        per galaxy kind of :data:`STEP2_KINDS`; ``{}`` for none). An integer gives bins
-        of equal counts of shear-field galaxies, the outer edges widened to every galaxy.
-        A quantity that no galaxy has (``"morphology"`` on a STEP1-like set) is skipped.
+        ``"morphology"`` (default :data:`DEFAULT_BINS`; ``{}`` for none). On a STEP2-like
+        set, one bin per galaxy kind of :data:`STEP2_KINDS` is added unless ``bins`` is
+        empty or gives ``"morphology"`` itself. An integer gives bins of equal counts of
+        shear-field galaxies, the outer edges widened to every galaxy. A quantity that
+        no galaxy has (``"morphology"`` on a STEP1-like set) is skipped.
     bin_min_count : int
         Fewest prior-field galaxies for a bin to get its own prior.
 
@@ -1119,11 +1120,9 @@ def validate(
     if estimator not in ("key2", "fixed-point"):
         raise ValueError(f"estimator must be 'key2' or 'fixed-point', got {estimator!r}")
     man = read_manifest(directory)
-    if bins is None:
-        bins = dict(DEFAULT_BINS)
-        if man.get("fieldspec", {}).get("model") == "step2":
-            bins["morphology"] = _MORPHOLOGY_EDGES
-    bins = dict(bins)
+    bins = dict(DEFAULT_BINS if bins is None else bins)
+    if bins and man.get("fieldspec", {}).get("model") == "step2":
+        bins.setdefault("morphology", _MORPHOLOGY_EDGES)
     for k in bins:
         if k not in _BIN_LABEL:
             raise ValueError(f"unknown bin quantity {k!r}; use {sorted(_BIN_LABEL)}")
