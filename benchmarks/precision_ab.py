@@ -322,10 +322,10 @@ def main() -> None:
                 f"{row[w][q]:+.4f} ± {row[w][q + '_err']:.4f}" for q in ("m1", "m2")
                 for w in "AB") + " |")  # fmt: skip
         print(f"| B - A, m1 / m2 | {' | '.join(groups)} | mean of PSFs |\n|{'---|' * (npsf + 2)}")
-        for im, mname in enumerate(P.MORPHOLOGIES):
+        for mname in P.MORPHOLOGIES:
             cells, pairs = [], []
             for name in groups:
-                sel = groups[name] & ok & (gal["morph"] == im)
+                sel = mg[f"{name} {mname}"] & ok
                 if sel.sum() < 200:
                     cells.append("")
                     continue

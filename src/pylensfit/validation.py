@@ -92,6 +92,10 @@ STEP2_PSFS: tuple[dict, ...] = (
     {"fwhm": 3.5, "beta": 3.0, "e1": -0.07, "e2": 0.10},  # highly elliptical, diagonal
 )
 
+#: The galaxy kinds of a STEP2-like set (drawn 40/30/30 %), in the order of their
+#: ``morphology`` code in :func:`validate`.
+STEP2_KINDS: tuple[str, ...] = ("sersic", "bulge+disc", "knots")
+
 #: STEP1 input shears ``g1`` (``g2 = 0``).
 STEP1_SHEARS: tuple[float, ...] = (0.0, 0.005, 0.01, 0.05, 0.1)
 
@@ -171,7 +175,7 @@ def render_step2_field(
     n = int(spec.size)
     x, y, is_star, r, snr, star_snr, e_int = draw_population(spec, rng)
     n_obj = x.size
-    kinds = rng.choice(np.array(["sersic", "bulge+disc", "knots"]), n_obj, p=[0.4, 0.3, 0.3])
+    kinds = rng.choice(np.array(STEP2_KINDS), n_obj, p=[0.4, 0.3, 0.3])
     sersic_n = np.round(rng.uniform(0.5, 4.0, n_obj), 1)  # quantised: GalSim caches by n
     bulge_frac = rng.uniform(0.0, 0.5, n_obj)
     knot_frac = rng.uniform(0.2, 0.5, n_obj)
@@ -527,8 +531,6 @@ _BIN_LABEL = {
     "size": "size r_true / PSF FWHM",
     "morphology": "morphology (STEP2: 0 Sersic, 1 bulge+disc, 2 knotty disc)",
 }
-#: The galaxy kinds of a STEP2-like set, in the order of their ``morphology`` code.
-STEP2_KINDS: tuple[str, ...] = ("sersic", "bulge+disc", "knots")
 #: The ``morphology`` bins that :func:`validate` adds on a STEP2-like set: one per kind.
 _MORPHOLOGY_EDGES = (-0.5, 0.5, 1.5, 2.5)
 _MATCH_RADIUS = 5.0  # px: detections farther than this from every truth object are unmatched
@@ -710,8 +712,9 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
         e1[rows] = np.asarray(truth["e1_int"])[jj]
         e2[rows] = np.asarray(truth["e2_int"])[jj]
         if "kind" in truth.colnames:
-            kinds = np.asarray(truth["kind"]).astype(str)[jj]
-            morph[rows] = [STEP2_KINDS.index(k) if k in STEP2_KINDS else np.nan for k in kinds]
+            names, inv = np.unique(np.asarray(truth["kind"]).astype(str)[jj], return_inverse=True)
+            code = np.array([STEP2_KINDS.index(k) if k in STEP2_KINDS else np.nan for k in names])
+            morph[rows] = code[inv]
     out = Table()
     out["psf"] = np.full(n, psf, dtype=np.int64)
     out["image"] = images
