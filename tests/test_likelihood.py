@@ -1040,3 +1040,72 @@ def test_tiled_kernel_matches_per_model_laplace(n_chi, cubic, amp):
     np.testing.assert_allclose(hbest, ref[np.arange(n_gal), jb, 1], rtol=1e-12, atol=tol)
     np.testing.assert_allclose(xb, ref[np.arange(n_gal), jb, 2], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(yb, ref[np.arange(n_gal), jb, 3], rtol=1e-12, atol=1e-12)
+
+
+def _refinement_set(rng, model, snr_range, n=10):
+    psf = PSFS["moffat_e1"]
+    stamps = []
+    for _ in range(n):
+        e1, e2 = rng.uniform(-0.45, 0.45, 2)
+        img = draw(galsim.Convolve(galsim_model(model, rng.uniform(1.2, 3.0), e1, e2), psf),
+                   offset=tuple(rng.uniform(-0.5, 0.5, 2)))  # fmt: skip
+        img *= rng.uniform(*snr_range) / np.sqrt((img**2).sum())
+        stamps.append(img + rng.normal(size=img.shape))
+    return np.array(stamps), draw(psf)
+
+
+@pytest.mark.xdist_group("bank_e0.05")  # one worker builds the finer grid's banks
+@pytest.mark.parametrize("model, n_b", [("exponential", 1), ("bulge+disc", 3)])
+def test_refined_windows_are_the_finer_grid_fit(rng, model, n_b):
+    """With ``e_refine = 2`` a bright galaxy's likelihood near its peak is the one a fit on
+    the grid of 0.05 gives (the same models, up to the centring pass's origin), and
+    elsewhere the interpolation of its fit on the grid of 0.1, which alone is off by
+    more than a unit of ln L at the peak of such a narrow likelihood."""
+    from pylensfit.shear import refine_lnL
+
+    stamps, psf = _refinement_set(rng, model, (60, 250))
+    cfg = Config(model=model, n_bulge_fractions=n_b)
+    ref = fit_stamps(stamps, psf, 1.0, config=cfg.replace(e_refine=2))
+    fine = fit_stamps(stamps, psf, 1.0, config=cfg.replace(e_step=0.05))
+    coarse = fit_stamps(stamps, psf, 1.0, config=cfg)
+    np.testing.assert_array_equal(ref.egrid, fine.egrid)
+    assert ref.meta["e_step"] == 0.05 and ref.lnL.shape == fine.lnL.shape
+    interp = refine_lnL(coarse.lnL, coarse.egrid, refine=2)[0] + coarse.lnL_peak[:, None]
+    A = ref.lnL + ref.lnL_peak[:, None].astype(float)
+    B = fine.lnL + fine.lnL_peak[:, None].astype(float)
+    assert (np.abs(A - interp) > 1e-3).any(axis=1).all()  # every one was refined
+    close = B > B.max(axis=1, keepdims=True) - 10.0  # the cells within 10 of the peak
+    np.testing.assert_allclose(A[close], B[close], atol=0.05)
+    assert np.abs(interp - B)[close].max() > 1.0  # the interpolation alone is not enough
+    if n_b > 1:
+        Ab = ref.lnL_bulge + ref.lnL_peak[:, None, None]
+        Bb = fine.lnL_bulge + fine.lnL_peak[:, None, None]
+        live = close[:, None, :] & (Bb > B.max(axis=1)[:, None, None] - 10.0)
+        np.testing.assert_allclose(Ab[live], Bb[live], atol=0.05)
+
+
+@pytest.mark.xdist_group("bank_e0.05")
+def test_broad_likelihoods_are_interpolated_not_refined(rng):
+    """A faint galaxy's likelihood spreads beyond ``refine_width``: it is the interpolation
+    of the grid of 0.1 (the quintic of the Bayesian integrals) on every cell."""
+    from pylensfit.shear import refine_lnL
+
+    stamps, psf = _refinement_set(rng, "exponential", (8, 12))
+    cfg = Config(model="exponential")
+    ref = fit_stamps(stamps, psf, 1.0, config=cfg.replace(e_refine=2))
+    coarse = fit_stamps(stamps, psf, 1.0, config=cfg)
+    interp = refine_lnL(coarse.lnL, coarse.egrid, refine=2)[0] + coarse.lnL_peak[:, None]
+    A = ref.lnL + ref.lnL_peak[:, None].astype(float)
+    np.testing.assert_allclose(A, interp, atol=2e-3)
+    np.testing.assert_allclose(ref.lnL_r, coarse.lnL_r + (coarse.lnL_peak
+                                                          - ref.lnL_peak)[:, None], atol=1e-4)
+
+
+def test_refinement_settings():
+    cfg = Config(e_refine=2)
+    assert cfg.output_e_step == 0.05 and cfg.output_refine == 2
+    assert Config(e_refine=2, integration_refine=1).output_refine == 1
+    for bad in ({"e_refine": 0}, {"e_refine": 1.5}, {"refine_width": 0.0},
+                {"refine_lnl": -1.0}):  # fmt: skip
+        with pytest.raises(ValueError):
+            Config(**bad)

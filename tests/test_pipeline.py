@@ -117,6 +117,26 @@ def test_catalogue_file_roundtrip_and_columns(fields, reference, tmp_path):
     assert back.meta["config"] == CFG
 
 
+@pytest.mark.xdist_group("bank_e0.05")
+def test_refined_grid_through_the_pipeline(fields, reference):
+    """``e_refine = 2``: the catalogue's likelihoods are on the grid of 0.05, every row is
+    kept, and the shapes move only where the finer cells resolve a narrow likelihood."""
+    from pylensfit.grid import grid_step
+
+    d, *_ = fields
+    cat = measure([d / "a.fits"], stars=[d / "stars.fits"], config=CFG.replace(e_refine=2),
+                  prior=PRIOR, progress=False)  # fmt: skip
+    eg = np.asarray(cat.meta["egrid"])
+    assert grid_step(eg) == pytest.approx(0.05) and cat["lnL"].shape[1] == eg.shape[0]
+    ref = reference[reference["image_index"] == 0]
+    np.testing.assert_array_equal(cat["id"], ref["id"])
+    np.testing.assert_array_equal(cat["flags"], ref["flags"])
+    ok = ref["flags"] == 0
+    assert np.isfinite(cat["e1"][ok]).all() and np.isfinite(cat["sens1"][ok]).all()
+    de = np.hypot(cat["e1"] - ref["e1"], cat["e2"] - ref["e2"])[ok]
+    assert np.median(de) < 0.01 and de.max() < 0.1
+
+
 def test_parallel_run_equals_serial(fields, reference):
     """Two worker processes (one BLAS thread each) and a serial run with the BLAS
     libraries on two threads give the same catalogue bit for bit: ``fit_stamps`` runs

@@ -509,12 +509,38 @@ _EXP_ZERO = 746.0
 _PRIOR_KINK = 1.0
 
 
-@njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
+def amplitude_table(amp_pow, amp_hi):
+    """The power-law table that :func:`laplace_grid` needs for an amplitude prior (computed
+    once for many calls of :func:`laplace_grid_tab`)."""
+    if amp_pow >= 0.0 and amp_hi == math.inf:
+        return _power_law_table(amp_pow)
+    return 0.0, np.empty((4, 0))
+
+
+@njit(cache=True)
 def laplace_grid(
     prod, members, mix_a, mix_b, mix_f, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma,
     x0, y0, b2, max_step,
     node_w, w_star, ln_pi, e_w, e_grp, amp_pow, amp_lns, amp_lo, amp_hi, cubic, out_lnle,
     out_lnlb, out_lnlr, out_best, out_h, out_x, out_y,
+):  # fmt: skip
+    """:func:`laplace_grid_tab` with the amplitude prior's table computed here."""
+    if amp_pow >= 0.0 and amp_hi == math.inf:
+        pt0, ptab = _power_law_table(amp_pow)
+    else:
+        pt0, ptab = 0.0, np.empty((4, 0))
+    laplace_grid_tab(prod, members, mix_a, mix_b, mix_f, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy,
+                     myy, sigma, x0, y0, b2, max_step, node_w, w_star, ln_pi, e_w, e_grp,
+                     amp_pow, amp_lns, amp_lo, amp_hi, cubic, pt0, ptab, out_lnle, out_lnlb,
+                     out_lnlr, out_best, out_h, out_x, out_y)  # fmt: skip
+
+
+@njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
+def laplace_grid_tab(
+    prod, members, mix_a, mix_b, mix_f, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma,
+    x0, y0, b2, max_step,
+    node_w, w_star, ln_pi, e_w, e_grp, amp_pow, amp_lns, amp_lo, amp_hi, cubic, pt0, ptab,
+    out_lnle, out_lnlb, out_lnlr, out_best, out_h, out_x, out_y,
 ):  # fmt: skip
     """Fill per-galaxy ``ln L(e)`` (summed over r), ``ln L(r)`` and the best model.
 
@@ -580,6 +606,9 @@ def laplace_grid(
         law in the model's S/N, ``amp_pow - 1`` for one in the flux.
     amp_lo, amp_hi : float
         Bounds on the flux of a power-law amplitude prior (0 and inf: none).
+    pt0, ptab : float and (4, n) array
+        The unbounded power law's table, :func:`amplitude_table` (``laplace_grid``
+        computes it itself).
     e_w : (n_e,) array
         Weights of the e cells (summing to 1) in ``L(r) = sum_e e_w L(e, r)``: an
         ellipticity prior's mass per cell.
@@ -636,10 +665,6 @@ def laplace_grid(
                     cm[it, hm, 3, k] = mxy[j]
                     cm[it, hm, 4, k] = myy[j]
                     cm[it, hm, 5, k] = ln_m[j]
-    if amp_pow >= 0.0 and amp_hi == math.inf:
-        pt0, ptab = _power_law_table(amp_pow)
-    else:
-        pt0, ptab = 0.0, np.empty((4, 0))
     for g in prange(n_gal):
         sig = sigma[g]
         gx0 = x0[g]

@@ -104,7 +104,7 @@ def _shear(args: argparse.Namespace) -> int:
     if prior is None:
         raise ValueError("no prior: give --prior (see `pylensfit prior`)")
     sens = args.sensitivity or (cfg.sensitivity if cfg is not None else "exact")
-    refine = cfg.integration_refine if cfg is not None else 4
+    refine = cfg.output_refine if cfg is not None else 4
     gal = _usable_galaxies(cat)
     if not gal.any():
         raise ValueError("no measured galaxy in the catalogue(s)")

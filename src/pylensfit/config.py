@@ -60,6 +60,22 @@ class Config:
     )
     e_step: float = _f(0.1, "ellipticity grid step Delta e (cell centres, |e| < e_max)")
     e_max: float = _f(1.0, "largest |e| of the ellipticity grid")
+    e_refine: int = _f(
+        1,
+        "adaptive refinement of the e grid: with k > 1 the likelihood is given on cells of "
+        "e_step / k; each galaxy whose ln L (on the e_step grid) is within refine_lnl of its "
+        "maximum only inside refine_width of its peak cell is fitted again on the fine cells "
+        "of that window, the other cells and galaxies are interpolated (1: none). For "
+        "likelihoods narrower than the grid, where interpolation from the e_step cells "
+        "biases m (+0.003 with exact models: benchmarks/README.md, thirtieth session)",
+    )
+    refine_width: float = _f(
+        0.4, "with e_refine > 1: the largest half-width in e of a refined galaxy's window"
+    )
+    refine_lnl: float = _f(
+        12.0, "with e_refine > 1: a refined galaxy's window is the square about its peak "
+        "cell that holds every e_step cell whose ln L is within this of the maximum",
+    )
     r_min: float = _f(0.0, "smallest model size in pixels (0: the point-source model)")
     r_max: float = _f(10.0, "largest model size in pixels")
     r_step: float = _f(0.2, "model size step Delta r in pixels (the largest step)")
@@ -236,6 +252,19 @@ class Config:
         ``stamp_size`` without tiers): the size stamps and PSF images should have."""
         return self.max_stamp_size or self.stamp_size
 
+    @property
+    def output_e_step(self) -> float:
+        """The cell side of the likelihood grid that :func:`~pylensfit.fit_stamps` returns
+        (``e_step / e_refine``)."""
+        return self.e_step / self.e_refine
+
+    @property
+    def output_refine(self) -> int:
+        """``integration_refine`` on the output grid: the Bayesian integrals run on cells
+        of ``e_step / integration_refine`` whatever ``e_refine`` is (at least the output
+        grid's own cells)."""
+        return max(1, self.integration_refine // self.e_refine)
+
     @classmethod
     def describe(cls) -> dict[str, tuple[Any, str]]:
         """``{name: (default, description)}`` for every parameter."""
@@ -325,6 +354,10 @@ def _validate(c: Config) -> None:
     need(c.k_max >= 0, f"k_max must be >= 0, got {c.k_max}")
     need(0 < c.e_step <= 0.5, f"e_step must be in (0, 0.5], got {c.e_step}")
     need(0 < c.e_max <= 1, f"e_max must be in (0, 1], got {c.e_max}")
+    need(float(c.e_refine).is_integer() and 1 <= c.e_refine <= 8,
+         f"e_refine must be an integer in [1, 8], got {c.e_refine!r}")  # fmt: skip
+    need(c.refine_width > 0, f"refine_width must be > 0, got {c.refine_width}")
+    need(c.refine_lnl > 0, f"refine_lnl must be > 0, got {c.refine_lnl}")
     need(c.r_step > 0, f"r_step must be > 0, got {c.r_step}")
     need(0 <= c.r_rel_step < 1, f"r_rel_step must be in [0, 1), got {c.r_rel_step}")
     need(0 <= c.r_min < c.r_max, f"need 0 <= r_min < r_max, got {c.r_min}, {c.r_max}")

@@ -283,7 +283,7 @@ def measure_setting(
         raise ValueError(
             f"config.stamp_size {config.stamp_size} != sample stamp size {sample.stamp_size}"
         )
-    refine = config.integration_refine if refine is None else int(refine)
+    refine = config.output_refine if refine is None else int(refine)
     t0 = time.perf_counter()
     fits = fit_stamps(
         sample.stamps, sample.psf_image, sample.noise_sigma, config=config,
@@ -435,7 +435,7 @@ def convergence_table(
             "size_range": [float(sample.r.min()), float(sample.r.max())],
             "prior": {"B": (prior or sample.prior).B, "C": (prior or sample.prior).C,
                       "D": (prior or sample.prior).D},
-            "refine": base.integration_refine if refine is None else int(refine),
+            "refine": base.output_refine if refine is None else int(refine),
             "base": {"e_step": base.e_step, "r_step": base.r_step, "r_max": base.r_max,
                      "stamp_size": base.stamp_size},
             "offset_direction": "+x",

@@ -441,7 +441,7 @@ def _psf_bank(psf: np.ndarray, config: Config, bank) -> _PSFBank:
     if hit is not None and hit[0] is bank:
         return hit[1]
     pb = _psf_bank_of(psf, config, bank)
-    _keep(_PSF_BANKS, key, (bank, pb), 8)
+    _keep(_PSF_BANKS, key, (bank, pb), 16)
     return pb
 
 
@@ -890,6 +890,7 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     r_w = np.asarray(bank.r_weights, dtype=float)
     rw_c = np.tile(r_w, bank.n_r // bank.n_sizes)[coarse.cols[:-1] % n_r][: coarse.n_r]
     b2 = cfg.position_prior_sigma**2
+    cubic_g = np.zeros(n_gal, dtype=bool)
     # the PSF bank's values at the coarse models, once for every block
     S_c, mxx_c, mxy_c, myy_c = (a[coarse.cols] for a in (pb.S, pb.mxx, pb.mxy, pb.myy))
     for s0 in range(0, n_gal, cfg.block_size):
@@ -916,6 +917,7 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
         # fraction of a pixel, with the third-order expansion in position
         snr_c = tmp[4] / (sigma[sl] * np.sqrt(S_c[tmp[3]]))
         low = snr_c < cfg.cubic_snr
+        cubic_g[sl] = low
         for sel, cubic in ((np.flatnonzero(low), True), (np.flatnonzero(~low), False)):
             if sel.size == 0:
                 continue
@@ -932,6 +934,14 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
                 *out,
             )  # fmt: skip
             lnle[idx], lnleb[idx], lnlr[idx], best[idx], hbest[idx], xb[idx], yb[idx] = out
+
+    egrid = bank.egrid
+    if cfg.e_refine > 1:
+        # the finer grid: every galaxy interpolated, the narrow ones fitted again there
+        ok = ~bad & np.isfinite(lnle).all(axis=1)
+        kern = dict(sigma=sigma, x0=x0 - xc, y0=y0 - yc, b2=b2, node_w=node_w, w_star=w_star,
+                    ln_pi=ln_pi, amp=(amp_pow, amp_lns, amp_lo, amp_hi))  # fmt: skip
+        egrid, lnle, lnleb = _refine_grid(cfg, psf, bank, lnle, lnleb, ok, cubic_g, rows, kern)
 
     lnlr_grp = None
     if n_grp > 1:  # the sum over all cells, and the groups apart
@@ -969,7 +979,7 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     fracs = bank.bulge if bank.bulge is not None else np.full(n_r, cfg.bulge_fraction)
     bulge_best = np.where(ie_best >= 0, fracs[best % max(n_r, 1)], np.nan) * nanif
     return StampFits(
-        egrid=bank.egrid.copy(),
+        egrid=egrid.copy(),
         lnL=lnL,
         lnL_peak=np.where(dead, np.nan, peak),
         r_best=r_best * nanif,
@@ -981,8 +991,8 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
         flags=flags,
         e1_best=e_best[:, 0] * nanif,
         e2_best=e_best[:, 1] * nanif,
-        meta={"model": cfg.model, "e_step": cfg.e_step, "r_step": cfg.r_step,
-              "r_max": cfg.r_max},  # fmt: skip
+        meta={"model": cfg.model, "e_step": cfg.output_e_step, "r_step": cfg.r_step,
+              "r_max": cfg.r_max, "e_refine": int(cfg.e_refine)},  # fmt: skip
         lnL_bulge=lnL_bulge,
         lnL_star=lnL_star,
         bulge_fractions=None if n_b == 1 else np.unique(bank.bulge),
@@ -991,3 +1001,158 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
         stamp=np.full(n_gal, n),
         lnL_r_grouped=lnlr_grp,
     )
+
+
+def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern):
+    """``ln L(e)`` on the finer grid of ``cfg.e_refine`` (adaptive refinement).
+
+    Every usable galaxy's ``ln L`` (and each bulge fraction's) is interpolated from the
+    ``e_step`` grid onto the cells ``e_step / e_refine`` (:func:`pylensfit.shear.
+    refine_lnL`, the quintic that the Bayesian integrals use). A galaxy whose ``e_step``
+    cells within ``refine_lnl`` of the maximum all lie within a square of half-width
+    ``h >= 1`` cells about the peak cell, with ``(h + 1/2) e_step <= refine_width``, is
+    then evaluated again, exactly, on every fine cell of that square: the likelihood that
+    the coarse grid samples too sparsely is computed where it matters, at the cost of the
+    window's models only. Outside the window its values stay interpolated (``exp(-12)``
+    or less of the peak there; the emulation of ``benchmarks/egrid_refinement.py`` found
+    interpolated values outside a window of 4-6 sigma as good as exact ones).
+
+    The window's products are the unfolded ones (the window has none of the square's
+    symmetries): the half-plane of frequencies with the Hermitian weights, each fine
+    row of the window a contiguous block of the fine bank's columns (a view, no copy).
+    Galaxies of one peak cell, window and order of the position expansion share their
+    products and one kernel call.
+
+    Returns the fine grid, ``ln L(e)`` ``(n, n_f)`` and per fraction ``(n, n_f, n_b)``
+    (NaN for unusable rows), on the scale of ``lnle``.
+    """
+    from ._kernels_nb import amplitude_table, laplace_grid_tab
+    from .shear import refine_lnL
+
+    k = int(cfg.e_refine)
+    cfg_f = cfg.replace(e_step=cfg.output_e_step, e_refine=1)
+    bank_f = model_bank(cfg_f)
+    fine = bank_f.egrid
+    n_gal, n_e = lnle.shape
+    n_b = lnleb.shape[2]
+    n_r = bank.n_r
+    n_f = fine.shape[0]
+    lnle_f = np.full((n_gal, n_f), np.nan)
+    lnleb_f = np.full((n_gal, n_f, n_b), np.nan)
+    g_ok = np.flatnonzero(ok)
+    if g_ok.size == 0:
+        return fine, lnle_f, lnleb_f
+
+    def interpolated(x):  # rows of ln L on the e_step grid, each to its own maximum
+        top = x.max(axis=1)
+        out = np.full((x.shape[0], n_f), -np.inf)
+        live = np.isfinite(top)
+        if live.any():
+            xi, grid = refine_lnL(x[live] - top[live, None], bank.egrid, refine=k)
+            if grid.shape != fine.shape or not np.allclose(grid, fine):
+                raise RuntimeError("the refined e grid is not the fine model bank's")
+            out[live] = xi + top[live, None]
+        return out
+
+    lnle_f[g_ok] = interpolated(lnle[g_ok])
+    xb = np.moveaxis(lnleb[g_ok], 2, 1).reshape(-1, n_e)
+    lnleb_f[g_ok] = np.moveaxis(interpolated(xb).reshape(g_ok.size, n_b, n_f), 1, 2)
+
+    # the windows: the coarse cells within refine_lnl of the maximum, as their fine
+    # cells, and the fine cells next to those
+    step, fstep = cfg.e_step, cfg.output_e_step
+    lat = np.rint(bank.egrid / step - 0.5).astype(np.int64)
+    x = lnle[g_ok]
+    pk = np.argmax(x, axis=1)
+    near = x >= (x[np.arange(g_ok.size), pk] - cfg.refine_lnl)[:, None]
+    reach = np.where(near, np.abs(lat[None, :, :] - lat[pk][:, None, :]).max(axis=2), 0)
+    go = (reach.max(axis=1) + 0.5) * step + fstep <= cfg.refine_width * (1 + 1e-9)
+    if not go.any():
+        return fine, lnle_f, lnleb_f
+    gal = g_ok[go]
+    flat = np.rint(fine / fstep - 0.5).astype(np.int64)
+    c_of = {(int(a), int(b)): i for i, (a, b) in enumerate(lat)}
+    f_of = {(int(a), int(b)): i for i, (a, b) in enumerate(flat)}
+    parent = np.array([c_of.get((int(a) // k, int(b) // k), n_e) for a, b in flat])
+    nbr = np.array([[f_of.get((int(a) + da, int(b) + db), n_f) for da in (-1, 0, 1)
+                     for db in (-1, 0, 1)] for a, b in flat])  # fmt: skip
+    near_f = np.zeros((gal.size, n_f + 1), dtype=bool)
+    near_f[:, :n_f] = np.pad(near[go], ((0, 0), (0, 1)))[:, parent]
+    window = near_f[:, nbr].any(axis=2)  # (n_go, n_f)
+
+    pb_f = _psf_bank(psf, cfg_f, bank_f)
+    n = cfg.stamp_size
+    _, _, w = rfft_frequencies(n)
+    wk = w.ravel() * _interior(n, cfg.k_max) / n**2
+    if bank_f.rows is not None:
+        wk = wk[bank_f.rows]
+    G = bank_f.G
+    dtype = np.dtype(cfg.dtype)
+    n_sub = bank.n_sizes
+    fr = np.asarray(bank.bulge, float)[::n_sub] if bank.bulge is not None else np.zeros(1)
+    mixed = bank.model == "bulge+disc" and n_b >= 3 and fr[0] == 0.0 and fr[-1] == 1.0
+    base_runs = [0, n_b - 1] if mixed else list(range(n_b))
+    mid_runs = list(range(1, n_b - 1)) if mixed else []
+    n_bc = len(base_runs) * n_sub
+    base_ir = np.concatenate([np.arange(b * n_sub, (b + 1) * n_sub) for b in base_runs])
+    node_w = kern["node_w"]
+    live_r = node_w > 0
+    table = amplitude_table(kern["amp"][0], kern["amp"][3])
+    for cubic in (False, True):
+        sel = np.flatnonzero(cubic_g[gal] == cubic)
+        for c0 in range(0, sel.size, 128):
+            part = sel[c0 : c0 + 128]
+            idx = gal[part]
+            R = rows_fn(idx, cubic)
+            if bank_f.rows is not None:
+                R = R[:, bank_f.rows]
+            q = R.shape[0] // idx.size
+            R = (R * wk).astype(dtype).reshape(q, idx.size, -1)
+            star = R @ G[:, -1]  # (q, n_g)
+            gi, cells = np.nonzero(window[part])  # galaxy-major pairs
+            bounds = np.searchsorted(gi, np.arange(idx.size + 1))
+            B = np.empty((q, gi.size, n_bc), dtype=dtype)
+            order = np.argsort(cells, kind="stable")
+            cuts = np.flatnonzero(np.diff(cells[order])) + 1
+            for grp in np.split(order, cuts):  # one fine cell: its galaxies' products
+                f = int(cells[grp[0]])
+                Rg = R[:, gi[grp], :].reshape(q * grp.size, -1)
+                for slot, b in enumerate(base_runs):
+                    c = f * n_r + b * n_sub
+                    B[:, grp, slot * n_sub : (slot + 1) * n_sub] = (
+                        Rg @ G[:, c : c + n_sub]).reshape(q, grp.size, n_sub)
+            for a, g in enumerate(idx):
+                win = cells[bounds[a] : bounds[a + 1]]
+                nw = win.size
+                prod = np.concatenate([B[:, bounds[a] : bounds[a + 1], :].reshape(q, -1),
+                                       star[:, a : a + 1]], axis=1)[None]  # fmt: skip
+                wl = np.repeat(np.arange(nw), n_bc)
+                j = np.append(wl * n_r + np.tile(base_ir, nw), nw * n_r)
+                j[:-1][~np.tile(live_r[base_ir], nw)] = -1
+                mix_a = mix_b = np.zeros(0, dtype=np.int64)
+                mix_f = np.zeros(0)
+                if mid_runs:
+                    wm = np.repeat(np.arange(nw), len(mid_runs) * n_sub)
+                    irm = np.tile(np.concatenate([np.arange(b * n_sub, (b + 1) * n_sub)
+                                                  for b in mid_runs]), nw)  # fmt: skip
+                    sm = np.tile(np.arange(n_sub), nw * len(mid_runs))
+                    mix_a = wm * n_bc + sm
+                    mix_b = wm * n_bc + n_sub + sm
+                    mix_f = np.tile(np.repeat(fr[mid_runs], n_sub), nw)
+                    jm = np.where(live_r[irm], wm * n_r + irm, -1)
+                    j = np.concatenate([j, jm])
+                gid = np.append((win[:, None] * n_r + np.arange(n_r)[None, :]).ravel(),
+                                bank_f.n_models - 1)  # fmt: skip
+                out = (np.empty((1, nw)), np.empty((1, nw, n_b)), np.empty((1, 1, n_r + 1)),
+                       np.empty(1, dtype=np.int64), *np.empty((3, 1)))
+                laplace_grid_tab(
+                    np.ascontiguousarray(prod), j[:, None], mix_a, mix_b, mix_f, 1, nw, n_r,
+                    n_sub, pb_f.S[gid], pb_f.mxx[gid], pb_f.mxy[gid], pb_f.myy[gid],
+                    kern["sigma"][g : g + 1], kern["x0"][g : g + 1], kern["y0"][g : g + 1],
+                    kern["b2"], cfg.max_newton_step, node_w, kern["w_star"], kern["ln_pi"],
+                    np.full(nw, 1.0 / nw), np.zeros(nw, dtype=np.int64), *kern["amp"], cubic,
+                    *table, *out,
+                )  # fmt: skip
+                lnle_f[g, win] = out[0][0]
+                lnleb_f[g, win, :] = out[1][0]
+    return fine, lnle_f, lnleb_f

@@ -46,6 +46,7 @@ from . import flags as _flags
 from ._version import __version__
 from .catalogue import COLUMNS, FITCLASS, atomic_write
 from .config import Config
+from .grid import ellipticity_grid
 from .prior import (
     Prior,
     SizePrior,
@@ -334,7 +335,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     flags[~(np.isfinite(noise) & (noise > 0))] |= _flags.flag_value("BAD_NOISE")
     t_stamps = time.perf_counter()
     bank = model_bank(cfg)
-    egrid = bank.egrid
+    egrid = ellipticity_grid(cfg.output_e_step, emax=cfg.e_max)  # fit_stamps' grid
     n_b = bank.n_r // bank.n_sizes
     lnL = np.full((n, egrid.shape[0]), np.nan, dtype=np.float32)
     lnL_bulge = None if n_b == 1 else np.full((n, n_b, egrid.shape[0]), np.nan, np.float32)
@@ -1004,7 +1005,7 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
         else:
             prior = estimate_prior(lnL[gal], egrid, method=cfg.prior_method)
         log.info("prior estimated from %d galaxies: %r", int(gal.sum()), prior)
-    sh = _shapes(lnL, egrid, prior, sensitivity=cfg.sensitivity, refine=cfg.integration_refine)
+    sh = _shapes(lnL, egrid, prior, sensitivity=cfg.sensitivity, refine=cfg.output_refine)
     for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
         cat[c] = np.where(usable, np.asarray(sh[c]), np.nan)
     cat["weight"] = np.where(gal, 1.0, 0.0)

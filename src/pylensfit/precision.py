@@ -635,7 +635,7 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
         elif task.get("keep_lnL_r"):
             res["lnL_r"] = fits.lnL_r[ok]
         return res
-    Q, usable = reduce_renderings(fits, task["prior"], spec.g, refine=cfg.integration_refine,
+    Q, usable = reduce_renderings(fits, task["prior"], spec.g, refine=cfg.output_refine,
                                   bulge_weights=task.get("bulge_weights"),
                                   stencil=task.get("stencil"))  # fmt: skip
     res["Q"] = Q.astype(np.float32)
@@ -1155,10 +1155,11 @@ def precision(
             # estimated (not the fits' default, which is the population's own here): the
             # first pass's L(r) per |e| reweighted, what a second pass with that prior as
             # size_marginal_prior gives (its amplitude prior the first pass's power)
-            groups = e_annuli(egrid)
-            cal["lnL_r"] = np.concatenate([reweight_lnL_r(g, egrid, groups, None, prior)
-                                           for g in cal.pop("lnL_r_grouped")])  # fmt: skip
+            # (the groups are the model grid's cells, whatever grid the fits give L(e) on)
             bank = model_bank(cfg)
+            groups = e_annuli(bank.egrid)
+            cal["lnL_r"] = np.concatenate([reweight_lnL_r(g, bank.egrid, groups, None, prior)
+                                           for g in cal.pop("lnL_r_grouped")])  # fmt: skip
             if size_prior_per_psf:
                 size_priors = [estimate_size_prior(cal["lnL_r"][cal["psf"] == k], bank, cfg,
                                                    bulge_weights=bulge_weights)

@@ -381,13 +381,22 @@ def refine_lnL(
         return x, egrid
     r = _refiner(egrid, int(refine), int(stencil))
     X = r.lattice(x)
-    fine = X @ r.keys().T
+    # separable: along e1 on every lattice row, then along e2 (the map of r.keys())
+    W1 = np.zeros((r.j0.size, r.m))
+    for a in range(r.width):
+        W1[np.arange(r.j0.size), r.j0 + a] = r.w[:, a]
+    n = X.shape[0]
+    T = (X.reshape(-1, r.m) @ W1.T).reshape(n, r.m, -1)  # (n, e2 lattice, e1 fine)
+    T = np.ascontiguousarray(T.transpose(1, 0, 2)).reshape(r.m, -1)
+    fine = (W1 @ T).reshape(W1.shape[0], n, -1)[r.fy, :, r.fx].T  # (n, n_f)
     # the cap of _Refiner.excess: the highest of the four lattice cells about each fine cell
     m = r.m
     h = r.width // 2 - 1
     jx, jy = r.j0[r.fx] + h, r.j0[r.fy] + h
-    corners = np.maximum.reduce([X[:, (jy + a) * m + jx + b] for a in (0, 1) for b in (0, 1)])
-    return np.minimum(fine, corners + r.excess(X)[:, None]), r.fine
+    Xr = X.reshape(-1, m, m)
+    top = np.maximum(Xr[:, :, :-1], Xr[:, :, 1:])
+    top = np.maximum(top[:, :-1, :], top[:, 1:, :])  # top[:, i, j]: max of cells i..i+1, j..j+1
+    return np.minimum(fine, top[:, jy, jx] + r.excess(X)[:, None]), r.fine
 
 
 def _relative_lnL(lnL: np.ndarray) -> np.ndarray:

@@ -923,7 +923,7 @@ def _bins_table(kind, edges, pg, sg, e_s_of, psfs, fields, pairs, estimator, egr
         e, s = e_s_of(sub, prior_b)
         est = _shear_estimates(sub, e, s, fields, pairs=pairs, estimator=estimator,
                                prior=prior_b, egrid=egrid,
-                               refine=cfg.integration_refine)  # fmt: skip
+                               refine=cfg.output_refine)  # fmt: skip
         mc, _ = _mc_rows(est, psfs)
         center = float(np.median(vs[sel])) if sel.any() else 0.5 * (edges[b] + edges[b + 1])
         for row in mc:
@@ -1177,7 +1177,7 @@ def validate(
                                            np.asarray(t["lnL_star"]), bulge_weights)
     else:
         prior = estimate_prior(np.asarray(pg["lnL"]), egrid, method=cfg.prior_method)
-    refine = cfg.integration_refine
+    refine = cfg.output_refine
 
     def e_s_of(t: Table, p: Prior) -> tuple[np.ndarray, np.ndarray]:
         if len(t) == 0:
