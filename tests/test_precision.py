@@ -544,3 +544,25 @@ def test_given_size_and_bulge_priors_replace_the_estimates(monkeypatch):
     with pytest.raises(ValueError, match="ncal is 0"):
         precision(spec_with(spec, ncal=0), config=cfg, size_prior=sp, bulge_weights=w,
                   progress=False)  # fmt: skip
+
+
+def test_cli_precision_e_refine_reaches_the_configuration(monkeypatch):
+    """``validate --precision --e-refine 2`` fits with the precision mode's own configuration
+    refined (and a given one refined alike)."""
+    import pylensfit.precision as prec
+    from pylensfit.cli import main
+
+    seen = {}
+
+    def fake(spec, *, config=None, **kw):
+        seen["config"] = config
+        raise SystemExit(0)
+
+    monkeypatch.setattr(prec, "precision", fake)
+    with pytest.raises(SystemExit):
+        main(["validate", "--precision", "--ngal", "16", "--e-refine", "2", "-q"])
+    spec = prec.spec_with(ngal=16)
+    assert seen["config"] == prec.default_config(spec).replace(e_refine=2)
+    with pytest.raises(SystemExit):
+        main(["validate", "--precision", "--ngal", "16", "-q"])
+    assert seen["config"] is None  # the mode's default, unrefined

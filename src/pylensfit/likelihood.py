@@ -1017,11 +1017,11 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
     or less of the peak there; the emulation of ``benchmarks/egrid_refinement.py`` found
     interpolated values outside a window of 4-6 sigma as good as exact ones).
 
-    The window's products are the unfolded ones (the window has none of the square's
-    symmetries): the half-plane of frequencies with the Hermitian weights, each fine
-    row of the window a contiguous block of the fine bank's columns (a view, no copy).
-    Galaxies of one peak cell, window and order of the position expansion share their
-    products and one kernel call.
+    The window's products are the unfolded ones (a window has none of the square's
+    symmetries): the half-plane of frequencies with the Hermitian weights. They are made
+    per segment, the fine cells of one fine row within one coarse cell (adjacent columns
+    of the fine bank: a view, no copy), for every galaxy whose window meets it at once;
+    each galaxy's window then goes through the kernel with its own models.
 
     Returns the fine grid, ``ln L(e)`` ``(n, n_f)`` and per fraction ``(n, n_f, n_b)``
     (NaN for unusable rows), on the scale of ``lnle``.
@@ -1088,16 +1088,12 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
         wk = wk[bank_f.rows]
     G = bank_f.G
     dtype = np.dtype(cfg.dtype)
-    n_sub = bank.n_sizes
-    fr = np.asarray(bank.bulge, float)[::n_sub] if bank.bulge is not None else np.zeros(1)
-    mixed = bank.model == "bulge+disc" and n_b >= 3 and fr[0] == 0.0 and fr[-1] == 1.0
-    base_runs = [0, n_b - 1] if mixed else list(range(n_b))
-    mid_runs = list(range(1, n_b - 1)) if mixed else []
-    n_bc = len(base_runs) * n_sub
-    base_ir = np.concatenate([np.arange(b * n_sub, (b + 1) * n_sub) for b in base_runs])
     node_w = kern["node_w"]
     live_r = node_w > 0
     table = amplitude_table(kern["amp"][0], kern["amp"][3])
+    # segments: the fine cells of one fine row within one coarse column (adjacent
+    # columns of the bank), one product each for every galaxy whose window meets it
+    seg_of = (flat[:, 1] - flat[:, 1].min()) * (n_f + 1) + flat[:, 0] // k
     for cubic in (False, True):
         sel = np.flatnonzero(cubic_g[gal] == cubic)
         for c0 in range(0, sel.size, 128):
@@ -1111,48 +1107,33 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
             star = R @ G[:, -1]  # (q, n_g)
             gi, cells = np.nonzero(window[part])  # galaxy-major pairs
             bounds = np.searchsorted(gi, np.arange(idx.size + 1))
-            B = np.empty((q, gi.size, n_bc), dtype=dtype)
-            order = np.argsort(cells, kind="stable")
-            cuts = np.flatnonzero(np.diff(cells[order])) + 1
-            for grp in np.split(order, cuts):  # one fine cell: its galaxies' products
-                f = int(cells[grp[0]])
-                Rg = R[:, gi[grp], :].reshape(q * grp.size, -1)
-                for slot, b in enumerate(base_runs):
-                    c = f * n_r + b * n_sub
-                    B[:, grp, slot * n_sub : (slot + 1) * n_sub] = (
-                        Rg @ G[:, c : c + n_sub]).reshape(q, grp.size, n_sub)
+            B = np.empty((q, gi.size, n_r), dtype=dtype)
+            seg = seg_of[cells]
+            order = np.argsort(seg, kind="stable")
+            for grp in np.split(order, np.flatnonzero(np.diff(seg[order])) + 1):
+                gu, ui = np.unique(gi[grp], return_inverse=True)
+                f0, f1 = int(cells[grp].min()), int(cells[grp].max()) + 1
+                out = (R[:, gu, :].reshape(q * gu.size, -1) @ G[:, f0 * n_r : f1 * n_r])
+                B[:, grp, :] = out.reshape(q, gu.size, f1 - f0, n_r)[:, ui, cells[grp] - f0, :]
             for a, g in enumerate(idx):
                 win = cells[bounds[a] : bounds[a + 1]]
                 nw = win.size
                 prod = np.concatenate([B[:, bounds[a] : bounds[a + 1], :].reshape(q, -1),
                                        star[:, a : a + 1]], axis=1)[None]  # fmt: skip
-                wl = np.repeat(np.arange(nw), n_bc)
-                j = np.append(wl * n_r + np.tile(base_ir, nw), nw * n_r)
-                j[:-1][~np.tile(live_r[base_ir], nw)] = -1
-                mix_a = mix_b = np.zeros(0, dtype=np.int64)
-                mix_f = np.zeros(0)
-                if mid_runs:
-                    wm = np.repeat(np.arange(nw), len(mid_runs) * n_sub)
-                    irm = np.tile(np.concatenate([np.arange(b * n_sub, (b + 1) * n_sub)
-                                                  for b in mid_runs]), nw)  # fmt: skip
-                    sm = np.tile(np.arange(n_sub), nw * len(mid_runs))
-                    mix_a = wm * n_bc + sm
-                    mix_b = wm * n_bc + n_sub + sm
-                    mix_f = np.tile(np.repeat(fr[mid_runs], n_sub), nw)
-                    jm = np.where(live_r[irm], wm * n_r + irm, -1)
-                    j = np.concatenate([j, jm])
+                j = np.arange(nw * n_r + 1, dtype=np.int64)
+                j[:-1][~np.tile(live_r, nw)] = -1
                 gid = np.append((win[:, None] * n_r + np.arange(n_r)[None, :]).ravel(),
                                 bank_f.n_models - 1)  # fmt: skip
-                out = (np.empty((1, nw)), np.empty((1, nw, n_b)), np.empty((1, 1, n_r + 1)),
+                res = (np.empty((1, nw)), np.empty((1, nw, n_b)), np.empty((1, 1, n_r + 1)),
                        np.empty(1, dtype=np.int64), *np.empty((3, 1)))
                 laplace_grid_tab(
-                    np.ascontiguousarray(prod), j[:, None], mix_a, mix_b, mix_f, 1, nw, n_r,
-                    n_sub, pb_f.S[gid], pb_f.mxx[gid], pb_f.mxy[gid], pb_f.myy[gid],
-                    kern["sigma"][g : g + 1], kern["x0"][g : g + 1], kern["y0"][g : g + 1],
-                    kern["b2"], cfg.max_newton_step, node_w, kern["w_star"], kern["ln_pi"],
-                    np.full(nw, 1.0 / nw), np.zeros(nw, dtype=np.int64), *kern["amp"], cubic,
-                    *table, *out,
+                    np.ascontiguousarray(prod), j[:, None], _NO_MIX[0], _NO_MIX[0], _NO_MIX[1],
+                    1, nw, n_r, bank.n_sizes, pb_f.S[gid], pb_f.mxx[gid], pb_f.mxy[gid],
+                    pb_f.myy[gid], kern["sigma"][g : g + 1], kern["x0"][g : g + 1],
+                    kern["y0"][g : g + 1], kern["b2"], cfg.max_newton_step, node_w,
+                    kern["w_star"], kern["ln_pi"], np.full(nw, 1.0 / nw),
+                    np.zeros(nw, dtype=np.int64), *kern["amp"], cubic, *table, *res,
                 )  # fmt: skip
-                lnle_f[g, win] = out[0][0]
-                lnleb_f[g, win, :] = out[1][0]
+                lnle_f[g, win] = res[0][0]
+                lnleb_f[g, win, :] = res[1][0]
     return fine, lnle_f, lnleb_f
