@@ -73,6 +73,8 @@ def main() -> None:
     ap.add_argument("--size", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                     help="PrecisionSpec.size_ratio_range (half-light radius / PSF's)")
     ap.add_argument("--e-step", type=float, default=None, help="Config.e_step (default 0.1)")
+    ap.add_argument("--e-refine", type=int, default=1,
+                    help="Config.e_refine, the adaptive refinement (default 1: none)")
     ap.add_argument("--refine", type=int, default=None,
                     help="Config.integration_refine (default 4): the Bayesian integrals' grid "
                          "is this many times finer than the model grid")  # fmt: skip
@@ -105,6 +107,8 @@ def main() -> None:
                                        size_prior_smoothing=a.size_prior_smoothing)  # fmt: skip
     if a.e_step is not None:
         cfg = cfg.replace(e_step=a.e_step)
+    if a.e_refine > 1:
+        cfg = cfg.replace(e_refine=a.e_refine)
     if a.refine is not None:
         cfg = cfg.replace(integration_refine=a.refine)
     if a.model != "bulge+disc":
@@ -139,8 +143,8 @@ def main() -> None:
         bounds = f" within {cfg.amplitude_prior_min:.3g}-{cfg.amplitude_prior_max:.3g}"
     print(f"{a.ngal} galaxies, seed {a.seed}, morphology weights {spec.morphology_weights}, "
           f"PSFs {', '.join(p['name'] for p in spec.psfs)}, S/N {spec.snr_range}, sizes "
-          f"{spec.size_ratio_range}, model {cfg.model}, e_step {cfg.e_step} "
-          f"(integrals {cfg.integration_refine}x finer), "
+          f"{spec.size_ratio_range}, model {cfg.model}, e_step {cfg.e_step} (refined "
+          f"{cfg.e_refine}x, integrals {cfg.integration_refine}x finer), "
           f"amplitude prior {cfg.amplitude_prior} (power {cfg.amplitude_prior_power:.3f}"
           f"{', estimated' if fs and fs['estimated'] else ''}), "
           f"{bounds}, "

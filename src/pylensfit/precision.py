@@ -1246,8 +1246,8 @@ def precision(
     out.meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
     out.meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
     out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
-                          "e_step": cfg.e_step, "r_step": cfg.r_step,
-                          "stamp_size": cfg.stamp_size,
+                          "e_step": cfg.e_step, "e_refine": int(cfg.e_refine),
+                          "r_step": cfg.r_step, "stamp_size": cfg.stamp_size,
                           "max_stamp_size": cfg.largest_stamp,
                           "integration_refine": cfg.integration_refine,
                           "size_prior": cfg.size_prior,
