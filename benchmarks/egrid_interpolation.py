@@ -129,10 +129,25 @@ def main() -> None:
     res.sort(key=lambda r: r["block"])
     print(f"{nb} blocks ({spec.ngal} galaxies, PSFs {a.psf}, snr_range {tuple(a.snr)}, seed "
           f"{a.seed}) fitted at e_step 0.1 and 0.05 in {time.perf_counter() - t0:.0f} s")
-    ab_path = Path(__file__).with_name("precision_ab.py")
-    mod = importlib.util.spec_from_file_location("precision_ab", ab_path)
+    bins = [(10, 15), (15, 20), (20, 30), (30, 60), (60, np.inf), (10, np.inf)]
+    paired_table(res, spec, bins, "m1 / m2 minus the exact grid's (true S/N >= 10; the "
+                 "faintest are noisy):", min_n=100)  # fmt: skip
+
+
+def precision_ab():
+    """The module ``benchmarks/precision_ab.py`` (its paired jackknife and helpers)."""
+    path = Path(__file__).with_name("precision_ab.py")
+    mod = importlib.util.spec_from_file_location("precision_ab", path)
     ab = importlib.util.module_from_spec(mod)
     mod.loader.exec_module(ab)
+    return ab
+
+
+def paired_table(res: list, spec, bins: list, title: str, min_n: int = 100) -> None:
+    """Print each variant's m minus the ``exact`` one's per bin of true S/N (the blocks'
+    results ``res``: ``Q`` per variant, ``snr``, ``block``), paired jackknife over groups of
+    ``P._JACKKNIFE_GALAXIES`` galaxies; bins with fewer than ``min_n`` galaxies left empty."""
+    ab = precision_ab()
     names = list(res[0]["Q"])
     Q = {k: np.concatenate([r["Q"][k] for r in res]).astype(float) for k in names}
     snr = np.concatenate([r["snr"] for r in res])
@@ -140,21 +155,19 @@ def main() -> None:
     jk = np.concatenate([r["block"] * per + np.arange(len(r["snr"])) // P._JACKKNIFE_GALAXIES
                          for r in res])  # fmt: skip
     ok = np.ones(snr.size, bool)
-    bins = [(10, 15), (15, 20), (20, 30), (30, 60), (60, np.inf), (10, np.inf)]
-    print("m1 / m2 minus the exact grid's (true S/N >= 10; the faintest are noisy):")
+    print(title)
     print("| variant | " + " | ".join(f"S/N {lo}-{hi:g}" for lo, hi in bins) + " |")
     print("|---|" + "---|" * len(bins))
     for k in names[1:]:
         cells = []
         for lo, hi in bins:
             sel = (snr >= lo) & (snr < hi)
-            if sel.sum() < 100:
+            if sel.sum() < min_n:
                 cells.append("")
                 continue
             d, e = ab._paired(Q["exact"][sel], Q[k][sel], ok[sel], jk[sel], spec.g)
             cells.append(f"{d[0]:+.5f} / {d[1]:+.5f} ± {e[0]:.5f} / {e[1]:.5f}")
         print(f"| {k} | " + " | ".join(cells) + " |")
-
 
 if __name__ == "__main__":
     main()

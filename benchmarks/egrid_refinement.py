@@ -26,7 +26,6 @@ tried without fitting again::
 from __future__ import annotations
 
 import argparse
-import ast
 import importlib.util
 import time
 from pathlib import Path
@@ -114,15 +113,13 @@ def _task(t: dict) -> dict:
     return {"block": b, "Q": Q, "snr": np.asarray(truth["snr"])[ok]}
 
 
-def _kv(items: list[str]) -> dict:
-    out = {}
-    for s in items:
-        k, v = s.split("=", 1)
-        try:
-            out[k] = ast.literal_eval(v)
-        except (ValueError, SyntaxError):
-            out[k] = v
-    return out
+def _helpers():
+    """``benchmarks/egrid_interpolation.py`` (its paired table) and ``precision_ab.py``."""
+    path = Path(__file__).with_name("egrid_interpolation.py")
+    mod = importlib.util.spec_from_file_location("egrid_interpolation", path)
+    ei = importlib.util.module_from_spec(mod)
+    mod.loader.exec_module(ei)
+    return ei, ei.precision_ab()
 
 
 def main() -> None:
@@ -139,9 +136,10 @@ def main() -> None:
     ap.add_argument("--snr-cuts", nargs="*", type=float, default=[30.0, 60.0])
     ap.add_argument("--cache", default="egrid_refinement_cache")
     a = ap.parse_args()
+    ei, ab = _helpers()
     Path(a.cache).mkdir(exist_ok=True)
-    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **_kv(a.spec))
-    cfg = P.default_config(spec).replace(**_kv(a.config))
+    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **ab._kv(a.spec))
+    cfg = P.default_config(spec).replace(**ab._kv(a.config))
     nb = -(-spec.ngal // spec.block_size)
     tasks = [{"spec": spec, "config": cfg, "block": b, "prior": P.population_prior(spec),
               "cache": a.cache, "windows": a.windows, "snr_cuts": a.snr_cuts}
@@ -154,31 +152,9 @@ def main() -> None:
     res.sort(key=lambda r: r["block"])
     print(f"{nb} blocks ({spec.ngal} galaxies, PSFs {a.psf}, {a.spec}, {a.config}) in "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
-    mod = importlib.util.spec_from_file_location(
-        "precision_ab", Path(__file__).with_name("precision_ab.py"))
-    ab = importlib.util.module_from_spec(mod)
-    mod.loader.exec_module(ab)
-    names = list(res[0]["Q"])
-    Q = {k: np.concatenate([r["Q"][k] for r in res]).astype(float) for k in names}
-    snr = np.concatenate([r["snr"] for r in res])
-    per = -(-spec.block_size // P._JACKKNIFE_GALAXIES)
-    jk = np.concatenate([r["block"] * per + np.arange(len(r["snr"])) // P._JACKKNIFE_GALAXIES
-                         for r in res])  # fmt: skip
-    ok = np.ones(snr.size, bool)
     bins = [(0, 15), (15, 20), (20, 30), (30, 60), (60, 100), (100, np.inf), (0, np.inf)]
-    print("m1 / m2 minus the exact grid's (0.025), per bin of true S/N:")
-    print("| variant | " + " | ".join(f"S/N {lo}-{hi:g}" for lo, hi in bins) + " |")
-    print("|---|" + "---|" * len(bins))
-    for k in names[1:]:
-        cells = []
-        for lo, hi in bins:
-            sel = (snr >= lo) & (snr < hi)
-            if sel.sum() < 50:
-                cells.append("")
-                continue
-            d, e = ab._paired(Q["exact"][sel], Q[k][sel], ok[sel], jk[sel], spec.g)
-            cells.append(f"{d[0]:+.5f} / {d[1]:+.5f} ± {e[0]:.5f}")
-        print(f"| {k} | " + " | ".join(cells) + " |")
+    ei.paired_table(res, spec, bins, "m1 / m2 minus the exact grid's (0.025), per bin of true "
+                    "S/N:", min_n=50)  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -73,8 +73,8 @@ class Config:
         0.4, "with e_refine > 1: the largest half-width in e of a refined galaxy's window"
     )
     refine_lnl: float = _f(
-        12.0, "with e_refine > 1: a refined galaxy's window is the square about its peak "
-        "cell that holds every e_step cell whose ln L is within this of the maximum",
+        12.0, "with e_refine > 1: a refined galaxy's window is the e_step cells whose ln L "
+        "is within this of the maximum, as their fine cells, and the fine cells next to them",
     )
     r_min: float = _f(0.0, "smallest model size in pixels (0: the point-source model)")
     r_max: float = _f(10.0, "largest model size in pixels")

@@ -44,6 +44,7 @@ import numpy as np
 from . import flags as _flags
 from ._util import newton_peak, per_object
 from .config import Config
+from .grid import ellipticity_grid
 from .models import fourier_profile, half_light_radius, in_disc, model_bank, rfft_frequencies
 from .prior import Prior
 from .psf import psf_transform
@@ -1003,19 +1004,39 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     )
 
 
+@lru_cache(maxsize=4)
+def _fine_lattice(step: float, e_max: float, k: int):
+    """Index maps between the grid of ``step`` and the finer one of ``step / k``: the
+    coarse cells' lattice coordinates, each fine cell's coarse parent (``n_e``: none), its
+    3 x 3 fine neighbours (``n_f``: none) and its segment (fine row, coarse column)."""
+    coarse = ellipticity_grid(step, emax=e_max)
+    fine = ellipticity_grid(step / k, emax=e_max)
+    lat = np.rint(coarse / step - 0.5).astype(np.int64)
+    flat = np.rint(fine / (step / k) - 0.5).astype(np.int64)
+    n_e, n_f = len(lat), len(flat)
+    c_of = {(int(a), int(b)): i for i, (a, b) in enumerate(lat)}
+    f_of = {(int(a), int(b)): i for i, (a, b) in enumerate(flat)}
+    parent = np.array([c_of.get((int(a) // k, int(b) // k), n_e) for a, b in flat])
+    nbr = np.array([[f_of.get((int(a) + da, int(b) + db), n_f) for da in (-1, 0, 1)
+                     for db in (-1, 0, 1)] for a, b in flat])  # fmt: skip
+    seg_of = (flat[:, 1] - flat[:, 1].min()) * (n_f + 1) + flat[:, 0] // k
+    return lat, parent, nbr, seg_of
+
+
 def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern):
     """``ln L(e)`` on the finer grid of ``cfg.e_refine`` (adaptive refinement).
 
     Every usable galaxy's ``ln L`` (and each bulge fraction's) is interpolated from the
     ``e_step`` grid onto the cells ``e_step / e_refine`` (:func:`pylensfit.shear.
     refine_lnL`, the quintic that the Bayesian integrals use). A galaxy whose ``e_step``
-    cells within ``refine_lnl`` of the maximum all lie within a square of half-width
-    ``h >= 1`` cells about the peak cell, with ``(h + 1/2) e_step <= refine_width``, is
-    then evaluated again, exactly, on every fine cell of that square: the likelihood that
-    the coarse grid samples too sparsely is computed where it matters, at the cost of the
-    window's models only. Outside the window its values stay interpolated (``exp(-12)``
-    or less of the peak there; the emulation of ``benchmarks/egrid_refinement.py`` found
-    interpolated values outside a window of 4-6 sigma as good as exact ones).
+    cells within ``refine_lnl`` of the maximum all lie within ``h`` cells of its peak cell
+    (in either component), with ``(h + 1/2) e_step + e_step / e_refine <= refine_width``,
+    is then evaluated again, exactly, on the fine cells of those coarse cells and on the
+    fine cells next to them: the likelihood that the coarse grid samples too sparsely is
+    computed where it matters, at the cost of the window's models only. Elsewhere its
+    values stay interpolated (``exp(-12)`` or less of the peak; the emulation of
+    ``benchmarks/egrid_refinement.py`` found interpolated values outside a window of 4-6
+    sigma as good as exact ones).
 
     The window's products are the unfolded ones (a window has none of the square's
     symmetries): the half-plane of frequencies with the Hermitian weights. They are made
@@ -1061,7 +1082,7 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
     # the windows: the coarse cells within refine_lnl of the maximum, as their fine
     # cells, and the fine cells next to those
     step, fstep = cfg.e_step, cfg.output_e_step
-    lat = np.rint(bank.egrid / step - 0.5).astype(np.int64)
+    lat, parent, nbr, seg_of = _fine_lattice(step, cfg.e_max, k)
     x = lnle[g_ok]
     pk = np.argmax(x, axis=1)
     near = x >= (x[np.arange(g_ok.size), pk] - cfg.refine_lnl)[:, None]
@@ -1070,12 +1091,6 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
     if not go.any():
         return fine, lnle_f, lnleb_f
     gal = g_ok[go]
-    flat = np.rint(fine / fstep - 0.5).astype(np.int64)
-    c_of = {(int(a), int(b)): i for i, (a, b) in enumerate(lat)}
-    f_of = {(int(a), int(b)): i for i, (a, b) in enumerate(flat)}
-    parent = np.array([c_of.get((int(a) // k, int(b) // k), n_e) for a, b in flat])
-    nbr = np.array([[f_of.get((int(a) + da, int(b) + db), n_f) for da in (-1, 0, 1)
-                     for db in (-1, 0, 1)] for a, b in flat])  # fmt: skip
     near_f = np.zeros((gal.size, n_f + 1), dtype=bool)
     near_f[:, :n_f] = np.pad(near[go], ((0, 0), (0, 1)))[:, parent]
     window = near_f[:, nbr].any(axis=2)  # (n_go, n_f)
@@ -1091,9 +1106,8 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
     node_w = kern["node_w"]
     live_r = node_w > 0
     table = amplitude_table(kern["amp"][0], kern["amp"][3])
-    # segments: the fine cells of one fine row within one coarse column (adjacent
-    # columns of the bank), one product each for every galaxy whose window meets it
-    seg_of = (flat[:, 1] - flat[:, 1].min()) * (n_f + 1) + flat[:, 0] // k
+    # segments (seg_of): the fine cells of one fine row within one coarse column
+    # (adjacent columns of the bank), one product each for every galaxy that needs it
     for cubic in (False, True):
         sel = np.flatnonzero(cubic_g[gal] == cubic)
         for c0 in range(0, sel.size, 128):
