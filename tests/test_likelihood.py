@@ -1109,3 +1109,64 @@ def test_refinement_settings():
                 {"refine_lnl": -1.0}):  # fmt: skip
         with pytest.raises(ValueError):
             Config(**bad)
+
+
+def test_two_bulge_sizes_are_the_two_families_runs(rng, tmp_path):
+    """With ``bulge_size_ratio2`` the bank's runs are the one-size banks' (the disc and
+    the first size's fractions, then the second size's fractions above 0; the wrap
+    correction of the stamp's edge included), each run's ``ln L_k(e)`` is what the fit
+    with that bulge size alone gives it, and ``ln L`` is their mixture with uniform
+    weights over the five runs."""
+    from pylensfit.prior import mix_bulge_fractions
+
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
+    two = cfg.replace(bulge_size_ratio2=1.2)
+    assert two.bulge_runs == ((0.0, 0.6), (0.5, 0.6), (1.0, 0.6), (0.5, 1.2), (1.0, 1.2))
+    b1, b2, bb = model_bank(cfg), model_bank(cfg.replace(bulge_size_ratio=1.2)), model_bank(two)
+    n_sub, n_e = b1.n_sizes, b1.n_e
+    G = bb.G[:, :-1].reshape(-1, n_e, 5, n_sub)
+    tol = 1e-6 * np.abs(b1.G).max()
+    np.testing.assert_allclose(G[:, :, :3], b1.G[:, :-1].reshape(-1, n_e, 3, n_sub), atol=tol)
+    np.testing.assert_allclose(G[:, :, 3:], b2.G[:, :-1].reshape(-1, n_e, 3, n_sub)[:, :, 1:],
+                               atol=tol)  # fmt: skip
+    np.testing.assert_array_equal(bb.bulge_size[::n_sub], [0.6, 0.6, 0.6, 1.2, 1.2])
+    hlr = [half_light_radius("bulge+disc", bulge_fraction=f, bulge_size_ratio=s)
+           for f, s in two.bulge_runs]  # fmt: skip
+    np.testing.assert_allclose(bb.run_weights, np.array(hlr) / hlr[0])
+
+    psf = draw(PSFS["moffat_e1"])
+    gals = []
+    for r, e, bf, s in ((1.5, (0.3, -0.2), 0.5, 0.5), (1.0, (-0.1, 0.35), 0.3, 0.9),
+                        (2.2, (0.15, 0.1), 0.7, 0.7)):  # fmt: skip
+        disc = galsim.Exponential(half_light_radius=r)
+        bulge = galsim.DeVaucouleurs(half_light_radius=s * r)
+        gal = ((1 - bf) * disc + bf * bulge).shear(e1=e[0], e2=e[1])
+        gals.append(draw(galsim.Convolve(gal, PSFS["moffat_e1"])))
+    stamps = np.stack([g * f / np.sqrt((g**2).sum()) for g, f in zip(gals, (30.0, 80.0, 50.0),
+                                                                    strict=True)])  # fmt: skip
+    stamps += rng.normal(size=stamps.shape)
+    f2 = fit_stamps(stamps, psf, 1.0, config=two)
+    f1 = fit_stamps(stamps, psf, 1.0, config=cfg)
+    f1b = fit_stamps(stamps, psf, 1.0, config=cfg.replace(bulge_size_ratio=1.2))
+    np.testing.assert_array_equal(f2.bulge_fractions, [0.0, 0.5, 1.0, 0.5, 1.0])
+    np.testing.assert_array_equal(f2.bulge_sizes, [0.6, 0.6, 0.6, 1.2, 1.2])
+
+    def absolute(f):
+        return f.lnL_bulge + f.lnL_peak[:, None, None]
+
+    a2, a1, a1b = absolute(f2), absolute(f1), absolute(f1b)
+    live = a2 > a2.max(axis=(1, 2), keepdims=True) - 30.0
+    # the same models; the fits differ only in the centring pass's origin
+    np.testing.assert_allclose(a2[:, :3][live[:, :3]], a1[live[:, :3]], atol=0.01)
+    np.testing.assert_allclose(a2[:, 3:][live[:, 3:]], a1b[:, 1:][live[:, 3:]], atol=0.01)
+    assert np.abs(a2[:, 3:] - a2[:, 1:3])[live[:, 3:]].max() > 1.0  # the sizes do differ
+    mixed = mix_bulge_fractions(f2.lnL_bulge, f2.lnL_star)
+    np.testing.assert_allclose(mixed, f2.lnL, atol=1e-3)
+    f2.write(tmp_path / "two.fits")
+    back = type(f2).read(tmp_path / "two.fits")
+    np.testing.assert_array_equal(back.bulge_sizes, f2.bulge_sizes)
+    np.testing.assert_array_equal(back.bulge_fractions, f2.bulge_fractions)
+    for bad in ({"bulge_size_ratio2": -1.0}, {"bulge_size_ratio2": 0.6},
+                {"bulge_size_ratio2": 1.0, "n_bulge_fractions": 1}):  # fmt: skip
+        with pytest.raises(ValueError, match="bulge_size_ratio2"):
+            cfg.replace(**bad)

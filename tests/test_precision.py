@@ -377,6 +377,31 @@ def test_estimated_bulge_prior_finds_a_disc_population():
         Config(model="bulge+disc", n_bulge_fractions=3, bulge_prior="flat")
 
 
+def test_two_bulge_sizes_in_the_precision_mode(tmp_path):
+    """A family with two bulge sizes (``bulge_size_ratio2``): the calibration estimates one
+    weight per run (five), nearly all of it on the pure disc for a population of discs,
+    and the meta and the report name each run's fraction and bulge size."""
+    spec = spec_with(ngal=40, block_size=20, ncal=400, seed=11, psfs=["round"],
+                     snr_range=(40.0, 80.0), size_ratio_range=(1.0, 2.5),
+                     morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, bulge_size_ratio2=1.2)
+    res = precision(spec, config=cfg, progress=False, prior=Prior(B=0.19, C=0.58, D=2.4))
+    bp = res.meta["bulge_prior"]
+    assert bp["fractions"] == [0.0, 0.5, 1.0, 0.5, 1.0]
+    assert bp["sizes"] == [0.6, 0.6, 0.6, 1.2, 1.2]
+    assert len(bp["weights"]) == 5 and abs(sum(bp["weights"]) - 1) < 1e-9
+    assert bp["weights"][0] > 0.8, bp
+    assert res.meta["config"]["bulge_size_ratio2"] == 1.2
+    from pylensfit.precision import write_report
+
+    write_report(res, tmp_path / "report.md")
+    text = (tmp_path / "report.md").read_text()
+    assert "0.5 (bulge 1.2)" in text and "bulges of 0.6 and 1.2 disc scale lengths" in text
+    with pytest.raises(ValueError, match="bulge_weights"):
+        precision(spec, config=cfg, prior=Prior(B=0.19, C=0.58, D=2.4),
+                  bulge_weights=(1, 0, 0), progress=False)  # fmt: skip
+
+
 def test_flux_prior_bounds_are_estimated_from_the_calibration_fluxes(tmp_path):
     """With ``flux_bounds=True``, ``precision`` bounds the flux prior at each PSF's flux
     range as the calibration galaxies' fluxes and errors give it: within 3 errors (and

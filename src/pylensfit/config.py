@@ -100,6 +100,14 @@ class Config:
     bulge_size_ratio: float = _f(
         0.6, "bulge half-light radius / disc scale length of the bulge+disc model"
     )
+    bulge_size_ratio2: float = _f(
+        0.0,
+        "bulge+disc model with marginalised fractions: a second bulge size (half-light radius "
+        "/ disc scale length). Every fraction above 0 is then fitted with a bulge of either "
+        "size (2 n_bulge_fractions - 1 runs of sizes, their weights estimated as the "
+        "fractions'): the bulge's size marginalised with its fraction, a second parameter of "
+        "the profile's shape (0: one size, bulge_size_ratio)",
+    )
     n_bulge_fractions: int = _f(
         1,
         "bulge+disc model: marginalise over this many bulge fractions, evenly spaced on "
@@ -259,6 +267,21 @@ class Config:
         return self.e_step / self.e_refine
 
     @property
+    def bulge_runs(self) -> tuple[tuple[float, float], ...]:
+        """The ``(bulge fraction, bulge size ratio)`` of each run of sizes of the model bank:
+        ``n_bulge_fractions`` fractions evenly spaced on [0, 1] with ``bulge_size_ratio``,
+        then with ``bulge_size_ratio2 > 0`` the fractions above 0 again with that size
+        (one run, the fixed ``bulge_fraction``, unless the fractions are marginalised)."""
+        n = int(self.n_bulge_fractions)
+        if n == 1:
+            return ((float(self.bulge_fraction), float(self.bulge_size_ratio)),)
+        fr = [k / (n - 1) for k in range(n)]
+        runs = [(f, float(self.bulge_size_ratio)) for f in fr]
+        if self.bulge_size_ratio2 > 0:
+            runs += [(f, float(self.bulge_size_ratio2)) for f in fr[1:]]
+        return tuple(runs)
+
+    @property
     def output_refine(self) -> int:
         """``integration_refine`` on the output grid: the Bayesian integrals run on cells
         of ``e_step / integration_refine`` whatever ``e_refine`` is (at least the output
@@ -375,6 +398,13 @@ def _validate(c: Config) -> None:
         c.n_bulge_fractions == 1 or c.model == "bulge+disc",
         "n_bulge_fractions > 1 needs model 'bulge+disc'",
     )
+    need(c.bulge_size_ratio2 >= 0, f"bulge_size_ratio2 must be >= 0, got {c.bulge_size_ratio2}")
+    need(
+        c.bulge_size_ratio2 == 0 or (c.model == "bulge+disc" and c.n_bulge_fractions >= 2),
+        "bulge_size_ratio2 > 0 needs model 'bulge+disc' with n_bulge_fractions >= 2",
+    )
+    need(c.bulge_size_ratio2 != c.bulge_size_ratio,
+         "bulge_size_ratio2 must differ from bulge_size_ratio (0: no second size)")
     need(c.bulge_prior in ("estimated", "uniform"),
          f"bulge_prior must be 'estimated' or 'uniform', got {c.bulge_prior!r}")
     need(c.position_prior_sigma > 0, "position_prior_sigma must be > 0")

@@ -93,7 +93,11 @@ class StampFits:
         ``(n,)`` the point source's ``ln L`` (weighted as the ``r = 0`` end of the size
         integral), shifted like ``lnL``; ``None`` with one fraction.
     bulge_fractions : numpy.ndarray or None
-        ``(n_b,)`` the bulge fractions of ``lnL_bulge``.
+        ``(n_b,)`` the bulge fraction of each run of ``lnL_bulge`` (with two bulge sizes,
+        ``Config.bulge_size_ratio2``, the fractions above 0 twice).
+    bulge_sizes : numpy.ndarray or None
+        ``(n_b,)`` the bulge size (half-light radius / disc scale length) of each run,
+        where there are two (``None``: one, the configuration's).
     bulge_best : numpy.ndarray or None
         Bulge fraction of the most likely model (the configuration's fixed fraction for
         a ``"bulge+disc"`` bank of one fraction; NaN for stars and failed fits). Not
@@ -136,6 +140,7 @@ class StampFits:
     bulge_best: np.ndarray | None = None
     stamp: np.ndarray | None = None
     lnL_r_grouped: np.ndarray | None = None
+    bulge_sizes: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.lnL.shape[0]
@@ -155,6 +160,8 @@ class StampFits:
             t["lnL_bulge"] = self.lnL_bulge
             t["lnL_star"] = self.lnL_star
             t.meta["BULGEFR"] = ",".join(f"{f:.6g}" for f in self.bulge_fractions)
+            if self.bulge_sizes is not None:
+                t.meta["BULGESZ"] = ",".join(f"{f:.6g}" for f in self.bulge_sizes)
         t.meta.update({k.upper()[:8]: v for k, v in self.meta.items()})
         return t
 
@@ -178,6 +185,7 @@ class StampFits:
         with fits.open(path) as hdul:
             t = Table(hdul["FITS"].data)
             fracs = hdul["FITS"].header.get("BULGEFR")
+            bsizes = hdul["FITS"].header.get("BULGESZ")
             egrid = np.array(hdul["EGRID"].data, dtype=float)
         kw = {name: np.asarray(t[name]) for name in cls._COLUMNS}
         if "stamp" in t.colnames:
@@ -186,6 +194,8 @@ class StampFits:
             kw["lnL_bulge"] = np.asarray(t["lnL_bulge"], dtype=np.float32)
             kw["lnL_star"] = np.asarray(t["lnL_star"], dtype=float)
             kw["bulge_fractions"] = np.array(str(fracs).split(","), dtype=float)
+            if bsizes is not None:
+                kw["bulge_sizes"] = np.array(str(bsizes).split(","), dtype=float)
         return cls(egrid=egrid, lnL=np.asarray(t["lnL"], dtype=np.float32), **kw)
 
 
@@ -278,7 +288,8 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
     key = (config.stamp_size, config.e_step, config.e_max, config.r_min, config.r_max,
            config.r_step, config.model, config.bulge_fraction, config.bulge_size_ratio,
            config.dtype, int(config.n_bulge_fractions), float(config.r_rel_step),
-           bool(config.truncate_models), float(config.k_max))  # fmt: skip
+           bool(config.truncate_models), float(config.k_max),
+           float(config.bulge_size_ratio2))  # fmt: skip
     fb = _FOLDED.get(key)
     if fb is not None and fb[0] is bank:
         return fb[1]
@@ -357,9 +368,10 @@ def _mixed_columns(bank, n_orb: int):
 
     Returns ``perm`` (new column -> old, the old order ``orbit * n_r + ir`` and the
     point source last), and for the mixed columns (``perm[n_base:]``) the base columns
-    ``a`` (pure disc) and ``b`` (pure bulge) and the fraction ``f``: column ``(1 - f) a +
-    f b``. No mixed columns (``perm`` the identity) unless the bank is bulge+disc with
-    the fractions 0 and 1 and others between.
+    ``a`` (pure disc) and ``b`` (pure bulge of the same bulge size) and the fraction
+    ``f``: column ``(1 - f) a + f b``. No mixed columns (``perm`` the identity) unless
+    the bank is bulge+disc with the fractions 0 and 1 (of each bulge size) and others
+    between.
     """
     n_r = bank.n_r
     n_old = n_orb * n_r + 1
@@ -367,21 +379,26 @@ def _mixed_columns(bank, n_orb: int):
     if bank.model != "bulge+disc" or bank.bulge is None:
         return none
     n_sub = bank.n_sizes
-    n_b = n_r // n_sub
     fr = np.asarray(bank.bulge, float)[::n_sub]
-    if n_b < 3 or fr[0] != 0.0 or fr[-1] != 1.0:
+    bs = (np.zeros(fr.size) if bank.bulge_size is None
+          else np.asarray(bank.bulge_size, float)[::n_sub])  # fmt: skip
+    ends = np.flatnonzero((fr == 0.0) | (fr == 1.0))
+    mid = np.flatnonzero((fr > 0.0) & (fr < 1.0))
+    pure = {float(bs[k]): k for k in ends if fr[k] == 1.0}
+    if mid.size == 0 or fr[0] != 0.0 or any(float(bs[k]) not in pure for k in mid):
         return none
     orb = np.arange(n_orb)[:, None, None]
     size = np.arange(n_sub)[None, None, :]
-    ends = orb * n_r + np.array([0, n_b - 1])[None, :, None] * n_sub + size
-    mids = orb * n_r + np.arange(1, n_b - 1)[None, :, None] * n_sub + size
-    perm = np.concatenate([ends.ravel(), [n_orb * n_r], mids.ravel()])
+    ends_c = orb * n_r + ends[None, :, None] * n_sub + size
+    mids_c = orb * n_r + mid[None, :, None] * n_sub + size
+    perm = np.concatenate([ends_c.ravel(), [n_orb * n_r], mids_c.ravel()])
     pos = np.empty(n_old, dtype=np.int64)
     pos[perm] = np.arange(n_old)
-    base_of = orb * n_r + np.zeros((1, n_b - 2, 1), dtype=np.int64) + size  # run 0's column
-    mix_a = pos[base_of.ravel()]
-    mix_b = pos[(base_of + (n_b - 1) * n_sub).ravel()]
-    mix_f = np.broadcast_to(fr[1:-1][None, :, None], mids.shape).ravel().copy()
+    run_b = np.array([pure[float(bs[k])] for k in mid])
+    shape = (n_orb, mid.size, n_sub)
+    mix_a = pos[np.broadcast_to(orb * n_r + size, shape).ravel()]  # run 0: the disc
+    mix_b = pos[np.broadcast_to(orb * n_r + run_b[None, :, None] * n_sub + size, shape).ravel()]
+    mix_f = np.broadcast_to(fr[mid][None, :, None], shape).ravel().copy()
     return perm, mix_a, mix_b, mix_f
 
 
@@ -703,7 +720,7 @@ def _merge_fits(parts: list, n_gal: int) -> StampFits:
     out = {}
     for f in fields(StampFits):
         v0 = getattr(first, f.name)
-        if f.name in ("egrid", "meta", "bulge_fractions"):
+        if f.name in ("egrid", "meta", "bulge_fractions", "bulge_sizes"):
             out[f.name] = v0
         elif isinstance(v0, np.ndarray):
             arr = np.empty((n_gal, *v0.shape[1:]), dtype=v0.dtype)
@@ -996,7 +1013,9 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
               "r_max": cfg.r_max, "e_refine": int(cfg.e_refine)},  # fmt: skip
         lnL_bulge=lnL_bulge,
         lnL_star=lnL_star,
-        bulge_fractions=None if n_b == 1 else np.unique(bank.bulge),
+        bulge_fractions=None if n_b == 1 else np.asarray(bank.bulge[:: bank.n_sizes], float),
+        bulge_sizes=None if bank.bulge_size is None else np.asarray(
+            bank.bulge_size[:: bank.n_sizes], float),
         lnL_r=lnL_r,
         bulge_best=bulge_best,
         stamp=np.full(n_gal, n),

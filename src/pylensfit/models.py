@@ -259,6 +259,9 @@ class ModelBank:
         Model family.
     bulge : numpy.ndarray or None
         Bulge fraction of each column within an e cell (``None``: one fixed fraction).
+    bulge_size : numpy.ndarray or None
+        Bulge half-light radius over disc scale length of each column within an e cell,
+        where the bank has two bulge sizes (``None``: one, the configuration's).
     n_sub : int
         Sizes per bulge fraction (0: all of ``radii``).
     r_weights : numpy.ndarray or None
@@ -286,6 +289,7 @@ class ModelBank:
     star_weight: float = 1.0
     run_weights: np.ndarray | None = None
     rows: np.ndarray | None = None
+    bulge_size: np.ndarray | None = None
 
     @property
     def n_sizes(self) -> int:
@@ -514,11 +518,19 @@ def _cached_bank(
     r_rel_step: float = 0.0,
     truncate: bool = False,
     k_max: float = 0.0,
+    bulge_size_ratio2: float = 0.0,
 ) -> ModelBank:
     egrid = ellipticity_grid(e_step, emax=e_max)
     radii = radius_grid(r_min, r_max, r_step, r_rel_step)
     r_w, w_star = radius_weights(radii, r_min)
     fracs = np.array([bulge_fraction]) if n_bulge == 1 else np.linspace(0.0, 1.0, n_bulge)
+    # the runs of sizes: one per fraction, and with a second bulge size the fractions
+    # above 0 once more with it (the pure disc has no bulge to size)
+    sizes = np.full(fracs.size, float(bulge_size_ratio))
+    two = bulge_size_ratio2 > 0 and model == "bulge+disc" and fracs.size > 1
+    if two:
+        sizes = np.concatenate([sizes, np.full(fracs.size - 1, float(bulge_size_ratio2))])
+        fracs = np.concatenate([fracs, fracs[1:]])
     n_sub = radii.size
     kx, ky, _ = rfft_frequencies(n)
     rows = frequency_rows(n, k_max)
@@ -533,24 +545,33 @@ def _cached_bank(
         q = ks[:, None] * radii[None, :]
         if mix:  # each fraction's transform is linear in the two components' (exact)
             disc = fourier_profile(q, "exponential")
-            bulge = fourier_profile(q * bulge_size_ratio, "devaucouleurs")
-        for ib, bf in enumerate(fracs):
+            bulge = {s: fourier_profile(q * s, "devaucouleurs") for s in np.unique(sizes)}
+        for ib, (bf, bs) in enumerate(zip(fracs, sizes, strict=True)):
             c0 = ie * per_e + ib * n_sub
-            G[:, c0 : c0 + n_sub] = (bf * bulge + (1.0 - bf) * disc if mix else fourier_profile(
+            G[:, c0 : c0 + n_sub] = (bf * bulge[bs] + (1.0 - bf) * disc if mix else fourier_profile(
                 q, model, bulge_fraction=float(bf), bulge_size_ratio=bulge_size_ratio))
     G[:, -1] = 1.0
     if truncate:
-        G[:, :-1] -= wrap_correction(egrid, radii, fracs, model, bulge_size_ratio, n,
-                                     rows).astype(dtype)  # fmt: skip
+        n_b1 = n_bulge if two else fracs.size
+        W = wrap_correction(egrid, radii, fracs[:n_b1], model, bulge_size_ratio, n, rows)
+        if two:  # the second size's runs after the first's, in every e cell
+            W2 = wrap_correction(egrid, radii, fracs[n_b1:], model, bulge_size_ratio2, n, rows)
+            W = np.concatenate([W.reshape(W.shape[0], -1, n_b1 * n_sub),
+                                W2.reshape(W2.shape[0], -1, (fracs.size - n_b1) * n_sub)],
+                               axis=2).reshape(W.shape[0], -1)  # fmt: skip
+        G[:, :-1] -= W.astype(dtype)
+        del W
     G.setflags(write=False)
     run_w = None
     if fracs.size > 1:
         hlr = np.array([half_light_radius(model, bulge_fraction=float(bf),
-                                          bulge_size_ratio=bulge_size_ratio) for bf in fracs])
+                                          bulge_size_ratio=float(bs))
+                        for bf, bs in zip(fracs, sizes, strict=True)])  # fmt: skip
         run_w = hlr / hlr[0]
     return ModelBank(G=G, egrid=egrid, radii=np.tile(radii, fracs.size), n=n, model=model,
                      bulge=np.repeat(fracs, n_sub), n_sub=n_sub, r_weights=r_w,
-                     star_weight=w_star, run_weights=run_w, rows=rows)  # fmt: skip
+                     star_weight=w_star, run_weights=run_w, rows=rows,
+                     bulge_size=np.repeat(sizes, n_sub) if two else None)  # fmt: skip
 
 
 def model_bank(config=None) -> ModelBank:
@@ -579,4 +600,5 @@ def model_bank(config=None) -> ModelBank:
         float(cfg.r_rel_step),
         bool(cfg.truncate_models),
         float(cfg.k_max),
+        float(cfg.bulge_size_ratio2),
     )

@@ -1029,7 +1029,9 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
     cat.meta["egrid"] = egrid
     cat.meta["prior"] = prior
     if lnL_bulge is not None:
-        cat.meta["bulge_fractions"] = np.linspace(0.0, 1.0, lnL_bulge.shape[1])
+        cat.meta["bulge_fractions"] = np.array([f for f, _ in cfg.bulge_runs])
+        if cfg.bulge_size_ratio2 > 0:
+            cat.meta["bulge_sizes"] = np.array([s for _, s in cfg.bulge_runs])
         cat.meta["bulge_weights"] = bulge_weights
     cat.meta["psfs"] = psfs
     cat.meta["psf_images"] = np.array([
@@ -1084,6 +1086,9 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
         hb = fits.ImageHDU(lnL_bulge, name="LNLB")
         hb.header["BULGEFR"] = (",".join(f"{f:g}" for f in cat.meta["bulge_fractions"]),
                          "bulge fractions of the LNLB planes")  # fmt: skip
+        if cat.meta.get("bulge_sizes") is not None:
+            hb.header["BULGESZ"] = (",".join(f"{f:g}" for f in cat.meta["bulge_sizes"]),
+                                    "bulge size / disc scale length of the LNLB planes")
         w = cat.meta.get("bulge_weights")
         if w is not None:
             hb.header["BULGEW"] = (",".join(f"{v:.6g}" for v in w), "their estimated prior weights")
@@ -1127,6 +1132,8 @@ def read_catalogue(path: str | os.PathLike) -> Table:
             hb = h["LNLB"]
             cat["lnL_bulge"] = np.array(hb.data, dtype=np.float32)
             cat.meta["bulge_fractions"] = np.array(hb.header["BULGEFR"].split(","), float)
+            if "BULGESZ" in hb.header:
+                cat.meta["bulge_sizes"] = np.array(hb.header["BULGESZ"].split(","), float)
             w = hb.header.get("BULGEW")
             cat.meta["bulge_weights"] = None if w is None else np.array(w.split(","), float)
         hdr = h[0].header

@@ -982,7 +982,7 @@ def precision(
         (a diagnostic, as ``prior``: :func:`population_size_prior` gives the
         population's own).
     bulge_weights : sequence of float, optional
-        Use these weights of the bulge fractions (``config.n_bulge_fractions`` of them,
+        Use these weights of the bulge fractions (one per ``config.bulge_runs``,
         normalised here) instead of estimating them (a diagnostic).
     flux_slope : float, optional
         With ``config.amplitude_prior="flux"``, the power ``beta`` of the amplitude prior
@@ -1046,10 +1046,10 @@ def precision(
     given_bw = None
     if bulge_weights is not None:
         given_bw = np.asarray(bulge_weights, dtype=float)
-        nf = cfg.n_bulge_fractions
+        nf = len(cfg.bulge_runs)
         if given_bw.shape != (nf,) or given_bw.min() < 0 or given_bw.sum() <= 0:
             raise ValueError(f"bulge_weights needs {nf} non-negative weights "
-                             f"(config.n_bulge_fractions), got {bulge_weights!r}")  # fmt: skip
+                             f"(one per Config.bulge_runs), got {bulge_weights!r}")  # fmt: skip
         given_bw = given_bw / given_bw.sum()
     fit_bulge = bulge_prior == "estimated" and cfg.n_bulge_fractions > 1 and given_bw is None
     given_sp = None
@@ -1234,7 +1234,9 @@ def precision(
     bp_method = bulge_prior if given_bw is None else "given"
     out.meta["bulge_prior"] = {
         "method": bp_method if cfg.n_bulge_fractions > 1 else "none",
-        "fractions": [float(f) for f in np.linspace(0.0, 1.0, int(cfg.n_bulge_fractions))],
+        "fractions": [float(f) for f, _ in cfg.bulge_runs],
+        "sizes": ([float(b) for _, b in cfg.bulge_runs] if cfg.bulge_size_ratio2 > 0
+                  else None),
         "weights": None if bulge_weights is None else [float(w) for w in bulge_weights],
     }
     out.meta["size_prior"] = None if size_priors[0] is None else [
@@ -1246,6 +1248,8 @@ def precision(
     out.meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
     out.meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
     out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
+                          "bulge_size_ratio": cfg.bulge_size_ratio,
+                          "bulge_size_ratio2": cfg.bulge_size_ratio2,
                           "e_step": cfg.e_step, "e_refine": int(cfg.e_refine),
                           "r_step": cfg.r_step, "stamp_size": cfg.stamp_size,
                           "max_stamp_size": cfg.largest_stamp,
@@ -1285,8 +1289,11 @@ def _bulge_line(bp: dict | None) -> str:
     if bp.get("weights") is None:
         return "Bulge-fraction prior: uniform over " + ", ".join(
             f"{f:g}" for f in bp["fractions"]) + ".\n"
-    pairs = ", ".join(f"{f:g}: {w:.3f}" for f, w in zip(bp["fractions"], bp["weights"],
-                                                         strict=True))
+    names = [f"{f:g}" for f in bp["fractions"]]
+    if bp.get("sizes"):
+        names = [f"{f:g} (bulge {b:g})" if f > 0 else n
+                 for n, f, b in zip(names, bp["fractions"], bp["sizes"], strict=True)]
+    pairs = ", ".join(f"{n}: {w:.3f}" for n, w in zip(names, bp["weights"], strict=True))
     if bp.get("method") == "given":
         return f"Bulge-fraction prior given: {pairs}.\n"
     return f"Bulge-fraction prior estimated from the calibration sample: {pairs}.\n"
@@ -1377,7 +1384,10 @@ def write_report(res: Table, path: str | Path) -> None:
         "size/PSF size "
         f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g}, seed {spec['seed']}; "
         f"model {res.meta['config']['model']} "
-        f"({res.meta['config'].get('n_bulge_fractions', 1)} bulge fraction(s)). "
+        f"({res.meta['config'].get('n_bulge_fractions', 1)} bulge fraction(s)"
+        + (f", bulges of {res.meta['config']['bulge_size_ratio']:g} and "
+           f"{res.meta['config']['bulge_size_ratio2']:g} disc scale lengths"
+           if res.meta["config"].get("bulge_size_ratio2") else "") + "). "
         + _stamp_line(res.meta.get("stamps")), "",
         ("Prior given: " if res.meta["prior"].get("given") else
          f"Prior from {spec['ncal']} unsheared calibration galaxies"

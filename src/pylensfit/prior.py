@@ -1100,10 +1100,12 @@ def _node_sizes(bank, config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     from .models import half_light_radius
 
     n_b = bank.n_r // bank.n_sizes
-    fracs = np.unique(bank.bulge) if n_b > 1 else [config.bulge_fraction]
+    runs = config.bulge_runs if n_b > 1 else ((config.bulge_fraction, config.bulge_size_ratio),)
+    if len(runs) != n_b:
+        raise ValueError(f"the model bank has {n_b} runs of sizes, the configuration {len(runs)}")
     unit = np.array([half_light_radius(bank.model, bulge_fraction=float(f),
-                                       bulge_size_ratio=config.bulge_size_ratio)
-                     for f in fracs])  # fmt: skip
+                                       bulge_size_ratio=float(s))
+                     for f, s in runs])  # fmt: skip
     r = np.asarray(bank.radii, float)
     r_w = np.tile(np.asarray(bank.r_weights, float), n_b)
     return r, r_w, r * np.repeat(unit, bank.n_sizes)

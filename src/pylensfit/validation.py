@@ -1200,6 +1200,9 @@ def validate(
     out.meta.update(_summary(out[:-1]))
     out.meta["prior"] = prior
     out.meta["bulge_weights"] = None if bulge_weights is None else bulge_weights.tolist()
+    out.meta["bulge_runs"] = None if bulge_weights is None else [
+        f"{f:g}" if f == 0 or cfg.bulge_size_ratio2 == 0 else f"{f:g} (bulge {b:g})"
+        for f, b in cfg.bulge_runs]  # fmt: skip
     out.meta["mode"] = "pairs" if pairs else "images"
     out.meta["estimator"] = estimator
     out.meta["estimates"] = pair_tab if pairs else img
@@ -1498,8 +1501,9 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
              + f", {n_est} estimates. Prior from the zero-shear fields: {meta['prior']!r}"
              + ("" if meta.get("bulge_weights") is None else
                 "; bulge-fraction prior " + ", ".join(
-                    f"{f:g}: {w:.3f}" for f, w in zip(
-                        np.linspace(0, 1, len(meta["bulge_weights"])), meta["bulge_weights"],
+                    f"{f}: {w:.3f}" for f, w in zip(
+                        meta.get("bulge_runs") or [f"{f:g}" for f in np.linspace(
+                            0, 1, len(meta["bulge_weights"]))], meta["bulge_weights"],
                         strict=True))) + ".", "",
              f"<m> = {meta['mean_m']:+.4f} +- {meta['mean_m_err']:.4f} (paper eq. averror: "
              f"+- {meta['mean_m_err_paper']:.4f}), sigma_c = {meta['sigma_c']:.2e} "
