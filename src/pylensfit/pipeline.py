@@ -1088,7 +1088,7 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
                          "bulge fractions of the LNLB planes")  # fmt: skip
         if cat.meta.get("bulge_sizes") is not None:
             hb.header["BULGESZ"] = (",".join(f"{f:g}" for f in cat.meta["bulge_sizes"]),
-                                    "bulge size / disc scale length of the LNLB planes")
+                                    "bulge sizes (disc scale lengths)")
         w = cat.meta.get("bulge_weights")
         if w is not None:
             hb.header["BULGEW"] = (",".join(f"{v:.6g}" for v in w), "their estimated prior weights")
