@@ -530,17 +530,25 @@ def test_folded_products_equal_the_direct_products(cfg):
     assert n_ops < 0.3 * _interior(n, cfg.k_max).sum() * bank.n_models
 
 
-def test_mixed_bulge_fractions_equal_their_own_products(rng, monkeypatch):
+@pytest.mark.parametrize("ladder", [(), (0.5, 2.0, 4.0)])
+def test_mixed_bulge_fractions_equal_their_own_products(rng, monkeypatch, ladder):
     """The kernel's mixed columns (the middle bulge fraction from the pure disc's and
-    pure bulge's products) give the fits that the fraction's own columns give."""
+    pure bulge's products; with the Sersic ladder also each half-and-half mixture from
+    its two Sersic profiles') give the fits that the runs' own columns give."""
     import pylensfit.likelihood as lk
 
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2, sersic_ladder=ladder)
+    bank = model_bank(cfg)
+    n_orb = int(((bank.egrid[:, 0] > 0) & (bank.egrid[:, 1] > 0)).sum())
+    n_mixed = 4 if ladder else 1  # 0.5 (of 0 and 1); Sersic 0.5+1, 1+2 and 2+4
+    assert lk._folded_bank(cfg, bank).mix_a.size == n_orb * n_mixed * bank.n_sizes
     psf = draw(PSFS["moffat_e1"])
     imgs = [draw(galsim.Convolve(galsim_model("bulge+disc", r, *e, bulge_fraction=bf),
                                  PSFS["moffat_e1"]))
             for r, e, bf in ((1.5, (0.3, -0.2), 0.5), (0.8, (-0.1, 0.4), 0.2))]  # fmt: skip
-    stamps = np.stack([img * f for img, f in zip(imgs, (25.0, 150.0), strict=True)])
+    imgs.append(draw(galsim.Convolve(galsim.Sersic(n=1.5, half_light_radius=2.0).shear(
+        g1=0.2, g2=0.1), PSFS["moffat_e1"])))  # fmt: skip
+    stamps = np.stack([img * f for img, f in zip(imgs, (25.0, 150.0, 80.0), strict=True)])
     stamps += rng.normal(size=stamps.shape)
     mixed = fit_stamps(stamps, psf, 1.0, config=cfg)
     assert lk._folded_bank(cfg, model_bank(cfg)).mix_a.size > 0
@@ -1121,7 +1129,8 @@ def test_two_bulge_sizes_are_the_two_families_runs(rng, tmp_path):
 
     cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
     two = cfg.replace(bulge_size_ratio2=1.2)
-    assert two.bulge_runs == ((0.0, 0.6), (0.5, 0.6), (1.0, 0.6), (0.5, 1.2), (1.0, 1.2))
+    assert [(run.fraction, run.size) for run in two.bulge_runs] == [
+        (0.0, 0.6), (0.5, 0.6), (1.0, 0.6), (0.5, 1.2), (1.0, 1.2)]
     b1, b2, bb = model_bank(cfg), model_bank(cfg.replace(bulge_size_ratio=1.2)), model_bank(two)
     n_sub, n_e = b1.n_sizes, b1.n_e
     G = bb.G[:, :-1].reshape(-1, n_e, 5, n_sub)
@@ -1131,7 +1140,7 @@ def test_two_bulge_sizes_are_the_two_families_runs(rng, tmp_path):
                                atol=tol)  # fmt: skip
     np.testing.assert_array_equal(bb.bulge_size[::n_sub], [0.6, 0.6, 0.6, 1.2, 1.2])
     hlr = [half_light_radius("bulge+disc", bulge_fraction=f, bulge_size_ratio=s)
-           for f, s in two.bulge_runs]  # fmt: skip
+           for f, s, *_ in two.bulge_runs]  # fmt: skip
     np.testing.assert_allclose(bb.run_weights, np.array(hlr) / hlr[0])
 
     psf = draw(PSFS["moffat_e1"])

@@ -211,3 +211,65 @@ def test_radius_weights_integrate(r_rel_step):
         assert np.max(np.abs(errs)) < 2.5e-3 and np.ptp(errs) < 1e-4
     else:
         assert np.ptp(errs) > 0.05
+
+
+def _ladder_galsim(run, r, e1, e2):
+    """A run of the model bank (:class:`pylensfit.models.Run`) as a GalSim object."""
+    from pylensfit.models import DEVAUC_TRUNCATION as T
+
+    def comp(n, h):
+        if n == 1.0:
+            return galsim.Exponential(half_light_radius=h * r)
+        return galsim.Sersic(n=n, half_light_radius=h * r, trunc=T * h * r if n > 2 else 0.0)
+
+    (na, ha), (nb, hb) = run.components
+    f = run.fraction
+    parts = [c.withFlux(w) for c, w in ((comp(na, ha), 1 - f), (comp(nb, hb), f)) if w > 0]
+    return galsim.Add(parts).shear(g1=e1, g2=e2)
+
+
+def test_sersic_ladder_bank_columns_match_galsim_on_the_stamp():
+    """The Sersic ladder's runs (``Config.sersic_ladder``): each column of the bank,
+    the stamp-edge wrap correction included, is GalSim's profile of that run (Sersic n =
+    0.5, 2, 4 of the disc's half-light radius, untruncated at n <= 2, and the half-and-half
+    mixtures of adjacent indices) cut at the stamp's edge, to 3e-3 of the peak inside the
+    stamp (as the one-profile models, test_truncated_model_matches_galsim_on_the_stamp);
+    adjacent runs differ by more than five times that; a run's half-light radius is the
+    disc's; bad ladders are rejected."""
+    from pylensfit.models import DISC_HLR, Run, run_half_light_radius
+
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2,
+                 sersic_ladder=(0.5, 2, 4))  # fmt: skip
+    bank = model_bank(cfg)
+    runs = cfg.bulge_runs
+    assert bank.runs == runs
+    assert [run.label() for run in runs] == ["0", "0.5", "1", "Sersic 0.5", "Sersic 0.5+1",
+                                             "Sersic 1+2", "Sersic 2", "Sersic 2+4",
+                                             "Sersic 4"]  # fmt: skip
+    assert runs[4] == Run(0.5, DISC_HLR, 1.0, 0.5)
+    for run in runs[3:]:
+        assert run_half_light_radius(run) == pytest.approx(DISC_HLR, rel=1e-9)
+    assert np.isnan(bank.bulge[3 * bank.n_sizes :]).all()
+    psf = PSFS["moffat_round"]
+    psf_img = draw(psf)
+    P = psf_transform(psf_img, N)
+    kx, ky, _ = rfft_frequencies(N)
+    c = N // 2
+    ie = int(np.flatnonzero(np.isclose(bank.egrid, [0.3, -0.1]).all(axis=1))[0])
+    inner = (slice(3, -3), slice(3, -3))
+    for r in (1.0, 3.0):  # the largest's wings wrap round the 32-pixel stamp
+        ir = int(np.argmin(np.abs(bank.radii[: bank.n_sizes] - r)))
+        r = bank.radii[ir]
+        ours = []
+        for k, run in enumerate(runs):
+            col = bank.G[:, ie * bank.n_r + k * bank.n_sizes + ir].reshape(kx.shape)
+            img = np.fft.irfft2(col * P * np.exp(-1j * (kx * c + ky * c)), s=(N, N))
+            ref = draw(galsim.Convolve(_ladder_galsim(run, r, 0.3, -0.1), psf))
+            assert np.abs(img - ref)[inner].max() < 3e-3 * ref.max(), (run, r)
+            ours.append(img)
+        for a, b in zip(ours[3:-1], ours[4:], strict=True):
+            assert np.abs(a - b)[inner].max() > 5 * 3e-3 * a.max()
+    for bad in ({"sersic_ladder": (1.0, 2.0)}, {"sersic_ladder": (2.0, 2.0)},
+                {"sersic_ladder": (9.0,)}, {"sersic_ladder": (2.0,), "n_bulge_fractions": 1}):
+        with pytest.raises(ValueError, match="sersic_ladder"):
+            cfg.replace(**bad)

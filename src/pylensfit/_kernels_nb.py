@@ -797,13 +797,20 @@ def laplace_grid_tab(
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
-def _profile_value(rr, model_code, fb, bsr, b_dev, norm_dev, trunc):
+def _profile_value(rr, model_code, fb, bsr, b_dev, norm_dev, trunc, inv_n):
     """Surface brightness of a unit-flux round profile of unit scale at radius ``rr``.
 
     ``model_code``: 0 exponential (scale length), 1 de Vaucouleurs (half-light radius,
     truncated at ``trunc``), 2 bulge + disc (disc scale length; bulge of fraction
-    ``fb`` and half-light radius ``bsr``).
+    ``fb`` and half-light radius ``bsr``), 3 one Sersic component of half-light radius
+    ``bsr``, ``exp(-b_dev x^inv_n) / norm_dev`` (``x`` in half-light radii) cut at
+    ``trunc`` half-light radii.
     """
+    if model_code == 3:
+        x = rr / bsr
+        if x <= trunc:
+            return math.exp(-b_dev * x**inv_n) / (norm_dev * bsr * bsr)
+        return 0.0
     v = 0.0
     if model_code != 1 and fb < 1.0:
         v += (1.0 - fb) * math.exp(-rr) / (2.0 * math.pi)
@@ -831,7 +838,7 @@ def _stamp_share(a, i, shared):
 
 
 @njit(parallel=True, cache=True)
-def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trunc, n,
+def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trunc, inv_n, n,
                   max_copies, out):  # fmt: skip
     """The wings that a periodic model wraps into an ``n x n`` stamp (DESIGN.md s. 3).
 
@@ -862,7 +869,9 @@ def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trun
         # the model's extent: 25 scale lengths of the disc (a fraction 4e-10 of its flux
         # beyond), the bulge's truncation radius
         ext = 0.0
-        if model_code != 1 and fb < 1.0:
+        if model_code == 3:
+            ext = trunc * bsr
+        elif model_code != 1 and fb < 1.0:
             ext = 25.0
         if model_code == 1 or (model_code == 2 and fb > 0.0):
             s = 1.0 if model_code == 1 else bsr
@@ -899,5 +908,5 @@ def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trun
                         uy = (-e2 * x + (1.0 + e1) * y) * inv
                         rr = math.sqrt(ux * ux + uy * uy) / r
                         acc += keep * _profile_value(rr, model_code, fb, bsr, b_dev,
-                                                     norm_dev, trunc) / (r * r)  # fmt: skip
+                                                     norm_dev, trunc, inv_n) / (r * r)  # fmt: skip
                 out[i, col, iy, ix] = acc

@@ -109,6 +109,14 @@ class Config:
         "the profile's shape (0: one size, bulge_size_ratio). 1.6x the fit's time; on the "
         "precision mix a second size of 1.0 moves m by +0.0007 (benchmarks/README.md)",
     )
+    sersic_ladder: tuple = _f(
+        (),
+        "bulge+disc model with marginalised fractions: Sersic indices of a ladder of "
+        "profiles of the disc's half-light radius fitted beside the bulge+disc runs, e.g. "
+        "(0.5, 2, 4): each index's Sersic profile (cut at 8 half-light radii above n = 2) "
+        "and the half-and-half mixture of each adjacent pair, the disc's n = 1 among them, "
+        "their weights estimated as the fractions' (models.bank_runs). Empty: none",
+    )
     n_bulge_fractions: int = _f(
         1,
         "bulge+disc model: marginalise over this many bulge fractions, evenly spaced on "
@@ -252,6 +260,8 @@ class Config:
     )
 
     def __post_init__(self) -> None:
+        if not isinstance(self.sersic_ladder, tuple):  # a list from YAML, a string "0.5,2,4"
+            object.__setattr__(self, "sersic_ladder", _as_floats(self.sersic_ladder))
         _validate(self)
 
     # ------------------------------------------------------------------ helpers
@@ -268,19 +278,24 @@ class Config:
         return self.e_step / self.e_refine
 
     @property
-    def bulge_runs(self) -> tuple[tuple[float, float], ...]:
-        """The ``(bulge fraction, bulge size ratio)`` of each run of sizes of the model bank:
+    def bulge_runs(self):
+        """The profile of each run of sizes of the model bank
+        (:func:`pylensfit.models.bank_runs`: ``Run(fraction, bulge size, ...)``):
         ``n_bulge_fractions`` fractions evenly spaced on [0, 1] with ``bulge_size_ratio``,
-        then with ``bulge_size_ratio2 > 0`` the fractions above 0 again with that size
-        (one run, the fixed ``bulge_fraction``, unless the fractions are marginalised)."""
-        n = int(self.n_bulge_fractions)
-        if n == 1:
-            return ((float(self.bulge_fraction), float(self.bulge_size_ratio)),)
-        fr = [k / (n - 1) for k in range(n)]
-        runs = [(f, float(self.bulge_size_ratio)) for f in fr]
-        if self.bulge_size_ratio2 > 0:
-            runs += [(f, float(self.bulge_size_ratio2)) for f in fr[1:]]
-        return tuple(runs)
+        then with ``bulge_size_ratio2 > 0`` the fractions above 0 again with that size,
+        then the Sersic ladder's (one run, the fixed ``bulge_fraction``, unless the
+        fractions are marginalised)."""
+        from .models import bank_runs
+
+        return bank_runs(self.model, float(self.bulge_fraction), float(self.bulge_size_ratio),
+                         int(self.n_bulge_fractions), float(self.bulge_size_ratio2),
+                         tuple(self.sersic_ladder))  # fmt: skip
+
+    @property
+    def run_labels(self) -> list[str]:
+        """How reports name each of :attr:`bulge_runs` (``Run.label``)."""
+        sized = self.bulge_size_ratio2 > 0 or bool(self.sersic_ladder)
+        return [run.label(sized) for run in self.bulge_runs]
 
     @property
     def output_refine(self) -> int:
@@ -295,8 +310,9 @@ class Config:
         return {f.name: (f.default, f.metadata.get("doc", "")) for f in fields(cls)}
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain ``dict`` of the parameters (for headers and YAML)."""
-        return dataclasses.asdict(self)
+        """Plain ``dict`` of the parameters (for headers and YAML; sequences as lists)."""
+        return {k: list(v) if isinstance(v, tuple) else v
+                for k, v in dataclasses.asdict(self).items()}  # fmt: skip
 
     def replace(self, **overrides: Any) -> Config:
         """A copy with some parameters changed (validated)."""
@@ -350,6 +366,16 @@ class Config:
         import yaml
 
         Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+
+def _as_floats(val: Any) -> tuple:
+    """A tuple of floats from a sequence or a comma-separated string."""
+    if isinstance(val, str):
+        val = [v for v in val.replace("(", "").replace(")", "").split(",") if v.strip()]
+    try:
+        return tuple(float(v) for v in val)
+    except (TypeError, ValueError):
+        raise ConfigError(f"expected a sequence of numbers, got {val!r}") from None
 
 
 def _as_bool(val: Any) -> bool:
@@ -406,6 +432,12 @@ def _validate(c: Config) -> None:
     )
     need(c.bulge_size_ratio2 != c.bulge_size_ratio,
          "bulge_size_ratio2 must differ from bulge_size_ratio (0: no second size)")
+    ladder = c.sersic_ladder
+    need(not ladder or (c.model == "bulge+disc" and c.n_bulge_fractions >= 2),
+         "sersic_ladder needs model 'bulge+disc' with n_bulge_fractions >= 2")
+    need(all(0.3 <= v <= 6.2 and v != 1.0 for v in ladder) and len(set(ladder)) == len(ladder),
+         f"sersic_ladder must hold distinct Sersic indices in [0.3, 6.2] other than the "
+         f"disc's 1, got {ladder}")
     need(c.bulge_prior in ("estimated", "uniform"),
          f"bulge_prior must be 'estimated' or 'uniform', got {c.bulge_prior!r}")
     need(c.position_prior_sigma > 0, "position_prior_sigma must be > 0")

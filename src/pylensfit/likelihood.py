@@ -289,7 +289,7 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
            config.r_step, config.model, config.bulge_fraction, config.bulge_size_ratio,
            config.dtype, int(config.n_bulge_fractions), float(config.r_rel_step),
            bool(config.truncate_models), float(config.k_max),
-           float(config.bulge_size_ratio2))  # fmt: skip
+           float(config.bulge_size_ratio2), tuple(config.sersic_ladder))  # fmt: skip
     fb = _FOLDED.get(key)
     if fb is not None and fb[0] is bank:
         return fb[1]
@@ -364,28 +364,29 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
 
 
 def _mixed_columns(bank, n_orb: int):
-    """The folded bank's column order with the mixed bulge fractions last.
+    """The folded bank's column order with the mixed runs last.
 
     Returns ``perm`` (new column -> old, the old order ``orbit * n_r + ir`` and the
     point source last), and for the mixed columns (``perm[n_base:]``) the base columns
-    ``a`` (pure disc) and ``b`` (pure bulge of the same bulge size) and the fraction
-    ``f``: column ``(1 - f) a + f b``. No mixed columns (``perm`` the identity) unless
-    the bank is bulge+disc with the fractions 0 and 1 (of each bulge size) and others
-    between.
+    ``a`` and ``b`` (the pure runs of the run's two components, :class:`~pylensfit.models.Run`)
+    and the fraction ``f``: column ``(1 - f) a + f b``. No mixed columns (``perm`` the
+    identity) unless the bank is bulge+disc with runs between pure ones (the fractions 0
+    and 1 and others between; the Sersic ladder's half-and-half mixtures).
     """
     n_r = bank.n_r
     n_old = n_orb * n_r + 1
     none = (np.arange(n_old), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
-    if bank.model != "bulge+disc" or bank.bulge is None:
+    runs = tuple(bank.runs)
+    if bank.model != "bulge+disc" or len(runs) < 2:
         return none
     n_sub = bank.n_sizes
-    fr = np.asarray(bank.bulge, float)[::n_sub]
-    bs = (np.zeros(fr.size) if bank.bulge_size is None
-          else np.asarray(bank.bulge_size, float)[::n_sub])  # fmt: skip
-    ends = np.flatnonzero((fr == 0.0) | (fr == 1.0))
-    mid = np.flatnonzero((fr > 0.0) & (fr < 1.0))
-    pure = {float(bs[k]): k for k in ends if fr[k] == 1.0}
-    if mid.size == 0 or fr[0] != 0.0 or any(float(bs[k]) not in pure for k in mid):
+    pure = {}  # component -> its pure run
+    for k, run in enumerate(runs):
+        if run.fraction in (0.0, 1.0):
+            pure.setdefault(run.components[int(run.fraction)], k)
+    ends = np.array([k for k, run in enumerate(runs) if run.fraction in (0.0, 1.0)])
+    mid = np.array([k for k, run in enumerate(runs) if run.fraction not in (0.0, 1.0)], int)
+    if mid.size == 0 or any(c not in pure for k in mid for c in runs[k].components):
         return none
     orb = np.arange(n_orb)[:, None, None]
     size = np.arange(n_sub)[None, None, :]
@@ -394,11 +395,13 @@ def _mixed_columns(bank, n_orb: int):
     perm = np.concatenate([ends_c.ravel(), [n_orb * n_r], mids_c.ravel()])
     pos = np.empty(n_old, dtype=np.int64)
     pos[perm] = np.arange(n_old)
-    run_b = np.array([pure[float(bs[k])] for k in mid])
+    run_a = np.array([pure[runs[k].components[0]] for k in mid])
+    run_b = np.array([pure[runs[k].components[1]] for k in mid])
     shape = (n_orb, mid.size, n_sub)
-    mix_a = pos[np.broadcast_to(orb * n_r + size, shape).ravel()]  # run 0: the disc
+    mix_a = pos[np.broadcast_to(orb * n_r + run_a[None, :, None] * n_sub + size, shape).ravel()]
     mix_b = pos[np.broadcast_to(orb * n_r + run_b[None, :, None] * n_sub + size, shape).ravel()]
-    mix_f = np.broadcast_to(fr[mid][None, :, None], shape).ravel().copy()
+    fr = np.array([runs[k].fraction for k in mid])
+    mix_f = np.broadcast_to(fr[None, :, None], shape).ravel().copy()
     return perm, mix_a, mix_b, mix_f
 
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
@@ -69,21 +70,126 @@ _Q_MAX_TABLE = 2000.0
 _WRAP_COPIES = 3
 
 
-@lru_cache(maxsize=4)
-def _devauc_spline(trunc: float):
-    """Spline of the de Vaucouleurs transform, tabulated uniformly in ln(1 + q)."""
+def _sersic_trunc(n: float) -> float:
+    """Truncation radius (half-light radii) of a Sersic profile of index ``n`` of the model
+    family: :data:`DEVAUC_TRUNCATION` above ``n = 2``, none (0) at or below, as the
+    simulations draw them."""
+    return DEVAUC_TRUNCATION if n > 2 else 0.0
+
+
+@lru_cache(maxsize=16)
+def _sersic_spline(n: float, trunc: float):
+    """Spline of the transform of a Sersic profile of unit half-light radius (GalSim's
+    Hankel transform, ``trunc`` half-light radii, 0: untruncated), uniform in ln(1 + q)."""
     import galsim
     from scipy.interpolate import CubicSpline
 
-    prof = galsim.DeVaucouleurs(half_light_radius=1.0, trunc=trunc)
+    if n == 4.0:
+        prof = galsim.DeVaucouleurs(half_light_radius=1.0, trunc=trunc)
+    else:
+        prof = galsim.Sersic(n=n, half_light_radius=1.0, trunc=trunc)
     x = np.linspace(0.0, np.log1p(_Q_MAX_TABLE), 3001)
     q = np.expm1(x)
     f = np.array([prof.kValue(galsim.PositionD(float(qi), 0.0)).real for qi in q])
     return CubicSpline(x, f / f[0])
 
 
+def _devauc_spline(trunc: float):
+    """Spline of the de Vaucouleurs transform, tabulated uniformly in ln(1 + q)."""
+    return _sersic_spline(4.0, trunc)
+
+
 def _devauc_profile(q: np.ndarray) -> np.ndarray:
     return _devauc_spline(DEVAUC_TRUNCATION)(np.log1p(np.minimum(q, _Q_MAX_TABLE)))
+
+
+#: Half-light radius of the exponential disc in scale lengths.
+DISC_HLR = 1.6783469900166608
+
+
+class Run(NamedTuple):
+    """One run of sizes of the model bank: the profile ``(1 - fraction) A + fraction B``.
+
+    Both components have the model's ellipticity. ``A`` is a Sersic profile of index
+    ``n_a`` and the disc's half-light radius (:data:`DISC_HLR` ``r``; for ``n_a = 1`` the
+    exponential disc of scale length ``r``), ``B`` a Sersic profile of index ``n`` and
+    half-light radius ``size * r``. The bulge+disc family's runs are ``Run(f, s)``: a de
+    Vaucouleurs bulge (``n = 4``) of ``s`` disc scale lengths with flux fraction ``f``.
+    The Sersic ladder (``Config.sersic_ladder``) adds ``Run(1, DISC_HLR, n)`` (a Sersic
+    profile of the disc's half-light radius) and the half-and-half mixtures of adjacent
+    indices. Profiles above ``n = 2`` are truncated at :data:`DEVAUC_TRUNCATION` half-light
+    radii.
+    """
+
+    fraction: float
+    size: float
+    n: float = 4.0
+    n_a: float = 1.0
+
+    @property
+    def components(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """``((n_a, DISC_HLR), (n, size))``: each component's index and half-light radius
+        per unit ``r``."""
+        return (float(self.n_a), DISC_HLR), (float(self.n), float(self.size))
+
+    @property
+    def is_bulge_disc(self) -> bool:
+        """A run of the bulge+disc family (an exponential disc and a de Vaucouleurs bulge)."""
+        return self.n_a == 1.0 and self.n == 4.0 and self.size != DISC_HLR
+
+    def label(self, sized: bool = False) -> str:
+        """How reports name the run: the bulge fraction (``"0.5"``; with ``sized`` and a
+        bulge, ``"0.5 (bulge 0.6)"``), or ``"Sersic 2"`` / ``"Sersic 1+2"`` for the
+        ladder's."""
+        if self.is_bulge_disc:
+            f = self.fraction
+            return f"{f:g}" if f == 0 or not sized else f"{f:g} (bulge {self.size:g})"
+        if self.fraction == 1.0:
+            return f"Sersic {self.n:g}"
+        return f"Sersic {self.n_a:g}+{self.n:g}"
+
+
+def bank_runs(
+    model: str,
+    bulge_fraction: float,
+    bulge_size_ratio: float,
+    n_bulge: int = 1,
+    bulge_size_ratio2: float = 0.0,
+    sersic_ladder: tuple[float, ...] = (),
+) -> tuple[Run, ...]:
+    """The runs of sizes of a model bank, in the bank's column order.
+
+    One run, the fixed ``bulge_fraction``, unless the fractions are marginalised
+    (``n_bulge > 1``, ``"bulge+disc"``): then ``n_bulge`` fractions evenly spaced on [0, 1]
+    with ``bulge_size_ratio``, with ``bulge_size_ratio2 > 0`` the fractions above 0 again
+    with that bulge size (the pure disc has no bulge to size), and with ``sersic_ladder``
+    its Sersic profiles and the half-and-half mixtures of adjacent indices, the disc's
+    ``n = 1`` included among them (:class:`Run`).
+    """
+    if n_bulge == 1 or model != "bulge+disc":
+        return (Run(float(bulge_fraction), float(bulge_size_ratio)),)
+    fr = [k / (n_bulge - 1) for k in range(n_bulge)]
+    runs = [Run(f, float(bulge_size_ratio)) for f in fr]
+    if bulge_size_ratio2 > 0:
+        runs += [Run(f, float(bulge_size_ratio2)) for f in fr[1:]]
+    if sersic_ladder:
+        ladder = sorted({1.0, *(float(v) for v in sersic_ladder)})
+        for lo, hi in zip(ladder[:-1], ladder[1:], strict=True):
+            if lo != 1.0 and not runs[-1:] == [Run(1.0, DISC_HLR, lo)]:
+                runs.append(Run(1.0, DISC_HLR, lo))
+            runs.append(Run(0.5, DISC_HLR, hi, lo))
+            if hi != 1.0:
+                runs.append(Run(1.0, DISC_HLR, hi))
+    return tuple(runs)
+
+
+def _component_transform(q: np.ndarray, n: float, h: float) -> np.ndarray:
+    """Transform at ``q = |k| r`` of a unit-flux Sersic component of index ``n`` and
+    half-light radius ``h r`` (``n = 1``: the exponential, analytic)."""
+    if n == 1.0:
+        x = q * (h / DISC_HLR)
+        return (1.0 + x * x) ** -1.5
+    return _sersic_spline(float(n), _sersic_trunc(n))(np.log1p(np.minimum(q * h, _Q_MAX_TABLE)))
 
 
 def fourier_profile(
@@ -276,6 +382,8 @@ class ModelBank:
     rows : numpy.ndarray or None
         The flattened ``rfft2`` frequencies that ``G`` holds, those with ``|k| <=
         k_max`` (:func:`frequency_rows`); ``None``: all of them.
+    runs : tuple of Run
+        The profile of each run of sizes (:func:`bank_runs`).
     """
 
     G: np.ndarray
@@ -290,6 +398,7 @@ class ModelBank:
     run_weights: np.ndarray | None = None
     rows: np.ndarray | None = None
     bulge_size: np.ndarray | None = None
+    runs: tuple[Run, ...] = ()
 
     @property
     def n_sizes(self) -> int:
@@ -309,18 +418,56 @@ class ModelBank:
         return self.G.shape[1]
 
 
-@lru_cache(maxsize=4)
-def _devauc_b(trunc: float) -> float:
-    """Sersic ``b`` of the de Vaucouleurs profile truncated at ``trunc`` half-light radii.
+@lru_cache(maxsize=16)
+def _sersic_b(n: float, trunc: float) -> float:
+    """Sersic ``b`` of a profile of index ``n`` truncated at ``trunc`` half-light radii
+    (0: untruncated, ``gammaincinv(2 n, 1/2)``).
 
     Chosen so that the truncated profile's half-light radius is 1, as GalSim's ``trunc``
     with ``flux_untruncated=False``.
     """
     from scipy.optimize import brentq
+    from scipy.special import gammainc, gammaincinv
+
+    if trunc <= 0:
+        return float(gammaincinv(2.0 * n, 0.5))
+    lo, hi = (5.0, 10.0) if n == 4.0 else (1e-6, 60.0)
+    return float(brentq(lambda bb: gammainc(2 * n, bb) / gammainc(2 * n, bb * trunc ** (1 / n))
+                        - 0.5, lo, hi))  # fmt: skip
+
+
+def _devauc_b(trunc: float) -> float:
+    """Sersic ``b`` of the de Vaucouleurs profile truncated at ``trunc`` half-light radii."""
+    return _sersic_b(4.0, trunc)
+
+
+def _enclosed(x, n: float, h: float):
+    """Flux fraction within ``x`` (units of ``r``) of the Sersic component ``(n, h)``."""
     from scipy.special import gammainc
 
-    return float(brentq(lambda bb: gammainc(8, bb) / gammainc(8, bb * trunc**0.25) - 0.5,
-                        5.0, 10.0))  # fmt: skip
+    if n == 1.0:
+        y = np.asarray(x) * (DISC_HLR / h)
+        return 1.0 - (1.0 + y) * np.exp(-y)
+    t = _sersic_trunc(n)
+    b = _sersic_b(n, t)
+    y = np.asarray(x) / h
+    if t > 0:
+        return gammainc(2 * n, b * np.minimum(y, t) ** (1 / n)) / gammainc(2 * n, b * t ** (1 / n))
+    return gammainc(2 * n, b * y ** (1 / n))
+
+
+@lru_cache(maxsize=128)
+def run_half_light_radius(run: Run) -> float:
+    """Half-light radius per unit ``r`` of a run's profile (:class:`Run`), by root finding
+    on its components' enclosed-flux curves."""
+    from scipy.optimize import brentq
+
+    (na, ha), (nb, hb) = run.components
+    f = float(run.fraction)
+    if f == 0.0:
+        return ha if na != 1.0 else half_light_radius("exponential")
+    return float(brentq(lambda x: (1 - f) * _enclosed(x, na, ha) + f * _enclosed(x, nb, hb)
+                        - 0.5, 1e-9, 1e3))  # fmt: skip
 
 
 def wrap_correction(
@@ -331,6 +478,7 @@ def wrap_correction(
     bulge_size_ratio: float,
     n: int,
     rows: np.ndarray | None = None,
+    runs: tuple[Run, ...] | None = None,
 ) -> np.ndarray:
     """Transforms of the wings that the periodic Fourier models wrap into the stamp.
 
@@ -362,13 +510,16 @@ def wrap_correction(
         Stamp side.
     rows : numpy.ndarray, optional
         Only these of the flattened ``rfft2`` frequencies (:func:`frequency_rows`).
+    runs : tuple of Run, optional
+        The bank's runs (:func:`bank_runs`), in place of ``fracs`` and
+        ``bulge_size_ratio``: each run's wings are mixed from its two components'.
 
     Returns
     -------
     numpy.ndarray
-        ``(n * (n // 2 + 1), n_e * len(fracs) * n_r)`` real transforms (``(len(rows),
-        ...)`` with ``rows``), in the column order of :class:`ModelBank` (without the
-        point source).
+        ``(n * (n // 2 + 1), n_e * len(fracs) * n_r)`` (``len(runs)``) real transforms
+        (``(len(rows), ...)`` with ``rows``), in the column order of :class:`ModelBank`
+        (without the point source).
     """
     from scipy.special import gamma, gammainc
 
@@ -383,16 +534,29 @@ def wrap_correction(
     ie_rep = np.flatnonzero(rep)
     fr = np.asarray(fracs, float) if model == "bulge+disc" else np.zeros(1)
     n_r = radii.size
-    per_e = fr.size * n_r
-    # the wings of a bulge+disc model are linear in its fraction: the pure disc's and the
-    # pure bulge's make every fraction's (half the profile evaluations for three)
-    base = np.array([0.0, 1.0]) if model == "bulge+disc" and fr.size > 2 else fr
-    w = np.zeros((ie_rep.size, base.size * n_r, n, n), dtype=np.float32)
-    wrapped_wings(eg[ie_rep, 0].copy(), eg[ie_rep, 1].copy(), np.asarray(radii, float), base,
-                  code, float(bulge_size_ratio), b, norm, t, int(n), _WRAP_COPIES, w)  # fmt: skip
-    if base is not fr:
-        w0, w1 = w[:, :n_r], w[:, n_r:]
-        w = np.concatenate([(1.0 - f) * w0 + f * w1 for f in fr], axis=1)
+    e1r, e2r, rad = eg[ie_rep, 0].copy(), eg[ie_rep, 1].copy(), np.asarray(radii, float)
+    if runs is not None:
+        # each run's wings are linear in its components' (one profile evaluation each)
+        per_e = len(runs) * n_r
+        comp = {}
+        for c in dict.fromkeys(cc for run in runs for cc in run.components):
+            comp[c] = np.zeros((ie_rep.size, n_r, n, n), dtype=np.float32)
+            wrapped_wings(e1r, e2r, rad, *_wing_args(*c), int(n), _WRAP_COPIES, comp[c])
+        w = np.concatenate([(1.0 - run.fraction) * comp[run.components[0]]
+                            + run.fraction * comp[run.components[1]] for run in runs],
+                           axis=1)  # fmt: skip
+        del comp
+    else:
+        per_e = fr.size * n_r
+        # the wings of a bulge+disc model are linear in its fraction: the pure disc's and
+        # the pure bulge's make every fraction's (half the profile evaluations for three)
+        base = np.array([0.0, 1.0]) if model == "bulge+disc" and fr.size > 2 else fr
+        w = np.zeros((ie_rep.size, base.size * n_r, n, n), dtype=np.float32)
+        wrapped_wings(e1r, e2r, rad, base, code, float(bulge_size_ratio), b, norm, t, 0.25,
+                      int(n), _WRAP_COPIES, w)  # fmt: skip
+        if base is not fr:
+            w0, w1 = w[:, :n_r], w[:, n_r:]
+            w = np.concatenate([(1.0 - f) * w0 + f * w1 for f in fr], axis=1)
     # the other cells by the square's symmetries: e2 -> -e2 is y -> -y, e1 -> -e1 is the
     # transposition x <-> y (on the periodic lattice of offsets from the centre n // 2)
     flip = (2 * (n // 2) - np.arange(n)) % n
@@ -411,6 +575,24 @@ def wrap_correction(
         tr = np.fft.rfft2(np.fft.ifftshift(img.astype(float), axes=(1, 2)))
         W[:, ie * per_e + live] = tr.real.reshape(live.size, -1)[:, sel].T
     return W
+
+
+def _wing_args(n_s: float, h: float) -> tuple:
+    """:func:`wrapped_wings`' profile arguments for the Sersic component ``(n_s, h)``
+    (``fracs`` to ``inv_n``): the exponential disc (code 0) or one Sersic component
+    (code 3), untruncated ones cut where the flux beyond is below 1e-10."""
+    from scipy.special import gamma, gammainc, gammaincinv
+
+    if n_s == 1.0:
+        if h != DISC_HLR:
+            raise ValueError(f"an exponential component must be the disc, got size {h}")
+        return np.zeros(1), 0, 1.0, 1.0, 1.0, 1.0, 1.0
+    t = _sersic_trunc(n_s)
+    b = _sersic_b(n_s, t)
+    frac_in = gammainc(2 * n_s, b * t ** (1 / n_s)) if t > 0 else 1.0
+    norm = 2.0 * np.pi * n_s * gamma(2 * n_s) * frac_in / b ** (2 * n_s)
+    cut = t if t > 0 else (gammaincinv(2 * n_s, 1.0 - 1e-10) / b) ** n_s
+    return np.ones(1), 3, float(h), float(b), float(norm), float(cut), 1.0 / n_s
 
 
 @lru_cache(maxsize=64)
@@ -519,59 +701,57 @@ def _cached_bank(
     truncate: bool = False,
     k_max: float = 0.0,
     bulge_size_ratio2: float = 0.0,
+    sersic_ladder: tuple[float, ...] = (),
 ) -> ModelBank:
     egrid = ellipticity_grid(e_step, emax=e_max)
     radii = radius_grid(r_min, r_max, r_step, r_rel_step)
     r_w, w_star = radius_weights(radii, r_min)
-    fracs = np.array([bulge_fraction]) if n_bulge == 1 else np.linspace(0.0, 1.0, n_bulge)
-    # the runs of sizes: one per fraction, and with a second bulge size the fractions
-    # above 0 once more with it (the pure disc has no bulge to size)
-    sizes = np.full(fracs.size, float(bulge_size_ratio))
-    two = bulge_size_ratio2 > 0 and model == "bulge+disc" and fracs.size > 1
-    if two:
-        sizes = np.concatenate([sizes, np.full(fracs.size - 1, float(bulge_size_ratio2))])
-        fracs = np.concatenate([fracs, fracs[1:]])
+    runs = bank_runs(model, bulge_fraction, bulge_size_ratio, n_bulge, bulge_size_ratio2,
+                     sersic_ladder)  # fmt: skip
+    fracs = np.array([run.fraction for run in runs])
     n_sub = radii.size
+    # the bulge fraction of each run; not a number for the Sersic ladder's profiles
+    bulge = np.array([run.fraction if run.is_bulge_disc or len(runs) == 1 else np.nan
+                      for run in runs])  # fmt: skip
     kx, ky, _ = rfft_frequencies(n)
     rows = frequency_rows(n, k_max)
     kx = kx.ravel() if rows is None else kx.ravel()[rows]
     ky = ky.ravel() if rows is None else ky.ravel()[rows]
     n_freq = kx.size
-    per_e = n_sub * fracs.size
+    per_e = n_sub * len(runs)
     G = np.empty((n_freq, egrid.shape[0] * per_e + 1), dtype=dtype)
-    mix = model == "bulge+disc" and fracs.size > 1
-    for ie, (e1, e2) in enumerate(egrid):  # one vectorised (freq x r) block per e and B/T
+    mix = model == "bulge+disc" and len(runs) > 1
+    comps = list(dict.fromkeys(c for run in runs for c in run.components))
+    for ie, (e1, e2) in enumerate(egrid):  # one vectorised (freq x r) block per e and run
         ks = sheared_k(kx, ky, e1, e2)
         q = ks[:, None] * radii[None, :]
-        if mix:  # each fraction's transform is linear in the two components' (exact)
-            disc = fourier_profile(q, "exponential")
-            bulge = {s: fourier_profile(q * s, "devaucouleurs") for s in np.unique(sizes)}
-        for ib, (bf, bs) in enumerate(zip(fracs, sizes, strict=True)):
+        if mix:  # each run's transform is linear in its two components' (exact)
+            T = {c: _component_transform(q, *c) for c in comps}
+        for ib, run in enumerate(runs):
             c0 = ie * per_e + ib * n_sub
-            G[:, c0 : c0 + n_sub] = (bf * bulge[bs] + (1.0 - bf) * disc if mix else fourier_profile(
-                q, model, bulge_fraction=float(bf), bulge_size_ratio=bulge_size_ratio))
+            if mix:
+                ca, cb = run.components
+                G[:, c0 : c0 + n_sub] = run.fraction * T[cb] + (1.0 - run.fraction) * T[ca]
+            else:
+                G[:, c0 : c0 + n_sub] = fourier_profile(
+                    q, model, bulge_fraction=run.fraction, bulge_size_ratio=bulge_size_ratio)
     G[:, -1] = 1.0
     if truncate:
-        n_b1 = n_bulge if two else fracs.size
-        W = wrap_correction(egrid, radii, fracs[:n_b1], model, bulge_size_ratio, n, rows)
-        if two:  # the second size's runs after the first's, in every e cell
-            W2 = wrap_correction(egrid, radii, fracs[n_b1:], model, bulge_size_ratio2, n, rows)
-            W = np.concatenate([W.reshape(W.shape[0], -1, n_b1 * n_sub),
-                                W2.reshape(W2.shape[0], -1, (fracs.size - n_b1) * n_sub)],
-                               axis=2).reshape(W.shape[0], -1)  # fmt: skip
+        W = wrap_correction(egrid, radii, fracs, model, bulge_size_ratio, n, rows,
+                            runs=runs if mix else None)  # fmt: skip
         G[:, :-1] -= W.astype(dtype)
         del W
     G.setflags(write=False)
     run_w = None
-    if fracs.size > 1:
-        hlr = np.array([half_light_radius(model, bulge_fraction=float(bf),
-                                          bulge_size_ratio=float(bs))
-                        for bf, bs in zip(fracs, sizes, strict=True)])  # fmt: skip
+    if len(runs) > 1:
+        hlr = np.array([run_half_light_radius(run) for run in runs])
         run_w = hlr / hlr[0]
-    return ModelBank(G=G, egrid=egrid, radii=np.tile(radii, fracs.size), n=n, model=model,
-                     bulge=np.repeat(fracs, n_sub), n_sub=n_sub, r_weights=r_w,
+    two = bulge_size_ratio2 > 0 or bool(sersic_ladder)
+    return ModelBank(G=G, egrid=egrid, radii=np.tile(radii, len(runs)), n=n, model=model,
+                     bulge=np.repeat(bulge, n_sub), n_sub=n_sub, r_weights=r_w,
                      star_weight=w_star, run_weights=run_w, rows=rows,
-                     bulge_size=np.repeat(sizes, n_sub) if two else None)  # fmt: skip
+                     bulge_size=np.repeat([run.size for run in runs], n_sub) if two else None,
+                     runs=runs)  # fmt: skip
 
 
 def model_bank(config=None) -> ModelBank:
@@ -601,4 +781,5 @@ def model_bank(config=None) -> ModelBank:
         bool(cfg.truncate_models),
         float(cfg.k_max),
         float(cfg.bulge_size_ratio2),
+        tuple(cfg.sersic_ladder),
     )

@@ -1029,9 +1029,11 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
     cat.meta["egrid"] = egrid
     cat.meta["prior"] = prior
     if lnL_bulge is not None:
-        cat.meta["bulge_fractions"] = np.array([f for f, _ in cfg.bulge_runs])
-        if cfg.bulge_size_ratio2 > 0:
-            cat.meta["bulge_sizes"] = np.array([s for _, s in cfg.bulge_runs])
+        cat.meta["bulge_fractions"] = np.array([run.fraction if run.is_bulge_disc else np.nan
+                                                 for run in cfg.bulge_runs])
+        if cfg.bulge_size_ratio2 > 0 or cfg.sersic_ladder:
+            cat.meta["bulge_sizes"] = np.array([run.size for run in cfg.bulge_runs])
+            cat.meta["runs"] = cfg.run_labels
         cat.meta["bulge_weights"] = bulge_weights
     cat.meta["psfs"] = psfs
     cat.meta["psf_images"] = np.array([
@@ -1089,6 +1091,8 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
         if cat.meta.get("bulge_sizes") is not None:
             hb.header["BULGESZ"] = (",".join(f"{f:g}" for f in cat.meta["bulge_sizes"]),
                                     "bulge sizes (disc scale lengths)")
+        if cat.meta.get("runs") is not None:
+            hb.header["RUNS"] = (";".join(cat.meta["runs"]), "the profile of each LNLB plane")
         w = cat.meta.get("bulge_weights")
         if w is not None:
             hb.header["BULGEW"] = (",".join(f"{v:.6g}" for v in w), "their estimated prior weights")
@@ -1134,6 +1138,8 @@ def read_catalogue(path: str | os.PathLike) -> Table:
             cat.meta["bulge_fractions"] = np.array(hb.header["BULGEFR"].split(","), float)
             if "BULGESZ" in hb.header:
                 cat.meta["bulge_sizes"] = np.array(hb.header["BULGESZ"].split(","), float)
+            if "RUNS" in hb.header:
+                cat.meta["runs"] = hb.header["RUNS"].split(";")
             w = hb.header.get("BULGEW")
             cat.meta["bulge_weights"] = None if w is None else np.array(w.split(","), float)
         hdr = h[0].header

@@ -1234,9 +1234,10 @@ def precision(
     bp_method = bulge_prior if given_bw is None else "given"
     out.meta["bulge_prior"] = {
         "method": bp_method if cfg.n_bulge_fractions > 1 else "none",
-        "fractions": [float(f) for f, _ in cfg.bulge_runs],
-        "sizes": ([float(b) for _, b in cfg.bulge_runs] if cfg.bulge_size_ratio2 > 0
-                  else None),
+        "fractions": [float(run.fraction) for run in cfg.bulge_runs],
+        "sizes": ([float(run.size) for run in cfg.bulge_runs]
+                  if cfg.bulge_size_ratio2 > 0 or cfg.sersic_ladder else None),
+        "labels": cfg.run_labels,
         "weights": None if bulge_weights is None else [float(w) for w in bulge_weights],
     }
     out.meta["size_prior"] = None if size_priors[0] is None else [
@@ -1289,10 +1290,7 @@ def _bulge_line(bp: dict | None) -> str:
     if bp.get("weights") is None:
         return "Bulge-fraction prior: uniform over " + ", ".join(
             f"{f:g}" for f in bp["fractions"]) + ".\n"
-    names = [f"{f:g}" for f in bp["fractions"]]
-    if bp.get("sizes"):
-        names = [f"{f:g} (bulge {b:g})" if f > 0 else n
-                 for n, f, b in zip(names, bp["fractions"], bp["sizes"], strict=True)]
+    names = bp.get("labels") or [f"{f:g}" for f in bp["fractions"]]
     pairs = ", ".join(f"{n}: {w:.3f}" for n, w in zip(names, bp["weights"], strict=True))
     if bp.get("method") == "given":
         return f"Bulge-fraction prior given: {pairs}.\n"

@@ -1097,15 +1097,17 @@ def estimate_prior_binned(
 # ----------------------------------------------------------------------------------------
 def _node_sizes(bank, config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per size node of an e cell: ``r``, its quadrature weight and half-light radius."""
-    from .models import half_light_radius
+    from .models import half_light_radius, run_half_light_radius
 
     n_b = bank.n_r // bank.n_sizes
-    runs = config.bulge_runs if n_b > 1 else ((config.bulge_fraction, config.bulge_size_ratio),)
+    runs = config.bulge_runs
     if len(runs) != n_b:
         raise ValueError(f"the model bank has {n_b} runs of sizes, the configuration {len(runs)}")
-    unit = np.array([half_light_radius(bank.model, bulge_fraction=float(f),
-                                       bulge_size_ratio=float(s))
-                     for f, s in runs])  # fmt: skip
+    if n_b == 1:
+        unit = np.array([half_light_radius(bank.model, bulge_fraction=float(runs[0].fraction),
+                                           bulge_size_ratio=float(runs[0].size))])
+    else:
+        unit = np.array([run_half_light_radius(run) for run in runs])
     r = np.asarray(bank.radii, float)
     r_w = np.tile(np.asarray(bank.r_weights, float), n_b)
     return r, r_w, r * np.repeat(unit, bank.n_sizes)

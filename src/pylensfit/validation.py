@@ -1200,9 +1200,7 @@ def validate(
     out.meta.update(_summary(out[:-1]))
     out.meta["prior"] = prior
     out.meta["bulge_weights"] = None if bulge_weights is None else bulge_weights.tolist()
-    out.meta["bulge_runs"] = None if bulge_weights is None else [
-        f"{f:g}" if f == 0 or cfg.bulge_size_ratio2 == 0 else f"{f:g} (bulge {b:g})"
-        for f, b in cfg.bulge_runs]  # fmt: skip
+    out.meta["bulge_runs"] = None if bulge_weights is None else cfg.run_labels
     out.meta["mode"] = "pairs" if pairs else "images"
     out.meta["estimator"] = estimator
     out.meta["estimates"] = pair_tab if pairs else img
