@@ -402,6 +402,28 @@ def test_two_bulge_sizes_in_the_precision_mode(tmp_path):
                   bulge_weights=(1, 0, 0), progress=False)  # fmt: skip
 
 
+def test_sersic_ladder_in_the_precision_mode(tmp_path):
+    """The Sersic ladder beside the bulge+disc runs (``sersic_ladder``): the calibration
+    estimates one weight per run (nine), most of it on the pure disc for a population of
+    exponential discs, and the meta and the report name each run's profile."""
+    spec = spec_with(ngal=40, block_size=20, ncal=400, seed=11, psfs=["round"],
+                     snr_range=(40.0, 80.0), size_ratio_range=(1.0, 2.5),
+                     morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, sersic_ladder=(0.5, 2, 4))
+    res = precision(spec, config=cfg, progress=False, prior=Prior(B=0.19, C=0.58, D=2.4))
+    bp = res.meta["bulge_prior"]
+    assert bp["labels"] == ["0", "0.5 (bulge 0.6)", "1 (bulge 0.6)", "Sersic 0.5",
+                            "Sersic 0.5+1", "Sersic 1+2", "Sersic 2", "Sersic 2+4",
+                            "Sersic 4"]  # fmt: skip
+    assert len(bp["weights"]) == 9 and abs(sum(bp["weights"]) - 1) < 1e-9
+    assert bp["weights"][0] == max(bp["weights"]) and bp["weights"][0] > 0.5, bp
+    assert res.meta["config"]["sersic_ladder"] == [0.5, 2.0, 4.0]
+    from pylensfit.precision import write_report
+
+    write_report(res, tmp_path / "report.md")
+    assert "Sersic 2+4: " in (tmp_path / "report.md").read_text()
+
+
 def test_flux_prior_bounds_are_estimated_from_the_calibration_fluxes(tmp_path):
     """With ``flux_bounds=True``, ``precision`` bounds the flux prior at each PSF's flux
     range as the calibration galaxies' fluxes and errors give it: within 3 errors (and

@@ -1251,6 +1251,7 @@ def precision(
     out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
                           "bulge_size_ratio": cfg.bulge_size_ratio,
                           "bulge_size_ratio2": cfg.bulge_size_ratio2,
+                          "sersic_ladder": list(cfg.sersic_ladder),
                           "e_step": cfg.e_step, "e_refine": int(cfg.e_refine),
                           "r_step": cfg.r_step, "stamp_size": cfg.stamp_size,
                           "max_stamp_size": cfg.largest_stamp,
@@ -1385,7 +1386,10 @@ def write_report(res: Table, path: str | Path) -> None:
         f"({res.meta['config'].get('n_bulge_fractions', 1)} bulge fraction(s)"
         + (f", bulges of {res.meta['config']['bulge_size_ratio']:g} and "
            f"{res.meta['config']['bulge_size_ratio2']:g} disc scale lengths"
-           if res.meta["config"].get("bulge_size_ratio2") else "") + "). "
+           if res.meta["config"].get("bulge_size_ratio2") else "")
+        + (", with the Sersic ladder n = " + ", ".join(
+            f"{v:g}" for v in sorted([1.0, *res.meta["config"]["sersic_ladder"]]))
+           if res.meta["config"].get("sersic_ladder") else "") + "). "
         + _stamp_line(res.meta.get("stamps")), "",
         ("Prior given: " if res.meta["prior"].get("given") else
          f"Prior from {spec['ncal']} unsheared calibration galaxies"
