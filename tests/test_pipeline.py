@@ -398,6 +398,16 @@ def test_bulge_fraction_prior_estimated_and_kept(fields, tmp_path):
     near = mine > -50.0  # deeper, the kernel keeps the largest term (700 e-folds down)
     np.testing.assert_allclose(mine[near], mix_bulge_fractions(
         cu["lnL_bulge"][oku], cu["lnL_star"][oku])[near], atol=1e-4)  # fmt: skip
+    # with a Sersic ladder: its runs are named in the file; they have no bulge fraction
+    out = tmp_path / "ladder.fits"
+    cl = measure([d / "a.fits"], stars=[d / "stars.fits"], progress=False, output=out,
+                 config=cfg.replace(sersic_ladder=(2.0,)))  # fmt: skip
+    back = read_catalogue(out)
+    assert back.meta["runs"] == ["0", "0.5 (bulge 0.6)", "1 (bulge 0.6)", "Sersic 1+2",
+                                 "Sersic 2"]  # fmt: skip
+    np.testing.assert_array_equal(back.meta["bulge_fractions"], [0.0, 0.5, 1.0, np.nan, np.nan])
+    assert back["lnL_bulge"].shape[1:] == (5, cl["lnL"].shape[1])
+    assert cl.meta["bulge_weights"].shape == (5,) and cl.meta["bulge_weights"][0] > 0.5
 
 
 def test_size_prior_estimated_given_and_kept(fields, tmp_path):

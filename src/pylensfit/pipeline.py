@@ -1048,6 +1048,12 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
 # ----------------------------------------------------------------------------------------
 # Catalogue files
 # ----------------------------------------------------------------------------------------
+def _card(header, key: str, value: str, comment: str) -> None:
+    """A string card, its comment left out where the value needs the card's room (a long
+    value continues on CONTINUE cards)."""
+    header[key] = (value, comment) if len(value) + len(comment) < 64 else value
+
+
 def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = False) -> None:
     """Write a catalogue from :func:`measure` as FITS (see :mod:`pylensfit.catalogue`)."""
     import datetime
@@ -1086,16 +1092,17 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
             fits.ImageHDU(np.asarray(cat.meta["egrid"]), name="EGRID")]  # fmt: skip
     if lnL_bulge is not None:
         hb = fits.ImageHDU(lnL_bulge, name="LNLB")
-        hb.header["BULGEFR"] = (",".join(f"{f:g}" for f in cat.meta["bulge_fractions"]),
-                         "bulge fractions of the LNLB planes")  # fmt: skip
+        _card(hb.header, "BULGEFR", ",".join(f"{f:g}" for f in cat.meta["bulge_fractions"]),
+              "bulge fractions of the LNLB planes")  # fmt: skip
         if cat.meta.get("bulge_sizes") is not None:
-            hb.header["BULGESZ"] = (",".join(f"{f:g}" for f in cat.meta["bulge_sizes"]),
-                                    "bulge sizes (disc scale lengths)")
+            _card(hb.header, "BULGESZ", ",".join(f"{f:g}" for f in cat.meta["bulge_sizes"]),
+                  "bulge sizes (disc scale lengths)")  # fmt: skip
         if cat.meta.get("runs") is not None:
-            hb.header["RUNS"] = (";".join(cat.meta["runs"]), "the profile of each LNLB plane")
+            _card(hb.header, "RUNS", ";".join(cat.meta["runs"]), "each plane's profile")
         w = cat.meta.get("bulge_weights")
         if w is not None:
-            hb.header["BULGEW"] = (",".join(f"{v:.6g}" for v in w), "their estimated prior weights")
+            _card(hb.header, "BULGEW", ",".join(f"{v:.6g}" for v in w),
+                  "their estimated prior weights")
         hdus.append(hb)
     sp = cat.meta.get("size_prior")
     if sp is not None:
