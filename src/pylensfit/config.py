@@ -115,7 +115,9 @@ class Config:
         "profiles of the disc's half-light radius fitted beside the bulge+disc runs, e.g. "
         "(0.5, 2, 4): each index's Sersic profile (cut at 8 half-light radii above n = 2) "
         "and the half-and-half mixture of each adjacent pair, the disc's n = 1 among them, "
-        "their weights estimated as the fractions' (models.bank_runs). Empty: none",
+        "their weights estimated as the fractions' (models.bank_runs). Empty: none. "
+        "(0.5, 2, 4) costs 2.7x the fit and raises m on the precision mix by +0.007 "
+        "(benchmarks/README.md, thirty-second session): off by default",
     )
     n_bulge_fractions: int = _f(
         1,
