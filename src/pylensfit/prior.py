@@ -1228,8 +1228,10 @@ class SizePrior:
         apart. Below the prior's mode the mass is floored there: sizes well under the
         PSF's are hard to tell apart, and what the prior holds there is the estimate's
         smoothing more than the data; those compact models keep a say in a bright
-        galaxy's ``L(e)`` near ``|e| = 1``, and without them ``m`` moves by +0.003
-        (``benchmarks/README.md``, twenty-first session). Above the mode the sizes are
+        galaxy's ``L(e)`` near ``|e| = 1``; without them ``m`` moved by +0.003 in the
+        twenty-first session, by less than 0.0005 with the present engine (no floor and
+        no tail cut, ``size_prior_cut=0``, paired; ``benchmarks/README.md``,
+        thirty-second session). Above the mode the sizes are
         resolved, and the nodes in the tail get 0: the fit leaves them out of the sum over
         r and does not evaluate their models (a disc's largest sizes, a fifth of the
         bank in the precision mode).
