@@ -137,6 +137,11 @@ class Run(NamedTuple):
         """A run of the bulge+disc family (an exponential disc and a de Vaucouleurs bulge)."""
         return self.n_a == 1.0 and self.n == 4.0 and self.size != DISC_HLR
 
+    @property
+    def bulge_fraction(self) -> float:
+        """The bulge fraction of a bulge+disc run; not a number for the Sersic ladder's."""
+        return self.fraction if self.is_bulge_disc else float("nan")
+
     def label(self, sized: bool = False) -> str:
         """How reports name the run: the bulge fraction (``"0.5"``; with ``sized`` and a
         bulge, ``"0.5 (bulge 0.6)"``), or ``"Sersic 2"`` / ``"Sersic 1+2"`` for the
@@ -174,12 +179,11 @@ def bank_runs(
         runs += [Run(f, float(bulge_size_ratio2)) for f in fr[1:]]
     if sersic_ladder:
         ladder = sorted({1.0, *(float(v) for v in sersic_ladder)})
-        for lo, hi in zip(ladder[:-1], ladder[1:], strict=True):
-            if lo != 1.0 and not runs[-1:] == [Run(1.0, DISC_HLR, lo)]:
-                runs.append(Run(1.0, DISC_HLR, lo))
-            runs.append(Run(0.5, DISC_HLR, hi, lo))
-            if hi != 1.0:
-                runs.append(Run(1.0, DISC_HLR, hi))
+        for k, n in enumerate(ladder):  # each index's mixture with the one below, itself
+            if k:
+                runs.append(Run(0.5, DISC_HLR, n, ladder[k - 1]))
+            if n != 1.0:  # the disc is already the first run
+                runs.append(Run(1.0, DISC_HLR, n))
     return tuple(runs)
 
 
@@ -436,11 +440,6 @@ def _sersic_b(n: float, trunc: float) -> float:
                         - 0.5, lo, hi))  # fmt: skip
 
 
-def _devauc_b(trunc: float) -> float:
-    """Sersic ``b`` of the de Vaucouleurs profile truncated at ``trunc`` half-light radii."""
-    return _sersic_b(4.0, trunc)
-
-
 def _enclosed(x, n: float, h: float):
     """Flux fraction within ``x`` (units of ``r``) of the Sersic component ``(n, h)``."""
     from scipy.special import gammainc
@@ -521,14 +520,10 @@ def wrap_correction(
         (``(len(rows), ...)`` with ``rows``), in the column order of :class:`ModelBank`
         (without the point source).
     """
-    from scipy.special import gamma, gammainc
-
     from ._kernels_nb import wrapped_wings
 
     code = MODEL_TYPES.index(model)  # 0 exponential, 1 de Vaucouleurs, 2 bulge + disc
-    t = DEVAUC_TRUNCATION
-    b = _devauc_b(t)
-    norm = 2.0 * np.pi * 4.0 * gamma(8.0) * gammainc(8.0, b * t**0.25) / b**8
+    *_, b, norm, t, _ = _wing_args(4.0, 1.0)  # the de Vaucouleurs profile's
     eg = np.asarray(egrid, float)
     rep = (eg[:, 0] > 0) & (eg[:, 1] > 0)
     ie_rep = np.flatnonzero(rep)
@@ -607,28 +602,14 @@ def half_light_radius(
     on the two enclosed-flux curves.
     """
     from scipy.optimize import brentq
-    from scipy.special import gammainc
 
-    t = DEVAUC_TRUNCATION
-
-    def disc(x):  # x = R / scale length
-        return 1.0 - (1.0 + x) * np.exp(-x)
-
-    b = _devauc_b(t)
-
-    def bulge(x):  # x = R / half-light radius
-        return gammainc(8, b * np.minimum(x, t) ** 0.25) / gammainc(8, b * t**0.25)
-
-    if model == "exponential":
-        frac = disc
-    elif model == "devaucouleurs":
+    if model == "devaucouleurs":
         return 1.0
-    elif model == "bulge+disc":
-        def frac(x):
-            return bulge_fraction * bulge(x / bulge_size_ratio) + (1 - bulge_fraction) * disc(x)
-    else:
-        raise ValueError(f"unknown model {model!r}; choose one of {MODEL_TYPES}")
-    return float(brentq(lambda x: frac(x) - 0.5, 1e-9, 1e3))
+    if model == "exponential":
+        return float(brentq(lambda x: _enclosed(x, 1.0, DISC_HLR) - 0.5, 1e-9, 1e3))
+    if model == "bulge+disc":
+        return run_half_light_radius(Run(float(bulge_fraction), float(bulge_size_ratio)))
+    raise ValueError(f"unknown model {model!r}; choose one of {MODEL_TYPES}")
 
 
 def radius_grid(r_min: float, r_max: float, r_step: float, r_rel_step: float = 0.0) -> np.ndarray:
@@ -710,9 +691,7 @@ def _cached_bank(
                      sersic_ladder)  # fmt: skip
     fracs = np.array([run.fraction for run in runs])
     n_sub = radii.size
-    # the bulge fraction of each run; not a number for the Sersic ladder's profiles
-    bulge = np.array([run.fraction if run.is_bulge_disc or len(runs) == 1 else np.nan
-                      for run in runs])  # fmt: skip
+    bulge = fracs if len(runs) == 1 else np.array([run.bulge_fraction for run in runs])
     kx, ky, _ = rfft_frequencies(n)
     rows = frequency_rows(n, k_max)
     kx = kx.ravel() if rows is None else kx.ravel()[rows]

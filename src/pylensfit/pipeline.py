@@ -1029,8 +1029,7 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
     cat.meta["egrid"] = egrid
     cat.meta["prior"] = prior
     if lnL_bulge is not None:
-        cat.meta["bulge_fractions"] = np.array([run.fraction if run.is_bulge_disc else np.nan
-                                                 for run in cfg.bulge_runs])
+        cat.meta["bulge_fractions"] = np.array([run.bulge_fraction for run in cfg.bulge_runs])
         if cfg.bulge_size_ratio2 > 0 or cfg.sersic_ladder:
             cat.meta["bulge_sizes"] = np.array([run.size for run in cfg.bulge_runs])
             cat.meta["runs"] = cfg.run_labels
