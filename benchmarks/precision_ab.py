@@ -170,6 +170,11 @@ def main() -> None:
                          "population, other galaxies and noise): the priors' sampling noise")
     ap.add_argument("--b-true-size-prior", action="store_true",
                     help="B's size priors the population's own (log-uniform per PSF)")
+    ap.add_argument("--a-bulge-weights", nargs="+", type=float, default=None, metavar="W",
+                    help="A's weights of the runs of sizes (one per bulge fraction; "
+                         "normalised) instead of the calibration's or equal ones")
+    ap.add_argument("--b-bulge-weights", nargs="+", type=float, default=None, metavar="W",
+                    help="B's (default: B's priors' own)")
     ap.add_argument("--a-stencil", type=int, default=None, choices=[4, 6],
                     help="A's interpolation onto the integration grid: 4 (Keys cubic) or 6 "
                          "(quintic Lagrange; default pylensfit.shear.DEFAULT_STENCIL)")
@@ -210,6 +215,13 @@ def main() -> None:
         pri["B"] = pri["A"][:3] + (cb,)
     if a.b_prior:  # B's ellipticity prior given
         pri["B"] = (Prior(**dict(zip("BCD", a.b_prior, strict=True))),) + tuple(pri["B"][1:])
+    for w, given in (("A", a.a_bulge_weights), ("B", a.b_bulge_weights)):
+        if given is not None:  # the runs' weights given
+            bw = np.asarray(given, float)
+            if bw.size != len(pri[w][3][0].bulge_runs) or not (bw >= 0).all() or bw.sum() <= 0:
+                raise SystemExit(f"--{w.lower()}-bulge-weights needs one weight >= 0 per run "
+                                 f"({len(pri[w][3][0].bulge_runs)})")
+            pri[w] = pri[w][:2] + (bw / bw.sum(),) + pri[w][3:]
     if a.b_true_size_prior:  # B's size priors the population's own, per PSF
         sp_true = [P.population_size_prior(spec, k, stamp_size=pri["B"][3][0].largest_stamp)
                    for k in range(len(spec.psfs))]  # fmt: skip
@@ -243,11 +255,14 @@ def main() -> None:
     groups = {p["name"]: psf == i for i, p in enumerate(spec.psfs)}
     tab = {w: P.bias_table(Q[w], np.repeat(ok[:, None], 4, 1), jk, spec.g, groups=groups,
                            controls=X) for w in "AB"}  # fmt: skip
+    bw_txt = "".join(f"; bulge weights {w} {np.round(pri[w][2], 3).tolist()}"
+                     for w in "AB" if pri[w][2] is not None)  # fmt: skip
     print(f"A: {kv_a or 'default_config'}; B: A with {kv_b}"
           f"; flux bounds A {a.a_flux_bounds}, B {b_bounds}"
           f"{'; B prior ' + str(a.b_prior) if a.b_prior else ''}"
           f"{'' if a.b_calibration_seed is None else f'; B priors of seed {a.b_calibration_seed}'}"
           f"{'; B size priors the population' + chr(39) + 's' if a.b_true_size_prior else ''}"
+          f"{bw_txt}"
           f"{'; spec ' + str(_kv(a.spec)) if a.spec else ''}"
           f"{'; B spec ' + str(_kv(a.b_spec)) if a.b_spec else ''}"
           f"{'; stencil A ' + str(a.a_stencil) if a.a_stencil else ''}"

@@ -88,6 +88,9 @@ def main() -> None:
     ap.add_argument("--flux-bounds", action="store_true",
                     help="bound the flux prior at the population's flux range "
                          "(Config.amplitude_prior_min/max; one PSF only)")  # fmt: skip
+    ap.add_argument("--estimate-flux-bounds", action="store_true",
+                    help="estimate each PSF's flux range from the calibration sample "
+                         "(precision(flux_bounds=True)) and bound the flux prior there")
     ap.add_argument("--out", default=None,
                     help="also write the result table here (ECSV, without the per-galaxy meta)")
     a = ap.parse_args()
@@ -131,7 +134,7 @@ def main() -> None:
     res = precision(spec, config=cfg, jobs=a.jobs, prior=prior, size_prior=sizes,
                     bulge_weights=a.bulge_weights, progress=False,
                     flux_slope=a.amplitude_prior_power,
-                    flux_bounds=False)  # fmt: skip
+                    flux_bounds=a.estimate_flux_bounds)  # fmt: skip
     if a.out:
         keep = res.copy(copy_data=False)
         keep.meta.pop("galaxies", None)
@@ -152,6 +155,10 @@ def main() -> None:
           f"{cfg.position_prior_sigma:.3g} px, size prior smoothing "
           f"{cfg.size_prior_smoothing}, "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
+    for b in res.meta.get("flux_bounds") or []:
+        print(f"flux bounds {b['psf']} (estimated): {b['lo']:.4g} ± {b['lo_err']:.2g}, "
+              f"{b['hi']:.4g} ± {b['hi_err']:.2g} (population's {b['true'][0]:.4g}, "
+              f"{b['true'][1]:.4g})")  # fmt: skip
     p, bp = res.meta["prior"], res.meta["bulge_prior"]
     print(f"ellipticity prior {'given' if p['given'] else 'estimated'}: B, C, D = "
           f"{p['B']:.3f}, {p['C']:.3f}, {p['D']:.3f}; bulge weights "

@@ -538,25 +538,47 @@ def test_flux_range_deconvolves_the_limits_from_the_flux_errors():
     faint end: the maximum likelihood of the law convolved with each flux's error finds
     both limits within 3 of their errors, where the measured fluxes' own extremes are
     many errors off; a few failed fits far outside do not move them, and the power comes
-    out with the limits when not given."""
+    out with the limits when not given (the errors' scale given: 1)."""
     rng = np.random.default_rng(5)
     lo, hi, n = 10.0, 200.0, 4000
     F = _power_law(rng, 2.0, lo, hi, n)
     s = rng.uniform(0.6, 1.5, n)
     f = F + s * rng.normal(size=n)
-    r = estimate_flux_range(f, s, beta=2.0)
+    r = estimate_flux_range(f, s, beta=2.0, error_scale=1.0)  # the errors known
     assert abs(r["lo"] - lo) < 3 * r["lo_err"] and abs(r["hi"] - hi) < 3 * r["hi_err"]
     assert r["lo_err"] < 0.1 and r["hi_err"] < 2.0 and r["n"] == n
     # the naive limit (the smallest measured flux) is off by the noise's tail
     assert lo - f.min() > 20 * r["lo_err"]
     # outliers: twenty fits with a tenth or ten times the flux
     bad = np.r_[f, F[:10] / 10, F[10:20] * 10]
-    rb = estimate_flux_range(bad, np.r_[s, s[:20]], beta=2.0)
+    rb = estimate_flux_range(bad, np.r_[s, s[:20]], beta=2.0, error_scale=1.0)
     assert abs(rb["lo"] - r["lo"]) < r["lo_err"] and abs(rb["hi"] - r["hi"]) < r["hi_err"]
     # the power fitted with the limits
-    rj = estimate_flux_range(f, s)
+    rj = estimate_flux_range(f, s, error_scale=1.0)
     assert abs(rj["beta"] - 2.0) < 0.1 and abs(rj["lo"] - lo) < 3 * rj["lo_err"]
     with pytest.raises(ValueError, match="too few"):
         estimate_flux_range(f[:20], s[:20])
     with pytest.raises(ValueError, match="shape"):
         estimate_flux_range(f, s[:-1])
+
+
+def test_flux_range_fits_the_scale_of_underestimated_errors():
+    """Fluxes whose errors are twice those given (a best model's flux, which moves with
+    the size that fits best, against its fixed-model error): with the errors taken as
+    given the lower limit comes out many of its errors low, the fluxes' spill below it
+    read as counts; with the scale fitted the limits and the scale come back."""
+    rng = np.random.default_rng(11)
+    lo, hi, n = 10.0, 200.0, 6000
+    F = _power_law(rng, 2.0, lo, hi, n)
+    s = rng.uniform(0.6, 1.5, n)
+    f = F + 2.0 * s * rng.normal(size=n)
+    r = estimate_flux_range(f, s, beta=2.0)
+    assert abs(r["error_scale"] - 2.0) < 0.15
+    assert abs(r["lo"] - lo) < 3 * r["lo_err"] and abs(r["hi"] - hi) < 3 * r["hi_err"]
+    fixed = estimate_flux_range(f, s, beta=2.0, error_scale=1.0)
+    assert fixed["error_scale"] == 1.0 and lo - fixed["lo"] > 5 * fixed["lo_err"]
+    # the errors as given when they are right: the scale comes out 1
+    g = F + s * rng.normal(size=n)
+    assert abs(estimate_flux_range(g, s, beta=2.0)["error_scale"] - 1.0) < 0.1
+    with pytest.raises(ValueError, match="error_scale"):
+        estimate_flux_range(f, s, error_scale=0.0)

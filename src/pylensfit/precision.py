@@ -1135,7 +1135,7 @@ def precision(
                                          beta=cfg.amplitude_prior_power)  # fmt: skip
                 bounds_meta.append({"psf": spec.psfs[k]["name"], "lo": fr["lo"],
                                     "hi": fr["hi"], "lo_err": fr["lo_err"],
-                                    "hi_err": fr["hi_err"],
+                                    "hi_err": fr["hi_err"], "error_scale": fr["error_scale"],
                                     "true": list(population_flux_range(
                                         spec, k, stamp_size=cfg.largest_stamp))})
                 cfgs[k] = cfg.replace(amplitude_prior_min=fr["lo"], amplitude_prior_max=fr["hi"])
@@ -1349,7 +1349,8 @@ def _amplitude_line(cfg: dict, flux: dict | None, spec: dict,
     if bounds:
         parts = "; ".join(f"{b['psf']} {b['lo']:.4g} ± {b['lo_err']:.2g} to {b['hi']:.4g} ± "
                           f"{b['hi_err']:.2g} (the population's {b['true'][0]:.4g} to "
-                          f"{b['true'][1]:.4g})" for b in bounds)  # fmt: skip
+                          f"{b['true'][1]:.4g}; the errors' scale "
+                          f"{b.get('error_scale', 1.0):.2f})" for b in bounds)  # fmt: skip
         within = (", within each PSF's flux range as estimated from the calibration "
                   f"sample's fluxes and their errors: {parts}")  # fmt: skip
     return (f"Amplitude prior: A^-β in the flux{within}, β = {flux['value']:.3f} ({src}; "
