@@ -457,6 +457,33 @@ def test_flux_prior_bounds_are_estimated_from_the_calibration_fluxes(tmp_path):
     assert res0.meta["flux_bounds"] is None
 
 
+def test_flux_bounds_size_prior_is_estimated_under_the_bounded_flux_prior():
+    """With ``flux_bounds=True`` and the size prior to estimate, the size prior comes
+    from fits under the bounded flux prior the later passes use: the same as a run
+    given those bounds and that power from the start. (Estimated from the unbounded
+    first pass instead, it came out 10 % small and gave m = +0.009 with the bounds;
+    ``benchmarks/README.md``, thirty-third session.)"""
+    spec = spec_with(ngal=10, block_size=100, ncal=300, seed=6, psfs=["round"],
+                     morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
+    cfg = Config(model="exponential", amplitude_prior="flux", size_prior="estimated",
+                 max_stamp_size=64)  # fmt: skip
+    pri = Prior(B=0.19, C=0.58, D=2.4)
+    res = precision(spec, config=cfg, progress=False, prior=pri, flux_bounds=True)
+    (b,) = res.meta["flux_bounds"]
+    beta = res.meta["flux_slope"]["value"]
+    given = precision(spec, config=cfg.replace(amplitude_prior_min=b["lo"],
+                                               amplitude_prior_max=b["hi"]),
+                      progress=False, prior=pri, flux_slope=beta)  # fmt: skip
+    assert given.meta["flux_bounds"] is None
+    (sp,), (sp_given,) = res.meta["size_prior"], given.meta["size_prior"]
+    np.testing.assert_allclose(sp["density"], sp_given["density"], rtol=1e-9, atol=1e-12)
+    # and not the size prior of the unbounded fits
+    free = precision(spec, config=cfg, progress=False, prior=pri, flux_slope=beta)
+    (sp_free,) = free.meta["size_prior"]
+    assert np.max(np.abs(np.asarray(sp_free["density"]) - sp["density"])) > 1e-3 * max(
+        sp["density"])
+
+
 def test_cli_precision_writes_report(tmp_path, capsys):
     from astropy.table import Table
 
