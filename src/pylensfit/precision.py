@@ -1143,14 +1143,15 @@ def precision(
                                     "true": list(population_flux_range(
                                         spec, k, stamp_size=cfg.largest_stamp))})
                 cfgs[k] = cfg.replace(amplitude_prior_min=fr["lo"], amplitude_prior_max=fr["hi"])
-        if fit_bounds and fit_size:
-            # the size prior's L(r) under the bounded flux prior the later passes use:
-            # estimated from the unbounded first pass it came out 10 % small and, with
-            # the bounds in the later passes, m +0.009 on galaxies the family holds
-            # (benchmarks/README.md, thirty-third session)
+        # the first pass again under the flux prior just estimated, where its fits are
+        # used further: for the ellipticity and bulge priors when no size prior pass
+        # follows, and for the size prior's L(r) when the bounds changed the prior
+        # (estimated from the unbounded pass, the size prior came out 10 % small and,
+        # with the bounds in the later passes, m +0.009 on galaxies the family holds;
+        # benchmarks/README.md, thirty-third session)
+        redo = fit_bounds if fit_size else (fit_flux or fit_bounds) and (prior is None or fit_bulge)
+        if redo and ncb:
             cal, egrid = calibrate(size_priors, first_keep, "calibration with the flux prior")
-        elif (fit_flux or fit_bounds) and ncb and (prior is None or fit_bulge) and not fit_size:
-            cal, egrid = calibrate(size_priors, False, "calibration with the flux prior")
         prior0 = prior
         if ncb:
             prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
