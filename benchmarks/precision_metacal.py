@@ -1,0 +1,240 @@
+"""lensfit's sensitivity against a metacalibrated response, on the same precision renderings.
+
+The precision mode's blocks (``pylensfit.precision``: four renderings per galaxy, +-g,
+unrotated and rotated by 90 degrees, the same noise at +g and -g) are measured three
+ways, with the same priors (estimated by the precision mode's calibration of the
+default configuration, or the population's with ``--true-priors``):
+
+- ``lensfit``: the precision mode's own estimate (the fixed point of the posterior
+  means under the sheared prior);
+- ``lensfit-mc``: lensfit's ``sum <e> / sum s`` (exact sensitivity) on the unsheared
+  metacalibration image (deconvolved, reconvolved with the 2 % larger PSF, fixnoise
+  added): what the doubled noise and the wider PSF do alone;
+- ``metacal``: ``R^-1 sum <e>`` on that image, with ``R`` from the posterior means of
+  the four images sheared by +-delta (:mod:`pylensfit.metacal`): the response of the
+  posterior mean measured on the galaxy instead of assumed from the models.
+
+m per PSF, per morphology and for the mean of PSFs, each with the jackknife error over
+groups of 100 galaxies, and the paired differences ``metacal - lensfit``::
+
+    python benchmarks/precision_metacal.py --ngal 4000 --psf e=0.10 --jobs 2
+    python benchmarks/precision_metacal.py --ngal 8000 --psf e=0.10 --morphology-weights 0 0 0 1 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pylensfit import precision as P
+from pylensfit.pipeline import _pool, _run
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from precision_ab import _m_jk, _priors  # noqa: E402
+
+_EST = ("lensfit", "lensfit-mc", "metacal")
+
+
+def _block(task: dict) -> dict:
+    """Render, fit and metacalibrate one block (runs in a worker)."""
+    from pylensfit.likelihood import fit_stamps
+    from pylensfit.metacal import METACAL_TYPES, metacal_images, response
+    from pylensfit.pipeline import _single_thread
+    from pylensfit.prior import mix_bulge_fractions
+    from pylensfit.shear import posterior_moments, shear_sensitivity
+
+    _single_thread(task.get("single_thread", False))
+    spec, cfg, prior, bw = task["spec"], task["config"], task["prior"], task["bulge_weights"]
+    t0 = time.perf_counter()
+    stamps, psf, truth = P.render_block(spec, task["psf"], task["block"],
+                                        stamp_size=cfg.largest_stamp,
+                                        noise=task["noise"])  # fmt: skip
+    n, N = stamps.shape[0], stamps.shape[-1]
+    flat = stamps.reshape(4 * n, N, N)
+    # the added noise: one field per galaxy and rotation, shared by +g and -g as the
+    # renderings' own noise is
+    nf = np.random.default_rng([spec.seed, 17, task["block"]]).standard_normal((n, 2, N, N))
+    fields = nf[:, [0, 1, 0, 1]].reshape(4 * n, N, N)
+    sets = [(flat, fields)]
+    if task["antithetic"] and task["noise"]:  # the same galaxies with the noise negated
+        clean = P.render_block(spec, task["psf"], task["block"], stamp_size=cfg.largest_stamp,
+                               noise=False)[0].reshape(4 * n, N, N)  # fmt: skip
+        sets.append((2 * clean - flat, -fields))
+    kw = {"config": cfg, "size_prior": task["size_prior"]}
+    out = {"QA": 0.0, "e": 0.0, "s": 0.0, "R": 0.0}
+    ok = np.ones(4 * n, bool)
+    times = np.zeros(3)
+    for imgs, fld in sets:
+        t0 = time.perf_counter()
+        fits = fit_stamps(imgs, psf, spec.noise_sigma, **kw)
+        QA, okA = P.reduce_renderings(fits, prior, spec.g, refine=cfg.output_refine,
+                                      bulge_weights=bw)  # fmt: skip
+        ok &= okA.reshape(-1)
+        t1 = time.perf_counter()
+        mc = metacal_images(imgs, psf, spec.noise_sigma if task["noise"] else 0.0,
+                            step=task["step"], noise_fields=fld,
+                            centres=None if task["about_stamp"] else (fits.x, fits.y))  # fmt: skip
+        sigma = mc.noise_sigma if task["noise"] else spec.noise_sigma
+        t2 = time.perf_counter()
+        e = {}
+        for t in METACAL_TYPES:
+            f = fit_stamps(mc.images[t], mc.psf, sigma, **kw)
+            lnL = f.lnL if f.lnL_bulge is None else mix_bulge_fractions(f.lnL_bulge, f.lnL_star,
+                                                                        bw)  # fmt: skip
+            ok &= P._usable(f)
+            lnL = np.where(P._usable(f)[:, None], lnL, 0.0)
+            mom = posterior_moments(lnL, f.egrid, prior, refine=cfg.output_refine)
+            e[t] = np.column_stack([mom["e1"], mom["e2"]])
+            if t == "noshear":
+                sx = np.column_stack(shear_sensitivity(lnL, f.egrid, prior,
+                                                       refine=cfg.output_refine))  # fmt: skip
+        w = 1.0 / len(sets)
+        out["QA"] = out["QA"] + w * np.nan_to_num(QA)
+        out["e"] = out["e"] + w * e["noshear"].reshape(n, 4, 2)
+        out["s"] = out["s"] + w * sx.reshape(n, 4, 2)
+        out["R"] = out["R"] + w * response(e, mc.step).reshape(n, 4, 2, 2)
+        times += [t1 - t0, t2 - t1, time.perf_counter() - t2]
+    return {"block": task["block"], "psf": task["psf"], "truth": truth,
+            "ok": ok.reshape(n, 4).all(1), **out, "fit_s": times[0], "mc_s": times[1],
+            "mcfit_s": times[2]}  # fmt: skip
+
+
+def _m_metacal(e, s, R, ok, jk, g, est):
+    """m1, m2 of all galaxies, then of each delete-one group (``(1 + k, 2)``)."""
+    ug, gi = np.unique(jk[ok], return_inverse=True)
+    k = ug.size
+
+    def gsum(v):  # (n, ...) summed over each rendering pair and group: (k, ...)
+        return np.stack([np.bincount(gi, weights=x, minlength=k)
+                         for x in v[ok].reshape(ok.sum(), -1).T], -1).reshape((k,) + v.shape[1:])
+
+    E, D = [], []
+    for sign in (0, 2):  # renderings 0-1 at +g, 2-3 at -g
+        E.append(gsum(e[:, sign] + e[:, sign + 1]))
+        if est == "metacal":
+            D.append(gsum(R[:, sign] + R[:, sign + 1]))
+        else:
+            sv = gsum(s[:, sign] + s[:, sign + 1])
+            d = np.zeros(sv.shape + (2,))
+            d[..., 0, 0], d[..., 1, 1] = sv[..., 0], sv[..., 1]
+            D.append(d)
+    # one response for +g and -g, their mean (as a survey's mean response over its shears)
+    Dm = 0.5 * (D[0] + D[1])
+    Dt = np.concatenate([Dm.sum(0)[None], Dm.sum(0)[None] - Dm])
+    out = []
+    for Ek in E:
+        Et = np.concatenate([Ek.sum(0)[None], Ek.sum(0)[None] - Ek])
+        out.append(np.linalg.solve(Dt, Et[..., None])[..., 0])
+    return (out[0] - out[1]) / (2 * g) - 1.0
+
+
+def _err(v):
+    k = len(v) - 1
+    return np.sqrt((k - 1) / k * ((v[1:] - v[1:].mean(0)) ** 2).sum(0))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ngal", type=int, default=4000)
+    ap.add_argument("--seed", type=int, default=41)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--psf", nargs="*", default=None, help="PSF names or indices (default all)")
+    ap.add_argument("--morphology-weights", nargs=5, type=float, default=None, metavar="W",
+                    help="exponential, de Vaucouleurs, bulge+disc, Sersic, knots")
+    ap.add_argument("--g", type=float, default=None, help="the applied shear per component")
+    ap.add_argument("--offset", type=float, default=None,
+                    help="PrecisionSpec.offset (0: centred galaxies, position prior 0.01 px)")
+    ap.add_argument("--step", type=float, default=0.01, help="metacalibration's delta")
+    ap.add_argument("--true-priors", action="store_true",
+                    help="the population's priors (else those the calibration estimates)")
+    ap.add_argument("--noise-free", action="store_true",
+                    help="fit noise-free renderings (the fits still assume the spec's noise; "
+                         "no field added): model bias alone, without the responses' noise")
+    ap.add_argument("--about-stamp-centre", action="store_true",
+                    help="shear about the stamp's centre (the catalogue position), not the "
+                         "galaxy's fitted centre")
+    ap.add_argument("--antithetic", action="store_true",
+                    help="also measure every rendering with its noise (and the added field) "
+                         "negated, and average: the responses' noise cancels to first order")
+    ap.add_argument("--save", default=None, help="also write the per-rendering arrays here (npz)")
+    a = ap.parse_args()
+    kw = {} if a.morphology_weights is None else {"morphology_weights": tuple(a.morphology_weights)}
+    if a.g is not None:
+        kw["g"] = a.g
+    if a.offset is not None:
+        kw["offset"] = a.offset
+    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **kw)
+    cfg = P.default_config(spec)
+    prior, sps, bw, cfgs = _priors(spec, cfg, not a.true_priors, a.jobs, "none")
+    npsf = len(spec.psfs)
+    nb = -(-spec.ngal // spec.block_size)
+    tasks = [{"spec": spec, "config": cfgs[b % npsf], "prior": prior, "bulge_weights": bw,
+              "size_prior": sps[b % npsf], "psf": b % npsf, "block": b, "step": a.step,
+              "noise": not a.noise_free, "about_stamp": a.about_stamp_centre,
+              "antithetic": a.antithetic}
+             for b in range(nb)]  # fmt: skip
+    res = {}
+    t0 = time.perf_counter()
+    with _pool(a.jobs) as pool:
+        for t, r in _run(_block, tasks, a.jobs, None, "metacal", True, pool):
+            res[t["block"]] = r
+    cat = [res[b] for b in range(nb)]
+    print(f"{nb} blocks in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs); CPU s: fit "
+          f"{sum(r['fit_s'] for r in cat):.0f}, metacal images "
+          f"{sum(r['mc_s'] for r in cat):.0f}, their fits {sum(r['mcfit_s'] for r in cat):.0f}")
+    QA = np.concatenate([r["QA"] for r in cat]).astype(float)
+    e, s, R = (np.concatenate([r[k] for r in cat]).astype(float) for k in ("e", "s", "R"))
+    ok = np.concatenate([r["ok"] for r in cat])
+    truth = [r["truth"] for r in cat]
+    psf = np.concatenate([np.full(len(t), r["psf"]) for t, r in zip(truth, cat, strict=True)])
+    morph = np.concatenate([np.asarray(t["morph"]) for t in truth])
+    per = -(-spec.block_size // P._JACKKNIFE_GALAXIES)
+    jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P._JACKKNIFE_GALAXIES
+                         for t, r in zip(truth, cat, strict=True)])  # fmt: skip
+    if a.save:
+        np.savez(a.save, QA=QA, e=e, s=s, R=R, ok=ok, jk=jk, psf=psf, morph=morph, g=spec.g,
+                 snr=np.concatenate([np.asarray(t["snr"]) for t in truth]),
+                 r=np.concatenate([np.asarray(t["r"]) for t in truth]))  # fmt: skip
+    print(f"{ok.sum()} of {ok.size} galaxies measured in all 24 fits; prior B C D = "
+          f"{prior.B:.3f} {prior.C:.3f} {prior.D:.3f}; bulge weights {np.round(bw, 3).tolist()}")
+    R_mean = R[ok].mean((0, 1))
+    s_mean = s[ok].mean((0, 1))
+    print(f"mean R = [[{R_mean[0, 0]:.4f}, {R_mean[0, 1]:+.4f}], [{R_mean[1, 0]:+.4f}, "
+          f"{R_mean[1, 1]:.4f}]]; mean lensfit sensitivity on the metacal image "
+          f"{s_mean[0]:.4f}, {s_mean[1]:.4f}")
+    R11, R22, s1, s2 = R[ok][..., 0, 0], R[ok][..., 1, 1], s[ok][..., 0], s[ok][..., 1]
+    print(f"per rendering std: R11 {R11.std():.3f}, s1 {s1.std():.3f}, R11 - s1 "
+          f"{(R11 - s1).std():.3f}; R22 {R22.std():.3f}, s2 {s2.std():.3f}, R22 - s2 "
+          f"{(R22 - s2).std():.3f}")
+
+    def row(name, sel):
+        if sel.sum() < 200:
+            return
+        okk = ok & sel
+        ms = {"lensfit": _m_jk(QA[okk], np.ones(okk.sum(), bool), jk[okk], spec.g)}
+        for est in _EST[1:]:
+            ms[est] = _m_metacal(e[okk], s[okk], R[okk], np.ones(okk.sum(), bool), jk[okk],
+                                 spec.g, est)  # fmt: skip
+        cells = [f"{ms[x][0, 0]:+.4f} ± {_err(ms[x])[0]:.4f} / {ms[x][0, 1]:+.4f} ± "
+                 f"{_err(ms[x])[1]:.4f}" for x in _EST]  # fmt: skip
+        for x, y in (("metacal", "lensfit"), ("metacal", "lensfit-mc")):
+            d = ms[x] - ms[y]
+            cells.append(f"{d[0, 0]:+.4f} ± {_err(d)[0]:.4f} / {d[0, 1]:+.4f} ± {_err(d)[1]:.4f}")
+        print(f"| {name} | {okk.sum()} | " + " | ".join(cells) + " |")
+
+    print("\n| sample | galaxies | lensfit m1 / m2 | lensfit-mc | metacal | metacal - lensfit "
+          "| metacal - lensfit-mc |")
+    print("|---|---|---|---|---|---|---|")
+    for i, p in enumerate(spec.psfs):
+        row(p["name"], psf == i)
+    row("all", np.ones_like(ok))
+    for j, mname in enumerate(P.MORPHOLOGIES):
+        row(mname, morph == j)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,249 @@
+"""Metacalibration of postage stamps: the shear response measured on the data themselves.
+
+lensfit's shear sensitivity (:func:`pylensfit.shear.shear_sensitivity`) is the response
+of the posterior mean to a shear *if the galaxy is one of the models*. A galaxy whose
+profile the model family does not hold (a Sersic index below 1, star-forming knots)
+responds otherwise, and ``sum <e> / sum s`` is biased by the difference (model bias).
+Metacalibration (Huff & Mandelbaum 2017, Sheldon & Huff 2017) measures the response of
+any estimator on the data: the stamp is deconvolved by its PSF, sheared by a small
+``+-delta`` in each component, and convolved again with a slightly larger PSF ``P_r``;
+the estimator applied to the four sheared images gives its response by finite
+differences,
+
+    R_ij = (<e_i>(+delta_j) - <e_i>(-delta_j)) / (2 delta),
+
+and to the unsheared one (deconvolved and convolved with ``P_r`` too) the measurement
+whose mean ``R^-1 <e>`` estimates the shear. Here the estimator is lensfit's posterior
+mean: the fit's likelihood ``L(e)`` of each image (with ``P_r`` as its PSF) and the
+prior give ``<e>`` (:func:`response`).
+
+The operation on a stamp ``I`` with PSF ``P`` (both sampled on the same ``N x N`` grid,
+centred on element ``[N//2, N//2]``) is, in Fourier space,
+
+    I_s(k) = I(S k) P_r(k) / P(S k),    P_r(k) = P(f k),
+
+with ``S = [[1 + d1, d2], [d2, 1 - d1]] / sqrt(1 - |d|^2)`` the shear's (area-preserving)
+matrix, ``f = 1 + 2 |delta|`` the reconvolution PSF's dilation (ngmix's choice: it keeps
+``|P_r(k)| <= |P(S k)|``, so no frequency's noise is amplified) and ``I(q)``, ``P(q)``
+the transforms of the pixel values at any frequency ``q``,
+``sum_x I(x) exp(-i q.x)`` (``x`` from the stamp's centre): the band-limited
+interpolation of the samples. The transforms at the sheared frequencies are one real
+matrix product per image set (``(n, N^2) @ (N^2, N (N/2 + 1))``, twice), exact, with
+no interpolation kernel to choose.
+
+The deconvolution and shear turn the white pixel noise into anisotropic correlated
+noise, which would itself respond to ``delta``. As ngmix does, a second noise field of
+the same level, rotated by 90 degrees, is put through the same operation, rotated back
+and added ("fixnoise"): its anisotropy cancels that of the data's noise. The images
+then carry twice the pixel noise variance at low frequencies, where the galaxies'
+signal is; their fits assume ``sqrt(2)`` times the input noise, white
+(:attr:`MetacalImages.noise_sigma`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+__all__ = ["METACAL_TYPES", "MetacalImages", "metacal_images", "response"]
+
+#: The images of one metacalibration: unsheared, and sheared by ``+-delta`` in ``e1``
+#: and in ``e2``.
+METACAL_TYPES: tuple[str, ...] = ("noshear", "1p", "1m", "2p", "2m")
+
+
+@dataclass
+class MetacalImages:
+    """The metacalibration images of a set of stamps.
+
+    Attributes
+    ----------
+    images : dict of numpy.ndarray
+        ``(n, N, N)`` float32 images per type of :data:`METACAL_TYPES`.
+    psf : numpy.ndarray
+        ``(N, N)`` the reconvolution PSF ``P_r`` (unit sum), the PSF of every image.
+    noise_sigma : float
+        The white per-pixel noise the fits should assume: ``sqrt(2)`` times the input's
+        (the data's noise and the added field's).
+    step : float
+        The shear ``delta`` of the sheared images.
+    """
+
+    images: dict[str, np.ndarray]
+    psf: np.ndarray
+    noise_sigma: float
+    step: float
+
+
+def _shear_matrix(d1: float, d2: float) -> np.ndarray:
+    """The area-preserving matrix of a reduced shear ``(d1, d2)``."""
+    return np.array([[1 + d1, d2], [d2, 1 - d1]]) / math.sqrt(1.0 - d1 * d1 - d2 * d2)
+
+
+def _shears(step: float) -> dict[str, tuple[float, float]]:
+    return {"noshear": (0.0, 0.0), "1p": (step, 0.0), "1m": (-step, 0.0),
+            "2p": (0.0, step), "2m": (0.0, -step)}  # fmt: skip
+
+
+@lru_cache(maxsize=8)
+def _dft_matrices(n: int, a11: float, a12: float, a21: float, a22: float):
+    """``cos`` and ``sin`` of ``q.x`` for the ``rfft2`` frequencies ``k`` mapped to
+    ``q = A k``, and the pixels ``x`` of an ``n x n`` stamp (from its centre):
+    ``(n^2, n (n/2 + 1))`` float64 each, rows in the stamp's C order."""
+    x1 = np.arange(n) - n // 2
+    ys, xs = np.meshgrid(x1, x1, indexing="ij")
+    kx, ky = _frequencies(n)
+    qx = a11 * kx + a12 * ky
+    qy = a21 * kx + a22 * ky
+    ph = np.outer(xs.ravel(), qx.ravel()) + np.outer(ys.ravel(), qy.ravel())
+    return np.cos(ph), np.sin(ph)
+
+
+def _transform(img: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """``sum_x img(x) exp(-i (A k).x)`` on the ``rfft2`` frequencies: ``(m, n, n/2+1)``."""
+    m, n = img.shape[0], img.shape[-1]
+    C, S = _dft_matrices(n, *(float(v) for v in A.ravel()))
+    flat = img.reshape(m, n * n).astype(np.float64, copy=False)
+    return (flat @ C - 1j * (flat @ S)).reshape(m, n, n // 2 + 1)
+
+
+def _frequencies(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``kx, ky`` of the ``rfft2`` frequencies of an ``n x n`` stamp, ``(n, n/2 + 1)``."""
+    return np.meshgrid(2 * np.pi * np.fft.rfftfreq(n), 2 * np.pi * np.fft.fftfreq(n),
+                       indexing="xy")  # fmt: skip
+
+
+def _to_image(F: np.ndarray, n: int) -> np.ndarray:
+    """The real image (centred on ``[n//2, n//2]``) whose centred transform is ``F``."""
+    kx, ky = _frequencies(n)
+    shift = np.exp(-1j * (n // 2) * (kx + ky))
+    return np.fft.irfft2(F * shift, s=(n, n), axes=(-2, -1))
+
+
+def metacal_images(
+    stamps: np.ndarray,
+    psf: np.ndarray,
+    noise_sigma: float,
+    *,
+    step: float = 0.01,
+    noise_fields: np.ndarray | None = None,
+    seed: int | None = None,
+    types: tuple[str, ...] = METACAL_TYPES,
+    centres: tuple[np.ndarray, np.ndarray] | None = None,
+) -> MetacalImages:
+    """Deconvolve, shear by ``+-step`` and reconvolve a set of stamps (module docstring).
+
+    Parameters
+    ----------
+    stamps : numpy.ndarray
+        ``(n, N, N)`` (or one ``(N, N)``) images indexed ``[k, y, x]``, each galaxy
+        near element ``[N//2, N//2]``, the point about which it is sheared.
+    psf : numpy.ndarray
+        ``(N, N)`` PSF image including the pixel response, centred on ``[N//2, N//2]``,
+        any normalisation. It should be at least Nyquist sampled.
+    noise_sigma : float
+        The stamps' white per-pixel noise (0: noise-free stamps, no added field).
+    step : float
+        The shear ``delta`` of the sheared images (ngmix's 0.01 by default).
+    noise_fields : numpy.ndarray, optional
+        ``(n, N, N)`` the added noise fields, unit variance (scaled by ``noise_sigma``):
+        give the same ones to renderings that share their pixel noise, so that paired
+        measurements stay paired. Drawn from ``seed`` if not given.
+    seed : int, optional
+        Seed of the added noise fields (required with noise unless ``noise_fields``).
+    types : tuple of str
+        Which of :data:`METACAL_TYPES` to make.
+    centres : tuple of numpy.ndarray, optional
+        ``(x, y)`` per stamp, in its pixels (0-based): the points about which the
+        images are sheared (default the element ``[N//2, N//2]``). Give the galaxies'
+        fitted centres (:attr:`pylensfit.likelihood.StampFits.x`, ``.y``): a shear about
+        another point also moves the galaxy, by ``delta`` times its offset, and the
+        estimator's response to that move (through the position prior about the
+        catalogue position) is not a response to shear.
+
+    Returns
+    -------
+    MetacalImages
+        The images, the reconvolution PSF and the noise level to fit them with.
+    """
+    st = np.asarray(stamps, dtype=np.float64)
+    single = st.ndim == 2
+    st = st[None] if single else st
+    psf = np.asarray(psf, dtype=np.float64)
+    n = st.shape[-1]
+    if st.ndim != 3 or st.shape[-2] != n or psf.shape != (n, n):
+        raise ValueError(f"metacal_images needs square stamps and a PSF of their size, got "
+                         f"{st.shape} and {psf.shape}")  # fmt: skip
+    if not 0.0 < step < 0.2:
+        raise ValueError(f"step must be in (0, 0.2), got {step}")
+    unknown = set(types) - set(METACAL_TYPES)
+    if unknown:
+        raise ValueError(f"unknown metacal types {sorted(unknown)}; use {METACAL_TYPES}")
+    if not np.isfinite(st).all() or not np.isfinite(psf).all():
+        raise ValueError("metacal_images got non-finite pixels")
+    psf = psf / psf.sum()
+    noisy = noise_sigma > 0
+    if noisy:
+        if noise_fields is None:
+            if seed is None:
+                raise ValueError("metacal_images needs noise_fields or a seed for noisy stamps")
+            noise_fields = np.random.default_rng(seed).standard_normal(st.shape)
+        noise = np.asarray(noise_fields, dtype=np.float64).reshape(st.shape) * noise_sigma
+        # the added field rotated by 90 degrees about the centre (np.rot90 turns about
+        # (N-1)/2: roll by one pixel after it to turn about N//2 on an even stamp)
+        rot = np.rot90(noise, 1, axes=(-2, -1))
+        if n % 2 == 0:
+            rot = np.roll(rot, 1, axis=-2)
+    if centres is None:
+        cx = cy = np.zeros(st.shape[0])
+    else:
+        cx = np.broadcast_to(np.asarray(centres[0], float) - n // 2, st.shape[:1])
+        cy = np.broadcast_to(np.asarray(centres[1], float) - n // 2, st.shape[:1])
+        if not (np.isfinite(cx).all() and np.isfinite(cy).all()):
+            raise ValueError("metacal_images got non-finite centres")
+    kx, ky = _frequencies(n)
+    f = 1.0 + 2.0 * step
+    Pr = _transform(psf[None], np.diag([f, f]))[0]
+    out = {}
+    for t in types:
+        A = _shear_matrix(*_shears(step)[t])
+        Ps = _transform(psf[None], A)[0]
+        good = np.abs(Ps) > 1e-9 * abs(Ps[0, 0])
+        kern = np.where(good, Pr / np.where(good, Ps, 1.0), 0.0)
+        # about the centre c: exp(i (A k - k).c) on the transforms about the stamp's centre
+        qx, qy = A[0, 0] * kx + A[0, 1] * ky - kx, A[1, 0] * kx + A[1, 1] * ky - ky
+        move = np.exp(1j * (qx * cx[:, None, None] + qy * cy[:, None, None])) * kern
+        img = _to_image(_transform(st, A) * move, n)
+        if noisy:  # the rotated field sheared by the same delta, then turned back
+            nz = _to_image(_transform(rot, A) * kern, n)
+            if n % 2 == 0:
+                nz = np.roll(nz, -1, axis=-2)
+            img += np.rot90(nz, -1, axes=(-2, -1))
+        out[t] = (img[0] if single else img).astype(np.float32)
+    psf_r = _to_image(Pr[None], n)[0]
+    return MetacalImages(images=out, psf=psf_r / psf_r.sum(),
+                         noise_sigma=float(noise_sigma) * (math.sqrt(2.0) if noisy else 1.0),
+                         step=float(step))  # fmt: skip
+
+
+def response(e: dict[str, np.ndarray], step: float) -> np.ndarray:
+    """The metacalibration response matrix of each galaxy from its sheared images' means.
+
+    Parameters
+    ----------
+    e : dict of numpy.ndarray
+        ``(n, 2)`` posterior mean ellipticities of the images ``1p, 1m, 2p, 2m``.
+    step : float
+        Their shear ``delta``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, 2, 2)``: ``R[:, i, j] = (<e_i>(+delta_j) - <e_i>(-delta_j)) / (2 delta)``.
+    """
+    r1 = (np.asarray(e["1p"]) - np.asarray(e["1m"])) / (2 * step)
+    r2 = (np.asarray(e["2p"]) - np.asarray(e["2m"])) / (2 * step)
+    return np.stack([r1, r2], axis=-1)

@@ -1,0 +1,130 @@
+"""Metacalibration images against GalSim's renderings and analytic responses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pylensfit.metacal import METACAL_TYPES, metacal_images, response
+
+galsim = pytest.importorskip("galsim")
+
+N = 48
+SHEARS = {"noshear": (0.0, 0.0), "1p": (0.01, 0.0), "1m": (-0.01, 0.0), "2p": (0.0, 0.01),
+          "2m": (0.0, -0.01)}  # fmt: skip
+
+
+def _draw(obj, method: str = "auto", n: int = N) -> np.ndarray:
+    """``obj`` on ``n x n`` unit pixels, its origin at element ``[n//2, n//2]``."""
+    return obj.drawImage(nx=n, ny=n, scale=1.0, offset=(0.5, 0.5), method=method).array
+
+
+@pytest.mark.parametrize("centre", [(0.0, 0.0), (1.3, -0.7)])
+def test_metacal_images_are_galsims_sheared_galaxy_with_the_dilated_psf(centre):
+    """Each image is the galaxy sheared about its centre by +-delta and convolved with the
+    PSF (pixel included) dilated by 1 + 2 delta, as GalSim renders it from the profiles:
+    a Sersic galaxy off the stamp's centre, an elliptical Moffat PSF."""
+    psf = galsim.Moffat(beta=3.5, fwhm=3.0).shear(g1=0.1, g2=-0.03)
+    gal = galsim.Sersic(n=0.7, half_light_radius=2.5).shear(g1=0.2, g2=-0.1)
+    img = _draw(galsim.Convolve(gal.shift(*centre), psf))
+    mc = metacal_images(img, _draw(psf), 0.0, step=0.01,
+                        centres=(N // 2 + centre[0], N // 2 + centre[1]))  # fmt: skip
+    dil = galsim.Convolve(psf, galsim.Pixel(1.0)).dilate(1.02)
+    for t in METACAL_TYPES:
+        g1, g2 = SHEARS[t]
+        ref = _draw(galsim.Convolve(gal.shear(g1=g1, g2=g2).shift(*centre), dil), "no_pixel")
+        assert np.abs(mc.images[t] - ref).max() < 2e-5 * ref.max(), t
+    ref_psf = _draw(dil, "no_pixel")
+    # the Moffat's wings past the stamp differ (GalSim's dilated profile is not cut)
+    np.testing.assert_allclose(mc.psf, ref_psf / ref_psf.sum(), atol=2e-3 * ref_psf.max())
+    assert mc.noise_sigma == 0.0 and mc.step == 0.01
+
+
+def test_shear_about_another_point_moves_the_galaxy():
+    """Without the galaxy's centre the shear is about the stamp's: the galaxy moves by
+    delta times its offset, which GalSim's rendering of the moved galaxy shows."""
+    psf = galsim.Gaussian(sigma=1.5)
+    gal = galsim.Exponential(half_light_radius=2.0)
+    c = np.array([3.0, 2.0])
+    img = _draw(galsim.Convolve(gal.shift(*c), psf))
+    mc = metacal_images(img, _draw(psf), 0.0, step=0.05, types=("1p",))
+    S = np.array([[1.05, 0.0], [0.0, 0.95]]) / np.sqrt(1 - 0.05**2)
+    dil = galsim.Convolve(psf, galsim.Pixel(1.0)).dilate(1.1)
+    ref = _draw(galsim.Convolve(gal.shear(g1=0.05).shift(*(S @ c)), dil), "no_pixel")
+    assert np.abs(mc.images["1p"] - ref).max() < 1e-5 * ref.max()
+
+
+def _moments(img: np.ndarray) -> np.ndarray:
+    """Unweighted (e1, e2) from the second moments of each image about its centroid."""
+    y, x = np.mgrid[: img.shape[-2], : img.shape[-1]].astype(float)
+    f = img.sum((-2, -1))
+    xc, yc = (img * x).sum((-2, -1)) / f, (img * y).sum((-2, -1)) / f
+    dx, dy = x - xc[..., None, None], y - yc[..., None, None]
+    ixx, iyy = (img * dx * dx).sum((-2, -1)) / f, (img * dy * dy).sum((-2, -1)) / f
+    ixy = (img * dx * dy).sum((-2, -1)) / f
+    return np.stack([(ixx - iyy) / (ixx + iyy), 2 * ixy / (ixx + iyy)], -1)
+
+
+def test_response_of_unweighted_moments_is_the_analytic_one():
+    """Gaussian galaxy and Gaussian PSF: the second moments of the metacal images are
+    ``S Sigma_g S + f^2 Sigma_p``, so the response of their ellipticity is known in closed
+    form; :func:`response` of the images' ellipticities gives it (finite differences
+    of the exact moments: to ``delta^2``)."""
+    sg, sp, step = 2.0, 1.4, 0.01
+    gal = galsim.Gaussian(sigma=sg).shear(g1=0.3, g2=0.2)
+    psf = galsim.Gaussian(sigma=sp)
+    img = _draw(galsim.Convolve(gal, psf))
+    mc = metacal_images(img, _draw(psf), 0.0, step=step)
+    e = {t: _moments(mc.images[t][None].astype(float)) for t in METACAL_TYPES}
+    R = response(e, step)[0]
+
+    def ell(d1: float, d2: float) -> np.ndarray:  # the metacal image's moments, analytic
+        A = galsim.Shear(g1=d1, g2=d2).getMatrix()
+        M = galsim.Shear(g1=0.3, g2=0.2).getMatrix()
+        C = sg**2 * A @ M @ M.T @ A.T + (1 + 2 * step) ** 2 * (sp**2 + 1.0 / 12.0) * np.eye(2)
+        return np.array([C[0, 0] - C[1, 1], 2 * C[0, 1]]) / (C[0, 0] + C[1, 1])
+
+    h = 1e-4
+    R_true = np.column_stack([(ell(h, 0) - ell(-h, 0)) / (2 * h),
+                              (ell(0, h) - ell(0, -h)) / (2 * h)])  # fmt: skip
+    np.testing.assert_allclose(R, R_true, atol=2e-3)
+    np.testing.assert_allclose(e["noshear"][0], ell(0, 0), atol=1e-4)
+
+
+def test_added_noise_cancels_the_anisotropy_of_the_sheared_noise():
+    """Sheared and reconvolved, white noise becomes anisotropic (the correlation at one
+    pixel along x differs from that along y); with the rotated field added it is the
+    same along both axes, within its error. Paired noise fields give paired images."""
+    rng = np.random.default_rng(3)
+    noise = rng.standard_normal((300, 32, 32))
+    psf = _draw(galsim.Gaussian(sigma=1.2), n=32)
+
+    def aniso(img):
+        cx = (img * np.roll(img, 1, -1)).mean() / img.var()
+        cy = (img * np.roll(img, 1, -2)).mean() / img.var()
+        return cx - cy
+
+    data_only = metacal_images(noise, psf, 1.0, step=0.1, noise_fields=np.zeros_like(noise),
+                               types=("1p",))  # fmt: skip
+    fixed = metacal_images(noise, psf, 1.0, step=0.1, seed=5, types=("1p", "noshear"))
+    err = 2.0 / np.sqrt(noise.size)
+    # the kernel P_r(k) / P(S k) passes more high k_x than k_y: less correlated along x
+    assert aniso(data_only.images["1p"]) < -10 * err
+    assert abs(aniso(fixed.images["1p"])) < 3 * err
+    assert fixed.noise_sigma == pytest.approx(np.sqrt(2.0))
+    again = metacal_images(noise, psf, 1.0, step=0.1, seed=5, types=("1p",))
+    np.testing.assert_array_equal(again.images["1p"], fixed.images["1p"])
+
+
+def test_bad_input_is_refused_with_a_clear_message():
+    psf = np.ones((16, 16))
+    with pytest.raises(ValueError, match="square stamps and a PSF of their size"):
+        metacal_images(np.zeros((2, 16, 12)), psf, 0.0)
+    with pytest.raises(ValueError, match="non-finite"):
+        metacal_images(np.full((16, 16), np.nan), psf, 0.0)
+    with pytest.raises(ValueError, match="noise_fields or a seed"):
+        metacal_images(np.zeros((16, 16)), psf, 1.0)
+    with pytest.raises(ValueError, match="unknown metacal types"):
+        metacal_images(np.zeros((16, 16)), psf, 0.0, types=("3p",))
+    with pytest.raises(ValueError, match="step"):
+        metacal_images(np.zeros((16, 16)), psf, 0.0, step=0.0)
