@@ -148,6 +148,7 @@ def main() -> None:
     ap.add_argument("--g", type=float, default=None, help="the applied shear per component")
     ap.add_argument("--offset", type=float, default=None,
                     help="PrecisionSpec.offset (0: centred galaxies, position prior 0.01 px)")
+    ap.add_argument("--ncal", type=int, default=None, help="PrecisionSpec.ncal")
     ap.add_argument("--step", type=float, default=0.01, help="metacalibration's delta")
     ap.add_argument("--true-priors", action="store_true",
                     help="the population's priors (else those the calibration estimates)")
@@ -165,6 +166,8 @@ def main() -> None:
     kw = {} if a.morphology_weights is None else {"morphology_weights": tuple(a.morphology_weights)}
     if a.g is not None:
         kw["g"] = a.g
+    if a.ncal is not None:
+        kw["ncal"] = a.ncal
     if a.offset is not None:
         kw["offset"] = a.offset
     spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **kw)
