@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -42,10 +43,8 @@ _EST = ("lensfit", "lensfit-mc", "metacal")
 def _block(task: dict) -> dict:
     """Render, fit and metacalibrate one block (runs in a worker)."""
     from pylensfit.likelihood import fit_stamps
-    from pylensfit.metacal import METACAL_TYPES, metacal_images, response
+    from pylensfit.metacal import metacal_shapes
     from pylensfit.pipeline import _single_thread
-    from pylensfit.prior import mix_bulge_fractions
-    from pylensfit.shear import posterior_moments, shear_sensitivity
 
     _single_thread(task.get("single_thread", False))
     spec, cfg, prior, bw = task["spec"], task["config"], task["prior"], task["bulge_weights"]
@@ -67,40 +66,32 @@ def _block(task: dict) -> dict:
     kw = {"config": cfg, "size_prior": task["size_prior"]}
     out = {"QA": 0.0, "e": 0.0, "s": 0.0, "R": 0.0}
     ok = np.ones(4 * n, bool)
-    times = np.zeros(3)
+    times = np.zeros(2)
     for imgs, fld in sets:
         t0 = time.perf_counter()
         fits = fit_stamps(imgs, psf, spec.noise_sigma, **kw)
         QA, okA = P.reduce_renderings(fits, prior, spec.g, refine=cfg.output_refine,
                                       bulge_weights=bw)  # fmt: skip
-        ok &= okA.reshape(-1)
         t1 = time.perf_counter()
-        mc = metacal_images(imgs, psf, spec.noise_sigma if task["noise"] else 0.0,
-                            step=task["step"], noise_fields=fld,
-                            centres=None if task["about_stamp"] else (fits.x, fits.y))  # fmt: skip
-        sigma = mc.noise_sigma if task["noise"] else spec.noise_sigma
-        t2 = time.perf_counter()
-        e = {}
-        for t in METACAL_TYPES:
-            f = fit_stamps(mc.images[t], mc.psf, sigma, **kw)
-            lnL = f.lnL if f.lnL_bulge is None else mix_bulge_fractions(f.lnL_bulge, f.lnL_star,
-                                                                        bw)  # fmt: skip
-            ok &= P._usable(f)
-            lnL = np.where(P._usable(f)[:, None], lnL, 0.0)
-            mom = posterior_moments(lnL, f.egrid, prior, refine=cfg.output_refine)
-            e[t] = np.column_stack([mom["e1"], mom["e2"]])
-            if t == "noshear":
-                sx = np.column_stack(shear_sensitivity(lnL, f.egrid, prior,
-                                                       refine=cfg.output_refine))  # fmt: skip
+        if task["about_stamp"]:  # the stamp's centre as the galaxy's
+            fits = replace(fits, x=np.full(4 * n, N // 2.0), y=np.full(4 * n, N // 2.0))
+        sh = metacal_shapes(imgs, psf, spec.noise_sigma, prior, config=cfg, fits=fits,
+                            bulge_weights=bw, step=task["step"],
+                            noise_fields=fld if task["noise"] else np.zeros_like(fld),
+                            size_prior=task["size_prior"])  # fmt: skip
+        ok &= okA.reshape(-1) & (np.asarray(sh["flag"]) == 0)
         w = 1.0 / len(sets)
         out["QA"] = out["QA"] + w * np.nan_to_num(QA)
-        out["e"] = out["e"] + w * e["noshear"].reshape(n, 4, 2)
-        out["s"] = out["s"] + w * sx.reshape(n, 4, 2)
-        out["R"] = out["R"] + w * response(e, mc.step).reshape(n, 4, 2, 2)
-        times += [t1 - t0, t2 - t1, time.perf_counter() - t2]
+        out["e"] = out["e"] + w * np.nan_to_num(np.column_stack([sh["e1"], sh["e2"]]))
+        out["s"] = out["s"] + w * np.nan_to_num(np.column_stack([sh["s1"], sh["s2"]]))
+        out["R"] = out["R"] + w * np.nan_to_num(
+            np.stack([np.column_stack([sh["R11"], sh["R12"]]),
+                      np.column_stack([sh["R21"], sh["R22"]])], 1))  # fmt: skip
+        times += [t1 - t0, time.perf_counter() - t1]
+    out = {"QA": out["QA"], "e": out["e"].reshape(n, 4, 2), "s": out["s"].reshape(n, 4, 2),
+           "R": out["R"].reshape(n, 4, 2, 2)}  # fmt: skip
     return {"block": task["block"], "psf": task["psf"], "truth": truth,
-            "ok": ok.reshape(n, 4).all(1), **out, "fit_s": times[0], "mc_s": times[1],
-            "mcfit_s": times[2]}  # fmt: skip
+            "ok": ok.reshape(n, 4).all(1), **out, "fit_s": times[0], "mc_s": times[1]}
 
 
 def _m_metacal(e, s, R, ok, jk, g, est):
@@ -186,9 +177,9 @@ def main() -> None:
         for t, r in _run(_block, tasks, a.jobs, None, "metacal", True, pool):
             res[t["block"]] = r
     cat = [res[b] for b in range(nb)]
-    print(f"{nb} blocks in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs); CPU s: fit "
-          f"{sum(r['fit_s'] for r in cat):.0f}, metacal images "
-          f"{sum(r['mc_s'] for r in cat):.0f}, their fits {sum(r['mcfit_s'] for r in cat):.0f}")
+    print(f"{nb} blocks in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs); CPU s: render and "
+          f"fit {sum(r['fit_s'] for r in cat):.0f}, metacal images and their fits "
+          f"{sum(r['mc_s'] for r in cat):.0f}")
     QA = np.concatenate([r["QA"] for r in cat]).astype(float)
     e, s, R = (np.concatenate([r[k] for r in cat]).astype(float) for k in ("e", "s", "R"))
     ok = np.concatenate([r["ok"] for r in cat])

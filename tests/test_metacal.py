@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from astropy.table import Table
 
-from pylensfit.metacal import METACAL_TYPES, metacal_images, response
+from pylensfit.metacal import METACAL_TYPES, metacal_images, metacal_shapes, metacal_shear, response
 
 galsim = pytest.importorskip("galsim")
 
@@ -128,3 +129,67 @@ def test_bad_input_is_refused_with_a_clear_message():
         metacal_images(np.zeros((16, 16)), psf, 0.0, types=("3p",))
     with pytest.raises(ValueError, match="step"):
         metacal_images(np.zeros((16, 16)), psf, 0.0, step=0.0)
+
+
+def test_metacal_response_is_the_fit_s_response_to_a_real_shear():
+    """The response :func:`metacal_shapes` measures is that of lensfit's posterior mean
+    to shearing the galaxy itself: noise-free Sersic galaxies (outside the fitted
+    exponential family) 1.8 px off the stamp's centre, rendered by GalSim sheared by
+    +-delta with the reconvolution PSF and fitted alike, give the same ``R`` per galaxy.
+    Shearing about the stamp's centre instead moves the galaxy too, and at S/N 15 the
+    position prior about the catalogue position makes the posterior mean respond to that."""
+    from pylensfit import Config, Prior
+    from pylensfit.likelihood import fit_stamps
+    from pylensfit.shear import posterior_moments
+
+    cfg, prior = Config(model="exponential", position_prior_sigma=0.3), Prior(B=0.19, C=0.58, D=2.4)
+    psf = galsim.Moffat(beta=3.5, fwhm=3.0).shear(g1=0.05)
+    gals = [galsim.Sersic(n=0.6, half_light_radius=2.2).shear(g1=0.3, g2=-0.2),
+            galsim.Sersic(n=2.5, half_light_radius=1.6).shear(g1=-0.1, g2=0.25)]  # fmt: skip
+    shift = (1.4, -1.1)
+    stamps = np.stack([_draw(galsim.Convolve(g.shift(*shift), psf)) for g in gals])
+    sigma = np.sqrt((stamps[0] ** 2).sum()) / 15.0  # S/N 15: the position prior matters
+    zeros = np.zeros_like(stamps)
+    out = metacal_shapes(stamps, _draw(psf), sigma, prior, config=cfg, noise_fields=zeros)
+    assert (out["flag"] == 0).all()
+    dil = galsim.Convolve(psf, galsim.Pixel(1.0)).dilate(1.02)
+    mc = metacal_images(stamps[0], _draw(psf), 0.0, types=("noshear",))
+
+    def emean(imgs):
+        f = fit_stamps(imgs, mc.psf, np.sqrt(2) * sigma, config=cfg)
+        m = posterior_moments(f.lnL, f.egrid, prior, refine=cfg.output_refine)
+        return np.column_stack([m["e1"], m["e2"]])
+
+    ev = {t: emean(np.stack([_draw(galsim.Convolve(g.shear(g1=SHEARS[t][0], g2=SHEARS[t][1])
+                                                   .shift(*shift), dil), "no_pixel")
+                             for g in gals]))
+          for t in ("1p", "1m", "2p", "2m")}  # fmt: skip
+    R_true = response(ev, 0.01)
+    R = np.array([[out["R11"], out["R12"]], [out["R21"], out["R22"]]]).transpose(2, 0, 1)
+    np.testing.assert_allclose(R, R_true, atol=1e-3)
+    assert np.abs(R_true[:, 0, 0] - 1).max() > 0.02  # not a trivial response of one
+    stamp_centre = metacal_images(stamps, _draw(psf), 0.0, step=0.01, types=("1p", "1m"))
+    e_sc = {t: emean(stamp_centre.images[t]) for t in ("1p", "1m")}
+    R_sc = (e_sc["1p"][:, 0] - e_sc["1m"][:, 0]) / 0.02
+    assert np.abs(R_sc - R_true[:, 0, 0]).max() > 0.02
+    e = np.column_stack([out["e1"], out["e2"]])
+    np.testing.assert_allclose(e, emean(np.stack([_draw(galsim.Convolve(g.shift(*shift), dil),
+                                                        "no_pixel") for g in gals])),
+                               atol=1e-3)  # fmt: skip
+
+
+def test_metacal_shear_inverts_the_mean_response():
+    R = np.array([[0.8, 0.05], [-0.02, 0.7]])
+    g = np.array([0.03, -0.01])
+    t = Table({"e1": [0.0, 0.0, 9.0], "e2": [0.0, 0.0, 9.0], "flag": [0, 0, 1]})
+    e = R @ g
+    t["e1"][:2], t["e2"][:2] = e[0] + np.array([0.1, -0.1]), e[1] + np.array([-0.2, 0.2])
+    for i in range(2):
+        for j in range(2):
+            t[f"R{i + 1}{j + 1}"] = [R[i, j] + 0.1, R[i, j] - 0.1, 5.0]
+    g_hat, R_hat = metacal_shear(t)
+    np.testing.assert_allclose(g_hat, g, atol=1e-12)
+    np.testing.assert_allclose(R_hat, R, atol=1e-12)
+    t["flag"] = 1
+    with pytest.raises(ValueError, match="no usable rows"):
+        metacal_shear(t)

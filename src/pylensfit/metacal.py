@@ -47,8 +47,10 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from astropy.table import Table
 
-__all__ = ["METACAL_TYPES", "MetacalImages", "metacal_images", "response"]
+__all__ = ["METACAL_TYPES", "MetacalImages", "metacal_images", "metacal_shapes", "metacal_shear",
+           "response"]
 
 #: The images of one metacalibration: unsheared, and sheared by ``+-delta`` in ``e1``
 #: and in ``e2``.
@@ -247,3 +249,120 @@ def response(e: dict[str, np.ndarray], step: float) -> np.ndarray:
     r1 = (np.asarray(e["1p"]) - np.asarray(e["1m"])) / (2 * step)
     r2 = (np.asarray(e["2p"]) - np.asarray(e["2m"])) / (2 * step)
     return np.stack([r1, r2], axis=-1)
+
+
+def metacal_shapes(
+    stamps: np.ndarray,
+    psf: np.ndarray,
+    noise_sigma: float,
+    prior,
+    *,
+    config=None,
+    size_prior=None,
+    bulge_weights: np.ndarray | None = None,
+    step: float = 0.01,
+    noise_fields: np.ndarray | None = None,
+    seed: int | None = None,
+    fits=None,
+) -> Table:
+    """lensfit's posterior mean ellipticity of each stamp with its metacalibrated response.
+
+    The stamps are fitted (or ``fits`` given) for their galaxies' centres; the five
+    metacalibration images are made about those centres (:func:`metacal_images`) and
+    fitted with the reconvolution PSF and the doubled noise variance; the posterior means
+    under ``prior`` (:func:`pylensfit.shear.posterior_moments`) of the unsheared image
+    are the measurement, those of the sheared ones give the response (:func:`response`).
+    The shear of a sample is then :func:`metacal_shear`.
+
+    Parameters
+    ----------
+    stamps : numpy.ndarray
+        ``(n, N, N)`` background-subtracted stamps, each galaxy near ``[N//2, N//2]``.
+    psf : numpy.ndarray
+        ``(N, N)`` PSF image (pixel response included), centred on ``[N//2, N//2]``.
+    noise_sigma : float
+        The stamps' per-pixel noise, > 0 (for noise-free stamps give ``noise_fields`` of
+        zeros: the fits then assume ``sqrt(2) noise_sigma`` without any added).
+    prior : pylensfit.prior.Prior
+        The ellipticity prior of the posterior means.
+    config : Config, optional
+        The fit's configuration (:func:`pylensfit.likelihood.fit_stamps`).
+    size_prior : pylensfit.prior.SizePrior, optional
+        As :func:`pylensfit.likelihood.fit_stamps`.
+    bulge_weights : numpy.ndarray, optional
+        Prior probabilities of the bulge fractions (uniform if ``None``), with a
+        bulge+disc model whose fraction is marginalised.
+    step, noise_fields, seed
+        As :func:`metacal_images`.
+    fits : StampFits, optional
+        Fits of ``stamps`` already made (their ``x``, ``y`` are the centres).
+
+    Returns
+    -------
+    astropy.table.Table
+        One row per stamp: ``e1, e2`` (the unsheared image's posterior means), ``R11,
+        R12, R21, R22`` (``R_ij = d<e_i>/dg_j``), ``s1, s2`` (lensfit's own exact
+        sensitivities of the unsheared image, :func:`pylensfit.shear.shear_sensitivity`:
+        the response if the galaxy were one of the models) and ``flag`` (0 when all six
+        fits are usable; else the values are NaN).
+    """
+    from .likelihood import fit_stamps
+    from .prior import mix_bulge_fractions, usable_rows
+    from .shear import posterior_moments, shear_sensitivity
+
+    if not noise_sigma > 0:
+        raise ValueError(f"metacal_shapes needs noise_sigma > 0, got {noise_sigma}")
+    st = np.asarray(stamps, dtype=np.float32)
+    st = st[None] if st.ndim == 2 else st
+    kw = {"config": config, "size_prior": size_prior}
+    if fits is None:
+        fits = fit_stamps(st, psf, noise_sigma, **kw)
+    cx, cy = np.asarray(fits.x, float), np.asarray(fits.y, float)
+    n = st.shape[-1]
+    ok = np.isfinite(cx) & np.isfinite(cy)
+    mc = metacal_images(st, psf, noise_sigma, step=step, noise_fields=noise_fields, seed=seed,
+                        centres=(np.where(ok, cx, n // 2), np.where(ok, cy, n // 2)))  # fmt: skip
+    refine = getattr(config, "output_refine", 4) if config is not None else 4
+    e = {}
+    for t in METACAL_TYPES:
+        f = fit_stamps(mc.images[t], mc.psf, mc.noise_sigma, **kw)
+        lnL = f.lnL
+        if f.lnL_bulge is not None:
+            lnL = mix_bulge_fractions(f.lnL_bulge, f.lnL_star, bulge_weights)
+        good = usable_rows(lnL) & (np.asarray(f.flags) == 0)
+        ok &= good
+        mom = posterior_moments(np.where(good[:, None], lnL, 0.0), f.egrid, prior, refine=refine)
+        e[t] = np.column_stack([mom["e1"], mom["e2"]])
+        if t == "noshear":
+            sens = shear_sensitivity(np.where(good[:, None], lnL, 0.0), f.egrid, prior,
+                                     refine=refine)  # fmt: skip
+    R = response(e, step)
+    nan = np.where(ok, 1.0, np.nan)
+    out = Table()
+    out["e1"], out["e2"] = e["noshear"][:, 0] * nan, e["noshear"][:, 1] * nan
+    for i in range(2):
+        for j in range(2):
+            out[f"R{i + 1}{j + 1}"] = R[:, i, j] * nan
+    out["s1"], out["s2"] = sens[0] * nan, sens[1] * nan
+    out["flag"] = np.where(ok, 0, 1).astype(np.int16)
+    out.meta["METASTEP"] = float(step)
+    return out
+
+
+def metacal_shear(shapes: Table) -> tuple[np.ndarray, np.ndarray]:
+    """The shear of a sample from :func:`metacal_shapes`: ``<R>^-1 <e>`` over its usable rows.
+
+    Returns
+    -------
+    g : numpy.ndarray
+        ``(2,)`` the shear estimate.
+    R : numpy.ndarray
+        ``(2, 2)`` the mean response.
+    """
+    ok = np.asarray(shapes["flag"]) == 0
+    if not ok.any():
+        raise ValueError("metacal_shear: no usable rows")
+    e = np.column_stack([shapes["e1"], shapes["e2"]])[ok].mean(0)
+    R = np.array([[shapes["R11"], shapes["R12"]], [shapes["R21"], shapes["R22"]]],
+                 dtype=float)[:, :, ok].mean(-1)  # fmt: skip
+    return np.linalg.solve(R, e), R
