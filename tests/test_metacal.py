@@ -193,3 +193,19 @@ def test_metacal_shear_inverts_the_mean_response():
     t["flag"] = 1
     with pytest.raises(ValueError, match="no usable rows"):
         metacal_shear(t)
+
+
+def test_one_noise_level_per_stamp_is_each_stamp_s_own():
+    """With a noise level per stamp, each stamp's images are those of a call with its
+    level alone (the added field scaled by it), and so is the level the fits assume."""
+    rng = np.random.default_rng(8)
+    stamps, fields = rng.standard_normal((2, 3, 24, 24))
+    psf = _draw(galsim.Gaussian(sigma=1.3), n=24)
+    sig = np.array([0.5, 2.0, 1.0])
+    both = metacal_images(stamps, psf, sig, noise_fields=fields, types=("2m",))
+    np.testing.assert_allclose(both.noise_sigma, np.sqrt(2) * sig)
+    for k in range(3):
+        one = metacal_images(stamps[k], psf, sig[k], noise_fields=fields[k], types=("2m",))
+        np.testing.assert_allclose(both.images["2m"][k], one.images["2m"], atol=1e-5)
+    with pytest.raises(ValueError, match="one per stamp"):
+        metacal_images(stamps, psf, sig[:2], noise_fields=fields)

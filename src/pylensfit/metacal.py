@@ -67,16 +67,17 @@ class MetacalImages:
         ``(n, N, N)`` float32 images per type of :data:`METACAL_TYPES`.
     psf : numpy.ndarray
         ``(N, N)`` the reconvolution PSF ``P_r`` (unit sum), the PSF of every image.
-    noise_sigma : float
+    noise_sigma : float or numpy.ndarray
         The white per-pixel noise the fits should assume: ``sqrt(2)`` times the input's
-        (the data's noise and the added field's).
+        (the data's noise and the added field's); one per stamp if the input had one per
+        stamp.
     step : float
         The shear ``delta`` of the sheared images.
     """
 
     images: dict[str, np.ndarray]
     psf: np.ndarray
-    noise_sigma: float
+    noise_sigma: float | np.ndarray
     step: float
 
 
@@ -128,7 +129,7 @@ def _to_image(F: np.ndarray, n: int) -> np.ndarray:
 def metacal_images(
     stamps: np.ndarray,
     psf: np.ndarray,
-    noise_sigma: float,
+    noise_sigma: float | np.ndarray,
     *,
     step: float = 0.01,
     noise_fields: np.ndarray | None = None,
@@ -146,8 +147,9 @@ def metacal_images(
     psf : numpy.ndarray
         ``(N, N)`` PSF image including the pixel response, centred on ``[N//2, N//2]``,
         any normalisation. It should be at least Nyquist sampled.
-    noise_sigma : float
-        The stamps' white per-pixel noise (0: noise-free stamps, no added field).
+    noise_sigma : float or numpy.ndarray
+        The stamps' white per-pixel noise, one value or one per stamp (0: noise-free
+        stamps, no added field).
     step : float
         The shear ``delta`` of the sheared images (ngmix's 0.01 by default).
     noise_fields : numpy.ndarray, optional
@@ -187,13 +189,19 @@ def metacal_images(
     if not np.isfinite(st).all() or not np.isfinite(psf).all():
         raise ValueError("metacal_images got non-finite pixels")
     psf = psf / psf.sum()
-    noisy = noise_sigma > 0
+    sig = np.asarray(noise_sigma, dtype=np.float64)
+    if sig.ndim > 1 or (sig.ndim == 1 and sig.shape != st.shape[:1]) or not (
+            np.isfinite(sig).all() and (sig >= 0).all()):
+        raise ValueError(f"noise_sigma must be >= 0, one value or one per stamp ({st.shape[0]}), "
+                         f"got {noise_sigma!r}")  # fmt: skip
+    noisy = bool((sig > 0).any())
     if noisy:
         if noise_fields is None:
             if seed is None:
                 raise ValueError("metacal_images needs noise_fields or a seed for noisy stamps")
             noise_fields = np.random.default_rng(seed).standard_normal(st.shape)
-        noise = np.asarray(noise_fields, dtype=np.float64).reshape(st.shape) * noise_sigma
+        noise = np.asarray(noise_fields, dtype=np.float64).reshape(st.shape) * (
+            sig[:, None, None] if sig.ndim == 1 else sig)
         # the added field rotated by 90 degrees about the centre (np.rot90 turns about
         # (N-1)/2: roll by one pixel after it to turn about N//2 on an even stamp)
         rot = np.rot90(noise, 1, axes=(-2, -1))
@@ -227,7 +235,8 @@ def metacal_images(
         out[t] = (img[0] if single else img).astype(np.float32)
     psf_r = _to_image(Pr[None], n)[0]
     return MetacalImages(images=out, psf=psf_r / psf_r.sum(),
-                         noise_sigma=float(noise_sigma) * (math.sqrt(2.0) if noisy else 1.0),
+                         noise_sigma=(sig if sig.ndim else float(sig)) * (math.sqrt(2.0) if noisy
+                                                                           else 1.0),
                          step=float(step))  # fmt: skip
 
 
@@ -280,9 +289,10 @@ def metacal_shapes(
         ``(n, N, N)`` background-subtracted stamps, each galaxy near ``[N//2, N//2]``.
     psf : numpy.ndarray
         ``(N, N)`` PSF image (pixel response included), centred on ``[N//2, N//2]``.
-    noise_sigma : float
-        The stamps' per-pixel noise, > 0 (for noise-free stamps give ``noise_fields`` of
-        zeros: the fits then assume ``sqrt(2) noise_sigma`` without any added).
+    noise_sigma : float or numpy.ndarray
+        The stamps' per-pixel noise, > 0, one value or one per stamp (for noise-free
+        stamps give ``noise_fields`` of zeros: the fits then assume ``sqrt(2)
+        noise_sigma`` without any added).
     prior : pylensfit.prior.Prior
         The ellipticity prior of the posterior means.
     config : Config, optional
@@ -310,7 +320,7 @@ def metacal_shapes(
     from .prior import mix_bulge_fractions, usable_rows
     from .shear import posterior_moments, shear_sensitivity
 
-    if not noise_sigma > 0:
+    if not np.all(np.asarray(noise_sigma) > 0):
         raise ValueError(f"metacal_shapes needs noise_sigma > 0, got {noise_sigma}")
     st = np.asarray(stamps, dtype=np.float32)
     st = st[None] if st.ndim == 2 else st
