@@ -143,7 +143,8 @@ def metacal_images(
     ----------
     stamps : numpy.ndarray
         ``(n, N, N)`` (or one ``(N, N)``) images indexed ``[k, y, x]``, each galaxy
-        near element ``[N//2, N//2]``, the point about which it is sheared.
+        near element ``[N//2, N//2]``, the point about which it is sheared unless
+        ``centres`` are given.
     psf : numpy.ndarray
         ``(N, N)`` PSF image including the pixel response, centred on ``[N//2, N//2]``,
         any normalisation. It should be at least Nyquist sampled.
