@@ -35,7 +35,7 @@ from pylensfit import precision as P
 from pylensfit.pipeline import _pool, _run
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from precision_ab import _m_jk, _priors  # noqa: E402
+from precision_ab import _jk_err, _m_jk, _priors  # noqa: E402
 
 _EST = ("lensfit", "lensfit-mc", "metacal")
 
@@ -48,7 +48,6 @@ def _block(task: dict) -> dict:
 
     _single_thread(task.get("single_thread", False))
     spec, cfg, prior, bw = task["spec"], task["config"], task["prior"], task["bulge_weights"]
-    t0 = time.perf_counter()
     stamps, psf, truth = P.render_block(spec, task["psf"], task["block"],
                                         stamp_size=cfg.largest_stamp,
                                         noise=task["noise"])  # fmt: skip
@@ -123,11 +122,6 @@ def _m_metacal(e, s, R, ok, jk, g, est):
     return (out[0] - out[1]) / (2 * g) - 1.0
 
 
-def _err(v):
-    k = len(v) - 1
-    return np.sqrt((k - 1) / k * ((v[1:] - v[1:].mean(0)) ** 2).sum(0))
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ngal", type=int, default=4000)
@@ -177,8 +171,8 @@ def main() -> None:
         for t, r in _run(_block, tasks, a.jobs, None, "metacal", True, pool):
             res[t["block"]] = r
     cat = [res[b] for b in range(nb)]
-    print(f"{nb} blocks in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs); CPU s: render and "
-          f"fit {sum(r['fit_s'] for r in cat):.0f}, metacal images and their fits "
+    print(f"{nb} blocks in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs); CPU s: fit "
+          f"{sum(r['fit_s'] for r in cat):.0f}, metacal images and their fits "
           f"{sum(r['mc_s'] for r in cat):.0f}")
     QA = np.concatenate([r["QA"] for r in cat]).astype(float)
     e, s, R = (np.concatenate([r[k] for r in cat]).astype(float) for k in ("e", "s", "R"))
@@ -213,11 +207,12 @@ def main() -> None:
         for est in _EST[1:]:
             ms[est] = _m_metacal(e[okk], s[okk], R[okk], np.ones(okk.sum(), bool), jk[okk],
                                  spec.g, est)  # fmt: skip
-        cells = [f"{ms[x][0, 0]:+.4f} ± {_err(ms[x])[0]:.4f} / {ms[x][0, 1]:+.4f} ± "
-                 f"{_err(ms[x])[1]:.4f}" for x in _EST]  # fmt: skip
-        for x, y in (("metacal", "lensfit"), ("metacal", "lensfit-mc")):
-            d = ms[x] - ms[y]
-            cells.append(f"{d[0, 0]:+.4f} ± {_err(d)[0]:.4f} / {d[0, 1]:+.4f} ± {_err(d)[1]:.4f}")
+        def cell(v):  # m1 / m2 with their jackknife errors
+            err = _jk_err(v)
+            return f"{v[0, 0]:+.4f} ± {err[0]:.4f} / {v[0, 1]:+.4f} ± {err[1]:.4f}"
+
+        cells = [cell(ms[x]) for x in _EST]
+        cells += [cell(ms["metacal"] - ms[y]) for y in ("lensfit", "lensfit-mc")]
         print(f"| {name} | {okk.sum()} | " + " | ".join(cells) + " |")
 
     print("\n| sample | galaxies | lensfit m1 / m2 | lensfit-mc | metacal | metacal - lensfit "

@@ -317,6 +317,7 @@ def metacal_shapes(
         the response if the galaxy were one of the models) and ``flag`` (0 when all six
         fits are usable; else the values are NaN).
     """
+    from .config import Config
     from .likelihood import fit_stamps
     from .prior import mix_bulge_fractions, usable_rows
     from .shear import posterior_moments, shear_sensitivity
@@ -333,7 +334,7 @@ def metacal_shapes(
     ok = np.isfinite(cx) & np.isfinite(cy)
     mc = metacal_images(st, psf, noise_sigma, step=step, noise_fields=noise_fields, seed=seed,
                         centres=(np.where(ok, cx, n // 2), np.where(ok, cy, n // 2)))  # fmt: skip
-    refine = getattr(config, "output_refine", 4) if config is not None else 4
+    refine = (config or Config()).output_refine
     e = {}
     for t in METACAL_TYPES:
         f = fit_stamps(mc.images[t], mc.psf, mc.noise_sigma, **kw)
