@@ -66,6 +66,9 @@ def main() -> None:
                     help="Config.position_prior_sigma (default: offset / sqrt(3))")
     ap.add_argument("--size-prior-smoothing", type=float, default=Config().size_prior_smoothing,
                     help="Config.size_prior_smoothing of the estimated size prior")
+    ap.add_argument("--size-prior-per-run", action="store_true",
+                    help="Config.size_prior_per_run: one size distribution per bulge "
+                    "fraction of the family, estimated jointly")
     ap.add_argument("--psf", nargs="+", default=None, choices=[p["name"] for p in PRECISION_PSFS],
                     help="only these PSFs (default: all four)")
     ap.add_argument("--snr", type=float, nargs=2, default=None, metavar=("LO", "HI"),
@@ -107,7 +110,8 @@ def main() -> None:
         kw["offset"] = a.offset
     spec = spec_with(ngal=a.ngal, seed=a.seed, **kw)
     cfg = default_config(spec).replace(amplitude_prior=a.amplitude_prior,
-                                       size_prior_smoothing=a.size_prior_smoothing)  # fmt: skip
+                                       size_prior_smoothing=a.size_prior_smoothing,
+                                       size_prior_per_run=a.size_prior_per_run)  # fmt: skip
     if a.e_step is not None:
         cfg = cfg.replace(e_step=a.e_step)
     if a.e_refine > 1:
@@ -153,7 +157,7 @@ def main() -> None:
           f"{bounds}, "
           f"position prior "
           f"{cfg.position_prior_sigma:.3g} px, size prior smoothing "
-          f"{cfg.size_prior_smoothing}, "
+          f"{cfg.size_prior_smoothing}{' per run' if cfg.size_prior_per_run else ''}, "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
     for b in res.meta.get("flux_bounds") or []:
         print(f"flux bounds {b['psf']} (estimated): {b['lo']:.4g} ± {b['lo_err']:.2g}, "
@@ -165,11 +169,15 @@ def main() -> None:
           f"{'none' if bp['weights'] is None else np.round(bp['weights'], 3).tolist()} "
           f"({bp['method']})")  # fmt: skip
     for one in res.meta["size_prior"] or []:
-        cdf = np.cumsum(one["density"]) / np.sum(one["density"])
-        q = np.exp(np.interp([0.05, 0.5, 0.95], cdf, one["ln_h"]))
         how = "given" if res.meta["size_prior_given"] else "estimated"
-        print(f"size prior {one['psf']} ({how}): 5 / 50 / 95 % = "
-              + " / ".join(f"{v:.2f}" for v in q) + " px")
+        dens = np.asarray(one["density"])
+        rows = [("", np.asarray(one.get("marginal", dens)))]
+        if dens.ndim == 2:  # one per run of the family: each run's too
+            rows += [(f", run {i}", d) for i, d in enumerate(dens)]
+        for label, d in rows:
+            q = np.exp(np.interp([0.05, 0.5, 0.95], np.cumsum(d) / np.sum(d), one["ln_h"]))
+            print(f"size prior {one['psf']}{label} ({how}): 5 / 50 / 95 % = "
+                  + " / ".join(f"{v:.2f}" for v in q) + " px")
     keep = np.isin(res["breakdown"], ["all", "psf", "snr", "size", "morphology", "no controls"])
     show = res[keep & (res["estimator"] == "fixed-point")]
     show = show[show["n_gal"] > 0]

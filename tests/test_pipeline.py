@@ -551,3 +551,22 @@ def test_model_background_removes_the_wings_from_the_sky(tmp_path):
         err[on] = float(np.mean(cat["background"][ok])) - 50.0
     assert err[False] > 0.03  # the wings bias SEP's sky
     assert abs(err[True]) < 0.35 * err[False]
+
+
+def test_a_size_prior_per_run_survives_the_catalogue_file(tmp_path):
+    """A size prior with one density per run of the family (``size_prior_per_run``) is
+    written as one density vector per knot and read back as the same ``(runs, K)``."""
+    from pylensfit.prior import SizePrior
+
+    knots = np.linspace(-1.0, 2.0, 31)
+    dens = np.stack([np.exp(-0.5 * ((knots - c) / 0.3) ** 2) for c in (0.0, 0.7, 1.2)])
+    sp = SizePrior(ln_h=knots, density=dens, star=2e-3)
+    egrid = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1]])
+    cat = Table({"x": [1.0, 2.0], "lnL": np.zeros((2, 3))})
+    cat.meta.update(egrid=egrid, size_prior=sp)
+    pl.write_catalogue(cat, tmp_path / "c.fits")
+    back = read_catalogue(tmp_path / "c.fits").meta["size_prior"]
+    assert back.per_run
+    np.testing.assert_array_equal(back.density, dens)
+    np.testing.assert_array_equal(back.ln_h, knots)
+    assert back.star == pytest.approx(2e-3)

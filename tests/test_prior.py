@@ -582,3 +582,64 @@ def test_flux_range_fits_the_scale_of_underestimated_errors():
     assert abs(estimate_flux_range(g, s, beta=2.0)["error_scale"] - 1.0) < 0.1
     with pytest.raises(ValueError, match="error_scale"):
         estimate_flux_range(f, s, error_scale=0.0)
+
+
+def test_size_prior_per_run_recovers_each_fraction_s_sizes():
+    """``per_run``: discs small and bulges large (as knotty discs are beside bulges) give
+    each run of the family its own size distribution, where the factorised prior puts
+    one between them for both; each run's node weights are those of its own density,
+    and the prior survives ``to_dict``."""
+    from pylensfit import Config
+    from pylensfit.prior import SizePrior, _node_sizes, estimate_size_prior
+
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3)
+    bank = model_bank(cfg)
+    _, _, h = _node_sizes(bank, cfg)
+    ns = bank.n_sizes
+    rng = np.random.default_rng(12)
+    n = 12000
+    run = np.where(rng.random(n) < 0.5, 0, 2)  # the pure disc and the pure bulge
+    mu = np.where(run == 0, np.log(1.2), np.log(2.8))
+    lnh_true = rng.normal(mu, 0.25)
+    s = rng.uniform(0.05, 0.3, n)
+    lnh_obs = lnh_true + s * rng.normal(size=n)
+    L = -0.5 * ((np.log(h)[None] - lnh_obs[:, None]) / s[:, None]) ** 2
+    node_run = np.repeat(np.arange(3), ns)
+    L -= 1.5 * (node_run[None] != run[:, None])  # the fraction only weakly measured
+    lnL_r = np.hstack([L, np.full((n, 1), -200.0)]).astype(np.float32)
+
+    def mean_lnh(x, p):
+        return np.trapezoid(p * x, x) / np.trapezoid(p, x)
+
+    joint = estimate_size_prior(lnL_r, bank, cfg, per_run=True)
+    assert joint.per_run and joint.density.shape == (3, joint.ln_h.size)
+    np.testing.assert_allclose(np.trapezoid(joint.density, joint.ln_h, axis=1) + joint.star,
+                               1.0, rtol=1e-9)  # fmt: skip
+    m0, m2 = (mean_lnh(joint.ln_h, joint.density[b]) for b in (0, 2))
+    assert abs(m0 - lnh_true[run == 0].mean()) < 0.05, m0
+    assert abs(m2 - lnh_true[run == 2].mean()) < 0.05, m2
+    one = estimate_size_prior(lnL_r, bank, cfg)  # the factorised prior: both in one
+    assert not one.per_run
+    mid = mean_lnh(one.ln_h, one.density)
+    assert lnh_true[run == 0].mean() + 0.3 < mid < lnh_true[run == 2].mean() - 0.3, mid
+    # node weights: each run's are its own density's (no tails cut, no floor)
+    c0 = cfg.replace(size_prior_cut=0.0)
+    w = joint.node_weights(bank, c0)[0]
+    for b in range(3):
+        own = SizePrior(ln_h=joint.ln_h, density=joint.density[b], star=joint.star)
+        np.testing.assert_allclose(w[node_run == b], own.node_weights(bank, c0)[0][node_run == b],
+                                   rtol=1e-12)  # fmt: skip
+    # with the default tails, each run's against its own largest mass
+    wt = joint.node_weights(bank, cfg)[0]
+    for b in (0, 2):
+        sel = node_run == b
+        assert wt[sel].max() == pytest.approx(w[sel].max())
+        assert np.all(wt[sel & (wt > 0)] >= cfg.size_prior_cut * w[sel].max() * (1 - 1e-12))
+    back = SizePrior.from_dict(joint.to_dict())
+    np.testing.assert_array_equal(back.density, joint.density)
+    np.testing.assert_allclose(joint.marginal([1, 0, 1]),
+                               0.5 * (joint.density[0] + joint.density[2]))  # fmt: skip
+    np.testing.assert_allclose(joint.pdf(np.exp(joint.ln_h[5]))[[0, 2]],
+                               joint.density[[0, 2], 5])  # fmt: skip
+    with pytest.raises(ValueError, match="runs"):
+        joint.node_weights(model_bank(Config(model="exponential")), Config(model="exponential"))

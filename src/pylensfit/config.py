@@ -145,6 +145,13 @@ class Config:
         "(0.1 in ln h apart) per EM step. Less smoothing resolves sharper features of the "
         "size distribution (prior.estimate_size_prior)",
     )
+    size_prior_per_run: bool = _f(
+        False,
+        "estimate one size distribution per run of the model family (bulge fraction), "
+        "the prior of size conditional on the fraction, instead of one for all "
+        "(prior.estimate_size_prior): a population whose kinds differ in size (knotty "
+        "discs smaller than bulges) is not a product of a fraction prior and a size prior",
+    )
     size_prior_cut: float = _f(
         1e-4,
         "the tails of an estimated size prior (SizePrior.node_weights), relative to its "

@@ -1105,7 +1105,8 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
         hdus.append(hb)
     sp = cat.meta.get("size_prior")
     if sp is not None:
-        hs = fits.table_to_hdu(Table({"ln_h": sp.ln_h, "density": sp.density}))
+        # one row per knot; a prior per run of the family has a density vector per row
+        hs = fits.table_to_hdu(Table({"ln_h": sp.ln_h, "density": np.asarray(sp.density).T}))
         hs.name = "SIZEPRI"
         hs.header["STAR"] = (sp.star, "prior probability of a point source")
         hdus.append(hs)
@@ -1157,7 +1158,7 @@ def read_catalogue(path: str | os.PathLike) -> Table:
         if "SIZEPRI" in h:
             hs = h["SIZEPRI"]
             cat.meta["size_prior"] = SizePrior(ln_h=np.array(hs.data["ln_h"], dtype=float),
-                                               density=np.array(hs.data["density"], float),
+                                               density=np.array(hs.data["density"], float).T,
                                                star=float(hs.header["STAR"]))  # fmt: skip
         if "PSFS" in h:
             cat.meta["psfs"] = Table(h["PSFS"].data)

@@ -1253,7 +1253,7 @@ def precision(
     }
     out.meta["size_prior"] = None if size_priors[0] is None else [
         {"psf": spec.psfs[k]["name"], "ln_h": sp.ln_h.tolist(), "density": sp.density.tolist(),
-         "star": sp.star}
+         "star": sp.star, "marginal": sp.marginal(bulge_weights if sp.per_run else None).tolist()}
         for k, sp in enumerate(size_priors)]  # fmt: skip
     out.meta["size_prior_per_psf"] = bool(size_prior_per_psf)
     out.meta["size_prior_given"] = given_sp is not None
@@ -1314,7 +1314,7 @@ def _size_line(sps: list | None, spec: dict, given: bool = False) -> str:
         return "Size prior: flat (uniform in half-light radius).\n"
     parts = []
     for one in sps:
-        x, p = np.asarray(one["ln_h"]), np.asarray(one["density"])
+        x, p = np.asarray(one["ln_h"]), np.asarray(one.get("marginal", one["density"]))
         cdf = np.cumsum(p) / np.sum(p)
         q = np.exp(np.interp([0.05, 0.5, 0.95], cdf, x))
         parts.append(f"{one['psf']}: {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} px "

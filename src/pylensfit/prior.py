@@ -1172,7 +1172,10 @@ class SizePrior:
         ``(K,)`` evenly spaced knots in ``ln`` of the half-light radius (pixels).
     density : numpy.ndarray
         ``(K,)`` the density per unit ``ln h`` at the knots, linear between them and 0
-        outside; integrates to ``1 - star``.
+        outside; integrates to ``1 - star``. Or ``(n_runs, K)``: one density per run of
+        the model family (bulge fraction), each integrating to ``1 - star``, the size
+        prior conditional on the run (:func:`estimate_size_prior` with ``per_run``); the
+        runs' shares stay the bulge weights'.
     star : float
         Prior probability of a point source.
     """
@@ -1181,25 +1184,49 @@ class SizePrior:
     density: np.ndarray
     star: float = 1e-6
 
+    @property
+    def per_run(self) -> bool:
+        """Whether the prior holds one density per run of the model family."""
+        return np.ndim(self.density) == 2
+
     def pdf(self, h) -> np.ndarray:
-        """Density per unit ``ln h`` at half-light radii ``h`` (pixels)."""
+        """Density per unit ``ln h`` at half-light radii ``h`` (pixels); with one density
+        per run, ``(n_runs,) + h.shape``."""
         with np.errstate(divide="ignore"):
             x = np.log(np.asarray(h, dtype=float))
+        if self.per_run:
+            return np.stack([np.interp(x, self.ln_h, d, left=0.0, right=0.0)
+                             for d in self.density])  # fmt: skip
         return np.interp(x, self.ln_h, self.density, left=0.0, right=0.0)
+
+    def marginal(self, weights=None) -> np.ndarray:
+        """``(K,)`` the density over all runs, each weighted by ``weights`` (the bulge
+        weights; equal by default); a single density as it is."""
+        if not self.per_run:
+            return np.asarray(self.density, dtype=float)
+        d = np.asarray(self.density, dtype=float)
+        w = np.full(d.shape[0], 1.0 / d.shape[0]) if weights is None else np.asarray(weights, float)
+        if w.shape != (d.shape[0],):
+            raise ValueError(f"{d.shape[0]} runs in the size prior, {w.size} weights")
+        return (w / w.sum()) @ d
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able parameters (:meth:`from_dict` inverts it)."""
         return {"ln_h": [float(v) for v in self.ln_h],
-                "density": [float(v) for v in self.density], "star": float(self.star)}  # fmt: skip
+                "density": np.asarray(self.density, dtype=float).tolist(),
+                "star": float(self.star)}  # fmt: skip
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SizePrior:
         """The prior of :meth:`to_dict`."""
         ln_h = np.asarray(d["ln_h"], dtype=float)
         dens = np.asarray(d["density"], dtype=float)
-        if ln_h.ndim != 1 or ln_h.shape != dens.shape or ln_h.size < 2:
-            raise ValueError("a size prior needs ln_h and density of the same length >= 2")
-        if not (np.all(np.diff(ln_h) > 0) and np.all(dens >= 0) and dens.sum() > 0):
+        if ln_h.ndim != 1 or dens.ndim not in (1, 2) or dens.shape[-1] != ln_h.size \
+                or ln_h.size < 2:
+            raise ValueError("a size prior needs ln_h and density (one row per run, or one) "
+                             "of the same length >= 2")  # fmt: skip
+        if not (np.all(np.diff(ln_h) > 0) and np.all(dens >= 0)
+                and np.all(dens.reshape(-1, ln_h.size).sum(axis=1) > 0)):
             raise ValueError("a size prior needs increasing ln_h and a non-negative density")
         return cls(ln_h=ln_h, density=dens, star=float(d.get("star", 1e-6)))
 
@@ -1248,11 +1275,25 @@ class SizePrior:
         the prior, whose size those models resolve, is the case it is not for.
         """
         r, r_w, h = _node_sizes(bank, config)
-        w = r_w * (_node_basis(h, bank.n_sizes, self.ln_h) @ self.density) / r
+        basis = _node_basis(h, bank.n_sizes, self.ln_h)
+        if self.per_run:
+            n_b = bank.n_r // bank.n_sizes
+            dens = np.asarray(self.density, dtype=float)
+            if dens.shape[0] != n_b:
+                raise ValueError(f"the size prior has {dens.shape[0]} runs, the model bank {n_b}")
+            run = np.repeat(np.arange(n_b), bank.n_sizes)
+            w = r_w * np.einsum("jk,jk->j", basis, dens[run]) / r
+            mode = np.exp(self.ln_h[np.argmax(dens, axis=1)])[run]
+            # each run's tails against its own largest mass
+            top = np.array([w[run == b].max() for b in range(n_b)])[run]
+        else:
+            w = r_w * (basis @ self.density) / r
+            mode = np.exp(self.ln_h[np.argmax(self.density)])
+            top = w.max()
         if not w.max() > 0:
             raise ValueError("the size prior has no mass on the model bank's sizes")
-        tail = config.size_prior_cut * w.max()
-        above = h > np.exp(self.ln_h[np.argmax(self.density)])
+        tail = config.size_prior_cut * top
+        above = h > mode
         floored = ~above & (w < tail)
         w = np.where(above, np.where(w >= tail, w, 0.0), np.maximum(w, tail))
         stride = int(getattr(config, "size_prior_floor_stride", 1))
@@ -1295,6 +1336,7 @@ def estimate_size_prior(
     knot_step: float = 0.1,
     n_iter: int | None = None,
     smooth: float | None = None,
+    per_run: bool | None = None,
 ) -> SizePrior:
     """The size prior by maximum marginal likelihood, smoothed EM on a ln(h) grid.
 
@@ -1321,6 +1363,14 @@ def estimate_size_prior(
     smooth : float, optional
         Weight moved to each neighbouring knot in a smoothing step (default
         ``config.size_prior_smoothing``).
+    per_run : bool, optional
+        One density per run of the model family (bulge fraction), estimated jointly: the
+        prior of (run, size), of which the density conditional on each run is kept
+        (default ``config.size_prior_per_run``). The factorised prior gives every run
+        the same distribution of half-light radii; in a population whose kinds differ in
+        size (knotty discs smaller than bulges), a fraction's sizes are not the others'.
+        The joint estimate's run shares are not kept: ``bulge_weights`` are what mixes
+        the runs in the fits; here they only start EM.
 
     Returns
     -------
@@ -1328,6 +1378,8 @@ def estimate_size_prior(
     """
     if smooth is None:
         smooth = float(getattr(config, "size_prior_smoothing", 0.25))
+    if per_run is None:
+        per_run = bool(getattr(config, "size_prior_per_run", False))
     if n_iter is None:
         n_iter = int(max(500, round(100.0 / max(smooth, 1e-3))))
     L = np.asarray(lnL_r, dtype=float)
@@ -1343,18 +1395,41 @@ def estimate_size_prior(
     lo, hi = np.log(h.min()) - knot_step, np.log(h.max()) + knot_step
     knots = np.arange(lo, hi + knot_step, knot_step)
     B = _node_basis(h, bank.n_sizes, knots)  # each knot's share of each node: B[j, k]
-    M = (np.repeat(pi, bank.n_sizes) * r_w / r)[:, None] * B  # node mass per knot value
     top = L.max(axis=1, keepdims=True)
     E = np.exp(L - top)
-    comp = np.column_stack([E[:, :n_r] @ M / knot_step, E[:, n_r]])  # per unit mass
     K = knots.size
-    w = np.full(K + 1, 1.0 / (K + 1))
+    kernel = [smooth, 1 - 2 * smooth, smooth]
+    if not per_run:
+        M = (np.repeat(pi, bank.n_sizes) * r_w / r)[:, None] * B  # node mass per knot value
+        comp = np.column_stack([E[:, :n_r] @ M / knot_step, E[:, n_r]])  # per unit mass
+        w = np.full(K + 1, 1.0 / (K + 1))
+        for _ in range(n_iter):
+            tot = comp @ w
+            w = w * np.mean(comp / tot[:, None], axis=0)
+            w[:K] = np.convolve(w[:K], kernel, mode="same")
+            w /= w.sum()
+        return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=float(w[K]))
+    # the joint prior of (run, knot): components run-major, the point source last
+    M = (r_w / r)[:, None] * B
+    comp = np.column_stack(
+        [E[:, b * bank.n_sizes:(b + 1) * bank.n_sizes] @ M[b * bank.n_sizes:(b + 1) * bank.n_sizes]
+         for b in range(n_b)] + [E[:, n_r:n_r + 1] * knot_step]) / knot_step  # fmt: skip
+    pi = np.clip(pi / pi.sum(), 1e-3, None)
+    w = np.concatenate([np.repeat(pi / pi.sum(), K) / (K + 1), [1.0 / (K + 1)]])
+    w /= w.sum()
     for _ in range(n_iter):
         tot = comp @ w
         w = w * np.mean(comp / tot[:, None], axis=0)
-        w[:K] = np.convolve(w[:K], [smooth, 1 - 2 * smooth, smooth], mode="same")
+        for b in range(n_b):
+            w[b * K:(b + 1) * K] = np.convolve(w[b * K:(b + 1) * K], kernel, mode="same")
         w /= w.sum()
-    return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=float(w[K]))
+    star = float(w[-1])
+    dens = w[:-1].reshape(n_b, K)
+    mass = dens.sum(axis=1, keepdims=True)
+    # a run EM has emptied to underflow takes the others' shape (its weight is ~0 anyway)
+    dens = np.where(mass > 1e-250, dens / np.maximum(mass, 1e-300), dens.sum(axis=0) / mass.sum())
+    dens = dens * (1.0 - star) / knot_step
+    return SizePrior(ln_h=knots, density=dens, star=star)
 
 
 def estimate_flux_slope(
