@@ -431,6 +431,10 @@ def _cubic_tile(V, max_step2, W):
 #: (above which its expansion point is the interior root, so it is smooth in ``t``) to
 #: ``_PT_MAX``, knots ``_PT_STEP`` apart, for cubic Hermite interpolation
 _PT_MIN, _PT_MAX, _PT_STEP = 4.0, 264.0, 1.0 / 16.0
+#: a model whose S/N ``t`` is this far inside the flux bounds (in its S/N units) reads the
+#: unbounded table: the bounds then change the integral's log and the amplitude's mean
+#: by ``Phi(-5.8) ~ 3e-9`` at most, the table's own error being 2e-8
+_PT_BOUND_MARGIN = 6.0
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
@@ -465,14 +469,18 @@ def _power_law_table(beta):
 def _amplitude_tile(cm, amp_pow, amp_lns, amp_lo, amp_hi, t0, tab, W):
     """The amplitude integral of :func:`_laplace_lnl` for a tile: its log ``_VAL`` and
     ``-(d val / d h)`` (``_DL``). A table per model (:func:`_amplitude_terms`; for a
-    power law without flux bounds, ``tab`` from :func:`_power_law_table`, or ``tab`` of
-    width 0 for none), else the direct evaluation: scalar."""
+    power law, ``tab`` from :func:`_power_law_table`, or ``tab`` of width 0 for none),
+    read where the model's S/N is ``_PT_BOUND_MARGIN`` inside the flux bounds (all of
+    them without bounds); else the direct evaluation: scalar."""
     n_tab = tab.shape[1]
     t1 = t0 + (n_tab - 2) * _PT_STEP
     for k in range(W.shape[1]):
         iss = W[_ISS, k]
         t = W[_HS, k] * iss
-        if n_tab > 0 and t >= t0 and t < t1 and amp_lo * cm[0, k] * iss <= _AMP_FLOOR:
+        lo_u = amp_lo * cm[0, k] * iss  # the flux bounds in the model's S/N units
+        hi_u = amp_hi * cm[0, k] * iss
+        if (n_tab > 0 and t >= t0 and t < t1 and hi_u - t >= _PT_BOUND_MARGIN
+                and (lo_u <= _AMP_FLOOR or t - lo_u >= _PT_BOUND_MARGIN)):
             i, h00, h10, h01, h11 = _hermite((t - t0) * (1.0 / _PT_STEP), _PT_STEP)
             val = (0.5 * t * t + h00 * tab[0, i] + h10 * tab[1, i] + h01 * tab[0, i + 1]
                    + h11 * tab[1, i + 1] + 0.5 * amp_lns * cm[5, k])  # fmt: skip
@@ -511,8 +519,10 @@ _PRIOR_KINK = 1.0
 
 def amplitude_table(amp_pow, amp_hi):
     """The power-law table that :func:`laplace_grid` needs for an amplitude prior (computed
-    once for many calls of :func:`laplace_grid_tab`)."""
-    if amp_pow >= 0.0 and amp_hi == math.inf:
+    once for many calls of :func:`laplace_grid_tab`). With flux bounds too: the models
+    whose S/N is ``_PT_BOUND_MARGIN`` or more inside both read it (``amp_hi`` is kept
+    in the signature for the callers)."""
+    if amp_pow >= 0.0:
         return _power_law_table(amp_pow)
     return 0.0, np.empty((4, 0))
 
@@ -525,7 +535,7 @@ def laplace_grid(
     out_lnlb, out_lnlr, out_best, out_h, out_x, out_y,
 ):  # fmt: skip
     """:func:`laplace_grid_tab` with the amplitude prior's table computed here."""
-    if amp_pow >= 0.0 and amp_hi == math.inf:
+    if amp_pow >= 0.0:
         pt0, ptab = _power_law_table(amp_pow)
     else:
         pt0, ptab = 0.0, np.empty((4, 0))
@@ -608,7 +618,7 @@ def laplace_grid_tab(
         Bounds on the flux of a power-law amplitude prior (0 and inf: none).
     pt0, ptab : float and (4, n) array
         The unbounded power law's table, :func:`amplitude_table` (``laplace_grid``
-        computes it itself).
+        computes it itself), for the models well inside the flux bounds.
     e_w : (n_e,) array
         Weights of the e cells (summing to 1) in ``L(r) = sum_e e_w L(e, r)``: an
         ellipticity prior's mass per cell.
