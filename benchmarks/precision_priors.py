@@ -178,7 +178,8 @@ def main() -> None:
             q = np.exp(np.interp([0.05, 0.5, 0.95], np.cumsum(d) / np.sum(d), one["ln_h"]))
             print(f"size prior {one['psf']}{label} ({how}): 5 / 50 / 95 % = "
                   + " / ".join(f"{v:.2f}" for v in q) + " px")
-    keep = np.isin(res["breakdown"], ["all", "psf", "snr", "size", "morphology", "no controls"])
+    keep = np.isin(res["breakdown"], ["all", "psf", "snr", "size", "morphology", "sersic_n",
+                                      "no controls"])  # fmt: skip
     show = res[keep & (res["estimator"] == "fixed-point")]
     show = show[show["n_gal"] > 0]
     for c in ("m1", "m1_err", "m2", "m2_err", "c1", "c2"):

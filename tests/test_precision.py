@@ -514,6 +514,10 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     for name, n in zip(per["group"], per["n_gal"], strict=True):
         assert sum(r["n_gal"] for r in pm if r["group"].startswith(name + " ")) == n
     assert "## psf_morphology" in text
+    # the Sersic galaxies by index: every one in a bin, no other galaxy in any
+    sn = fp[fp["breakdown"] == "sersic_n"]
+    (ns,) = fp[(fp["breakdown"] == "morphology") & (fp["group"] == "sersic")]["n_gal"]
+    assert ns > 0 and sum(sn["n_gal"]) == ns and "## sersic_n" in text
     assert tab.meta["spec"]["ngal"] == 16
     # --true-prior: no calibration sample, the population's own prior
     assert "Prior given: B=0.190, C=0.580, D=2.400" in text and tab.meta["prior"]["given"]

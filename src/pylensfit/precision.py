@@ -866,6 +866,8 @@ def shape_controls(e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
 SNR_EDGES = (5.0, 7.5, 10.0, 12.5, 15.0, 20.0, 30.0, 50.0, 100.0, 200.0, 400.0)
 SIZE_EDGES = (0.5, 0.7, 1.0, 1.4, 2.0, 2.5)
 BULGE_EDGES = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
+#: the Sersic galaxies' index (0.5-4): below 1 the profile is not in the bulge+disc family
+SERSIC_EDGES = (0.5, 1.0, 1.5, 2.5, 4.0)
 
 
 def _breakdowns(gal: Table, psfs: tuple[dict, ...]) -> dict[str, dict[str, np.ndarray]]:
@@ -886,6 +888,8 @@ def _breakdowns(gal: Table, psfs: tuple[dict, ...]) -> dict[str, dict[str, np.nd
         "morphology": {m: morph == i for i, m in enumerate(MORPHOLOGIES)},
         "bulge_frac": binned("bulge_frac", BULGE_EDGES),
     }
+    if "sersic_n" in gal.colnames and np.isfinite(np.asarray(gal["sersic_n"], float)).any():
+        out["sersic_n"] = binned("sersic_n", SERSIC_EDGES)
     if len(psfs) > 1:  # the model bias's mix per PSF: m of each morphology under each PSF
         pm = {f"{p['name']} {m}": (psf == i) & (morph == j)
               for i, p in enumerate(psfs) for j, m in enumerate(MORPHOLOGIES)}  # fmt: skip
