@@ -649,3 +649,27 @@ def test_cli_precision_e_refine_reaches_the_configuration(monkeypatch):
     with pytest.raises(SystemExit):
         main(["validate", "--precision", "--ngal", "16", "-q"])
     assert seen["config"] is None  # the mode's default, unrefined
+
+
+def test_breakdowns_take_a_table_or_a_dict_and_bin_sersic_indices():
+    """``_breakdowns`` (the report's bins, also used by ``benchmarks/precision_ab.py``
+    on a dict of columns): the Sersic-index bins hold the Sersic galaxies and only them,
+    each once; without Sersic galaxies there is no such breakdown."""
+    from astropy.table import Table
+
+    from pylensfit.precision import PRECISION_PSFS, SERSIC_EDGES, _breakdowns
+
+    n = 7
+    cols = {"snr": np.full(n, 20.0), "size_ratio": np.full(n, 1.2),
+            "bulge_frac": np.array([0, 1, np.nan, np.nan, np.nan, 0.3, np.nan]),
+            "morph": np.array([0, 1, 3, 3, 3, 2, 3]),
+            "sersic_n": np.array([np.nan, np.nan, 0.5, 1.2, 4.0, np.nan, 2.5]),
+            "psf": np.zeros(n, int)}  # fmt: skip
+    for gal in (cols, Table(cols)):
+        b = _breakdowns(gal, PRECISION_PSFS[:1])
+        counts = np.sum([v for v in b["sersic_n"].values()], axis=0)
+        np.testing.assert_array_equal(counts, np.isfinite(cols["sersic_n"]).astype(int))
+        assert len(b["sersic_n"]) == len(SERSIC_EDGES) - 1
+        assert b["sersic_n"]["2.5-4"].sum() == 2  # 2.5 and the top edge, 4
+    none = dict(cols, sersic_n=np.full(n, np.nan))
+    assert "sersic_n" not in _breakdowns(none, PRECISION_PSFS[:1])

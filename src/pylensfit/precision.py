@@ -888,7 +888,8 @@ def _breakdowns(gal: Table, psfs: tuple[dict, ...]) -> dict[str, dict[str, np.nd
         "morphology": {m: morph == i for i, m in enumerate(MORPHOLOGIES)},
         "bulge_frac": binned("bulge_frac", BULGE_EDGES),
     }
-    if "sersic_n" in gal.colnames and np.isfinite(np.asarray(gal["sersic_n"], float)).any():
+    names = gal.colnames if isinstance(gal, Table) else list(gal)  # a Table or a dict
+    if "sersic_n" in names and np.isfinite(np.asarray(gal["sersic_n"], float)).any():
         out["sersic_n"] = binned("sersic_n", SERSIC_EDGES)
     if len(psfs) > 1:  # the model bias's mix per PSF: m of each morphology under each PSF
         pm = {f"{p['name']} {m}": (psf == i) & (morph == j)
