@@ -567,8 +567,10 @@ def test_mixed_bulge_fractions_equal_their_own_products(rng, monkeypatch, ladder
 def test_sizes_outside_the_size_prior_are_not_evaluated(rng, monkeypatch):
     """The sizes a size prior leaves out (``size_prior_cut``) have no columns in the
     matrix products or the kernel, except the pure fractions' that feed a mixed column:
-    the fits are those of the whole bank with the same weights, bit for bit (float64),
-    and ``L(r)`` is 0 at the sizes left out."""
+    the fits are those of the whole bank with the same weights to rounding (float64;
+    a BLAS may round a column's product differently in matrices of other widths: 1e-13
+    in ``ln L_star`` with numpy 2.4's OpenBLAS), and ``L(r)`` is 0 at the sizes left
+    out."""
     import pylensfit.likelihood as lk
     from pylensfit.prior import SizePrior
 
@@ -600,7 +602,8 @@ def test_sizes_outside_the_size_prior_are_not_evaluated(rng, monkeypatch):
     monkeypatch.setattr(lk, "_active_columns", lambda fb, bank, active: fb)
     every = fit_stamps(stamps, psf, 1.0, config=cfg, size_prior=sp)
     for k in ("lnL", "lnL_bulge", "lnL_r", "lnL_star"):
-        np.testing.assert_array_equal(getattr(cut, k), getattr(every, k))
+        np.testing.assert_allclose(getattr(cut, k), getattr(every, k), rtol=1e-12, atol=1e-10)
+    np.testing.assert_array_equal(cut.r_best, every.r_best)
     assert np.isneginf(cut.lnL_r[:, :-1][:, ~on]).all()
     assert np.isfinite(cut.lnL_r[:, :-1][:, on]).all()
 
