@@ -517,11 +517,10 @@ _EXP_ZERO = 746.0
 _PRIOR_KINK = 1.0
 
 
-def amplitude_table(amp_pow, amp_hi):
+def amplitude_table(amp_pow):
     """The power-law table that :func:`laplace_grid` needs for an amplitude prior (computed
     once for many calls of :func:`laplace_grid_tab`). With flux bounds too: the models
-    whose S/N is ``_PT_BOUND_MARGIN`` or more inside both read it (``amp_hi`` is kept
-    in the signature for the callers)."""
+    whose S/N is ``_PT_BOUND_MARGIN`` or more inside both read it."""
     if amp_pow >= 0.0:
         return _power_law_table(amp_pow)
     return 0.0, np.empty((4, 0))

@@ -1127,7 +1127,7 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
     dtype = np.dtype(cfg.dtype)
     node_w = kern["node_w"]
     live_r = node_w > 0
-    table = amplitude_table(kern["amp"][0], kern["amp"][3])
+    table = amplitude_table(kern["amp"][0])
     # segments (seg_of): the fine cells of one fine row within one coarse column
     # (adjacent columns of the bank), one product each for every galaxy that needs it
     for cubic in (False, True):

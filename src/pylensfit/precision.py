@@ -1258,7 +1258,9 @@ def precision(
     }
     out.meta["size_prior"] = None if size_priors[0] is None else [
         {"psf": spec.psfs[k]["name"], "ln_h": sp.ln_h.tolist(), "density": sp.density.tolist(),
-         "star": sp.star, "marginal": sp.marginal(bulge_weights if sp.per_run else None).tolist()}
+         "star": sp.star,
+         # a prior per run: the runs mixed with the bulge weights, for the report
+         **({"marginal": sp.marginal(bulge_weights).tolist()} if sp.per_run else {})}
         for k, sp in enumerate(size_priors)]  # fmt: skip
     out.meta["size_prior_per_psf"] = bool(size_prior_per_psf)
     out.meta["size_prior_given"] = given_sp is not None

@@ -1285,7 +1285,7 @@ class SizePrior:
             w = r_w * np.einsum("jk,jk->j", basis, dens[run]) / r
             mode = np.exp(self.ln_h[np.argmax(dens, axis=1)])[run]
             # each run's tails against its own largest mass
-            top = np.array([w[run == b].max() for b in range(n_b)])[run]
+            top = w.reshape(n_b, bank.n_sizes).max(axis=1)[run]
         else:
             w = r_w * (basis @ self.density) / r
             mode = np.exp(self.ln_h[np.argmax(self.density)])
@@ -1398,32 +1398,27 @@ def estimate_size_prior(
     top = L.max(axis=1, keepdims=True)
     E = np.exp(L - top)
     K = knots.size
-    kernel = [smooth, 1 - 2 * smooth, smooth]
-    if not per_run:
-        M = (np.repeat(pi, bank.n_sizes) * r_w / r)[:, None] * B  # node mass per knot value
-        comp = np.column_stack([E[:, :n_r] @ M / knot_step, E[:, n_r]])  # per unit mass
-        w = np.full(K + 1, 1.0 / (K + 1))
-        for _ in range(n_iter):
-            tot = comp @ w
-            w = w * np.mean(comp / tot[:, None], axis=0)
-            w[:K] = np.convolve(w[:K], kernel, mode="same")
-            w /= w.sum()
-        return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=float(w[K]))
-    # the joint prior of (run, knot): components run-major, the point source last
-    M = (r_w / r)[:, None] * B
-    comp = np.column_stack(
-        [E[:, b * bank.n_sizes:(b + 1) * bank.n_sizes] @ M[b * bank.n_sizes:(b + 1) * bank.n_sizes]
-         for b in range(n_b)] + [E[:, n_r:n_r + 1] * knot_step]) / knot_step  # fmt: skip
-    pi = np.clip(pi / pi.sum(), 1e-3, None)
-    w = np.concatenate([np.repeat(pi / pi.sum(), K) / (K + 1), [1.0 / (K + 1)]])
-    w /= w.sum()
+    ns = bank.n_sizes
+    if per_run:  # the joint prior of (run, knot): a block of knots per run
+        M = (r_w / r)[:, None] * B
+        blocks = [E[:, b * ns:(b + 1) * ns] @ M[b * ns:(b + 1) * ns] for b in range(n_b)]
+        share = np.clip(pi / pi.sum(), 1e-3, None)  # EM's start
+    else:  # one block, the runs mixed with the bulge weights
+        M = (np.repeat(pi, ns) * r_w / r)[:, None] * B  # node mass per knot value
+        blocks = [E[:, :n_r] @ M]
+        share = np.ones(1)
+    comp = np.column_stack([b / knot_step for b in blocks] + [E[:, n_r]])  # per unit mass
+    w = np.append(np.repeat(share / share.sum(), K), 1.0) / (K + 1)  # the point source last
     for _ in range(n_iter):
         tot = comp @ w
         w = w * np.mean(comp / tot[:, None], axis=0)
-        for b in range(n_b):
-            w[b * K:(b + 1) * K] = np.convolve(w[b * K:(b + 1) * K], kernel, mode="same")
+        for b in range(len(blocks)):
+            w[b * K:(b + 1) * K] = np.convolve(w[b * K:(b + 1) * K],
+                                               [smooth, 1 - 2 * smooth, smooth], mode="same")
         w /= w.sum()
     star = float(w[-1])
+    if not per_run:
+        return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=star)
     dens = w[:-1].reshape(n_b, K)
     mass = dens.sum(axis=1, keepdims=True)
     # a run EM has emptied to underflow takes the others' shape (its weight is ~0 anyway)
