@@ -958,7 +958,11 @@ def test_power_law_table_matches_the_direct_integral(beta):
         near = ((lo_u > 1.0) & (t - lo_u < _PT_BOUND_MARGIN)) | (hi_u - t < _PT_BOUND_MARGIN)
         inside = on & ~near
         assert near.sum() > 30 and inside.sum() > 100, (near.sum(), inside.sum())
-        np.testing.assert_array_equal(a[:, ~inside], b[:, ~inside])
+        # a lower bound in effect and the upper one far, off the table's cases: the
+        # lower bound's own evaluation (the next test); else direct
+        low = (lo_u > 1.0) & (hi_u - t >= _PT_BOUND_MARGIN) & (t >= t0) & ~inside
+        np.testing.assert_array_equal(a[:, ~inside & ~low], b[:, ~inside & ~low])
+        np.testing.assert_allclose(a[_VAL, low], b[_VAL, low], rtol=0, atol=1e-7)
         np.testing.assert_array_equal(a[:, inside], W[:, inside])
         np.testing.assert_allclose(a[_VAL, inside], b[_VAL, inside], rtol=0, atol=1e-7)
         np.testing.assert_allclose(a[_DL, inside] / W[_ISS, inside],
@@ -966,6 +970,54 @@ def test_power_law_table_matches_the_direct_integral(beta):
         # where a bound is near, it changes the integral: the table would be wrong there
         close = on & near & (t > lo_u) & (t < hi_u)
         assert np.abs(b[_VAL, close] - W[_VAL, close]).max() > 1e-3
+
+
+@pytest.mark.parametrize("beta", [0.0, 1.0, 2.0, 2.5, 4.0])
+def test_lower_flux_bound_evaluation_matches_the_direct_integral(beta):
+    """A model within ``_PT_BOUND_MARGIN`` of the lower flux bound and far below the
+    upper one: ``_amplitude_tile`` evaluates the bounded integral without the upper tail,
+    with the parts that depend on ``t`` alone off the table where the interior root
+    ``u*`` is above the bound (``_amplitude_integral_lo`` elsewhere). Against the
+    general direct evaluation, on both sides of ``u* = lo``, on and off the table: the
+    value and the amplitude's mean to 1e-7 (the table's 2e-8, the upper tail's 3e-9),
+    and the bound does change them there (by more than 1e-3 from the unbounded table)."""
+    from pylensfit._kernels_nb import (
+        _DL,
+        _HS,
+        _ISS,
+        _NW,
+        _PT_BOUND_MARGIN,
+        _PT_MAX,
+        _VAL,
+        _amplitude_tile,
+        _power_law_table,
+    )
+
+    t0, tab = _power_law_table(beta)
+    rng = np.random.default_rng(3)
+    n = 600
+    t = np.concatenate([rng.uniform(t0, 40.0, 500), rng.uniform(_PT_MAX - 30, _PT_MAX + 30, 100)])
+    d = rng.uniform(-8.0, _PT_BOUND_MARGIN, n)  # t - lo in S/N units
+    lo_flux = 5.0
+    cm = np.zeros((6, n))
+    W = np.zeros((_NW, n))
+    W[_ISS] = rng.uniform(0.1, 1.0, n)
+    lo_u = np.maximum(t - d, 1.0 + 1e-3)
+    cm[0] = lo_u / (lo_flux * W[_ISS])  # the model's S, so that lo_flux is lo_u in S/N
+    cm[5] = np.log(cm[0])
+    W[_HS] = t / W[_ISS]
+    hi = lo_flux * (_PT_MAX + 200.0) * 10  # far above every model
+    a, b, free = W.copy(), W.copy(), W.copy()
+    _amplitude_tile(cm, beta, beta - 1.0, lo_flux, hi, t0, tab, a)
+    _amplitude_tile(cm, beta, beta - 1.0, lo_flux, hi, 0.0, np.empty((4, 0)), b)
+    _amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, t0, tab, free)
+    ustar = 0.5 * (t + np.sqrt(t * t - 4.0 * beta))
+    above = ustar > lo_u
+    assert above.sum() > 150 and (~above).sum() > 150
+    assert (t < _PT_MAX).sum() > 400 and (t >= _PT_MAX).sum() > 20
+    np.testing.assert_allclose(a[_VAL], b[_VAL], rtol=0, atol=1e-7)
+    np.testing.assert_allclose(a[_DL] / W[_ISS], b[_DL] / W[_ISS], rtol=0, atol=1e-7)
+    assert np.abs(a[_VAL] - free[_VAL])[d < 2].min() > 1e-3
 
 
 # --- the tiled kernel against the per-model reference ---------------------------------

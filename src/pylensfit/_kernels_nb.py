@@ -448,10 +448,17 @@ def _power_law_table(beta):
     of the direct evaluation (``tests/test_likelihood.py``), and costs what the uniform
     prior's table does: the direct evaluation's root, logs and divisions took a third of
     a precision block's time.
+
+    Rows 4 to 9 serve a lower flux bound ``lo`` below the interior root ``u*`` (see
+    :func:`_amplitude_integral_lo`): there the integral is ``0.5 t^2 + P(t) + ln
+    Phi(a)`` with ``a = (u* - lo) sqrt(c)`` and the amplitude's mean ``u* + lambda(a) /
+    sqrt(c)``, ``P = -beta ln u* - (u* - t)^2 / 2 - ln(c) / 2`` and ``c = 1 - beta /
+    u*^2`` functions of ``t`` alone: ``P``, ``u*`` and ``sqrt(c)`` with their ``t``
+    derivatives.
     """
     t0 = max(_PT_MIN, beta + 1.5)
     n = int((_PT_MAX - t0) / _PT_STEP) + 2
-    tab = np.empty((4, n))
+    tab = np.empty((10, n))
     h = 1e-4
     for i in range(n):
         t = t0 + i * _PT_STEP
@@ -462,7 +469,48 @@ def _power_law_table(beta):
         tab[1, i] = (vp - vm) / (2.0 * h) - t
         tab[2, i] = d
         tab[3, i] = (dp - dm) / (2.0 * h)
+        for r, x in enumerate((t, t + h, t - h)):
+            u = 0.5 * (x + math.sqrt(x * x - 4.0 * beta))
+            c = 1.0 - beta / (u * u)
+            p = -beta * math.log(u) - 0.5 * (u - x) * (u - x) - 0.5 * math.log(c)
+            if r == 0:
+                tab[4, i], tab[6, i], tab[8, i] = p, u, math.sqrt(c)
+            elif r == 1:
+                tab[5, i], tab[7, i], tab[9, i] = p, u, math.sqrt(c)
+            else:
+                tab[5, i] = (tab[5, i] - p) / (2.0 * h)
+                tab[7, i] = (tab[7, i] - u) / (2.0 * h)
+                tab[9, i] = (tab[9, i] - math.sqrt(c)) / (2.0 * h)
     return t0, tab
+
+
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"}, inline="always")
+def _amplitude_integral_lo(t, lo, beta):
+    """:func:`_amplitude_integral` for a power law with a lower flux bound ``lo > 1``
+    (S/N units) and no upper one, for ``t >= beta + 1.5``: ``val - 0.5 t^2`` without the
+    ``amp_lns`` term, and the amplitude's mean.
+
+    The same expansion (about the interior root ``u*`` of ``g'``, or ``lo`` where
+    ``u* <= lo``; from ``t = beta + 1.5`` the smaller root is below 1, so ``g`` rises
+    from ``lo`` to ``u*`` and the comparison of the two is not needed) and the same
+    Gaussian mass above ``lo``, with no upper tail: for a model whose S/N is
+    ``_PT_BOUND_MARGIN`` below the upper bound that tail changes the log by ``Phi(-5.8)
+    ~ 3e-9`` at most, as for the table. A root, two logs and one normal-tail lookup,
+    where the general form takes three logs, two lookups, an exponential and a
+    ``log1p``: the faint models near the lower bound are most of a bounded fit's
+    direct evaluations.
+    """
+    ustar = 0.5 * (t + math.sqrt(t * t - 4.0 * beta))
+    u0 = ustar if ustar > lo else lo
+    g1 = t - u0 - beta / u0
+    c = max(1.0 - beta / (u0 * u0), _AMP_MIN_CURV)
+    mu = u0 + g1 / c
+    rc = math.sqrt(c)
+    a = (mu - lo) * rc
+    va, da = _amplitude_terms(a)
+    val = (-beta * math.log(u0) - 0.5 * (u0 - t) * (u0 - t) + 0.5 * g1 * g1 / c
+           - 0.5 * math.log(c) + va - 0.5 * a * a)  # fmt: skip
+    return val, mu + (da - a) / rc
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
@@ -471,7 +519,8 @@ def _amplitude_tile(cm, amp_pow, amp_lns, amp_lo, amp_hi, t0, tab, W):
     ``-(d val / d h)`` (``_DL``). A table per model (:func:`_amplitude_terms`; for a
     power law, ``tab`` from :func:`_power_law_table`, or ``tab`` of width 0 for none),
     read where the model's S/N is ``_PT_BOUND_MARGIN`` inside the flux bounds (all of
-    them without bounds); else the direct evaluation: scalar."""
+    them without bounds); within that of the lower bound only, the lower bound's
+    evaluation :func:`_amplitude_integral_lo`; else the direct evaluation: scalar."""
     n_tab = tab.shape[1]
     t1 = t0 + (n_tab - 2) * _PT_STEP
     for k in range(W.shape[1]):
@@ -485,6 +534,23 @@ def _amplitude_tile(cm, amp_pow, amp_lns, amp_lo, amp_hi, t0, tab, W):
             val = (0.5 * t * t + h00 * tab[0, i] + h10 * tab[1, i] + h01 * tab[0, i + 1]
                    + h11 * tab[1, i + 1] + 0.5 * amp_lns * cm[5, k])  # fmt: skip
             dl = h00 * tab[2, i] + h10 * tab[3, i] + h01 * tab[2, i + 1] + h11 * tab[3, i + 1]
+        elif n_tab > 0 and t >= t0 and hi_u - t >= _PT_BOUND_MARGIN and lo_u > _AMP_FLOOR:
+            ustar = 0.0
+            if t < t1:
+                i, h00, h10, h01, h11 = _hermite((t - t0) * (1.0 / _PT_STEP), _PT_STEP)
+                ustar = (h00 * tab[6, i] + h10 * tab[7, i] + h01 * tab[6, i + 1]
+                         + h11 * tab[7, i + 1])  # fmt: skip
+            if ustar > lo_u:  # the interior root above the bound: P, u*, sqrt(c) of t
+                rc = h00 * tab[8, i] + h10 * tab[9, i] + h01 * tab[8, i + 1] + h11 * tab[9, i + 1]
+                a = (ustar - lo_u) * rc
+                va, da = _amplitude_terms(a)
+                val = (0.5 * t * t + h00 * tab[4, i] + h10 * tab[5, i] + h01 * tab[4, i + 1]
+                       + h11 * tab[5, i + 1] + va - 0.5 * a * a
+                       + 0.5 * amp_lns * cm[5, k])  # fmt: skip
+                dl = ustar + (da - a) / rc
+            else:
+                val, dl = _amplitude_integral_lo(t, lo_u, amp_pow)
+                val += 0.5 * t * t + 0.5 * amp_lns * cm[5, k]
         else:
             val, dl = _amplitude_integral(t, cm[0, k], cm[5, k], iss, amp_pow, amp_lns,
                                           amp_lo, amp_hi)  # fmt: skip
