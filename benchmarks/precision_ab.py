@@ -157,10 +157,11 @@ def main() -> None:
     ap.add_argument("--own-priors", action="store_true",
                     help="B's priors from a calibration of B (needed when B has other bulge "
                          "fractions); else A's priors for both")
-    ap.add_argument("--a-flux-bounds", choices=["none", "estimated", "oracle"], default="none",
-                    help="A's flux prior bounds per PSF: none (default, as precision's), "
-                         "estimated by the calibration (precision(flux_bounds=True); needs "
-                         "--estimated) or the population's flux range (an oracle)")
+    ap.add_argument("--a-flux-bounds", choices=["none", "estimated", "oracle"], default=None,
+                    help="A's flux prior bounds per PSF: none, estimated by the calibration "
+                         "(precision(flux_bounds=True); needs --estimated) or the "
+                         "population's flux range (an oracle); default as precision's: "
+                         "estimated with --estimated, else none")
     ap.add_argument("--b-flux-bounds", choices=["none", "estimated", "oracle"], default=None,
                     help="B's (default A's)")
     ap.add_argument("--b-prior", nargs=3, type=float, default=None, metavar=("B", "C", "D"),
@@ -196,6 +197,8 @@ def main() -> None:
     kv_a, kv_b = _kv(a.a), _kv(a.b)
     cfg_a = P.default_config(spec).replace(**kv_a)
     cfg_b = cfg_a.replace(**kv_b)
+    if a.a_flux_bounds is None:
+        a.a_flux_bounds = "estimated" if a.estimated else "none"
     b_bounds = a.b_flux_bounds or a.a_flux_bounds
     pri = {"A": _priors(spec, cfg_a, a.estimated, a.jobs, a.a_flux_bounds)}
     if a.b_calibration_seed is not None:  # B's priors from another calibration sample

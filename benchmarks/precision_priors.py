@@ -91,9 +91,12 @@ def main() -> None:
     ap.add_argument("--flux-bounds", action="store_true",
                     help="bound the flux prior at the population's flux range "
                          "(Config.amplitude_prior_min/max; one PSF only)")  # fmt: skip
-    ap.add_argument("--estimate-flux-bounds", action="store_true",
+    ap.add_argument("--estimate-flux-bounds", action=argparse.BooleanOptionalAction,
+                    default=True,
                     help="estimate each PSF's flux range from the calibration sample "
-                         "(precision(flux_bounds=True)) and bound the flux prior there")
+                         "(precision(flux_bounds=True)) and bound the flux prior there "
+                         "(default, as the precision mode; --no-estimate-flux-bounds: the "
+                         "unbounded power law)")  # fmt: skip
     ap.add_argument("--out", default=None,
                     help="also write the result table here (ECSV, without the per-galaxy meta)")
     a = ap.parse_args()

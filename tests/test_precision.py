@@ -428,8 +428,8 @@ def test_flux_prior_bounds_are_estimated_from_the_calibration_fluxes(tmp_path):
     """With ``flux_bounds=True``, ``precision`` bounds the flux prior at each PSF's flux
     range as the calibration galaxies' fluxes and errors give it: within 3 errors (and
     10 %) of the population's limits for exponentials fitted as such, the faint one
-    measured from galaxies at S/N 5-20, and the report says so; by default the prior is
-    unbounded."""
+    measured from galaxies at S/N 5-20, and the report says so; with
+    ``flux_bounds=False`` the prior is unbounded."""
     from pylensfit.precision import reference_norm, write_report
 
     spec = spec_with(ngal=20, block_size=20, ncal=1000, seed=4, psfs=["round"],
@@ -453,14 +453,15 @@ def test_flux_prior_bounds_are_estimated_from_the_calibration_fluxes(tmp_path):
     assert "within each PSF's flux range as estimated" in text
     assert f"the errors' scale {b['error_scale']:.2f}" in text
     res0 = precision(spec_with(spec, ncal=200), config=cfg, progress=False,
-                     prior=Prior(B=0.19, C=0.58, D=2.4))  # fmt: skip
+                     prior=Prior(B=0.19, C=0.58, D=2.4), flux_bounds=False)  # fmt: skip
     assert res0.meta["flux_bounds"] is None
 
 
 def test_flux_bounds_size_prior_is_estimated_under_the_bounded_flux_prior():
     """With ``flux_bounds=True`` and the size prior to estimate, the size prior comes
     from fits under the bounded flux prior the later passes use: the same as a run
-    given those bounds and that power from the start. (Estimated from the unbounded
+    given those bounds and that power from the start (whose own bounds the default
+    ``flux_bounds=True`` keeps). (Estimated from the unbounded
     first pass instead, it came out 10 % small and gave m = +0.009 with the bounds;
     ``benchmarks/README.md``, thirty-third session.)"""
     spec = spec_with(ngal=10, block_size=100, ncal=300, seed=6, psfs=["round"],
@@ -478,7 +479,8 @@ def test_flux_bounds_size_prior_is_estimated_under_the_bounded_flux_prior():
     (sp,), (sp_given,) = res.meta["size_prior"], given.meta["size_prior"]
     np.testing.assert_allclose(sp["density"], sp_given["density"], rtol=1e-9, atol=1e-12)
     # and not the size prior of the unbounded fits
-    free = precision(spec, config=cfg, progress=False, prior=pri, flux_slope=beta)
+    free = precision(spec, config=cfg, progress=False, prior=pri, flux_slope=beta,
+                     flux_bounds=False)  # fmt: skip
     (sp_free,) = free.meta["size_prior"]
     assert np.max(np.abs(np.asarray(sp_free["density"]) - sp["density"])) > 1e-3 * max(
         sp["density"])
@@ -493,6 +495,13 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     args = ["validate", "--precision", "--ngal", "16", "--ncal", "80", "--block-size", "4",
             "--psf", "round", "e=0.10", "--seed", "3", "--report", str(rep), "-q",
             "--true-prior"]  # fmt: skip
+    # the flux range (estimated by default) needs 50 calibration galaxies per PSF: said
+    # before any fit, with the remedy
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "flux_bounds needs at least 50 calibration galaxies per PSF" in err
+    assert "spec.ncal = 80 gives 40" in err and not rep.exists()
+    args[args.index("--ncal") + 1] = "160"
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "fixed-point" in out and "e=0.10" in out
@@ -545,6 +554,10 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     assert tab.meta["config"]["amplitude_prior"] == "flux"
     assert tab.meta["config"]["amplitude_prior_power"] == fs["value"] != 2.0
     assert "estimated from the calibration sample's fluxes" in text
+    # and bounded by default at each PSF's flux range as the calibration sample gives it
+    assert [b["psf"] for b in tab.meta["flux_bounds"]] == ["round", "e=0.10"]
+    assert all(0 < b["lo"] < b["hi"] for b in tab.meta["flux_bounds"])
+    assert "within each PSF's flux range as estimated" in text
     # a directory or a mode is required
     with pytest.raises(SystemExit):
         main(["validate"])

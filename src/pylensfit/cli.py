@@ -385,9 +385,10 @@ def build_parser() -> argparse.ArgumentParser:
     pv.add_argument("--true-size-prior", action="store_true",
                     help="diagnostic: use the population's own size prior per PSF "
                          "(log-uniform over the sizes drawn) instead of estimating it")
-    pv.add_argument("--flux-bounds", action="store_true",
+    pv.add_argument("--flux-bounds", action=argparse.BooleanOptionalAction, default=True,
                     help="bound the flux prior at each PSF's flux range, estimated from the "
-                         "calibration sample's fluxes and their errors")  # fmt: skip
+                         "calibration sample's fluxes and their errors (default; "
+                         "--no-flux-bounds: the unbounded power law)")  # fmt: skip
     pv.add_argument("--e-refine", type=int, default=1, metavar="K",
                     help="adaptive refinement of the e grid (Config.e_refine): the narrow "
                          "likelihoods evaluated again on cells K times finer about their "

@@ -942,7 +942,7 @@ def precision(
     size_prior: SizePrior | Sequence[SizePrior] | None = None,
     bulge_weights: Sequence[float] | None = None,
     flux_slope: float | None = None,
-    flux_bounds: bool = False,
+    flux_bounds: bool = True,
 ) -> Table:
     """Run the paired precision measurement of m and c (see the module docstring).
 
@@ -1009,12 +1009,15 @@ def precision(
         scale is fitted with the limits (the best model's flux scatters about twice its
         fixed-model error), and with the size prior to estimate, the first pass is
         repeated under the bounded prior so that the size prior's ``L(r)`` have the
-        flux prior of the later passes. Off by default: on exponential and de
-        Vaucouleurs galaxies (the family's fractions 0 and 1) it gives the m of the
-        population's own flux prior (+0.0013 / +0.0022 against +0.0012 / +0.0020, the
-        default's +0.0008 / +0.0012, every prior exact 0.0000 / +0.0009, all ± 0.0013 on
-        the same 40,000 galaxies; thirty-third session), so it buys nothing there, and
-        the calibration takes a third pass and the fits 1.8 times as long.
+        flux prior of the later passes. On by default: every prior is then estimated
+        consistently, and each kind of galaxy alone is measured at m = 0 within its
+        error where the family holds it (exponentials +0.010 unbounded, -0.0001 /
+        -0.0028 ± 0.0016 bounded; knotty discs +0.0085 and +0.0006 / +0.0018), because
+        the size prior estimated under the unbounded power law is 7-10 % small
+        (``benchmarks/README.md``, thirty-third to thirty-fifth sessions); on the
+        precision mix it changes m by less than its error. The calibration takes a
+        third pass and the fits about 1.1 times as long (``False``: the unbounded power
+        law, as before the thirty-sixth session).
 
     Returns
     -------
@@ -1037,6 +1040,7 @@ def precision(
     """
     from .pipeline import _pool, _run
     from .prior import (
+        _MIN_FLUX_RANGE_SAMPLE,
         estimate_bulge_weights,
         estimate_flux_range,
         estimate_flux_slope,
@@ -1079,6 +1083,13 @@ def precision(
         raise ValueError("spec.ncal is 0: a calibration sample is needed to estimate the "
                          "priors (or give them: prior=, size_prior=, bulge_weights=, "
                          "flux_slope=)")  # fmt: skip
+    per_psf = min(sum(min(spec.block_size, spec.ncal - b * spec.block_size)
+                      for b in range(k, ncb, npsf)) for k in range(npsf))  # fmt: skip
+    if fit_bounds and per_psf < _MIN_FLUX_RANGE_SAMPLE:
+        raise ValueError(f"flux_bounds needs at least {_MIN_FLUX_RANGE_SAMPLE} calibration "
+                         f"galaxies per PSF to estimate its flux range; spec.ncal = "
+                         f"{spec.ncal} gives {per_psf} (a larger ncal, or "
+                         f"flux_bounds=False)")  # fmt: skip
     render_s, fit_s = 0.0, 0.0
     cfgs = [cfg] * npsf  # per PSF: the flux prior's bounds are in each PSF's flux units
 
@@ -1140,8 +1151,12 @@ def precision(
             bounds_meta = []
             for k in range(npsf):
                 sel = cal["psf"] == k
-                fr = estimate_flux_range(cal["flux"][sel], cal["flux_err"][sel],
-                                         beta=cfg.amplitude_prior_power)  # fmt: skip
+                try:
+                    fr = estimate_flux_range(cal["flux"][sel], cal["flux_err"][sel],
+                                             beta=cfg.amplitude_prior_power)  # fmt: skip
+                except ValueError as err:
+                    raise ValueError(f"PSF {spec.psfs[k]['name']}: {err} (a larger "
+                                     f"calibration sample, or flux_bounds=False)") from None
                 bounds_meta.append({"psf": spec.psfs[k]["name"], "lo": fr["lo"],
                                     "hi": fr["hi"], "lo_err": fr["lo_err"],
                                     "hi_err": fr["hi_err"], "error_scale": fr["error_scale"],

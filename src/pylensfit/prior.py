@@ -1510,6 +1510,10 @@ def _flux_range_loglike(f: np.ndarray, s: np.ndarray, lo: float, hi: float, beta
     return ln_int - math.log(norm)
 
 
+#: fewest usable fluxes from which :func:`estimate_flux_range` estimates a range
+_MIN_FLUX_RANGE_SAMPLE = 50
+
+
 def estimate_flux_range(
     flux: np.ndarray,
     flux_err: np.ndarray,
@@ -1569,7 +1573,7 @@ def estimate_flux_range(
         raise ValueError(f"flux and flux_err differ in shape: {f.shape} against {s.shape}")
     ok = np.isfinite(f) & np.isfinite(s) & (s > 0) & (f > 0)
     f, s = f[ok], s[ok]
-    if f.size < 50:
+    if f.size < _MIN_FLUX_RANGE_SAMPLE:
         raise ValueError(f"{f.size} usable fluxes: too few to estimate the flux range")
     nodes = np.polynomial.legendre.leggauss(48)
     fmin, fmax = float(f.min()), float(f.max())
