@@ -6,8 +6,9 @@ exponential to knotty discs, fluxes of reference S/N 10-200) for every PSF, then
 measures every rendering
 
 * with pylensfit (``fit_stamps`` + the per-rendering reduction of the precision mode,
-  one process, one thread), with the prior estimated from an unsheared calibration
-  sample of ``--ncal`` galaxies;
+  one process, one thread), with the prior, the flux prior's power and each PSF's flux
+  range estimated from an unsheared calibration sample of ``--ncal`` galaxies (one
+  pass, the size prior flat);
 * with GalSim HSM REGAUSS (``galsim.hsm.EstimateShear``, one thread), on the same
   stamps and with the true PSF image, with the usual cuts (resolution >= 0.3, |e| < 2;
   a galaxy counts if all four renderings pass), shear from the distortions as
@@ -97,7 +98,7 @@ def main() -> None:
         render_block,
         spec_with,
     )
-    from pylensfit.prior import estimate_flux_slope, estimate_prior
+    from pylensfit.prior import estimate_flux_range, estimate_flux_slope, estimate_prior
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ngal", type=int, default=400, help="galaxies per PSF (x4 renderings)")
@@ -119,19 +120,29 @@ def main() -> None:
           f"model {cfg.model}, {ns}-pixel renderings (stamp tiers up to {ns}), one process, "
           "one thread")  # fmt: skip
     # calibration sample and prior (not timed against the peer)
-    lnl, flux, egrid = [], [], None
+    lnl, flux, flux_err, on, egrid = [], [], [], [], None
     for b in range(-(-spec.ncal // bs)):
         st, psf, _ = render_block(spec, b % npsf, b, stamp_size=ns, calibration=True)
         f = fit_stamps(st[:, 0], psf, spec.noise_sigma, config=cfg)
-        lnl.append(f.lnL[_usable(f)])
-        flux.append(f.flux[_usable(f)])
+        ok = _usable(f)
+        lnl.append(f.lnL[ok])
+        flux.append(f.flux[ok])
+        flux_err.append((f.flux / f.snr)[ok])
+        on.append(np.full(ok.sum(), b % npsf))
         egrid = f.egrid
     prior = estimate_prior(np.concatenate(lnl), egrid)
-    beta, beta_err = estimate_flux_slope(np.concatenate(flux))
+    flux, flux_err, on = map(np.concatenate, (flux, flux_err, on))
+    beta, beta_err = estimate_flux_slope(flux)
     cfg = cfg.replace(amplitude_prior_power=beta)  # the counts' slope, as precision() does
+    # and each PSF's flux range, as precision() does by default (flux_bounds=True)
+    ranges = [estimate_flux_range(flux[on == k], flux_err[on == k], beta=beta)
+              for k in range(npsf)]  # fmt: skip
+    cfgs = [cfg.replace(amplitude_prior_min=r["lo"], amplitude_prior_max=r["hi"])
+            for r in ranges]  # fmt: skip
     print(f"prior from {spec.ncal} unsheared galaxies: B={prior.B:.3f} C={prior.C:.3f} "
-          f"D={prior.D:.3f}, flux slope {beta:.3f} ± {beta_err:.3f}; peak memory so far "
-          f"{maxrss_mib():.0f} MiB")  # fmt: skip
+          f"D={prior.D:.3f}, flux slope {beta:.3f} ± {beta_err:.3f}, flux ranges "
+          + ", ".join(f"{r['lo']:.4g}-{r['hi']:.4g}" for r in ranges)
+          + f"; peak memory so far {maxrss_mib():.0f} MiB")  # fmt: skip
     t_render = t_fit = t_hsm = 0.0
     rows = []
     for ip, pdef in enumerate(spec.psfs):
@@ -142,7 +153,7 @@ def main() -> None:
             t1 = time.perf_counter()
             n = len(st)
             flat = st.reshape(n * 4, *st.shape[2:])
-            f = fit_stamps(flat, psf, spec.noise_sigma, config=cfg)
+            f = fit_stamps(flat, psf, spec.noise_sigma, config=cfgs[ip])
             Q, ok = reduce_renderings(f, prior, spec.g, refine=cfg.integration_refine)
             t2 = time.perf_counter()
             H = hsm_shapes(flat, psf)
