@@ -981,43 +981,34 @@ def test_lower_flux_bound_evaluation_matches_the_direct_integral(beta):
     general direct evaluation, on both sides of ``u* = lo``, on and off the table: the
     value and the amplitude's mean to 1e-7 (the table's 2e-8, the upper tail's 3e-9),
     and the bound does change them there (by more than 1e-3 from the unbounded table)."""
-    from pylensfit._kernels_nb import (
-        _DL,
-        _HS,
-        _ISS,
-        _NW,
-        _PT_BOUND_MARGIN,
-        _PT_MAX,
-        _VAL,
-        _amplitude_tile,
-        _power_law_table,
-    )
+    from pylensfit import _kernels_nb as K
 
-    t0, tab = _power_law_table(beta)
+    t0, tab = K._power_law_table(beta)
     rng = np.random.default_rng(3)
     n = 600
-    t = np.concatenate([rng.uniform(t0, 40.0, 500), rng.uniform(_PT_MAX - 30, _PT_MAX + 30, 100)])
-    d = rng.uniform(-8.0, _PT_BOUND_MARGIN, n)  # t - lo in S/N units
+    t = np.concatenate([rng.uniform(t0, 40.0, 500),
+                        rng.uniform(K._PT_MAX - 30, K._PT_MAX + 30, 100)])
+    d = rng.uniform(-8.0, K._PT_BOUND_MARGIN, n)  # t - lo in S/N units
     lo_flux = 5.0
     cm = np.zeros((6, n))
-    W = np.zeros((_NW, n))
-    W[_ISS] = rng.uniform(0.1, 1.0, n)
+    W = np.zeros((K._NW, n))
+    W[K._ISS] = rng.uniform(0.1, 1.0, n)
     lo_u = np.maximum(t - d, 1.0 + 1e-3)
-    cm[0] = lo_u / (lo_flux * W[_ISS])  # the model's S, so that lo_flux is lo_u in S/N
+    cm[0] = lo_u / (lo_flux * W[K._ISS])  # the model's S, so that lo_flux is lo_u in S/N
     cm[5] = np.log(cm[0])
-    W[_HS] = t / W[_ISS]
-    hi = lo_flux * (_PT_MAX + 200.0) * 10  # far above every model
+    W[K._HS] = t / W[K._ISS]
+    hi = lo_flux * (K._PT_MAX + 200.0) * 10  # far above every model
     a, b, free = W.copy(), W.copy(), W.copy()
-    _amplitude_tile(cm, beta, beta - 1.0, lo_flux, hi, t0, tab, a)
-    _amplitude_tile(cm, beta, beta - 1.0, lo_flux, hi, 0.0, np.empty((4, 0)), b)
-    _amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, t0, tab, free)
+    K._amplitude_tile(cm, beta, beta - 1.0, lo_flux, hi, t0, tab, a)
+    K._amplitude_tile(cm, beta, beta - 1.0, lo_flux, hi, 0.0, np.empty((4, 0)), b)
+    K._amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, t0, tab, free)
     ustar = 0.5 * (t + np.sqrt(t * t - 4.0 * beta))
     above = ustar > lo_u
     assert above.sum() > 150 and (~above).sum() > 150
-    assert (t < _PT_MAX).sum() > 400 and (t >= _PT_MAX).sum() > 20
-    np.testing.assert_allclose(a[_VAL], b[_VAL], rtol=0, atol=1e-7)
-    np.testing.assert_allclose(a[_DL] / W[_ISS], b[_DL] / W[_ISS], rtol=0, atol=1e-7)
-    assert np.abs(a[_VAL] - free[_VAL])[d < 2].min() > 1e-3
+    assert (t < K._PT_MAX).sum() > 400 and (t >= K._PT_MAX).sum() > 20
+    np.testing.assert_allclose(a[K._VAL], b[K._VAL], rtol=0, atol=1e-7)
+    np.testing.assert_allclose(a[K._DL] / W[K._ISS], b[K._DL] / W[K._ISS], rtol=0, atol=1e-7)
+    assert np.abs(a[K._VAL] - free[K._VAL])[d < 2].min() > 1e-3
 
 
 # --- the tiled kernel against the per-model reference ---------------------------------
