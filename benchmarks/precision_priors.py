@@ -66,9 +66,11 @@ def main() -> None:
                     help="Config.position_prior_sigma (default: offset / sqrt(3))")
     ap.add_argument("--size-prior-smoothing", type=float, default=Config().size_prior_smoothing,
                     help="Config.size_prior_smoothing of the estimated size prior")
-    ap.add_argument("--size-prior-per-run", action="store_true",
+    ap.add_argument("--size-prior-per-run", action=argparse.BooleanOptionalAction,
+                    default=True,
                     help="Config.size_prior_per_run: one size distribution per bulge "
-                    "fraction of the family, estimated jointly")
+                    "fraction of the family, estimated jointly (the precision mode's "
+                    "default; --no-size-prior-per-run for one size prior)")
     ap.add_argument("--psf", nargs="+", default=None, choices=[p["name"] for p in PRECISION_PSFS],
                     help="only these PSFs (default: all four)")
     ap.add_argument("--snr", type=float, nargs=2, default=None, metavar=("LO", "HI"),

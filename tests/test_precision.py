@@ -599,9 +599,14 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     assert "(the true centres: uniform within ±0.5 px along both axes)" in text
     sps = tab.meta["size_prior"]
     assert [sp["psf"] for sp in sps] == ["round", "e=0.10"] and tab.meta["size_prior_per_psf"]
-    assert sps[0]["density"] != sps[1]["density"]
+    assert not np.array_equal(sps[0]["density"], sps[1]["density"])
     for sp in sps:
-        assert abs(np.trapezoid(sp["density"], sp["ln_h"]) + sp["star"] - 1) < 0.02
+        # one density per bulge fraction (default_config's size_prior_per_run), each the
+        # sizes' distribution given the fraction, and their mixture for the report
+        dens = np.asarray(sp["density"])
+        assert dens.shape == (3, len(sp["ln_h"]))
+        for row in (*dens, sp["marginal"]):
+            assert abs(np.trapezoid(row, sp["ln_h"]) + sp["star"] - 1) < 0.02
     # the default amplitude prior is a power law in the flux, its power the counts' slope
     # measured on the calibration sample's fluxes (drawn with power 2), and the fits use it
     fs = tab.meta["flux_slope"]

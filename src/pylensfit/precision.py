@@ -922,10 +922,16 @@ def default_config(spec: PrecisionSpec) -> Config:
     population's galaxies are few and large): 47 sizes per fraction instead of 72, the
     fit a quarter cheaper, and m moved by +0.0005 +- 0.0004 / +0.0002 +- 0.0006 on the
     same renderings (``benchmarks/precision_ab.py --b r_step=0.4``, twenty-fourth
-    session).
+    session). The size prior is estimated per bulge fraction
+    (``Config.size_prior_per_run``): the mix's kinds differ in size, so the population's
+    (fraction, size) is not a product of a fraction prior and one size prior; on the
+    same 200,000 galaxies each kind's m moves 0.0015-0.003 toward 0 and the mix's by
+    -0.0002 per component, at no cost in time (``benchmarks/README.md``, thirty-fifth and
+    thirty-seventh sessions).
     """
     return Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
-                  amplitude_prior="flux", max_stamp_size=64, r_step=0.4,
+                  size_prior_per_run=True, amplitude_prior="flux", max_stamp_size=64,
+                  r_step=0.4,
                   position_prior_sigma=max(spec.offset / math.sqrt(3.0), 0.01))  # fmt: skip
 
 
