@@ -924,10 +924,10 @@ def default_config(spec: PrecisionSpec) -> Config:
     same renderings (``benchmarks/precision_ab.py --b r_step=0.4``, twenty-fourth
     session). The size prior is estimated per bulge fraction
     (``Config.size_prior_per_run``): the mix's kinds differ in size, so the population's
-    (fraction, size) is not a product of a fraction prior and one size prior. On two
+    (fraction, size) is not a product of a fraction prior and one size prior. On three
     samples of 200,000 galaxies each kind the family holds moves 0.002-0.003 toward 0
-    while the mix's m stays where it was (-0.0002 and +0.0002 per component), at no cost
-    in time (``benchmarks/README.md``, thirty-fifth and thirty-seventh sessions).
+    while the mix's m stays where it was (+0.0000 / +0.0001 together), at no cost in
+    time (``benchmarks/README.md``, thirty-fifth and thirty-seventh sessions).
     """
     return Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
                   size_prior_per_run=True, amplitude_prior="flux", max_stamp_size=64,
