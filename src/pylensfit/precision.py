@@ -1091,13 +1091,14 @@ def precision(
         raise ValueError("spec.ncal is 0: a calibration sample is needed to estimate the "
                          "priors (or give them: prior=, size_prior=, bulge_weights=, "
                          "flux_slope=)")  # fmt: skip
-    per_psf = min(sum(min(spec.block_size, spec.ncal - b * spec.block_size)
-                      for b in range(k, ncb, npsf)) for k in range(npsf)) if fit_bounds else 0
-    if fit_bounds and per_psf < _MIN_FLUX_RANGE_SAMPLE:  # before any fit: say it now
-        raise ValueError(f"flux_bounds needs at least {_MIN_FLUX_RANGE_SAMPLE} calibration "
-                         f"galaxies per PSF to estimate its flux range; spec.ncal = "
-                         f"{spec.ncal} gives {per_psf} (a larger ncal, or "
-                         f"flux_bounds=False)")  # fmt: skip
+    if fit_bounds:  # the calibration sample's size per PSF, before any fit: say it now
+        per_psf = min(sum(min(spec.block_size, spec.ncal - b * spec.block_size)
+                          for b in range(k, ncb, npsf)) for k in range(npsf))  # fmt: skip
+        if per_psf < _MIN_FLUX_RANGE_SAMPLE:
+            raise ValueError(f"flux_bounds needs at least {_MIN_FLUX_RANGE_SAMPLE} "
+                             f"calibration galaxies per PSF to estimate its flux range; "
+                             f"spec.ncal = {spec.ncal} gives {per_psf} (a larger ncal, or "
+                             f"flux_bounds=False)")  # fmt: skip
     render_s, fit_s = 0.0, 0.0
     cfgs = [cfg] * npsf  # per PSF: the flux prior's bounds are in each PSF's flux units
 
