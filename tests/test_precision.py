@@ -93,6 +93,15 @@ def test_rotated_twin_of_a_round_psf_is_the_rotated_image():
         # at zero offset the rotation identity is exact on the pixel grid
         r0, m0 = pp._draw(rot, 33), pp._draw(minus, 33)
         np.testing.assert_allclose(r0, np.rot90(m0), atol=1e-6 * r0.max())
+        # On the mode's even stamp, with the offset turned with the galaxy, the +g
+        # rendering turned by +90 degrees about element [N//2, N//2] is the turned
+        # galaxy's -g rendering (rows and columns 1..N-1; row and column 0 have no
+        # partner): the renderings' half of the argument that a round PSF's c is 0.
+        plus = pp._draw(galsim.Convolve(gal.shear(g1=g, g2=g), psf), 32, off)
+        turned = pp._draw(galsim.Convolve(gal.rotate(90 * galsim.degrees).shear(g1=-g, g2=-g),
+                                          psf), 32, (-off[1], off[0]))  # fmt: skip
+        np.testing.assert_allclose(np.rot90(plus[1:, 1:], k=-1), turned[1:, 1:],
+                                   atol=1e-6 * plus.max())  # fmt: skip
 
 
 def test_offset_places_the_galaxies_about_the_stamp_centre():
