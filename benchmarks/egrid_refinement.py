@@ -138,7 +138,8 @@ def main() -> None:
     a = ap.parse_args()
     ei, ab = _helpers()
     Path(a.cache).mkdir(exist_ok=True)
-    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **ab._kv(a.spec))
+    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf,
+                       **{"ncal": 20_000, **ab._kv(a.spec)})  # as recorded; --spec ncal=N
     cfg = P.default_config(spec).replace(**ab._kv(a.config))
     nb = -(-spec.ngal // spec.block_size)
     tasks = [{"spec": spec, "config": cfg, "block": b, "prior": P.population_prior(spec),

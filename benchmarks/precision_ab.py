@@ -192,7 +192,8 @@ def main() -> None:
     ap.add_argument("--estimated", action="store_true",
                     help="the priors a calibration of A estimates (else the population's)")
     a = ap.parse_args()
-    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **_kv(a.spec))
+    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf,
+                       **{"ncal": 20_000, **_kv(a.spec)})  # as recorded; --spec ncal=N
     spec_b = P.spec_with(spec, **_kv(a.b_spec))
     kv_a, kv_b = _kv(a.a), _kv(a.b)
     cfg_a = P.default_config(spec).replace(**kv_a)

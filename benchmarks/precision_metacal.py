@@ -133,7 +133,8 @@ def main() -> None:
     ap.add_argument("--g", type=float, default=None, help="the applied shear per component")
     ap.add_argument("--offset", type=float, default=None,
                     help="PrecisionSpec.offset (0: centred galaxies, position prior 0.01 px)")
-    ap.add_argument("--ncal", type=int, default=None, help="PrecisionSpec.ncal")
+    ap.add_argument("--ncal", type=int, default=20_000,
+                    help="PrecisionSpec.ncal (default 20,000, as recorded)")
     ap.add_argument("--step", type=float, default=0.01, help="metacalibration's delta")
     ap.add_argument("--true-priors", action="store_true",
                     help="the population's priors (else those the calibration estimates)")

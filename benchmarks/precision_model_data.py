@@ -78,7 +78,8 @@ def main() -> None:
     ap.add_argument("--position-prior-sigma", type=float, default=None)
     ap.add_argument("--e-step", type=float, default=Config().e_step)
     a = ap.parse_args()
-    spec = PR.spec_with(ngal=a.ngal, seed=a.seed, morphology_weights=(1, 0, 0, 0, 0))
+    spec = PR.spec_with(ngal=a.ngal, seed=a.seed, ncal=20_000,
+                       morphology_weights=(1, 0, 0, 0, 0))
     if a.centred:
         spec = dataclasses.replace(spec, offset=0.0)
     cfg = PR.default_config(spec).replace(amplitude_prior=a.amplitude_prior, e_step=a.e_step)

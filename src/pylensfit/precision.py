@@ -43,12 +43,14 @@ Three shear estimators are reported side by side:
 Errors are delete-one-group jackknife over groups of 100 galaxies (each block of work
 cut into runs), and m and c are corrected with control variates, the intrinsic shapes'
 spin-4 parts (:func:`shape_controls`), which take out the shape noise that the rotated
-twins leave. The errors hold the priors fixed. The calibration sample's own noise,
-mostly that of each PSF's size prior, is not in them: with 20,000 calibration galaxies
-drawn stratified (:class:`PrecisionSpec` ``stratified_calibration``) m's standard
-deviation over six calibration samples was 0.0004 on the mean of PSFs and 0.0005-0.0008
-on one PSF; drawn at random, 0.0009 and 0.0008-0.0019
-(``benchmarks/precision_size_prior_noise.py``). A galaxy is
+twins leave. The errors hold the priors fixed. The calibration sample's own noise is not
+in them: with 20,000 calibration galaxies drawn stratified (:class:`PrecisionSpec`
+``stratified_calibration``) and every prior estimated (ellipticity, bulge fractions, a
+size prior per fraction and PSF, the flux prior's slope and limits), ``(m1 + m2) / 2`` on
+the mean of PSFs scattered by 0.0010 between four independent 200,000-galaxy samples,
+where the jackknife gives 0.0004, and ``m1 - m2`` by 0.0010 against 0.0008: a noise of
+about 0.0009 common to both components. The default ``ncal`` of 80,000 takes its variance
+to a quarter (as ``1 / ncal``). A galaxy is
 used only if all four renderings are measured (``paired`` selection, the default and
 the reported numbers); the ``independent`` selection, where each rendering's own flags
 decide, is reported too: the difference is the bias that a selection responding to the
@@ -162,13 +164,20 @@ class PrecisionSpec:
     block_size : int
         Galaxies per block (unit of work and of the jackknife).
     ncal : int
-        Galaxies of the unsheared calibration sample for the prior.
+        Galaxies of the unsheared calibration sample for the priors (default 80,000,
+        20,000 per PSF). Their sampling noise moves m alike in both components and for
+        every kind of galaxy, and the jackknife's errors hold it fixed: with 20,000,
+        ``(m1 + m2) / 2`` on the mean of PSFs scattered by 0.0010 between four
+        independent 200,000-galaxy samples where the jackknife gives 0.0004
+        (``benchmarks/README.md``, thirty-eighth session). 80,000 take that noise's
+        variance to a quarter for about 8 more minutes and 7 GB more memory in a
+        200,000-galaxy run.
     stratified_calibration : bool
         Draw the calibration sample's morphologies, fluxes and sizes stratified within
         each block (:func:`_population`): the morphologies in proportion, and a Latin
         hypercube in flux and size within each morphology. The sample then follows the
         population's distributions to ``1 / n`` instead of ``1 / sqrt(n)``, and its
-        priors, estimated from 5,000 galaxies per PSF, carry the noise of the pixels
+        priors, estimated from ``ncal / 4`` galaxies per PSF, carry the noise of the pixels
         alone, not that of which galaxies happened to be drawn. A survey estimates its
         priors from the galaxies it measures; a simulation that draws them anew from the
         population adds a noise of its own to m, which the jackknife does not see. Over
@@ -193,7 +202,7 @@ class PrecisionSpec:
     offset: float = 0.5
     offset_shape: str = "square"
     block_size: int = 500
-    ncal: int = 20_000
+    ncal: int = 80_000
     stratified_calibration: bool = True
     seed: int = 1
     extra: dict = field(default_factory=dict)
@@ -1450,9 +1459,10 @@ def write_report(res: Table, path: str | Path) -> None:
         "Errors are delete-one-group jackknife over groups of 100 galaxies (1 sigma), "
         "with the priors held fixed: the calibration sample's own noise is not in them "
         "(with 20,000 calibration galaxies drawn stratified in morphology, flux and size, "
-        "m's standard deviation over six calibration samples was 0.0004 on the mean of "
-        "PSFs and 0.0005-0.0008 on one PSF, through the size priors; drawn at random, "
-        "0.0009 and 0.0008-0.0019; benchmarks/README.md, twenty-sixth session). m and c "
+        "(m1 + m2) / 2 on the mean of PSFs scattered by 0.0010 between four independent "
+        "200,000-galaxy samples where the jackknife gives 0.0004: a noise of about 0.0009 "
+        "common to both components, whose variance 80,000, the default, take to a "
+        "quarter; benchmarks/README.md, thirty-eighth session). m and c "
         "are corrected with "
         "control variates, the spin-4 parts of the intrinsic ellipticity (e1² - e2², "
         "2 e1 e2), whose population mean is zero: they remove the shape noise that the "
