@@ -376,8 +376,8 @@ def build_parser() -> argparse.ArgumentParser:
     pv.add_argument("--seed", type=int, default=1, help="random seed (also --quick, "
                     "--convergence)")  # fmt: skip
     pv.add_argument("--g", type=float, default=0.02, help="shear per component")
-    pv.add_argument("--ncal", type=int, default=80_000,
-                    help="calibration galaxies (priors; default 80,000)")
+    pv.add_argument("--ncal", type=int,
+                    help="calibration galaxies (priors; default PrecisionSpec's, 80,000)")
     pv.add_argument("--block-size", type=int, default=500, help="galaxies per block")
     pv.add_argument("--scheduler", help="dask.distributed scheduler address")
     pv.add_argument("--true-prior", action="store_true",
