@@ -403,6 +403,46 @@ def test_mix_bulge_fractions_is_the_weighted_sum():
         mix_bulge_fractions(lb, ls, [1.0, -1.0, 0.5])
 
 
+def test_bulge_fraction_sums_are_the_same_a_block_at_a_time(monkeypatch):
+    """The fraction evidences and the mixed likelihoods, taken a few galaxies at a time
+    (as the precision mode's 80,000-galaxy calibration is, to bound the temporaries),
+    equal the direct sums over every galaxy, a bad row in the middle excluded."""
+    import pylensfit.prior as pr
+
+    egrid = ellipticity_grid(0.1)
+    prior = Prior(egrid=egrid)
+    lb, ls = _fraction_sample(50, np.array([0.5, 0.2, 0.3]), 3, egrid)
+    ls = np.linspace(-8.0, 0.0, 50)  # point sources of every weight beside the galaxies
+    lb[17, 1, 5] = np.nan  # not measured: excluded from the weights, NaN in the mix
+    ok = np.arange(50) != 17
+    p = prior.grid_pdf() * prior.step**2
+    L = np.exp(lb[ok].astype(float) - np.max(lb[ok], axis=(1, 2))[:, None, None])
+    w_ref = np.array([1.0, 1.0, 1.0]) / 3
+    for _ in range(2000):  # the EM of the docstring, written out on the direct sums
+        Z = np.einsum("gke,e->gk", L, p)
+        Zs = np.exp(ls[ok] - np.max(lb[ok], axis=(1, 2))) * p.sum()
+        new = w_ref * np.sum(Z / (Z @ w_ref + Zs)[:, None], axis=0)
+        new /= new.sum()
+        done = np.max(np.abs(new - w_ref)) < 1e-7
+        w_ref = new
+        if done:
+            break
+    mix_ref = np.log(np.einsum("k,gke->ge", w_ref, np.exp(lb.astype(float)))
+                     + np.exp(ls)[:, None])  # fmt: skip
+    mix_ref -= np.max(mix_ref, axis=1, keepdims=True)
+    whole = (pr.estimate_bulge_weights(lb, ls, prior), pr.mix_bulge_fractions(lb, ls, w_ref))
+    chunks = pr._chunks
+    monkeypatch.setattr(pr, "_chunks", lambda n, size: chunks(n, size, target=7 * size))
+    assert len(pr._chunks(50, lb[0].size)) == 8  # blocks of 7 galaxies, the last of 1
+    blocks = (pr.estimate_bulge_weights(lb, ls, prior), pr.mix_bulge_fractions(lb, ls, w_ref))
+    for w in (whole[0], blocks[0]):
+        np.testing.assert_allclose(w, w_ref, rtol=0, atol=1e-6)
+    for mix in (whole[1], blocks[1]):
+        assert mix.dtype == np.float32 and np.isnan(mix[17]).all()
+        np.testing.assert_allclose(mix[ok], mix_ref[ok], rtol=0, atol=2e-5)
+    np.testing.assert_array_equal(blocks[1], whole[1])
+
+
 def _size_sample(n, cfg, rng, mu=0.405, sd=0.35, width=(0.05, 0.4), star_frac=0.0):
     """Synthetic ``lnL_r``: Gaussians in ln(h) about each galaxy's measured ln h."""
     from pylensfit.prior import _node_sizes

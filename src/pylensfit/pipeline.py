@@ -731,13 +731,16 @@ def _run(fn, tasks: Sequence[dict], jobs: int, scheduler: str | None, desc: str,
             with Client(scheduler) as client:
                 futs = {client.submit(fn, t, pure=False): t for t in tasks}
                 for f in dask_completed(futs):
-                    yield futs[f], f.result()
+                    yield futs.pop(f), f.result()  # the cluster's copy freed with it
                     bar.update()
         elif pool is not None:
             futs = {pool.submit(fn, {**t, "single_thread": True}): t for t in tasks}
             try:
                 for f in as_completed(futs):
-                    yield futs[f], f.result()
+                    # a finished future is dropped as its result is handed on: kept, every
+                    # result would be held twice until the call ends (the precision
+                    # mode's calibration keeps its blocks' likelihood grids)
+                    yield futs.pop(f), f.result()
                     bar.update()
             finally:  # a failed task: the rest of this call's tasks are not wanted
                 for f in futs:
@@ -753,7 +756,7 @@ def _run(fn, tasks: Sequence[dict], jobs: int, scheduler: str | None, desc: str,
                                      mp_context=mp.get_context("spawn")) as ex:  # fmt: skip
                 futs = {ex.submit(fn, {**t, "single_thread": True}): t for t in tasks}
                 for f in as_completed(futs):
-                    yield futs[f], f.result()
+                    yield futs.pop(f), f.result()
                     bar.update()
     finally:
         bar.close()

@@ -1129,9 +1129,14 @@ def precision(
             egrid = r["egrid"]
             render_s += r["render_s"]
             fit_s += r["fit_s"]
-        # the per-|e| L(r) stay in their blocks (~16 MB each) until they are reweighted
-        cat = {k: (v if k == "lnL_r_grouped" else np.concatenate(v))
-               if v and v[0] is not None else None for k, v in out.items()}  # fmt: skip
+        # the per-|e| L(r) stay in their blocks (~16 MB each) until they are reweighted;
+        # the rest joined one quantity at a time, each block's part freed as it is joined
+        cat = {}
+        for k in list(out):
+            v = out.pop(k)
+            cat[k] = (v if k == "lnL_r_grouped" else np.concatenate(v)) \
+                if v and v[0] is not None else None
+            del v
         return cat, egrid
 
     def ellipticity_priors(cal, egrid, prior):
@@ -1189,6 +1194,7 @@ def precision(
         # benchmarks/README.md, thirty-third session)
         redo = fit_bounds if fit_size else (fit_flux or fit_bounds) and (prior is None or fit_bulge)
         if redo and ncb:
+            cal = None  # the first pass's grids freed before the second's arrive
             cal, egrid = calibrate(size_priors, first_keep, "calibration with the flux prior")
         prior0 = prior
         if ncb:
@@ -1216,6 +1222,7 @@ def precision(
             else:
                 size_priors = [estimate_size_prior(cal["lnL_r"], bank, cfg,
                                                    bulge_weights=bulge_weights)] * npsf  # fmt: skip
+            cal = None
             cal, egrid = calibrate(size_priors, False, "calibration with the size prior")
             prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
         t_cal = time.perf_counter() - t_start

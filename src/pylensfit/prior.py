@@ -838,27 +838,46 @@ def mix_bulge_fractions(
     numpy.ndarray
         ``(n, n_e)`` float32, each row shifted so that its maximum is 0 (NaN rows stay NaN).
     """
-    lb = np.asarray(lnL_bulge, dtype=float)
+    lb = np.asarray(lnL_bulge)
     n_b = lb.shape[1]
     w = np.full(n_b, 1.0 / n_b) if weights is None else np.asarray(weights, dtype=float)
     if w.shape != (n_b,) or np.any(w < 0) or not w.sum() > 0:
         raise ValueError(f"weights must be {n_b} non-negative numbers, not {weights!r}")
     from scipy.special import logsumexp
 
-    galaxy = logsumexp(lb, axis=1, b=(w / w.sum())[None, :, None])
-    with np.errstate(invalid="ignore"):  # NaN rows (objects not measured) stay NaN
-        out = np.logaddexp(galaxy, np.asarray(lnL_star, dtype=float)[:, None])
-        out -= np.max(out, axis=1, keepdims=True)
-    return out.astype(np.float32)
+    b = (w / w.sum())[None, :, None]
+    ls = np.asarray(lnL_star, dtype=float)
+    out = np.empty((lb.shape[0], lb.shape[2]), dtype=np.float32)
+    # in float64, a block of galaxies at a time: the temporaries stay a few MB however
+    # large the sample (the precision mode's calibration holds 80,000 galaxies' grids)
+    for s in _chunks(lb.shape[0], lb.shape[1] * lb.shape[2]):
+        galaxy = logsumexp(np.asarray(lb[s], dtype=float), axis=1, b=b)
+        with np.errstate(invalid="ignore"):  # NaN rows (objects not measured) stay NaN
+            o = np.logaddexp(galaxy, ls[s, None])
+            o -= np.max(o, axis=1, keepdims=True)
+        out[s] = o
+    return out
+
+
+def _chunks(n: int, row_size: int, target: int = 1 << 22) -> list[slice]:
+    """Slices of ``n`` rows of ``row_size`` numbers each, about ``target`` numbers a slice."""
+    step = max(1, target // max(1, row_size))
+    return [slice(i, min(n, i + step)) for i in range(0, n, step)] or [slice(0, 0)]
 
 
 def _fraction_evidence(lnL_bulge, lnL_star, prior: Prior):
     """Per galaxy: ``Z_k = sum_e P(e) L_k(e) de^2`` and ``Z_star``, scaled by one factor."""
-    lb = np.asarray(lnL_bulge, dtype=float)
+    lb = np.asarray(lnL_bulge)  # float32 or float64, converted a block at a time
     ls = np.asarray(lnL_star, dtype=float)
     p = prior.grid_pdf() * prior.step**2
-    top = np.maximum(np.max(lb, axis=(1, 2)), ls)
-    Z = np.einsum("gke,e->gk", np.exp(lb - top[:, None, None]), p)
+    Z = np.empty(lb.shape[:2])
+    top = np.empty(lb.shape[0])
+    for s in _chunks(lb.shape[0], lb.shape[1] * lb.shape[2]):
+        b = np.asarray(lb[s], dtype=float)
+        top[s] = np.maximum(np.max(b, axis=(1, 2), initial=-np.inf), ls[s])
+        b -= top[s, None, None]
+        np.exp(b, out=b)
+        Z[s] = np.einsum("gke,e->gk", b, p)
     return Z, np.exp(ls - top) * p.sum()
 
 
@@ -904,13 +923,16 @@ def estimate_bulge_weights(
     numpy.ndarray
         ``(n_b,)`` weights summing to 1.
     """
-    lb = np.asarray(lnL_bulge, dtype=float)
+    lb = np.asarray(lnL_bulge)
     if lb.ndim != 3 or lb.shape[0] == 0:
         raise ValueError(f"lnL_bulge must be a non-empty (n, n_b, n_e) array, not {lb.shape}")
-    ok = np.isfinite(lb).all(axis=(1, 2)) & np.isfinite(np.asarray(lnL_star, float))
+    ls = np.asarray(lnL_star, float)
+    ok = np.isfinite(ls)
+    for s in _chunks(lb.shape[0], lb.shape[1] * lb.shape[2]):
+        ok[s] &= np.isfinite(lb[s]).all(axis=(1, 2))
     if not ok.any():
         raise ValueError("no usable likelihood to estimate the bulge-fraction prior")
-    Z, Zs = _fraction_evidence(lb[ok], np.asarray(lnL_star, float)[ok], prior)
+    Z, Zs = _fraction_evidence(lb if ok.all() else lb[ok], ls[ok], prior)
     n_b = lb.shape[1]
     w = np.full(n_b, 1.0 / n_b) if start is None else np.asarray(start, float) / np.sum(start)
     for _ in range(max_iter):
