@@ -58,7 +58,10 @@ shear adds (stars, failed fits).
 
 The work streams: each block is rendered, fitted and reduced to 12 numbers per
 rendering in a worker; nothing is written to disk and memory grows by ~0.3 kB per
-galaxy. Blocks run on the project's runner (local processes or dask.distributed).
+galaxy. The calibration sample's likelihood grids are kept while the priors are
+estimated, about 40 kB per calibration galaxy at their peak
+(``benchmarks/calibration_memory.py``). Blocks run on the project's runner (local
+processes or dask.distributed).
 """
 
 from __future__ import annotations
@@ -170,8 +173,8 @@ class PrecisionSpec:
         ``(m1 + m2) / 2`` on the mean of PSFs scattered by 0.0010 between four
         independent 200,000-galaxy samples where the jackknife gives 0.0004
         (``benchmarks/README.md``, thirty-eighth session). 80,000 take that noise's
-        variance to a quarter for about 8 more minutes and 7 GB more memory in a
-        200,000-galaxy run.
+        variance to a quarter for about 8 more minutes and 2.4 GB more memory in a
+        200,000-galaxy run (40 kB per calibration galaxy).
     stratified_calibration : bool
         Draw the calibration sample's morphologies, fluxes and sizes stratified within
         each block (:func:`_population`): the morphologies in proportion, and a Latin
