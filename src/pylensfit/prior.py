@@ -862,7 +862,7 @@ def mix_bulge_fractions(
 def _chunks(n: int, row_size: int, target: int = 1 << 22) -> list[slice]:
     """Slices of ``n`` rows of ``row_size`` numbers each, about ``target`` numbers a slice."""
     step = max(1, target // max(1, row_size))
-    return [slice(i, min(n, i + step)) for i in range(0, n, step)] or [slice(0, 0)]
+    return [slice(i, min(n, i + step)) for i in range(0, n, step)]
 
 
 def _fraction_evidence(lnL_bulge, lnL_star, prior: Prior):
