@@ -117,9 +117,11 @@ class Config:
         "and the half-and-half mixture of each adjacent pair, the disc's n = 1 among them, "
         "their weights estimated as the fractions' (models.bank_runs). Empty: none. "
         "(0.5, 2, 4) costs 2.7x the fit and raises m on the precision mix by +0.007, "
-        "and by +0.011 on its Sersic and bulge+disc galaxies alone, noise-free as well "
-        "(a model bias: its runs take weight from the bulge+disc galaxies' own; "
-        "benchmarks/README.md, thirty-second and thirty-ninth sessions): off by default",
+        "and by +0.011 on its Sersic and bulge+disc galaxies alone, noise-free as well; "
+        "the rise is at S/N 12-50, where the posterior mixes the runs under their "
+        "estimated priors, while at S/N 300 it takes the Sersic galaxies' model bias "
+        "(+0.011) to 0 (benchmarks/README.md, thirty-second, thirty-ninth and fortieth "
+        "sessions): off by default",
     )
     n_bulge_fractions: int = _f(
         1,
