@@ -135,6 +135,44 @@ def test_step2_shears_and_twins(step2):
         assert not np.allclose(ha[0].data, hb[0].data)
 
 
+def test_noise_twins(tmp_path):
+    """``noise_twins=True``: every shear field has a twin with the same objects and the
+    same noise field negated; nothing else changes, and the seeds of the other fields are
+    those of the set without them."""
+    from pylensfit.validation import STEP2_PSFS
+
+    kw = dict(ngal=240, seed=6, n_shear=1, psfs=STEP2_PSFS[:1], field_size=200)
+    d = simulate_step("step2", tmp_path / "n", noise_twins=True, **kw)
+    d0 = simulate_step("step2", tmp_path / "o", **kw)
+    man, man0 = read_manifest(d), read_manifest(d0)
+    shear = {f["file"]: f for f in man["fields"] if f["role"] == "shear"}
+    assert sorted(shear) == ["psf0_g0.fits", "psf0_g0_neg.fits", "psf0_g0_rot.fits",
+                             "psf0_g0_rot_neg.fits"]  # fmt: skip
+    seeds0 = {f["file"]: (f["seed"], f["noise_seed"]) for f in man0["fields"]}
+    for f in man["fields"]:
+        assert f.get("noise_twin", False) == f["file"].endswith("_neg.fits")
+        src = f["file"].replace("_neg", "")
+        assert (f["seed"], f["noise_seed"]) == seeds0[src]
+    sky, sigma = man["fieldspec"]["sky"], man["noise_sigma"]
+    for a in ("psf0_g0.fits", "psf0_g0_rot.fits"):
+        b = a.replace(".fits", "_neg.fits")
+        ta, tb = _truth(d / a), _truth(d / b)
+        for c in ta.colnames:
+            x, y = np.asarray(ta[c]), np.asarray(tb[c])
+            assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), c
+        with fits.open(d / a) as ha, fits.open(d / b) as hb, fits.open(d0 / a) as h0:
+            pa, pb = ha[0].data.astype(float), hb[0].data.astype(float)
+            assert np.array_equal(ha[0].data, h0[0].data)  # the set without them: the same
+        half_diff, mean = (pa - pb) / 2, (pa + pb) / 2 - sky
+        assert np.std(half_diff) == pytest.approx(sigma, rel=0.02)  # the noise, negated
+        # the mean of the two has no noise: between the objects, nothing
+        yy, xx = np.mgrid[: pa.shape[0], : pa.shape[1]]
+        far = np.ones(pa.shape, bool)
+        for x, y in zip(ta["x"], ta["y"], strict=True):
+            far &= np.hypot(xx - x, yy - y) > 15
+        assert far.sum() > 1000 and np.std(mean[far]) < 0.05 * sigma
+
+
 def test_step1_twins(tmp_path):
     """``twins=True`` gives step1 rotated twins: same objects and flux, e_int flipped."""
     d = simulate_step("step1", tmp_path / "s1t", ngal=300, seed=4, n_shear=2, twins=True)
@@ -315,6 +353,66 @@ def test_twin_shear_cancels_shape_noise():
         twin_shear(ea[:3], ea[:4], ones[:3], ones[:3])
     with pytest.raises(ValueError):
         twin_shear(e_int, -e_int, -ones, ones)
+
+
+def test_group_shear_cancels_shape_and_noise():
+    """Four renderings of each galaxy (rotated twin, noise twins): a linear response
+    cancels both the intrinsic shape and the noise exactly; the grouping of a table of
+    measured galaxies by truth index keeps only galaxies measured in every member."""
+    from astropy.table import Table
+
+    from pylensfit.validation import _group_members, _groups, group_shear
+
+    rng = np.random.default_rng(12)
+    n, g = 400, np.array([-0.022, 0.041])
+    e_int = 0.3 * rng.standard_normal((n, 2))
+    noise, noise_rot = 0.2 * rng.standard_normal((2, n, 2))
+    e = np.stack([e_int + g + noise, e_int + g - noise,
+                  -e_int + g + noise_rot, -e_int + g - noise_rot], axis=1)
+    s = np.ones_like(e)
+    est = group_shear(e, s)
+    assert (est.g1, est.g2) == pytest.approx(tuple(g), abs=1e-15) and est.n == n
+    assert est.g1_err < 1e-14 and est.g2_err < 1e-14
+    # a quadratic response to the noise (noise bias) stays in the estimate and its error
+    e2 = e + 0.5 * np.concatenate([noise, noise, noise_rot, noise_rot], axis=1).reshape(
+        n, 4, 2) ** 2
+    est = group_shear(e2, s)
+    assert est.g1 - g[0] == pytest.approx(0.5 * np.mean(noise[:, 0] ** 2 + noise_rot[:, 0] ** 2)
+                                          / 2, rel=1e-12)  # fmt: skip
+    assert est.g1_err > 1e-4
+    # the pair estimate is the group estimate of two members
+    p = twin_shear_pair = group_shear(e[:, [0, 2]], s[:, [0, 2]])
+    from pylensfit.validation import twin_shear
+
+    q = twin_shear(e[:, 0], e[:, 2], s[:, 0], s[:, 2])
+    assert (p.g1, p.g2, p.g1_err, p.g2_err) == (q.g1, q.g2, q.g1_err, q.g2_err)
+    assert twin_shear_pair.g1_err > 5 * est.g1_err  # the noise does not cancel in a pair
+    with pytest.raises(ValueError):
+        group_shear(e[:, :, 0], s[:, :, 0])
+    # grouping: 2 PSF/shear keys with 4 members; galaxy 3 missing in one member of key A
+    fields = {}
+    for psf, j in [(0, 0), (1, 0)]:
+        for rot in (False, True):
+            for neg in (False, True):
+                name = f"psf{psf}_g{j}" + ("_rot" if rot else "") + ("_neg" if neg else "")
+                fields[name] = {"file": name, "role": "shear", "psf": psf, "shear_index": j,
+                                "twin": rot, "noise_twin": neg}  # fmt: skip
+    fields["psf0_prior"] = {"file": "psf0_prior", "role": "prior", "psf": 0,
+                            "shear_index": None, "twin": False}  # fmt: skip
+    rows = [(name, t) for name in fields for t in range(5)
+            if not (name == "psf0_g0_rot_neg" and t == 3)]
+    rows = [rows[i] for i in rng.permutation(len(rows))]
+    gal = Table(rows=rows, names=("image", "truth_index"))
+    gid, base = _groups(gal, fields)
+    img, tix = np.asarray(gal["image"]), np.asarray(gal["truth_index"])
+    assert np.all(gid[img == "psf0_prior"] == -1)
+    assert np.all(gid[(tix == 3) & np.char.startswith(img.astype(str), "psf0")] == -1)
+    assert np.sum(gid >= 0) == 4 * 4 + 4 * 5
+    mem = _group_members(gid)
+    assert mem.shape == (9, 4)
+    for r in mem:  # one galaxy, four renderings of one key, one base
+        assert len(set(tix[r])) == 1 and len(set(img[r])) == 4 and len(set(base[r])) == 1
+        assert base[r[0]] == img[r[0]].split("_rot")[0].split("_neg")[0]
 
 
 def test_bins_partition():

@@ -29,7 +29,8 @@ class FieldSpec:
 
     Objects sit on a jittered square lattice of pitch ``spacing`` (so that close pairs
     are the exception the pipeline flags, not the rule), a fraction ``star_fraction`` of
-    them stars.
+    them stars. ``noise_sign = -1`` adds the noise field of the same noise seed negated:
+    the field's noise twin, whose first-order noise response cancels the original's.
     """
 
     size: int = 1024
@@ -52,6 +53,7 @@ class FieldSpec:
     prior_params: tuple[float, float, float] = (0.19, 0.58, 2.4)
     max_e: float = 0.99  # a cut below ~0.95 takes the truth out of the functional form
     pixel_scale_arcsec: float = 0.2
+    noise_sign: float = 1.0
     extra: dict = field(default_factory=dict)
 
 
@@ -144,7 +146,8 @@ def _add_sky_and_noise(image, spec: FieldSpec, seed: int, noise_seed: int | None
     """The rendered image plus sky and Gaussian noise (float32), and its weight map."""
     arr = image.array.astype(np.float64)
     noise_rng = np.random.default_rng([seed, 1] if noise_seed is None else noise_seed)
-    arr += spec.sky + noise_rng.normal(scale=spec.noise_sigma, size=arr.shape)
+    noise = noise_rng.normal(scale=spec.noise_sigma, size=arr.shape)
+    arr += spec.sky + (-noise if spec.noise_sign < 0 else noise)
     weight = np.full(arr.shape, 1.0 / spec.noise_sigma**2, dtype=np.float32)
     return arr.astype(np.float32), weight
 

@@ -65,6 +65,7 @@ __all__ = [
     "fit_m_c",
     "quality_factor",
     "twin_shear",
+    "group_shear",
     "bin_index",
     "validate",
     "write_report",
@@ -271,6 +272,7 @@ def simulate_step(
     psfs: tuple[dict, ...] | None = None,
     prior_ngal: int | None = None,
     twins: bool | None = None,
+    noise_twins: bool = False,
 ) -> Path:
     """Simulate a STEP1- or STEP2-like validation set with GalSim.
 
@@ -319,12 +321,23 @@ def simulate_step(
         cancel pair by pair in ``validate``. Default: step2 yes (as STEP2), step1 no (as
         STEP1, whose independent images leave the shape noise in m: sigma(m) ~ 0.03 for
         100,000 galaxies; with twins step1 can test m to a few 1e-3).
+    noise_twins : bool
+        Give every shear field (twins included) a noise twin ``..._neg.fits``: the same
+        objects and the same noise field negated (``FieldSpec.noise_sign = -1``), so that
+        in ``validate`` the noise's first-order effect on the mean ellipticity cancels
+        galaxy by galaxy, as the rotated twin cancels the intrinsic shapes. What remains
+        in ``c`` and ``m`` is the measurement's response to the noise at second order
+        (noise bias) and to the PSF: the offsets ``c`` are then resolved to ~1e-4 per PSF
+        by a set whose independent noise leaves them at ~5e-4. ``ngal`` counts the
+        renderings, so the set holds half as many distinct galaxies. Off by default
+        (a set from a given seed is the same as before the option existed).
 
     Returns
     -------
     pathlib.Path
         The output directory, holding ``psf{k}_g{j}.fits`` (shear fields),
-        ``psf{k}_g{j}_rot.fits`` (twins), ``psf{k}_prior.fits`` (zero shear),
+        ``psf{k}_g{j}_rot.fits`` (twins), ``psf{k}_g{j}[_rot]_neg.fits`` (noise twins),
+        ``psf{k}_prior.fits`` (zero shear),
         ``psf{k}_stars.fits`` (stars only) and ``manifest.json``.
     """
     if kind not in _PIXEL:
@@ -342,7 +355,8 @@ def simulate_step(
     if twins is None:
         twins = kind == "step2"
     twins = (False, True) if twins else (False,)
-    n_fields = len(psfs) * len(shears) * len(twins)
+    negs = (False, True) if noise_twins else (False,)
+    n_fields = len(psfs) * len(shears) * len(twins) * len(negs)
     size = int(field_size) if field_size else _field_size(ngal, n_fields, spacing, star_fraction)
     star_size = int(star_field_size) if star_field_size else size
     prior_size = (_field_size(prior_ngal, len(psfs), spacing, star_fraction)
@@ -382,21 +396,23 @@ def simulate_step(
                 "n_star": len(truth),
             }
         )
-        jobs = [("prior", None, 0.0, 0.0, False)]
-        jobs += [("shear", j, g1, g2, t) for j, (g1, g2) in enumerate(shears) for t in twins]
+        jobs = [("prior", None, 0.0, 0.0, False, False)]
+        jobs += [("shear", j, g1, g2, t, ng) for j, (g1, g2) in enumerate(shears)
+                 for t in twins for ng in negs]  # fmt: skip
         obj_seed = {}
-        for role, j, g1, g2, twin in jobs:
+        for role, j, g1, g2, twin, neg in jobs:
             if role == "prior":
                 name = f"psf{k}_prior.fits"
             else:
-                name = f"psf{k}_g{j}" + ("_rot" if twin else "") + ".fits"
-            s_obj, s_noise = seeds()
-            if twin:
+                name = f"psf{k}_g{j}" + ("_rot" if twin else "") + ("_neg" if neg else "") + ".fits"
+            if not neg:  # a noise twin draws no seeds: the same objects and noise field
+                s_obj, s_noise = seeds()
+            if twin and not neg:
                 s_obj = obj_seed[j]  # the same objects, rotated; independent noise
-            else:
+            elif not neg:
                 obj_seed[j] = s_obj
             kw = {**common, "size": prior_size} if role == "prior" else common
-            spec = _spec_for(psf, **kw, g1=g1, g2=g2, rotate=twin)
+            spec = _spec_for(psf, **kw, g1=g1, g2=g2, rotate=twin, noise_sign=-1.0 if neg else 1.0)
             img, w, truth = render(spec, seed=s_obj, noise_seed=s_noise)
             write_field(out / name, img, w, spec, truth=truth)
             n_gal = int((~np.asarray(truth["is_star"])).sum())
@@ -410,6 +426,7 @@ def simulate_step(
                     "g2": g2,
                     "shear_index": j,
                     "twin": twin,
+                    "noise_twin": neg,
                     "star_file": star_file,
                     "seed": s_obj,
                     "noise_seed": s_noise,
@@ -493,6 +510,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--twins", action=argparse.BooleanOptionalAction, default=None,
                    help="a 90-degree-rotated twin of every shear field (default: step2 "
                         "yes, step1 no); with twins the shape noise cancels in validate")
+    p.add_argument("--noise-twins", action="store_true",
+                   help="a noise twin of every shear field (the same noise negated): the "
+                        "noise's first-order effect cancels in validate, resolving c per "
+                        "PSF to ~1e-4; --ngal counts the renderings")
     a = p.parse_args(argv)
     d = simulate_step(
         a.kind,
@@ -503,6 +524,7 @@ def main(argv: list[str] | None = None) -> int:
         field_size=a.size,
         n_shear=a.nshear,
         twins=a.twins,
+        noise_twins=a.noise_twins,
     )
     man = read_manifest(d)
     print(
@@ -586,6 +608,7 @@ def twin_shear(
     error comes from the scatter of the per-pair sums,
     ``std(e_a,i + e_b,i) sqrt(N_pairs) / sum_pairs (s_a,i + s_b,i)``, so that it shows
     the cancellation (only measurement noise and the residual ``O(g e^2)`` terms remain).
+    :func:`group_shear` is the same for groups of any size (twins and noise twins).
 
     Parameters
     ----------
@@ -608,17 +631,53 @@ def twin_shear(
     arrs = [np.asarray(a, dtype=float).reshape(-1, 2) for a in (e_a, e_b, sens_a, sens_b)]
     if len({a.shape for a in arrs}) != 1:
         raise ValueError("e_a, e_b, sens_a, sens_b must have the same (n_pairs, 2) shape")
-    ea, eb, sa, sb = arrs
-    ok = np.all(np.isfinite(np.hstack(arrs)), axis=1)
+    return group_shear(np.stack(arrs[:2], axis=1), np.stack(arrs[2:], axis=1))
+
+
+def group_shear(e: np.ndarray, sens: np.ndarray) -> ShearEstimate:
+    """Shear of a group of renderings of the same galaxies, summed galaxy by galaxy.
+
+    A group is an image and its twins: the 90-degree-rotated one (the intrinsic shapes
+    cancel) and, for a set simulated with noise twins, the two with their noise negated
+    (the noise's first-order response cancels). The estimate is eq. ``key2`` over the
+    whole group, ``g_i = sum_galaxies sum_members e_i / sum_galaxies sum_members s_i``,
+    and its error comes from the scatter of the per-galaxy sums over the members,
+    ``std(sum_members e_i) sqrt(N) / sum s_i``, so that it shows the cancellations.
+
+    Parameters
+    ----------
+    e : numpy.ndarray
+        ``(n_galaxies, n_members, 2)`` posterior mean ellipticities; row ``i`` of every
+        member is the same galaxy.
+    sens : numpy.ndarray
+        Their shear sensitivities ``d<e_i>/dg_i``, the same shape.
+
+    Returns
+    -------
+    ShearEstimate
+        ``n`` is the number of galaxies used (those with any non-finite value in any
+        member are skipped).
+
+    Raises
+    ------
+    ValueError
+        On arrays of different or wrong shapes, no usable galaxy, or a non-positive summed
+        sensitivity.
+    """
+    e, sens = np.asarray(e, dtype=float), np.asarray(sens, dtype=float)
+    if e.shape != sens.shape or e.ndim != 3 or e.shape[2] != 2:
+        raise ValueError("e and sens must have the same (n_galaxies, n_members, 2) shape, "
+                         f"got {e.shape} and {sens.shape}")  # fmt: skip
+    ok = np.all(np.isfinite(e), axis=(1, 2)) & np.all(np.isfinite(sens), axis=(1, 2))
     n = int(ok.sum())
     if n == 0:
-        raise ValueError("no usable pair to estimate shear")
-    esum, ssum = (ea + eb)[ok], (sa + sb)[ok]
+        raise ValueError("no usable galaxy to estimate shear")
+    esum, ssum = e[ok].sum(axis=1), sens[ok].sum(axis=1)
     out = []
     for i in range(2):
         s = float(ssum[:, i].sum())
         if not s > 0:
-            raise ValueError(f"the sum of the pair sensitivities (component {i + 1}) is {s}")
+            raise ValueError(f"the sum of the group sensitivities (component {i + 1}) is {s}")
         err = float(np.std(esum[:, i], ddof=1)) * math.sqrt(n) / s if n > 1 else math.nan
         out.append((float(esum[:, i].sum()) / s, err))
     return ShearEstimate(g1=out[0][0], g2=out[1][0], g1_err=out[0][1], g2_err=out[1][1], n=n)
@@ -733,14 +792,18 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
 
 
 def _partners(gal: Table, fields: dict[str, dict]) -> np.ndarray:
-    """Row of each galaxy's 90-degree twin in ``gal`` (``-1``: none), matched by truth index."""
+    """Row of each galaxy's 90-degree twin in ``gal`` (``-1``: none), matched by truth index.
+
+    Noise twins (``..._neg`` fields) have no partner here; :func:`_groups` holds them.
+    """
     partner = np.full(len(gal), -1, dtype=np.int64)
     images = np.asarray(gal["image"]).astype(str)
     tidx = np.asarray(gal["truth_index"])
     twin_of = {(f["psf"], f["shear_index"]): f["file"] for f in fields.values()
-               if f["role"] == "shear" and f["twin"]}  # fmt: skip
+               if f["role"] == "shear" and f["twin"] and not f.get("noise_twin")}  # fmt: skip
     for f in fields.values():
-        if f["role"] != "shear" or f["twin"] or (f["psf"], f["shear_index"]) not in twin_of:
+        if (f["role"] != "shear" or f["twin"] or f.get("noise_twin")
+                or (f["psf"], f["shear_index"]) not in twin_of):  # fmt: skip
             continue
         a = np.flatnonzero((images == f["file"]) & (tidx >= 0))
         b = np.flatnonzero((images == twin_of[(f["psf"], f["shear_index"])]) & (tidx >= 0))
@@ -748,6 +811,56 @@ def _partners(gal: Table, fields: dict[str, dict]) -> np.ndarray:
         partner[a[ia]] = b[ib]
         partner[b[ib]] = a[ia]
     return partner
+
+
+def _groups(gal: Table, fields: dict[str, dict]) -> tuple[np.ndarray, np.ndarray]:
+    """Each galaxy's group of renderings: an image with its rotated and noise twins.
+
+    The members of a group are the shear fields of one PSF and shear (``(psf,
+    shear_index)``): the image, its 90-degree twin and, for a set with noise twins, the
+    two with the noise negated. A galaxy belongs to a group when all its members measured
+    it (matched by truth index). Returns ``gid``, the group of each row (``-1``: none, or
+    a set without twins), numbered consecutively, and ``base``, the file name of the
+    group's first member (the unrotated image with the noise as drawn) per row.
+    """
+    n = len(gal)
+    gid = np.full(n, -1, dtype=np.int64)
+    base = np.full(n, "", dtype=object)
+    images = np.asarray(gal["image"]).astype(str)
+    tidx = np.asarray(gal["truth_index"])
+    members: dict[tuple, list[dict]] = {}
+    for f in fields.values():
+        if f["role"] == "shear":
+            members.setdefault((f["psf"], f["shear_index"]), []).append(f)
+    nxt = 0
+    for key in sorted(members):
+        mem = sorted(members[key], key=lambda f: (bool(f["twin"]), bool(f.get("noise_twin"))))
+        if len(mem) < 2:
+            continue
+        rows = [np.flatnonzero((images == f["file"]) & (tidx >= 0)) for f in mem]
+        common = tidx[rows[0]]
+        for r in rows[1:]:
+            common = np.intersect1d(common, tidx[r])
+        for r in rows:
+            _, ir, ic = np.intersect1d(tidx[r], common, return_indices=True)
+            gid[r[ir]] = nxt + ic
+            base[r[ir]] = mem[0]["file"]
+        nxt += common.size
+    return gid, base
+
+
+def _group_members(gid: np.ndarray) -> np.ndarray:
+    """``(n_groups, k)`` rows of each group's members from ``gid`` (every group of size k)."""
+    use = np.flatnonzero(gid >= 0)
+    if use.size == 0:
+        return np.zeros((0, 0), dtype=np.int64)
+    order = use[np.argsort(gid[use], kind="stable")]
+    counts = np.bincount(gid[use])
+    counts = counts[counts > 0]
+    k = int(counts[0])
+    if not np.all(counts == k):
+        raise ValueError("groups of renderings of unequal size")
+    return order.reshape(-1, k)
 
 
 _EST_NAMES = ("psf", "file", "g1_true", "g2_true", "g1", "g1_err", "g2", "g2_err", "n", "n_pair")
@@ -779,23 +892,23 @@ def _shear_estimates(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str,
                 res = nan4
             rows.append((f["psf"], f["file"], f["g1"], f["g2"], *res, int(sel.sum()), 0))
     else:
-        partner = _partners(gal, fields)
+        gid, base = _groups(gal, fields)
         for name in np.unique(images):
             f = fields[name]
-            if f["twin"]:
+            if f["twin"] or f.get("noise_twin"):
                 continue
-            a = np.flatnonzero((images == name) & (partner >= 0))
-            b = partner[a]
+            sel = np.flatnonzero((base == name) & (gid >= 0))
+            rows_k = sel[_group_members(gid[sel] - (gid[sel].min() if sel.size else 0))]
             try:
-                est = twin_shear(e[a], e[b], s[a], s[b])
+                est = group_shear(e[rows_k], s[rows_k])
                 res = (est.g1, est.g1_err, est.g2, est.g2_err)
-                if estimator == "fixed-point":  # both images together; error from the pairs
-                    fp = shear_fixed_point(np.concatenate([lnL[a], lnL[b]]), egrid, prior,
-                                           refine=refine)  # fmt: skip
+                if estimator == "fixed-point":  # the group together; error from the sums
+                    fp = shear_fixed_point(lnL[rows_k.ravel()], egrid, prior, refine=refine)
                     res = (fp.g1, est.g1_err, fp.g2, est.g2_err)
             except ValueError:
                 res = nan4
-            rows.append((f["psf"], f["file"], f["g1"], f["g2"], *res, 2 * a.size, a.size))
+            rows.append((f["psf"], f["file"], f["g1"], f["g2"], *res, rows_k.size,
+                         rows_k.shape[0]))  # fmt: skip
     if not rows:
         return Table(names=_EST_NAMES, dtype=(int, str, *[float] * 6, int, int))
     return Table(rows=rows, names=_EST_NAMES)
@@ -1189,7 +1302,7 @@ def validate(
     psfs = sorted(by_psf)
     kw = dict(estimator=estimator, prior=prior, egrid=egrid, refine=refine)
     img = _shear_estimates(sg, e, s, fields, pairs=False, **kw)
-    pairs = any(f["twin"] for f in man["fields"])
+    pairs = any(f["twin"] or f.get("noise_twin") for f in man["fields"])
     mc, fit_rows = _mc_rows(img, psfs)
     single = Table(rows=mc, names=_MC_NAMES)
     pair_tab = None
@@ -1210,16 +1323,18 @@ def validate(
     out.meta["fits"] = Table(rows=fit_rows, names=("psf", "component", "m", "m_err", "c", "c_err",
                                                    "rho"))  # fmt: skip
     out.meta["measured"] = measured
-    # bins (paper Table 2): a pair's value is the mean of its members'
-    partner = _partners(sg, fields) if pairs else np.full(len(sg), -1)
-    has = partner >= 0
+    # bins (paper Table 2): a group's value is the mean of its members'
+    gid = _groups(sg, fields)[0] if pairs else np.full(len(sg), -1)
+    has = gid >= 0
     bin_rows, bin_edges = [], {}
     for kind, spec in bins.items():
         v = np.asarray(sg[kind], float)
         if not np.isfinite(v).any():  # a quantity that this set's galaxies lack
             continue
         vb = v.copy()
-        vb[has] = 0.5 * (v[has] + v[partner[has]])
+        if has.any():
+            tot = np.bincount(gid[has], weights=v[has])
+            vb[has] = tot[gid[has]] / np.bincount(gid[has])[gid[has]]
         use = has if pairs else np.ones(len(sg), bool)
         sg["_bin_" + kind] = np.where(use, vb, np.nan)
         edges = _bin_edges(np.asarray(sg["_bin_" + kind]), spec, np.asarray(pg[kind], float))
@@ -1447,6 +1562,20 @@ def _fmt_row(r) -> str:
 _MC_HEAD = ["| PSF | m1 | c1 | m2 | c2 | Q | galaxies |", "|---|---|---|---|---|---|---|"]
 
 
+def _group_words(man: dict) -> str:
+    """How a set's renderings are grouped for the estimates, in words."""
+    rot = any(f["twin"] for f in man["fields"])
+    neg = any(f.get("noise_twin") for f in man["fields"])
+    parts = ["image"]
+    if rot:
+        parts.append("rotated twin")
+    if neg:
+        parts.append("noise twins")
+    why = [w for w, on in (("shape noise", rot), ("the noise's first order", neg)) if on]
+    return (" + ".join(parts) + " (matched galaxy by galaxy; " + " and ".join(why)
+            + " cancel" + ("s" if len(why) == 1 else "") + ")")
+
+
 def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
     """Write the Markdown report of :func:`validate` and its PNG figures beside it.
 
@@ -1494,8 +1623,7 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
     n_est = len(meta["estimates"])
     lines = [f"# pylensfit validation: {man['kind']} ({man['dir']})", "",
              f"Estimator `{meta['estimator']}`; shear per "
-             + ("image + rotated twin (pairs matched galaxy by galaxy; shape noise cancels)"
-                if meta["mode"] == "pairs" else "image")
+             + (_group_words(man) if meta["mode"] == "pairs" else "image")
              + f", {n_est} estimates. Prior from the zero-shear fields: {meta['prior']!r}"
              + ("" if meta.get("bulge_weights") is None else
                 "; bulge-fraction prior " + ", ".join(
