@@ -138,11 +138,11 @@ def test_step2_shears_and_twins(step2):
 def test_noise_twins(tmp_path):
     """``noise_twins=True``: every shear field has a twin with the same objects and the
     same noise field negated; nothing else changes, and the seeds of the other fields are
-    those of the set without them."""
+    those of the set without them, rendered in parallel or not."""
     from pylensfit.validation import STEP2_PSFS
 
     kw = dict(ngal=240, seed=6, n_shear=1, psfs=STEP2_PSFS[:1], field_size=200)
-    d = simulate_step("step2", tmp_path / "n", noise_twins=True, **kw)
+    d = simulate_step("step2", tmp_path / "n", noise_twins=True, jobs=2, **kw)
     d0 = simulate_step("step2", tmp_path / "o", **kw)
     man, man0 = read_manifest(d), read_manifest(d0)
     shear = {f["file"]: f for f in man["fields"] if f["role"] == "shear"}
@@ -162,7 +162,8 @@ def test_noise_twins(tmp_path):
             assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), c
         with fits.open(d / a) as ha, fits.open(d / b) as hb, fits.open(d0 / a) as h0:
             pa, pb = ha[0].data.astype(float), hb[0].data.astype(float)
-            assert np.array_equal(ha[0].data, h0[0].data)  # the set without them: the same
+            # the set without them (and rendered by one process): the same
+            assert np.array_equal(ha[0].data, h0[0].data)
         half_diff, mean = (pa - pb) / 2, (pa + pb) / 2 - sky
         assert np.std(half_diff) == pytest.approx(sigma, rel=0.02)  # the noise, negated
         # the mean of the two has no noise: between the objects, nothing
@@ -600,6 +601,30 @@ def test_validate_takes_the_size_prior_from_the_zero_shear_field(tmp_path, monke
     calls.clear()
     validate(d, config=cfg, progress=False, bins={})
     assert calls == []
+
+
+def test_validate_groups_noise_twins(tmp_path):
+    """A set with noise twins: ``validate`` sums each galaxy's four renderings (image,
+    rotated twin, and both with the noise negated), so that the shape noise and the
+    noise's first order cancel: the group errors are a small fraction of the single
+    images', and the report says how the renderings were grouped."""
+    from pylensfit.validation import STEP2_PSFS, validate
+
+    d = simulate_step("step2", tmp_path / "s2n", ngal=800, seed=9, n_shear=1,
+                      psfs=STEP2_PSFS[:1], noise_twins=True, jobs=2)  # fmt: skip
+    res = validate(d, config=_exponential(), progress=False, bins={},
+                   report=tmp_path / "report.md")  # fmt: skip
+    m = res.meta
+    groups, img = m["pairs"], m["images"]
+    assert m["mode"] == "pairs" and len(groups) == 1 and len(img) == 4
+    assert groups["n"][0] == 4 * groups["n_pair"][0] and groups["n_pair"][0] > 50
+    assert groups["n_pair"][0] <= img["n"].min()
+    # a pair leaves the noise (0.7 of a single image's error at most, as above); a group
+    # of four cancels its first order as well
+    assert groups["g1_err"][0] < 0.3 * np.median(img["g1_err"])
+    assert groups["g2_err"][0] < 0.3 * np.median(img["g2_err"])
+    text = (tmp_path / "report.md").read_text()
+    assert "image + rotated twin + noise twins" in text
 
 
 def test_step2_flux_does_not_follow_the_shear():

@@ -273,6 +273,8 @@ def simulate_step(
     prior_ngal: int | None = None,
     twins: bool | None = None,
     noise_twins: bool = False,
+    jobs: int = 1,
+    progress: bool = False,
 ) -> Path:
     """Simulate a STEP1- or STEP2-like validation set with GalSim.
 
@@ -331,6 +333,11 @@ def simulate_step(
         by a set whose independent noise leaves them at ~5e-4. ``ngal`` counts the
         renderings, so the set holds half as many distinct galaxies. Off by default
         (a set from a given seed is the same as before the option existed).
+    jobs : int
+        Fields rendered in parallel by this many processes (the pipeline's runner); the
+        set is the same for any ``jobs``: every field's seeds are drawn first, in order.
+    progress : bool
+        Show a progress bar over the fields.
 
     Returns
     -------
@@ -362,7 +369,6 @@ def simulate_step(
     prior_size = (_field_size(prior_ngal, len(psfs), spacing, star_fraction)
                   if prior_ngal else size)  # fmt: skip
     pixel = _PIXEL[kind]
-    render = simulate_field if kind == "step1" else render_step2_field
     common = dict(
         size=size,
         spacing=spacing,
@@ -380,12 +386,13 @@ def simulate_step(
 
     fields = []
     star_files = []
+    tasks = []  # every field's seeds drawn here, in order; rendered below
     for k, psf in enumerate(psfs):
         star_file = f"psf{k}_stars.fits"
         s_obj, s_noise = seeds()
         sspec = _spec_for(psf, **{**common, "size": star_size, "star_fraction": 1.0})
-        img, w, truth = simulate_field(sspec, seed=s_obj, noise_seed=s_noise)
-        write_field(out / star_file, img, w, sspec, truth=truth)
+        tasks.append({"render": "step1", "spec": sspec, "seed": s_obj, "noise_seed": s_noise,
+                      "path": str(out / star_file)})  # fmt: skip
         star_files.append(
             {
                 "file": star_file,
@@ -393,14 +400,13 @@ def simulate_step(
                 "psf_params": dict(psf),
                 "seed": s_obj,
                 "noise_seed": s_noise,
-                "n_star": len(truth),
             }
         )
-        jobs = [("prior", None, 0.0, 0.0, False, False)]
-        jobs += [("shear", j, g1, g2, t, ng) for j, (g1, g2) in enumerate(shears)
+        todo = [("prior", None, 0.0, 0.0, False, False)]
+        todo += [("shear", j, g1, g2, t, ng) for j, (g1, g2) in enumerate(shears)
                  for t in twins for ng in negs]  # fmt: skip
         obj_seed = {}
-        for role, j, g1, g2, twin, neg in jobs:
+        for role, j, g1, g2, twin, neg in todo:
             if role == "prior":
                 name = f"psf{k}_prior.fits"
             else:
@@ -413,9 +419,8 @@ def simulate_step(
                 obj_seed[j] = s_obj
             kw = {**common, "size": prior_size} if role == "prior" else common
             spec = _spec_for(psf, **kw, g1=g1, g2=g2, rotate=twin, noise_sign=-1.0 if neg else 1.0)
-            img, w, truth = render(spec, seed=s_obj, noise_seed=s_noise)
-            write_field(out / name, img, w, spec, truth=truth)
-            n_gal = int((~np.asarray(truth["is_star"])).sum())
+            tasks.append({"render": kind, "spec": spec, "seed": s_obj, "noise_seed": s_noise,
+                          "path": str(out / name)})  # fmt: skip
             fields.append(
                 {
                     "file": name,
@@ -430,10 +435,17 @@ def simulate_step(
                     "star_file": star_file,
                     "seed": s_obj,
                     "noise_seed": s_noise,
-                    "n_gal": n_gal,
-                    "n_obj": len(truth),
                 }
             )
+    from .pipeline import _run
+
+    counts = {}
+    for t, res in _run(_render_task, tasks, jobs, None, "fields", progress):
+        counts[Path(t["path"]).name] = res
+    for f in star_files:
+        f["n_star"] = counts[f["file"]][1]
+    for f in fields:
+        f["n_gal"], f["n_obj"] = counts[f["file"]]
     manifest = {
         "kind": kind,
         "pixel_scale_arcsec": pixel,
@@ -455,6 +467,18 @@ def simulate_step(
     with open(out / "manifest.json", "w") as fh:
         json.dump(manifest, fh, indent=1, default=list)
     return out
+
+
+def _render_task(task: dict) -> tuple[int, int]:
+    """Render one field of a set and write it (a worker of :func:`simulate_step`).
+
+    Returns its numbers of galaxies and of objects.
+    """
+    render = simulate_field if task["render"] == "step1" else render_step2_field
+    spec = task["spec"]
+    img, w, truth = render(spec, seed=task["seed"], noise_seed=task["noise_seed"])
+    write_field(task["path"], img, w, spec, truth=truth)
+    return int((~np.asarray(truth["is_star"])).sum()), len(truth)
 
 
 def read_manifest(directory: str | Path) -> dict:
@@ -510,6 +534,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--twins", action=argparse.BooleanOptionalAction, default=None,
                    help="a 90-degree-rotated twin of every shear field (default: step2 "
                         "yes, step1 no); with twins the shape noise cancels in validate")
+    p.add_argument("--jobs", type=int, default=1, help="fields rendered in parallel")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--noise-twins", action="store_true",
                    help="a noise twin of every shear field (the same noise negated): the "
                         "noise's first-order effect cancels in validate, resolving c per "
@@ -525,6 +551,8 @@ def main(argv: list[str] | None = None) -> int:
         n_shear=a.nshear,
         twins=a.twins,
         noise_twins=a.noise_twins,
+        jobs=a.jobs,
+        progress=not a.quiet,
     )
     man = read_manifest(d)
     print(
@@ -1795,7 +1823,8 @@ def quick_validation(
             if progress:
                 print(f"quick tier: simulating {kind} ({n[kind]} galaxies) in {d}", flush=True)
             simulate_step(kind, d, ngal=int(n[kind]), seed=int(seed + i),
-                          prior_ngal=QUICK_PRIOR_NGAL[kind])  # fmt: skip
+                          prior_ngal=QUICK_PRIOR_NGAL[kind], jobs=jobs,
+                          progress=progress)  # fmt: skip
         t1 = time.perf_counter()
         if progress:
             print(f"quick tier: validating {kind}", flush=True)
