@@ -465,6 +465,35 @@ def test_diagnosis_states():
     assert d["sigma_c"][0] == "not met" and "more than noise" in d["sigma_c"][1]
     d = _diagnose(res(0.0, 0.05, [3e-4, -3e-4, 0.0], 5e-4, 500))
     assert "too small" in d["m"][1] and "consistent with noise" in d["sigma_c"][1]
+    assert "chi-square of c over PSFs" in d["sigma_c"][1]
+
+
+def test_c_scatter_coverage():
+    """The spread of c over PSFs beyond its errors: the upper limit covers the true spread
+    at its confidence, the estimate converges on many PSFs, and without a spread the
+    chi-square's p is uniform."""
+    from pylensfit.validation import c_scatter
+
+    rng = np.random.default_rng(5)
+    err = np.array([1.5e-4, 2e-4, 2e-4, 2.5e-4, 3e-4])  # five PSFs, unequal errors
+    n_sim, true = 2000, 3e-4
+    below, p_small = 0, 0
+    for _ in range(n_sim):
+        c = 4e-4 + true * rng.standard_normal(5) + err * rng.standard_normal(5)
+        below += c_scatter(c, err)["sigma_upper"] < true
+        c0 = -2e-4 + err * rng.standard_normal(5)
+        p_small += c_scatter(c0, err)["p"] < 0.05
+    # binomial sd of a 5 % rate over 2000 draws: 0.5 %
+    assert 0.035 < below / n_sim < 0.065
+    assert 0.035 < p_small / n_sim < 0.065
+    many = np.full(2000, 2e-4)
+    r = c_scatter(true * rng.standard_normal(2000) + many * rng.standard_normal(2000), many)
+    assert r["sigma_hat"] == pytest.approx(true, rel=0.08) and r["dof"] == 1999
+    assert r["sigma_upper"] > r["sigma_hat"]
+    # no spread beyond the errors: the estimate is 0; non-finite rows are skipped
+    r = c_scatter([1e-4, 1e-4, 1e-4, np.nan], [2e-4, 2e-4, 2e-4, 2e-4])
+    assert r["sigma_hat"] == 0.0 and r["sigma_upper"] == 0.0 and r["dof"] == 2
+    assert np.isnan(c_scatter([1e-4], [1e-4])["chi2"])
 
 
 def _flat():

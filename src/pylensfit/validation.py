@@ -66,6 +66,7 @@ __all__ = [
     "quality_factor",
     "twin_shear",
     "group_shear",
+    "c_scatter",
     "bin_index",
     "validate",
     "write_report",
@@ -988,8 +989,50 @@ def _nanstd(x) -> float:
     return float(x.std()) if x.size else math.nan
 
 
+def c_scatter(c: np.ndarray, c_err: np.ndarray, cl: float = 0.95) -> dict[str, float]:
+    """The spread of one component of ``c`` over PSFs beyond what its errors give.
+
+    With ``c_k = c0 + d_k + n_k``, ``d_k`` a PSF-dependent offset of spread ``sigma`` and
+    ``n_k`` the fit's noise of standard deviation ``c_err[k]``, the statistic
+    ``chi2(sigma) = sum_k (c_k - c_hat)^2 / (c_err_k^2 + sigma^2)`` (``c_hat`` the mean
+    weighted by ``1 / (c_err_k^2 + sigma^2)``) follows a chi-square with ``n - 1``
+    degrees of freedom. Returns ``chi2`` at ``sigma = 0`` with its ``dof`` and ``p``
+    (the chance of a larger one from the errors alone), the estimate ``sigma_hat`` (the
+    root of ``chi2(sigma) = n - 1``, 0 when ``chi2(0) < n - 1``) and the upper limit
+    ``sigma_upper`` at confidence ``cl`` (the root of ``chi2(sigma)`` = its
+    ``1 - cl`` quantile: larger spreads would give so small a ``chi2`` less often than
+    ``1 - cl``; 0 when even ``sigma = 0`` does).
+    """
+    from scipy.optimize import brentq
+    from scipy.stats import chi2 as chi2_dist
+
+    c, e = np.asarray(c, dtype=float), np.asarray(c_err, dtype=float)
+    ok = np.isfinite(c) & np.isfinite(e) & (e > 0)
+    c, e = c[ok], e[ok]
+    nan = {"chi2": math.nan, "dof": 0, "p": math.nan, "sigma_hat": math.nan,
+           "sigma_upper": math.nan}  # fmt: skip
+    if c.size < 2:
+        return nan
+
+    def chi2(sig: float) -> float:
+        w = 1.0 / (e**2 + sig**2)
+        return float(np.sum(w * (c - np.sum(w * c) / np.sum(w)) ** 2))
+
+    dof = c.size - 1
+    x0 = chi2(0.0)
+    hi = 10.0 * (float(np.ptp(c)) + float(e.max()))  # chi2(hi) is far below any quantile
+
+    def root(target: float) -> float:
+        return 0.0 if x0 <= target else float(brentq(lambda s: chi2(s) - target, 0.0, hi))
+
+    return {"chi2": x0, "dof": dof, "p": float(chi2_dist.sf(x0, dof)),
+            "sigma_hat": root(float(dof)),
+            "sigma_upper": root(float(chi2_dist.ppf(1.0 - cl, dof)))}  # fmt: skip
+
+
 def _summary(per: Table) -> dict[str, float]:
-    """``<m>`` over PSFs and components, its errors, ``sigma_c`` and its statistical floor."""
+    """``<m>`` over PSFs and components, its errors, ``sigma_c``, its statistical floor and
+    the spread of ``c`` beyond the errors (:func:`c_scatter`)."""
     ms = np.concatenate([per["m1"], per["m2"]]).astype(float)
     me = np.concatenate([per["m1_err"], per["m2_err"]]).astype(float)
     ok = np.isfinite(ms) & np.isfinite(me)
@@ -1006,7 +1049,18 @@ def _summary(per: Table) -> dict[str, float]:
         "sigma_c_stat": float(np.hypot(np.sqrt(_nanmean(e1**2)), np.sqrt(_nanmean(e2**2)))),
         "mean_c1": _nanmean(c1),
         "mean_c2": _nanmean(c2),
+        **_intrinsic_sigma_c(c1, e1, c2, e2),
     }
+
+
+def _intrinsic_sigma_c(c1, e1, c2, e2) -> dict[str, float]:
+    """``sigma_c`` of the offsets alone, the noise taken out (:func:`c_scatter` per
+    component, combined as the paper's ``sqrt(sigma_c1^2 + sigma_c2^2)``)."""
+    a, b = c_scatter(c1, e1), c_scatter(c2, e2)
+    return {"sigma_c_hat": float(math.hypot(a["sigma_hat"], b["sigma_hat"])),
+            "sigma_c_upper": float(math.hypot(a["sigma_upper"], b["sigma_upper"])),
+            "c1_chi2": a["chi2"], "c2_chi2": b["chi2"], "c_dof": a["dof"],
+            "c1_p": a["p"], "c2_p": b["p"]}  # fmt: skip
 
 
 def _bin_edges(values: np.ndarray, spec, extra: np.ndarray) -> np.ndarray:
@@ -1244,7 +1298,10 @@ def validate(
         One row per PSF and a last row ``all`` (a joint fit): ``m1, m1_err, c1, c1_err,
         m2, m2_err, c2, c2_err, Q, n_gal``. ``meta`` holds ``mean_m`` (over PSFs and
         components), ``mean_m_err`` (its error), ``mean_m_err_paper`` (eq. averror),
-        ``sigma_c``, ``sigma_c_stat`` (what the fits' errors alone give), ``prior``,
+        ``sigma_c``, ``sigma_c_stat`` (what the fits' errors alone give),
+        ``sigma_c_hat`` and ``sigma_c_upper`` (the offsets' own spread over PSFs with the
+        noise taken out, and its 95 % upper limit: :func:`c_scatter`; ``c1_chi2``,
+        ``c2_chi2``, ``c_dof``, ``c1_p``, ``c2_p`` its chi-squares), ``prior``,
         ``mode`` (``"pairs"`` or ``"images"``), ``estimates`` (the per-image or per-pair
         table the fits used), ``images`` (single-image estimates), ``pairs`` (step2),
         ``single`` (step2: the per-PSF fit table from single images), ``fits`` (per PSF and
@@ -1414,6 +1471,12 @@ def _diagnose(res: Table) -> dict[str, Any]:
             else "more than noise: PSF residuals (see the PSF table)"
         )
         d["sigma_c"] = ("not met", f"sigma_c = {sc:.2e} > {TARGETS['sigma_c']:.0e}; {why}")
+    up = meta.get("sigma_c_upper", math.nan)
+    if np.isfinite(up):
+        d["sigma_c"] = (d["sigma_c"][0], d["sigma_c"][1] + (
+            f"; the offsets' own spread (noise taken out) {meta['sigma_c_hat']:.1e}, "
+            f"< {up:.1e} at 95 % (chi-square of c over PSFs {meta['c1_chi2']:.1f} and "
+            f"{meta['c2_chi2']:.1f} on {meta['c_dof']})"))  # fmt: skip
     q = float(res["Q"][-1])
     if np.isfinite(q) and q >= TARGETS["Q"]:
         d["Q"] = ("met", f"Q = {q:.0f} >= {TARGETS['Q']:.0f}")
@@ -1661,7 +1724,9 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
                         strict=True))) + ".", "",
              f"<m> = {meta['mean_m']:+.4f} +- {meta['mean_m_err']:.4f} (paper eq. averror: "
              f"+- {meta['mean_m_err_paper']:.4f}), sigma_c = {meta['sigma_c']:.2e} "
-             f"(from the errors alone {meta['sigma_c_stat']:.2e}), Q = {res['Q'][-1]:.0f}", "",
+             f"(from the errors alone {meta['sigma_c_stat']:.2e}; the offsets' own spread "
+             f"{meta.get('sigma_c_hat', math.nan):.1e}, < "
+             f"{meta.get('sigma_c_upper', math.nan):.1e} at 95 %), Q = {res['Q'][-1]:.0f}", "",
              *_MC_HEAD]  # fmt: skip
     lines += [_fmt_row(r) for r in res]
     lines += ["", f"![g_meas - g_true]({pngs['resid'].name})", "",
