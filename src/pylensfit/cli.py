@@ -6,6 +6,7 @@
     pylensfit prior CATALOG... -o PRIOR
     pylensfit shear CATALOG... [--prior PRIOR] [--bin-by COLUMN:EDGES]
     pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S] [--twins] [--noise-twins]
+        [--jobs N]
     pylensfit validate DIR [--report FILE]   # m, c, sigma_c, Q per PSF
     pylensfit validate --precision [--ngal N] [--psf NAME...]   # paired +-g: m to 1e-3
     pylensfit validate --convergence [--out DIR]   # grid convergence (paper Figure 2)
