@@ -93,7 +93,7 @@ def main(argv=None) -> int:
            for m, c in cats.items()}  # fmt: skip
     egrid = cats["sep"][0].meta["egrid"]
     prior = estimate_prior(np.asarray(gal["sep"]["lnL"]), egrid)
-    pairs = any(f["twin"] for f in sel)
+    pairs = any(f["twin"] or f.get("noise_twin") for f in sel)
     keyed = {}
     for m, g in gal.items():
         sh = shapes(np.asarray(g["lnL"]), egrid, prior)
@@ -101,11 +101,12 @@ def main(argv=None) -> int:
         s = np.column_stack([sh["sens1"], sh["sens2"]])
         img = np.asarray(g["image"]).astype(str)
         t = np.asarray(g["truth_index"])
-        if pairs:  # each galaxy of a first image with its twin
-            p = V._partners(g, fields)
-            i = np.flatnonzero((p >= 0) & (t >= 0))
-            i = i[[not fields[n]["twin"] for n in img[i]]]
-            e, s = e[i] + e[p[i]], s[i] + s[p[i]]
+        if pairs:  # each galaxy's renderings summed, keyed by the group's first image
+            gid, base = V._groups(g, fields)
+            mem = V._group_members(gid)
+            i = mem[:, 0]
+            img = base.astype(str)
+            e, s = e[mem].sum(axis=1), s[mem].sum(axis=1)
         else:
             i = np.flatnonzero(t >= 0)
             e, s = e[i], s[i]

@@ -414,10 +414,10 @@ def simulate_step(
                 name = f"psf{k}_g{j}" + ("_rot" if twin else "") + ("_neg" if neg else "") + ".fits"
             if not neg:  # a noise twin draws no seeds: the same objects and noise field
                 s_obj, s_noise = seeds()
-            if twin and not neg:
-                s_obj = obj_seed[j]  # the same objects, rotated; independent noise
-            elif not neg:
-                obj_seed[j] = s_obj
+                if twin:
+                    s_obj = obj_seed[j]  # the same objects, rotated; independent noise
+                else:
+                    obj_seed[j] = s_obj
             kw = {**common, "size": prior_size} if role == "prior" else common
             spec = _spec_for(psf, **kw, g1=g1, g2=g2, rotate=twin, noise_sign=-1.0 if neg else 1.0)
             tasks.append({"render": kind, "spec": spec, "seed": s_obj, "noise_seed": s_noise,
@@ -820,28 +820,6 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
     return out
 
 
-def _partners(gal: Table, fields: dict[str, dict]) -> np.ndarray:
-    """Row of each galaxy's 90-degree twin in ``gal`` (``-1``: none), matched by truth index.
-
-    Noise twins (``..._neg`` fields) have no partner here; :func:`_groups` holds them.
-    """
-    partner = np.full(len(gal), -1, dtype=np.int64)
-    images = np.asarray(gal["image"]).astype(str)
-    tidx = np.asarray(gal["truth_index"])
-    twin_of = {(f["psf"], f["shear_index"]): f["file"] for f in fields.values()
-               if f["role"] == "shear" and f["twin"] and not f.get("noise_twin")}  # fmt: skip
-    for f in fields.values():
-        if (f["role"] != "shear" or f["twin"] or f.get("noise_twin")
-                or (f["psf"], f["shear_index"]) not in twin_of):  # fmt: skip
-            continue
-        a = np.flatnonzero((images == f["file"]) & (tidx >= 0))
-        b = np.flatnonzero((images == twin_of[(f["psf"], f["shear_index"])]) & (tidx >= 0))
-        _, ia, ib = np.intersect1d(tidx[a], tidx[b], return_indices=True)
-        partner[a[ia]] = b[ib]
-        partner[b[ib]] = a[ia]
-    return partner
-
-
 def _groups(gal: Table, fields: dict[str, dict]) -> tuple[np.ndarray, np.ndarray]:
     """Each galaxy's group of renderings: an image with its rotated and noise twins.
 
@@ -882,7 +860,7 @@ def _group_members(gid: np.ndarray) -> np.ndarray:
     """``(n_groups, k)`` rows of each group's members from ``gid`` (every group of size k)."""
     use = np.flatnonzero(gid >= 0)
     if use.size == 0:
-        return np.zeros((0, 0), dtype=np.int64)
+        return np.zeros((0, 1), dtype=np.int64)
     order = use[np.argsort(gid[use], kind="stable")]
     counts = np.bincount(gid[use])
     counts = counts[counts > 0]
@@ -922,12 +900,13 @@ def _shear_estimates(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str,
             rows.append((f["psf"], f["file"], f["g1"], f["g2"], *res, int(sel.sum()), 0))
     else:
         gid, base = _groups(gal, fields)
+        members = _group_members(gid)
+        members_base = base[members[:, 0]]
         for name in np.unique(images):
             f = fields[name]
             if f["twin"] or f.get("noise_twin"):
                 continue
-            sel = np.flatnonzero((base == name) & (gid >= 0))
-            rows_k = sel[_group_members(gid[sel] - (gid[sel].min() if sel.size else 0))]
+            rows_k = members[members_base == name]
             try:
                 est = group_shear(e[rows_k], s[rows_k])
                 res = (est.g1, est.g1_err, est.g2, est.g2_err)
