@@ -16,11 +16,20 @@ scatter by construction. Every galaxy is rendered with GalSim four times:
 
 with ``g = (g0, g0)`` (``g0 = 0.02`` by default): the rotation cancels the intrinsic
 ellipticity in the mean, the shared noise at ``+g`` and ``-g`` cancels the noise in the
-difference. Per sample (a PSF, a bin of S/N, size, morphology or bulge fraction)
+difference. With :class:`PrecisionSpec` ``noise_twins`` every galaxy has four more
+renderings, ``k = 4..7``: those of ``k - 4`` with the noise field negated (``-n_a``,
+``-n_b``). The noise's first-order effect on each posterior mean is odd in the noise and
+cancels between a rendering and its noise twin (antithetic variates), in ``c`` as in
+``m``; its second-order effects (noise bias) are even and stay, so nothing the
+measurement owes is cancelled. Without them ``c`` carries the noise of every rendering,
+which the ``+-g`` pairing adds rather than cancels.
+
+Per sample (a PSF, a bin of S/N, size, morphology or bulge fraction)
 
     m_i = (g_hat_i(+g) - g_hat_i(-g)) / (2 g0) - 1,    c_i = (g_hat_i(+g) + g_hat_i(-g)) / 2,
 
-where ``g_hat(+-g)`` is the shear of renderings 0-1 (2-3) measured as a user would: the
+where ``g_hat(+-g)`` is the shear of renderings 0-1 (2-3; with noise twins 0, 1, 4, 5 and
+2, 3, 6, 7) measured as a user would: the
 ellipticity prior comes from a separate *unsheared* calibration sample of the same
 population (:func:`pylensfit.prior.estimate_prior`), never from the sheared renderings;
 the PSF is the true one (this mode measures the shape measurement, not the PSF model).
@@ -124,7 +133,7 @@ class PrecisionSpec:
     Attributes
     ----------
     ngal : int
-        Galaxies (each rendered four times).
+        Galaxies (each rendered four times, eight with ``noise_twins``).
     g : float
         Shear per component: renderings at ``+(g, g)`` and ``-(g, g)``.
     psfs : tuple of dict
@@ -188,6 +197,13 @@ class PrecisionSpec:
         from 0.0009 to 0.0004 (per PSF from 0.0008-0.0019 to 0.0005-0.0008), its mean
         unchanged (``benchmarks/precision_size_prior_noise.py``, twenty-sixth session).
         False: drawn at random, as the main sample.
+    noise_twins : bool
+        Render every galaxy eight times instead of four: the four of the module table and
+        the same four with their noise fields negated (the module docstring). The
+        renderings ``k = 0..3`` are those of the set without twins (same galaxies, same
+        noise): the twins are added, nothing else is drawn. Per rendering, m's and c's
+        errors fall by about 1.4 and 2.3 (``benchmarks/README.md``, forty-second
+        session).
     seed : int
         Seed: everything is a function of it.
     """
@@ -207,6 +223,7 @@ class PrecisionSpec:
     block_size: int = 500
     ncal: int = 80_000
     stratified_calibration: bool = True
+    noise_twins: bool = False
     seed: int = 1
     extra: dict = field(default_factory=dict)
 
@@ -398,8 +415,9 @@ def render_block(
     Returns
     -------
     stamps : numpy.ndarray
-        ``(n, 4, N, N)`` renderings in the order of the module table (``(n, 1, N, N)``
-        for the calibration sample), indexed ``[.., y, x]``.
+        ``(n, R, N, N)`` renderings in the order of the module table, ``R = 4`` (8 with
+        ``spec.noise_twins``; ``(n, 1, N, N)`` for the calibration sample), indexed
+        ``[.., y, x]``.
     psf : numpy.ndarray
         ``(N, N)`` the PSF image (pixel response included, unit sum).
     truth : astropy.table.Table
@@ -432,6 +450,8 @@ def render_block(
         for k, (g, rot) in enumerate(shears):
             obj = gal.rotate(90 * galsim.degrees) if rot else gal
             out[a, k] = _draw(galsim.Convolve(obj.shear(g1=g, g2=g), psf), n_stamp, off)
+    if spec.noise_twins and not calibration:  # the same objects; their noise negated below
+        out = np.concatenate([out, out], axis=1)
     _flux_and_noise(out, t, spec, block, reference_norm(spec, psf_index, n_stamp),
                     calibration=calibration, noise=noise)  # fmt: skip
     return out, psf_img, t
@@ -466,7 +486,8 @@ def _flux_and_noise(out: np.ndarray, t: Table, spec: PrecisionSpec, block: int, 
     """Scale unit-flux renderings ``out`` (``(n, 1 or 4, N, N)``) in place to each galaxy's
     flux, ``t["snr_ref"] * noise_sigma / ref`` for the PSF's :func:`reference_norm`
     ``ref`` (``t["flux"]`` records it, ``t["snr"]`` becomes the S/N of the first
-    rendering), and add the block's noise, the same field at +g and -g."""
+    rendering), and add the block's noise, the same field at +g and -g (renderings 4-7,
+    the noise twins, where there are eight: the same fields negated)."""
     sig = spec.noise_sigma
     n, _, n_stamp, _ = out.shape
     flux = np.asarray(t["snr_ref"], dtype=float) * sig / ref
@@ -484,6 +505,21 @@ def _flux_and_noise(out: np.ndarray, t: Table, spec: PrecisionSpec, block: int, 
             out[:, 2] += na  # the same noise at +g and -g
             out[:, 1] += nb
             out[:, 3] += nb
+            if out.shape[1] == 8:  # the noise twins
+                out[:, 4] -= na
+                out[:, 6] -= na
+                out[:, 5] -= nb
+                out[:, 7] -= nb
+
+
+def _shear_sets(n_renderings: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The renderings at ``+g`` and at ``-g``, for four renderings per galaxy or eight
+    (with noise twins): ``k % 4 < 2`` is ``+g``."""
+    if n_renderings not in (4, 8):
+        raise ValueError(f"a galaxy has 4 or 8 renderings (with noise twins), got "
+                         f"{n_renderings}")  # fmt: skip
+    ks = range(n_renderings)
+    return tuple(k for k in ks if k % 4 < 2), tuple(k for k in ks if k % 4 >= 2)
 
 
 def _n_blocks(n: int, size: int) -> int:
@@ -555,13 +591,13 @@ def reduce_likelihoods(
 
 def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4,
                       bulge_weights: np.ndarray | None = None,
-                      stencil: int | None = None):  # fmt: skip
-    """:func:`reduce_likelihoods` of the fits of ``n`` galaxies' four renderings.
+                      stencil: int | None = None, renderings: int = 4):  # fmt: skip
+    """:func:`reduce_likelihoods` of the fits of ``n`` galaxies' four (or eight) renderings.
 
     Parameters
     ----------
     fits : StampFits
-        Fits of the ``4 n`` stamps, galaxy by galaxy in the module's rendering order.
+        Fits of the ``R n`` stamps, galaxy by galaxy in the module's rendering order.
     prior : Prior
         The prior.
     g : float
@@ -574,29 +610,32 @@ def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4,
         estimate_bulge_weights`); the fits' uniform mixture if ``None``.
     stencil : int, optional
         As :func:`reduce_likelihoods`.
+    renderings : int
+        Renderings per galaxy ``R``: 4, or 8 with noise twins.
 
     Returns
     -------
     Q : numpy.ndarray
-        ``(n, 4, 12)`` per-rendering quantities (NaN where not measured).
+        ``(n, R, 12)`` per-rendering quantities (NaN where not measured).
     usable : numpy.ndarray
-        ``(n, 4)`` measured renderings.
+        ``(n, R)`` measured renderings.
     """
+    plus, minus = _shear_sets(renderings)
+    R = int(renderings)
     ok = _usable(fits)
-    n = ok.size // 4
+    n = ok.size // R
     lnL = fits.lnL
     if bulge_weights is not None and fits.lnL_bulge is not None:
         lnL = mix_bulge_fractions(fits.lnL_bulge, fits.lnL_star, bulge_weights)
-    Q = np.full((4 * n, _NQ), np.nan)
-    for k in range(4):  # the nominal shear differs between the renderings
-        sel = np.zeros(4 * n, bool)
-        sel[k::4] = True
-        sel &= ok
+    Q = np.full((R * n, _NQ), np.nan)
+    for ks, gn in ((plus, (g, g)), (minus, (-g, -g))):  # the nominal shear of each set
+        sel = np.zeros((n, R), bool)
+        sel[:, list(ks)] = True
+        sel = sel.ravel() & ok
         if np.any(sel):
-            gn = (g, g) if k < 2 else (-g, -g)
             Q[sel] = reduce_likelihoods(lnL[sel], fits.egrid, prior, gn, refine=refine,
                                         stencil=stencil)  # fmt: skip
-    return Q.reshape(n, 4, _NQ), ok.reshape(n, 4)
+    return Q.reshape(n, R, _NQ), ok.reshape(n, R)
 
 
 def _usable(fits) -> np.ndarray:
@@ -649,7 +688,7 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
         return res
     Q, usable = reduce_renderings(fits, task["prior"], spec.g, refine=cfg.output_refine,
                                   bulge_weights=task.get("bulge_weights"),
-                                  stencil=task.get("stencil"))  # fmt: skip
+                                  stencil=task.get("stencil"), renderings=nr)  # fmt: skip
     res["Q"] = Q.astype(np.float32)
     res["usable"] = usable
     res["r_best"] = fits.r_best.reshape(n, nr)[:, 0].astype(np.float32)
@@ -696,10 +735,10 @@ def bias_table(
     Parameters
     ----------
     Q : numpy.ndarray
-        ``(n_gal, 4, 12)`` per-rendering quantities (:func:`reduce_likelihoods`), in the
-        rendering order of the module table.
+        ``(n_gal, R, 12)`` per-rendering quantities (:func:`reduce_likelihoods`), in the
+        rendering order of the module table: ``R = 4``, or 8 with the noise twins.
     usable : numpy.ndarray
-        ``(n_gal, 4)`` measured renderings.
+        ``(n_gal, R)`` measured renderings.
     blocks : numpy.ndarray
         ``(n_gal,)`` jackknife block of each galaxy.
     g : float
@@ -707,7 +746,7 @@ def bias_table(
     groups : dict of str to numpy.ndarray, optional
         Named boolean ``(n_gal,)`` masks; default one group ``all``.
     selection : {"paired", "independent"}
-        ``paired``: a galaxy counts only if all four renderings are measured;
+        ``paired``: a galaxy counts only if all its renderings are measured;
         ``independent``: each rendering counts on its own.
     controls : numpy.ndarray, optional
         ``(n_gal, k)`` control variates: per-galaxy quantities whose population mean is
@@ -729,8 +768,9 @@ def bias_table(
     """
     Q = np.nan_to_num(np.asarray(Q, float))
     usable = np.asarray(usable, bool)
+    sets = _shear_sets(Q.shape[1])
     if selection == "paired":
-        w = np.repeat(usable.all(axis=1, keepdims=True), 4, axis=1)
+        w = np.repeat(usable.all(axis=1, keepdims=True), Q.shape[1], axis=1)
     elif selection == "independent":
         w = usable
     else:
@@ -747,7 +787,7 @@ def bias_table(
         # per block sums of the + and - renderings: (2, nb, 12) and (2, nb)
         T = np.zeros((2, nb, _NQ))
         N = np.zeros((2, nb))
-        for s, ks in enumerate(((0, 1), (2, 3))):
+        for s, ks in enumerate(sets):
             ww = w[:, ks] & mask[:, None]
             qs = np.einsum("ak,akq->aq", ww, Q[:, ks])
             for q in range(_NQ):
@@ -1051,13 +1091,17 @@ def precision(
         breakdown also has the group ``mean of PSFs`` (the PSFs' m and c averaged, the
         errors combined); plus the ``all`` rows with independent selection
         (``breakdown = "selection"``) and without the control variates (``breakdown =
-        "no controls"``). ``meta``:
+        "no controls"``); with ``spec.noise_twins``, the ``all`` and per-PSF rows of the
+        renderings ``k = 0..3`` alone (``breakdown = "no noise twins"``: the same
+        galaxies without their twins, for what the twins buy). ``meta``:
         ``prior``, ``spec``, ``timing`` (seconds and galaxies per second),
         ``flux_slope`` (the amplitude prior's power, its error and whether it was
         estimated; with ``amplitude_prior="flux"``), ``flux_bounds`` (per PSF, those
         estimated, with their errors, and the population's), the largest
         fixed-point Newton step ``fp_step`` and ``galaxies`` (per-galaxy truth).
     """
+    from astropy.table import vstack
+
     from .pipeline import _pool, _run
     from .prior import (
         _MIN_FLUX_RANGE_SAMPLE,
@@ -1273,17 +1317,23 @@ def precision(
     t = bias_table(Q, usable, gal["jk"], spec.g)
     t["breakdown"] = "no controls"
     tabs.append(t)
-    from astropy.table import vstack
-
+    if Q.shape[1] == 8:  # the same galaxies without their noise twins: what the twins buy
+        psf_groups = _breakdowns(gal, spec.psfs)["psf"] if npsf > 1 else {}
+        t = bias_table(Q[:, :4], usable[:, :4], gal["jk"], spec.g, controls=X,
+                       groups={"all": np.ones(len(gal), bool), **psf_groups})  # fmt: skip
+        if npsf > 1:
+            t = vstack([t[:1], _psf_mean(t[t["group"] != "all"])[_BIAS_COLUMNS], t[1:]])
+        t["breakdown"] = "no noise twins"
+        tabs.append(t)
     out = vstack(tabs)
     out = out[["breakdown", *[c for c in out.colnames if c != "breakdown"]]]
     # the fixed-point linearisation: distance of the estimate from the nominal shear
     step = 0.0
-    for s, ks in enumerate(((0, 1), (2, 3))):
+    for s, ks in enumerate(_shear_sets(Q.shape[1])):
         w = usable.all(axis=1)
         T = np.nan_to_num(Q[w][:, ks].astype(float)).sum(axis=(0, 1))
         gn = np.array([spec.g, spec.g]) * (1 if s == 0 else -1)
-        gh = _shear_from_sums(T, np.asarray(2.0 * w.sum()), gn, "fixed-point")
+        gh = _shear_from_sums(T, np.asarray(len(ks) * float(w.sum())), gn, "fixed-point")
         step = max(step, float(np.max(np.abs(gh - gn))))
     render_s += sum(r["render_s"] for r in res)
     fit_s += sum(r["fit_s"] + r["reduce_s"] for r in res)
@@ -1331,7 +1381,8 @@ def precision(
     out.meta["timing"] = {
         "total_s": total, "calibration_s": t_cal, "main_s": t_main,
         "render_cpu_s": render_s, "fit_cpu_s": fit_s, "jobs": jobs,
-        "galaxies_per_s": spec.ngal / t_main, "renderings_per_s": 4 * spec.ngal / t_main,
+        "galaxies_per_s": spec.ngal / t_main,
+        "renderings_per_s": Q.shape[1] * spec.ngal / t_main,
     }  # fmt: skip
     out.meta["galaxies"] = gal
     if report is not None:
@@ -1438,7 +1489,10 @@ def write_report(res: Table, path: str | Path) -> None:
     spec, tim = res.meta["spec"], res.meta["timing"]
     lines = [
         "# pylensfit precision run: paired ±g renderings with rotated twins", "",
-        f"{spec['ngal']} galaxies × 4 renderings, g = ±({spec['g']}, {spec['g']}), "
+        f"{spec['ngal']} galaxies × "
+        + ("8 renderings (each of the four with its noise twin, the noise negated)"
+           if spec.get("noise_twins") else "4 renderings")
+        + f", g = ±({spec['g']}, {spec['g']}), "
         f"{len(spec['psfs'])} PSFs, flux of reference S/N {spec['snr_range'][0]:g}-"
         f"{spec['snr_range'][1]:g} (dN/dF ∝ F^-{spec['snr_slope']:g}; the S/N of a round "
         "exponential of the median size, independent of each galaxy's shape and size), "
@@ -1498,7 +1552,7 @@ def write_report(res: Table, path: str | Path) -> None:
                 f"{_fmt(r['m2'], r['m2_err'])} | {_fmt(r['c1'], r['c1_err'], 5)} | "
                 f"{_fmt(r['c2'], r['c2_err'], 5)} | {r['n_gal']} | {cv} |"
             )
-        if bd not in ("all", "selection", "no controls"):
+        if bd not in ("all", "selection", "no controls", "no noise twins"):
             png = path.with_name(f"{path.stem}_{bd}.png")
             labels = list(dict.fromkeys(t["group"]))
             fig, axes = plt.subplots(1, 2, figsize=(max(10.0, 0.45 * len(labels)), 3.6),
