@@ -810,7 +810,7 @@ def test_given_size_and_bulge_priors_replace_the_estimates(monkeypatch):
 
 def test_cli_precision_e_refine_reaches_the_configuration(monkeypatch):
     """``validate --precision --e-refine 2`` fits with the precision mode's own configuration
-    refined (and a given one refined alike)."""
+    refined (and a given one refined alike); ``--noise-twins`` reaches the spec."""
     import pylensfit.precision as prec
     from pylensfit.cli import main
 
@@ -818,6 +818,7 @@ def test_cli_precision_e_refine_reaches_the_configuration(monkeypatch):
 
     def fake(spec, *, config=None, **kw):
         seen["config"] = config
+        seen["spec"] = spec
         raise SystemExit(0)
 
     monkeypatch.setattr(prec, "precision", fake)
@@ -828,6 +829,10 @@ def test_cli_precision_e_refine_reaches_the_configuration(monkeypatch):
     with pytest.raises(SystemExit):
         main(["validate", "--precision", "--ngal", "16", "-q"])
     assert seen["config"] is None  # the mode's default, unrefined
+    assert not seen["spec"].noise_twins
+    with pytest.raises(SystemExit):
+        main(["validate", "--precision", "--ngal", "16", "--noise-twins", "-q"])
+    assert seen["spec"].noise_twins and seen["spec"].ngal == 16
 
 
 def test_breakdowns_take_a_table_or_a_dict_and_bin_sersic_indices():

@@ -383,8 +383,8 @@ def build_parser() -> argparse.ArgumentParser:
     pv.add_argument("--block-size", type=int, default=500, help="galaxies per block")
     pv.add_argument("--noise-twins", action="store_true",
                     help="render every galaxy eight times: the four renderings and the same "
-                         "four with their noise negated (c's error per rendering about 2.3 "
-                         "times smaller, m's 1.4)")  # fmt: skip
+                         "four with their noise negated (at the same number of renderings "
+                         "c's error 2.9 times smaller, m's the same)")  # fmt: skip
     pv.add_argument("--scheduler", help="dask.distributed scheduler address")
     pv.add_argument("--true-prior", action="store_true",
                     help="diagnostic: use the population's true prior instead of estimating "
