@@ -287,6 +287,74 @@ def test_edge_objects_are_flagged(reference):
     np.testing.assert_array_equal(edge, near)
 
 
+def _true_psf(n=48, **kw):
+    """The simulated fields' PSF (``FieldSpec``'s Moffat) as the pipeline uses one."""
+    from pylensfit.simulate import _psf
+
+    img = _psf(FieldSpec(**kw)).drawImage(nx=n, ny=n, scale=1.0, use_true_center=False).array
+    return img.astype(np.float64)
+
+
+def test_a_given_psf_replaces_the_stars(fields, reference, tmp_path):
+    d, *_ = fields
+    true = _true_psf()
+    path = tmp_path / "true_psf.fits"
+    fits.PrimaryHDU(true).writeto(path)
+    cat = measure([d / "a.fits"], psf=path, config=CFG, prior=PRIOR, progress=False)
+    ref = reference[reference["image_index"] == 0]
+    # the same objects; no star stacked; the PSF is the file's image
+    np.testing.assert_array_equal(cat["x_detect"], ref["x_detect"])
+    assert not np.any(cat["psf_star"]) and np.any(ref["psf_star"])
+    np.testing.assert_allclose(cat.meta["psf_images"][0], true / true.sum(), atol=1e-12)
+    # the shapes agree with the stacked PSF's (its e is the truth's to ~0.002), and the
+    # PSF ellipticity the catalogue reports is the given image's
+    gal = (cat["fitclass"] == 0) & (ref["fitclass"] == 0)
+    assert gal.sum() > 100
+    assert np.median(np.abs(cat["e1"][gal] - ref["e1"][gal])) < 0.01
+    assert np.median(np.abs(cat["e2"][gal] - ref["e2"][gal])) < 0.01
+    assert abs(cat["PSF_e1"][0] - ref["PSF_e1"][0]) < 0.005
+    # arrays, one per image, give the same catalogue (PSF images of two sizes kept on the
+    # larger's side); so does the command line
+    same = measure([d / "a.fits", d / "b.fits"], psf=[true, _true_psf(n=64)], config=CFG,
+                   prior=PRIOR, progress=False)  # fmt: skip
+    np.testing.assert_array_equal(same["e1"][same["image_index"] == 0], cat["e1"])
+    assert same.meta["psf_images"].shape == (2, 64, 64)
+    np.testing.assert_allclose(same.meta["psf_images"][0][8:56, 8:56], true / true.sum(),
+                               atol=1e-12)  # fmt: skip
+    CFG.to_yaml(tmp_path / "cfg.yaml")
+    assert main(["measure", str(d / "a.fits"), "--psf", str(path), "--config",
+                 str(tmp_path / "cfg.yaml"), "-o", str(tmp_path / "c.fits"), "-q"]) == 0
+    cli = read_catalogue(tmp_path / "c.fits")
+    np.testing.assert_array_equal(cli["lnL"], cat["lnL"])
+    assert not np.any(cli["psf_star"])
+    # the PSF is what the fit deconvolves: one elongated along x by 0.15 more than the
+    # truth takes a part of that out of the galaxies' e1 (about the PSF's share of the
+    # observed size, which is under 1), and leaves e2
+    wrong = _true_psf(psf_e1=0.18)
+    w = measure([d / "a.fits"], psf=wrong, config=CFG, prior=PRIOR, progress=False)
+    de1 = np.mean(w["e1"][gal] - cat["e1"][gal])
+    de2 = np.mean(w["e2"][gal] - cat["e2"][gal])
+    assert -0.15 < de1 < -0.02 and abs(de2) < 0.2 * abs(de1)
+
+
+def test_a_given_psf_bad_input(fields, tmp_path):
+    d, *_ = fields
+    a = d / "a.fits"
+    with pytest.raises(InputError, match="not both"):
+        measure([a], psf=_true_psf(), stars=[d / "stars.fits"], config=CFG, prior=PRIOR,
+                progress=False)  # fmt: skip
+    with pytest.raises(InputError, match="2 PSF"):
+        measure([a], psf=[_true_psf(), _true_psf()], config=CFG, prior=PRIOR, progress=False)
+    with pytest.raises(InputError, match="nope.psf.fits: PSF file not found"):
+        measure([a], psf=tmp_path / "nope.psf.fits", config=CFG, prior=PRIOR, progress=False)
+    bad = _true_psf()
+    bad[3, 4] = np.nan
+    out = tmp_path / "out.fits"
+    with pytest.raises(InputError, match="the PSF for .*a.fits: .*1 non-finite pixel"):
+        measure([a], psf=bad, config=CFG, prior=PRIOR, output=out, progress=False)
+    assert not out.exists()
+
+
 def test_no_usable_star(tmp_path, caplog):
     p = tmp_path / "nostars.fits"
     _field(p, seed=7, size=256, star_fraction=0.0)

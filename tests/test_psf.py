@@ -6,7 +6,16 @@ import pytest
 
 from conftest import N, draw, galsim_model
 from pylensfit import Config, fit_stamps
-from pylensfit.psf import REASONS, PSFError, PSFResult, combine_psfs, stack_psf
+from pylensfit.psf import (
+    REASONS,
+    PSFError,
+    PSFResult,
+    combine_psfs,
+    psf_from_image,
+    psf_transform,
+    read_psf,
+    stack_psf,
+)
 
 PSF = galsim.Moffat(beta=3.5, fwhm=3.0).shear(g1=0.05, g2=-0.03)
 ROUND = galsim.Moffat(beta=3.5, fwhm=3.4)
@@ -256,3 +265,60 @@ def test_stacked_psf_gives_the_same_likelihood_peak(bright):
         assert np.argmax(f_stack.lnL[0]) == i
         assert np.hypot(*(f_stack.egrid[i] - e)) < cfg.e_step
         assert f_stack.r_best[0] == pytest.approx(f_true.r_best[0], abs=0.21)
+
+
+def _moffat_image(n=33, g1=0.06, g2=-0.04):
+    obj = galsim.Moffat(beta=3.5, fwhm=3.0).shear(g1=g1, g2=g2)
+    return obj.drawImage(nx=n, ny=n, scale=1.0, use_true_center=False).array.astype(np.float64)
+
+
+def test_psf_from_image_normalises_and_measures_like_a_stack():
+    img = _moffat_image()
+    res = psf_from_image(7.5 * img, source="model")
+    assert res.image.sum() == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(res.image, img / img.sum(), rtol=1e-12)
+    # the same adaptive moments as GalSim's on the same image: the sheared Moffat's
+    # shape, diluted a little by the pixel
+    hsm = galsim.hsm.FindAdaptiveMom(galsim.Image(img, scale=1.0)).observed_shape
+    assert (res.e1, res.e2) == pytest.approx((hsm.g1, hsm.g2), abs=1e-6)
+    assert 0.05 < res.e1 < 0.06 and -0.04 < res.e2 < -0.033
+    assert res.n_used == 0 and res.stars()["x"].size == 0 and res.source == "model"
+    # the transform the likelihood uses is that of the image, whatever its scale
+    np.testing.assert_allclose(psf_transform(res.image, 48), psf_transform(img, 48), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("image", "match"),
+    [(np.ones(9), "2-D"), (np.zeros((9, 9)), "non-positive sum"),
+     (np.where(np.eye(9) > 0, np.nan, 1.0), "9 non-finite pixel")],  # fmt: skip
+)
+def test_psf_from_image_refuses_bad_images(image, match):
+    with pytest.raises(PSFError, match=f"given: .*{match}"):
+        psf_from_image(image, source="given")
+
+
+def test_read_psf_plain_fits_and_psf_files(bright, tmp_path):
+    from astropy.io import fits
+    from astropy.table import Table
+
+    img = _moffat_image()
+    plain = tmp_path / "plain.fits"  # a PSF from another code: an image in an extension
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(img.astype(np.float32))]).writeto(plain)
+    res = read_psf(plain)
+    np.testing.assert_allclose(res.image, img / img.sum(), rtol=1e-6)
+    assert res.source == str(plain) and res.n_used == 0
+    # a stacked PSF written by the pipeline comes back whole, with its stars
+    psf = bright[0]
+    psf.write(tmp_path / "stack.psf.fits")
+    back = read_psf(tmp_path / "stack.psf.fits")
+    np.testing.assert_array_equal(back.image, psf.image)
+    assert back.n_used == psf.n_used > 0
+    # no image, not FITS: a PSFError naming the file
+    table_only = tmp_path / "table.fits"
+    fits.HDUList([fits.PrimaryHDU(), fits.table_to_hdu(Table({"a": [1.0]}))]).writeto(table_only)
+    with pytest.raises(PSFError, match="table.fits: no 2-D image"):
+        read_psf(table_only)
+    junk = tmp_path / "junk.fits"
+    junk.write_bytes(b"not a FITS file at all" * 50)
+    with pytest.raises(PSFError, match="junk.fits: not a readable PSF file"):
+        read_psf(junk)

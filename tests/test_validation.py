@@ -512,6 +512,42 @@ def _exponential():
     return Config(model="exponential")
 
 
+def test_validate_with_the_true_psf(tmp_path):
+    from pylensfit.validation import STEP1_PSFS, true_psf_image, validate
+
+    d = simulate_step("step1", tmp_path / "s1", ngal=300, seed=6, psfs=STEP1_PSFS[1:3],
+                      n_shear=2)  # fmt: skip
+    cfg = _exponential()
+    res = validate(d, config=cfg, true_psf=True, progress=False, bins={})
+    assert res.meta["psf_source"] == "true"
+    mdir = Path(d) / "measured_true_psf"
+    assert all(Path(v["path"]).parent == mdir for v in res.meta["measured"].values())
+    # each PSF's fields were fitted with its true image (at the largest stamp's size),
+    # not with a stack of its stars
+    from pylensfit.pipeline import read_catalogue
+
+    for k, p in enumerate(STEP1_PSFS[1:3]):
+        cat = read_catalogue(mdir / f"psf{k}_shear.fits")
+        want = true_psf_image(p, cfg.largest_stamp)
+        for img in cat.meta["psf_images"]:  # kept as float32
+            np.testing.assert_allclose(img, want, rtol=1e-6, atol=1e-10)
+        assert not np.any(cat["psf_star"])
+        assert json.loads((mdir / f"psf{k}_shear.json").read_text())["psf"]
+    # so the report's PSF check compares the true PSF with itself; e along e1 for PSF 1
+    # (index 0 here) and along e2 for PSF 2, diluted by the pixel
+    pc = res.meta["psf_check"]
+    np.testing.assert_allclose(pc["e1_meas"], pc["e1_true"], atol=2e-5)
+    np.testing.assert_allclose(pc["e2_meas"], pc["e2_true"], atol=2e-5)
+    assert 0.04 < pc["e1_true"][0] < 0.05 and 0.04 < pc["e2_true"][1] < 0.05
+    # the star-built run keeps its own catalogues
+    res_s = validate(d, config=cfg, progress=False, bins={})
+    assert res_s.meta["psf_source"] == "stars" and (Path(d) / "measured").is_dir()
+    assert not any(v["reused"] for v in res_s.meta["measured"].values())
+    # the same galaxies, fitted with nearly the same PSF: c agrees far inside its error
+    for c in ("c1", "c2"):
+        assert abs(res[c][-1] - res_s[c][-1]) < 0.5 * res[c + "_err"][-1]
+
+
 @pytest.fixture(scope="module")
 def step2_validated(step2):
     from pylensfit.validation import validate

@@ -44,7 +44,7 @@ def _measure(args: argparse.Namespace) -> int:
         args.images, stars=args.stars, weights=args.weights, masks=args.masks,
         catalogues=args.catalogues, star_column=args.star_column, config=_config(args),
         prior=args.prior, size_prior=args.size_prior, output=args.output, psf_dir=args.psf_dir,
-        overwrite=args.overwrite,
+        psf=_psf_arg(args.psf), overwrite=args.overwrite,
         jobs=args.jobs,
         scheduler=args.scheduler, progress=not args.quiet,
     )  # fmt: skip
@@ -52,6 +52,13 @@ def _measure(args: argparse.Namespace) -> int:
     print(f"{args.output}: {len(cat)} objects, {n_ok} galaxies measured, "
           f"{int(np.sum(cat['fitclass'] == 1))} stars; prior {cat.meta['prior']!r}")  # fmt: skip
     return 0
+
+
+def _psf_arg(paths):
+    """``--psf``: none, one file for every image, or one per image."""
+    if not paths:
+        return None
+    return paths[0] if len(paths) == 1 else paths
 
 
 def _read_catalogues(paths):
@@ -210,7 +217,7 @@ def _validate(args: argparse.Namespace) -> int:
                          "--precision, --convergence)")  # fmt: skip
     res = validate(args.directory, config=cfg, jobs=args.jobs, estimator=args.estimator,
                    report=args.report, progress=not args.quiet, remeasure=args.remeasure,
-                   bins=bins)  # fmt: skip
+                   bins=bins, true_psf=args.true_psf)  # fmt: skip
     for c in res.colnames[1:-2]:
         res[c].format = "+.5f"
     res["Q"].format = ".0f"
@@ -314,6 +321,9 @@ def build_parser() -> argparse.ArgumentParser:
                                         "the config's size_prior: flat, or estimated from the run")
     m.add_argument("-o", "--output", required=True, help="output catalogue (FITS)")
     m.add_argument("--psf-dir", help="write each image's PSF and star diagnostics here")
+    m.add_argument("--psf", nargs="+", help="the PSF instead of stacking stars: a FITS image "
+                   "(pixel response included, centred on pixel [n//2, n//2]; a --psf-dir "
+                   "file will do) for every image, or one per image")  # fmt: skip
     m.add_argument("--overwrite", action="store_true", help="replace an existing output")
     m.add_argument("--jobs", type=int, default=1, help="local worker processes")
     m.add_argument("--scheduler", help="dask.distributed scheduler address")
@@ -361,6 +371,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--remeasure", action="store_true",
                    help="measure again even if DIR/measured/ holds catalogues made with this "
                         "configuration")  # fmt: skip
+    v.add_argument("--true-psf", action="store_true",
+                   help="diagnostic: fit with the set's true PSFs instead of the PSFs stacked "
+                        "from its stars (catalogues kept in DIR/measured_true_psf/)")
     v.add_argument("--bins", type=int, default=4,
                    help="equal-count bins of magnitude, S/N and size (0: none)")
     v.add_argument("--quick", action="store_true",

@@ -54,7 +54,15 @@ from .prior import (
     estimate_prior_and_bulge,
     mix_bulge_fractions,
 )
-from .psf import PSFError, PSFResult, combine_psfs, stack_psf
+from .psf import (
+    PSFError,
+    PSFResult,
+    centre_on_stamp,
+    combine_psfs,
+    psf_from_image,
+    read_psf,
+    stack_psf,
+)
 from .shear import shapes as _shapes
 from .stamps import cut_stamps
 
@@ -285,7 +293,9 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     psfs = list(task.get("star_psfs", []))
     own_stars = np.zeros(n, dtype=bool)
     psf_note = ""
-    if n:
+    if task.get("psf") is not None:  # given: no stars stacked
+        psfs = [task["psf"]]
+    elif n:
         try:
             own, own_stars = _psf_from_stars(sub, img, det, cfg, task.get("star_column"))
             psfs.append(own)
@@ -641,10 +651,12 @@ def _task_key(task: dict[str, Any]) -> str:
         if p:
             st = Path(p).stat()
             stamp.append((k, os.path.abspath(p), st.st_size, st.st_mtime_ns))
+    given = task.get("psf")  # a given PSF (its image), else the star fields' PSFs
+    psfs = [given] if given is not None else task.get("star_psfs", [])
     blob = json.dumps(
-        [stamp, task["config"], task.get("star_column"),
-         [hashlib.sha1(np.ascontiguousarray(r.image).tobytes()).hexdigest()
-          for r in task.get("star_psfs", [])], __version__], sort_keys=True, default=str,
+        [stamp, task["config"], task.get("star_column"), given is not None,
+         [hashlib.sha1(np.ascontiguousarray(r.image).tobytes()).hexdigest() for r in psfs],
+         __version__], sort_keys=True, default=str,
     )  # fmt: skip
     return hashlib.sha1(blob.encode()).hexdigest()[:16]
 
@@ -787,6 +799,7 @@ def measure(
     config: Config | None = None,
     prior: Prior | str | os.PathLike | None = None,
     size_prior: SizePrior | str | os.PathLike | None = None,
+    psf: PSFResult | np.ndarray | str | os.PathLike | Sequence | None = None,
     output: str | os.PathLike | None = None,
     psf_dir: str | os.PathLike | None = None,
     overwrite: bool = False,
@@ -867,6 +880,9 @@ def measure(
     if not images:
         raise InputError("no input image")
     stars = [str(p) for p in (stars or [])]
+    given_psfs = _given_psfs(psf, images)
+    if given_psfs is not None and stars:
+        raise InputError("give the PSF (psf=) or star fields to build it from (stars=), not both")
     weights = _as_list(weights, len(images), "weights")
     masks = _as_list(masks, len(images), "masks")
     catalogues = _as_list(catalogues, len(images), "catalogues")
@@ -902,7 +918,8 @@ def measure(
         tasks = [
             {"path": p, "weight": w, "mask": m, "catalogue": c, "config": cfgd, "index": i,
              "star_psfs": star_psfs, "star_column": star_column,
-             "psf_dir": None if psf_dir is None else str(psf_dir)}
+             "psf_dir": None if psf_dir is None else str(psf_dir),
+             "psf": None if given_psfs is None else given_psfs[i]}
             for i, (p, w, m, c) in enumerate(zip(images, weights, masks, catalogues, strict=True))
         ]  # fmt: skip
         results: dict[int, dict] = {}
@@ -944,6 +961,35 @@ def measure(
         write_catalogue(cat, out, overwrite=overwrite)
         shutil.rmtree(parts, ignore_errors=True)
     return cat
+
+
+def _given_psfs(psf, images: list[str]) -> list[PSFResult] | None:
+    """``measure``'s ``psf=`` as one :class:`PSFResult` per image (``None``: not given)."""
+    if psf is None:
+        return None
+    single = isinstance(psf, (PSFResult, str, os.PathLike)) or (
+        isinstance(psf, np.ndarray) and psf.ndim == 2)
+    items = [psf] * len(images) if single else list(psf)
+    if len(items) != len(images):
+        raise InputError(f"psf: {len(items)} PSF(s) given for {len(images)} image(s)")
+    out, cache = [], {}
+    for item, img in zip(items, images, strict=True):
+        if isinstance(item, PSFResult):
+            out.append(item)
+            continue
+        key = str(item) if isinstance(item, (str, os.PathLike)) else id(item)
+        if key not in cache:
+            try:
+                if isinstance(item, (str, os.PathLike)):
+                    if not Path(item).exists():
+                        raise InputError(f"{item}: PSF file not found")
+                    cache[key] = read_psf(item)
+                else:
+                    cache[key] = psf_from_image(item, source="psf=")
+            except PSFError as err:
+                raise InputError(f"the PSF for {img}: {err}") from None
+        out.append(cache[key])
+    return out
 
 
 def _estimate_size_prior(tasks: list[dict], cfg: Config, prior: Prior | None, jobs: int,
@@ -1038,9 +1084,12 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
             cat.meta["runs"] = cfg.run_labels
         cat.meta["bulge_weights"] = bulge_weights
     cat.meta["psfs"] = psfs
+    # each image's PSF (zeros where it failed), on the largest PSF image's side
+    side = max([cfg.stamp_size, *(np.shape(r["psf"]["image"])[0] for r in results
+                                  if r["psf"] is not None)])  # fmt: skip
     cat.meta["psf_images"] = np.array([
-        np.zeros((cfg.stamp_size, cfg.stamp_size)) if r["psf"] is None
-        else np.asarray(r["psf"]["image"]) for r in results])  # fmt: skip
+        np.zeros((side, side)) if r["psf"] is None
+        else centre_on_stamp(r["psf"]["image"], side) for r in results])  # fmt: skip
     cat.meta["config"] = cfg
     cat.meta["timing"] = {k: float(sum(r["timing"][k] for r in results))
                           for k in results[0]["timing"]}  # fmt: skip
@@ -1165,6 +1214,8 @@ def read_catalogue(path: str | os.PathLike) -> Table:
                                                star=float(hs.header["STAR"]))  # fmt: skip
         if "PSFS" in h:
             cat.meta["psfs"] = Table(h["PSFS"].data)
+        if "PSFIMG" in h:
+            cat.meta["psf_images"] = np.array(h["PSFIMG"].data, dtype=float)
         if "CONFIG" in h:
             t = h["CONFIG"].data
             cat.meta["config"] = Config.from_dict(

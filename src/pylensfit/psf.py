@@ -22,7 +22,9 @@ __all__ = [
     "PSFResult",
     "centre_on_stamp",
     "combine_psfs",
+    "psf_from_image",
     "psf_transform",
+    "read_psf",
     "stack_psf",
 ]
 
@@ -250,6 +252,76 @@ class PSFResult:
             source=str(hdr.get("SOURCE", "")),
             **kw,
         )
+
+
+def psf_from_image(image, source: str = "") -> PSFResult:
+    """A PSF given as an image (a PSF model from elsewhere, or the true PSF of a simulation).
+
+    Parameters
+    ----------
+    image : array_like
+        2-D PSF image including the pixel response, centred on element ``[s//2, s//2]``
+        (its centre defines the fitted galaxy positions; an offset PSF shifts them, not
+        the shapes). Any normalisation: it is scaled to unit sum.
+    source : str
+        Where it came from (kept in :attr:`PSFResult.source`).
+
+    Returns
+    -------
+    PSFResult
+        The image (float64, unit sum) with its summary diagnostics (FWHM, adaptive
+        moments) and no stars.
+
+    Raises
+    ------
+    PSFError
+        If the image is not 2-D, has non-finite pixels or a non-positive sum.
+    """
+    img = np.array(image, dtype=np.float64)
+    where = f"{source}: " if source else ""
+    if img.ndim != 2 or min(img.shape) < 3:
+        raise PSFError(f"{where}a PSF image must be 2-D (at least 3 x 3), got shape {img.shape}")
+    if not np.all(np.isfinite(img)):
+        raise PSFError(f"{where}the PSF image has {int(np.sum(~np.isfinite(img)))} "
+                       "non-finite pixel(s)")  # fmt: skip
+    total = float(img.sum())
+    if not total > 0:
+        raise PSFError(f"{where}the PSF image has a non-positive sum ({total:g})")
+    img /= total
+    empty = np.zeros(0)
+    return PSFResult(image=img, x_cat=empty, y_cat=empty, x=empty, y=empty, flux=empty,
+                     snr=empty, correlation=empty, chi2=empty, used=np.zeros(0, bool),
+                     reason=np.zeros(0, dtype=str), source=source,
+                     **_diagnostics(img))  # fmt: skip
+
+
+def read_psf(path: str | Path) -> PSFResult:
+    """Read a PSF image from FITS.
+
+    A file written by :meth:`PSFResult.write` (e.g. the pipeline's ``psf_dir``) is read
+    whole; any other FITS file gives its first HDU holding a 2-D image, taken as in
+    :func:`psf_from_image`.
+
+    Raises
+    ------
+    PSFError
+        If the file cannot be read or holds no usable 2-D image (the message names it).
+    """
+    from astropy.io import fits
+
+    path = Path(path)
+    try:
+        with fits.open(path) as hdul:
+            if "STARS" in hdul:
+                return PSFResult.read(path)
+            data = next((h.data for h in hdul if getattr(h, "is_image", False)
+                         and h.data is not None and h.data.ndim == 2), None)  # fmt: skip
+            data = None if data is None else np.array(data, dtype=np.float64)
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise PSFError(f"{path}: not a readable PSF file ({err})") from None
+    if data is None:
+        raise PSFError(f"{path}: no 2-D image HDU to read the PSF from")
+    return psf_from_image(data, source=str(path))
 
 
 def _pad_to(images: np.ndarray, n: int) -> np.ndarray:

@@ -23,6 +23,7 @@ Conventions are those of :mod:`pylensfit.simulate`: sizes in pixels, numpy ``(x,
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -63,6 +64,7 @@ __all__ = [
     "QUICK_NGAL",
     "QUICK_PRIOR_NGAL",
     "fit_m_c",
+    "true_psf_image",
     "quality_factor",
     "twin_shear",
     "group_shear",
@@ -713,19 +715,23 @@ def group_shear(e: np.ndarray, sens: np.ndarray) -> ShearEstimate:
 
 
 # -- measured catalogues, kept under DIR/measured/ ----------------------------------------
-def _ident(fields: list[dict], star: dict, cfg, size_prior=None) -> dict:
-    """What a kept catalogue was made from: the configuration, the fields' seeds and the
-    size prior given to the measurement (if any)."""
+def _ident(fields: list[dict], star: dict, cfg, size_prior=None, psf=None) -> dict:
+    """What a kept catalogue was made from: the configuration, the fields' seeds, the
+    size prior given to the measurement (if any) and the PSF given to it (if any: a
+    digest of its image; otherwise it came from the star field)."""
     ids = [{"file": f["file"], "seed": f.get("seed"), "noise_seed": f.get("noise_seed")}
            for f in [*fields, star]]  # fmt: skip
     ident = {"version": 1, "config": cfg.to_dict(), "fields": ids}
     if size_prior is not None:
         ident["size_prior"] = size_prior.to_dict()
+    if psf is not None:
+        ident["psf"] = hashlib.sha1(np.ascontiguousarray(psf.image).tobytes()).hexdigest()
     return json.loads(json.dumps(ident))
 
 
 def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, jobs: int,
-              progress: bool, remeasure: bool, size_prior=None) -> tuple[Table, bool]:  # fmt: skip
+              progress: bool, remeasure: bool, size_prior=None,
+              psf=None) -> tuple[Table, bool]:  # fmt: skip
     """The catalogue of ``fields`` from ``mdir/<name>.fits``, measured unless kept.
 
     A kept catalogue is reused when its sidecar ``<name>.json`` records the same
@@ -733,12 +739,13 @@ def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, job
     Otherwise the fields are measured with :func:`pylensfit.pipeline.measure`
     (``output=``: written atomically, resumable from its ``.parts`` folder; with
     ``size_prior``, a :class:`~pylensfit.prior.SizePrior`, if given) and the sidecar
-    written after the catalogue.
+    written after the catalogue. With ``psf`` (a :class:`~pylensfit.psf.PSFResult`) the
+    fields are measured with it instead of the star field's PSF.
     """
     from . import pipeline
 
     cat_path, side = mdir / f"{name}.fits", mdir / f"{name}.json"
-    ident = _ident(fields, star, cfg, size_prior)
+    ident = _ident(fields, star, cfg, size_prior, psf)
     if not remeasure and cat_path.exists() and side.exists():
         try:
             same = json.loads(side.read_text()) == ident
@@ -751,9 +758,9 @@ def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, job
                 log.warning("%s: unreadable kept catalogue (%s); measuring again", cat_path, err)
     mdir.mkdir(parents=True, exist_ok=True)
     side.unlink(missing_ok=True)
-    pipeline.measure([f["path"] for f in fields], stars=[star["path"]], config=cfg,
-                     prior=Prior(), size_prior=size_prior, output=cat_path, overwrite=True,
-                     jobs=jobs, progress=progress)  # fmt: skip
+    pipeline.measure([f["path"] for f in fields], stars=[star["path"]] if psf is None else None,
+                     psf=psf, config=cfg, prior=Prior(), size_prior=size_prior,
+                     output=cat_path, overwrite=True, jobs=jobs, progress=progress)  # fmt: skip
     tmp = side.with_name(f".{side.name}.tmp")
     tmp.write_text(json.dumps(ident, indent=1))
     os.replace(tmp, side)
@@ -1191,6 +1198,7 @@ def validate(
     remeasure: bool = False,
     bins: dict[str, int | Sequence[float]] | None = None,
     bin_min_count: int = 300,
+    true_psf: bool = False,
 ):
     """Run the pipeline on a simulated set and measure m, c, sigma_c and Q per PSF and bin.
 
@@ -1270,6 +1278,11 @@ def validate(
         no galaxy has (``"morphology"`` on a STEP1-like set) is skipped.
     bin_min_count : int
         Fewest prior-field galaxies for a bin to get its own prior.
+    true_psf : bool
+        Diagnostic: fit with each PSF's true image (:func:`true_psf_image`, as large as
+        the largest stamp) instead of the PSF stacked from the stars, keeping the
+        catalogues in ``DIR/measured_true_psf/``. The difference from a run with the
+        modelled PSF is what the PSF model does to m and c, measured on the same noise.
 
     Returns
     -------
@@ -1292,9 +1305,10 @@ def validate(
         components; for ``all``, over PSFs and components as ``<m>``), ``mean_c,
         mean_c_err``), ``bin_edges``,
         ``psf_check``, ``prior_check``, ``diagnosis`` and ``measured`` (the catalogue
-        paths and whether each was reused).
+        paths and whether each was reused), ``psf_source`` (``"stars"`` or ``"true"``).
     """
     from .prior import estimate_prior, estimate_prior_and_bulge, mix_bulge_fractions
+    from .psf import psf_from_image
     from .shear import shapes
 
     if estimator not in ("key2", "fixed-point"):
@@ -1312,12 +1326,14 @@ def validate(
     for f in man["fields"]:
         by_psf.setdefault(int(f["psf"]), []).append(f)
     stars = {int(s["psf"]): s for s in man["star_fields"]}
-    mdir = Path(man["dir"]) / "measured"
+    mdir = Path(man["dir"]) / ("measured_true_psf" if true_psf else "measured")
     pgs, sgs, measured, psf_rows = [], [], {}, []
     size_priors: dict = {}
     egrid = None
     for k, fl in sorted(by_psf.items()):
         fwhm = float(man["psfs"][k]["fwhm"])
+        given = (psf_from_image(true_psf_image(man["psfs"][k], cfg.largest_stamp),
+                                source=f"true PSF {k}") if true_psf else None)  # fmt: skip
         for role, lst in (("prior", pgs), ("shear", sgs)):
             sel = [f for f in fl if f["role"] == role]
             if not sel:
@@ -1327,7 +1343,7 @@ def validate(
             # prior does: the shear fields are measured once, with it
             sp = size_priors.get(k) if role == "shear" else None
             cat, reused = _measured(name, sel, stars[k], cfg, mdir, jobs=jobs, progress=progress,
-                                    remeasure=remeasure, size_prior=sp)  # fmt: skip
+                                    remeasure=remeasure, size_prior=sp, psf=given)  # fmt: skip
             if role == "prior" and cfg.size_prior == "estimated":
                 size_priors[k] = cat.meta.get("size_prior")
             measured[name] = {"path": str(mdir / f"{name}.fits"), "reused": reused}
@@ -1387,6 +1403,7 @@ def validate(
     out.meta["fits"] = Table(rows=fit_rows, names=("psf", "component", "m", "m_err", "c", "c_err",
                                                    "rho"))  # fmt: skip
     out.meta["measured"] = measured
+    out.meta["psf_source"] = "true" if true_psf else "stars"
     # bins (paper Table 2): a group's value is the mean of its members'
     gid = _groups(sg, fields)[0] if pairs else np.full(len(sg), -1)
     has = gid >= 0
@@ -1481,6 +1498,30 @@ def _diagnose(res: Table) -> dict[str, Any]:
     return d
 
 
+def true_psf_image(p: dict, n: int) -> np.ndarray:
+    """A simulated set's PSF as the pipeline uses one: rendered with its pixel response.
+
+    Parameters
+    ----------
+    p : dict
+        ``{"fwhm", "beta", "e1", "e2"}`` (a manifest's ``psfs`` entry): a Moffat profile
+        sheared to ``(e1, e2)``, as :func:`pylensfit.simulate.simulate_field` draws it.
+    n : int
+        Image side in pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, n)`` image of unit sum centred on element ``[n//2, n//2]`` (the centre
+        convention of :class:`pylensfit.psf.PSFResult`).
+    """
+    import galsim
+
+    obj = galsim.Moffat(beta=p["beta"], fwhm=p["fwhm"]).shear(g1=p["e1"], g2=p["e2"])
+    img = obj.drawImage(nx=n, ny=n, scale=1.0, use_true_center=False).array
+    return img / img.sum()
+
+
 def _true_psf_diagnostics(p: dict, n: int = 48) -> dict:
     """FWHM and adaptive-moment shape of the input PSF rendered with its pixel response.
 
@@ -1488,13 +1529,9 @@ def _true_psf_diagnostics(p: dict, n: int = 48) -> dict:
     (:func:`pylensfit.psf._diagnostics`), so that the two columns of the report compare
     like with like (the pixel widens a 3 px Moffat's FWHM by ~3% and dilutes its e).
     """
-    import galsim
-
     from .psf import _diagnostics
 
-    obj = galsim.Moffat(beta=p["beta"], fwhm=p["fwhm"]).shear(g1=p["e1"], g2=p["e2"])
-    img = obj.drawImage(nx=n, ny=n, scale=1.0, offset=(0.5, 0.5)).array
-    return _diagnostics(img / img.sum())
+    return _diagnostics(true_psf_image(p, n))
 
 
 # -- report --------------------------------------------------------------------------------
@@ -1700,7 +1737,9 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
                     f"{f}: {w:.3f}" for f, w in zip(
                         meta.get("bulge_runs") or [f"{f:g}" for f in np.linspace(
                             0, 1, len(meta["bulge_weights"]))], meta["bulge_weights"],
-                        strict=True))) + ".", "",
+                        strict=True))) + "."
+             + (" Fitted with the true PSFs, not the stars' (diagnostic)."
+                if meta.get("psf_source") == "true" else ""), "",
              f"<m> = {meta['mean_m']:+.4f} +- {meta['mean_m_err']:.4f} (paper eq. averror: "
              f"+- {meta['mean_m_err_paper']:.4f}), sigma_c = {meta['sigma_c']:.2e} "
              f"(from the errors alone {meta['sigma_c_stat']:.2e}; the offsets' own spread "
