@@ -1085,7 +1085,7 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
         cat.meta["bulge_weights"] = bulge_weights
     cat.meta["psfs"] = psfs
     # each image's PSF (zeros where it failed), on the largest PSF image's side
-    side = max([cfg.stamp_size, *(np.shape(r["psf"]["image"])[0] for r in results
+    side = max([cfg.stamp_size, *(max(np.shape(r["psf"]["image"])) for r in results
                                   if r["psf"] is not None)])  # fmt: skip
     cat.meta["psf_images"] = np.array([
         np.zeros((side, side)) if r["psf"] is None
