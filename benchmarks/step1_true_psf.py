@@ -86,6 +86,7 @@ def jackknife(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("dir", type=Path)
+    p.add_argument("--psf", type=int, nargs="+", help="these PSFs only (default all)")
     a = p.parse_args()
     man = json.loads((a.dir / "manifest.json").read_text())
     base = [f for f in man["fields"] if f["role"] == "shear" and not f["twin"]
@@ -93,7 +94,7 @@ def main() -> None:
     rng = np.random.default_rng(0)
     print("| PSF | run | m1 | c1 | c2 |\n|---|---|---|---|---|")
     diffs = []
-    for k in range(len(man["psfs"])):
+    for k in a.psf if a.psf else range(len(man["psfs"])):
         fl = sorted((f for f in base if f["psf"] == k), key=lambda f: f["shear_index"])
         files = [f["file"] for f in fl]
         g_true = np.array([f["g1"] for f in fl])

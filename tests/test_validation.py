@@ -57,6 +57,8 @@ def test_step1_manifest(step1):
     assert sorted(f["psf"] for f in prior) == list(range(len(man["psfs"])))
     assert all(f["g1"] == 0 and f["g2"] == 0 for f in prior)
     assert len(man["star_fields"]) == len(man["psfs"])
+    # four times the stars of a shear field by default: the stacked PSF's noise halved
+    assert man["star_field_size"] == 2 * man["field_size"]
     # round, elliptical along e1, along e2, larger
     p = man["psfs"]
     assert any(q["e1"] == 0 and q["e2"] == 0 for q in p)
@@ -220,12 +222,13 @@ def test_star_fields_are_the_psf(which, request):
 
 
 def test_cli_main(tmp_path, capsys):
-    rc = main(
-        ["step1", "--out", str(tmp_path / "s"), "--ngal", "25", "--size", "120", "--nshear", "2"]
-    )
+    rc = main(["step1", "--out", str(tmp_path / "s"), "--ngal", "25", "--size", "120",
+               "--nshear", "2", "--star-field-size", "150"])  # fmt: skip
     assert rc == 0
     man = read_manifest(tmp_path / "s")
     assert man["field_size"] == 120 and len(man["fields"]) == 5 * 3
+    assert man["star_field_size"] == 150
+    assert fits.getdata(man["star_fields"][0]["path"]).shape == (150, 150)
     assert "step1" in capsys.readouterr().out
 
 
@@ -621,6 +624,18 @@ def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
                  config=Config(model="bulge+disc", integration_refine=2))  # fmt: skip
     with pytest.raises(AssertionError, match="measure called"):
         validate(step2["dir"], config=_exponential(), progress=False, bins={}, remeasure=True)
+    # so does a field written again (a set simulated again with other parameters and the
+    # same seeds): here a star field, whose PSF every catalogue of its PSF used
+    import os
+
+    star = Path(step2["star_fields"][0]["path"])
+    st = star.stat()
+    os.utime(star, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    try:
+        with pytest.raises(AssertionError, match="measure called"):
+            validate(step2["dir"], config=_exponential(), progress=False, bins={})
+    finally:
+        os.utime(star, ns=(st.st_atime_ns, st.st_mtime_ns))
 
 
 def test_validate_takes_the_size_prior_from_the_zero_shear_field(tmp_path, monkeypatch):

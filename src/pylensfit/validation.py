@@ -312,7 +312,12 @@ def simulate_step(
         Galaxy size range (px): scale length of the disc for step1 (default (1.2, 3.5)),
         half-light radius for step2 (default (1.5, 4.5)).
     star_field_size : int, optional
-        Size of the star-only fields (default: ``field_size``).
+        Size of the star-only fields (default: twice the side of the shear fields, four
+        times their stars). The stacked PSF's noise leaks into c: with the ~1,000 stars
+        of a 100,000-galaxy STEP1 set's star field of the shear fields' size, its
+        ellipticity is off by ~2e-5 per PSF and the STEP1 galaxies' c by about 3.5
+        times that (``pylensfit validate DIR --true-psf``, ``benchmarks/README.md``);
+        four times the stars halve it.
     psfs : tuple of dict, optional
         PSFs as ``{"fwhm", "beta", "e1", "e2"}`` (default ``STEP1_PSFS``/``STEP2_PSFS``).
     prior_ngal : int, optional
@@ -368,7 +373,7 @@ def simulate_step(
     negs = (False, True) if noise_twins else (False,)
     n_fields = len(psfs) * len(shears) * len(twins) * len(negs)
     size = int(field_size) if field_size else _field_size(ngal, n_fields, spacing, star_fraction)
-    star_size = int(star_field_size) if star_field_size else size
+    star_size = int(star_field_size) if star_field_size else 2 * size
     prior_size = (_field_size(prior_ngal, len(psfs), spacing, star_fraction)
                   if prior_ngal else size)  # fmt: skip
     pixel = _PIXEL[kind]
@@ -534,6 +539,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--noise", type=float, default=1.0, help="noise sigma per pixel")
     p.add_argument("--size", type=int, default=None, help="field size (px)")
     p.add_argument("--nshear", type=int, default=None, help="shear values per PSF")
+    p.add_argument("--star-field-size", type=int, default=None,
+                   help="side of the star fields (px; default twice the shear fields')")
     p.add_argument("--twins", action=argparse.BooleanOptionalAction, default=None,
                    help="a 90-degree-rotated twin of every shear field (default: step2 "
                         "yes, step1 no); with twins the shape noise cancels in validate")
@@ -552,6 +559,7 @@ def main(argv: list[str] | None = None) -> int:
         noise_sigma=a.noise,
         field_size=a.size,
         n_shear=a.nshear,
+        star_field_size=a.star_field_size,
         twins=a.twins,
         noise_twins=a.noise_twins,
         jobs=a.jobs,
@@ -719,9 +727,14 @@ def _ident(fields: list[dict], star: dict, cfg, size_prior=None, psf=None) -> di
     """What a kept catalogue was made from: the configuration, the fields' seeds, the
     size prior given to the measurement (if any) and the PSF given to it (if any: a
     digest of its image; otherwise it came from the star field)."""
-    ids = [{"file": f["file"], "seed": f.get("seed"), "noise_seed": f.get("noise_seed")}
-           for f in [*fields, star]]  # fmt: skip
-    ident = {"version": 1, "config": cfg.to_dict(), "fields": ids}
+    ids = []
+    for f in [*fields, star]:
+        # the manifest's entry, and the file as it is now (a set simulated again in the
+        # same directory, with other parameters but the same seeds, is measured again)
+        st = Path(f["path"]).stat() if f.get("path") else None
+        ids.append({**{k: v for k, v in f.items() if k != "path"},
+                    "bytes": st and st.st_size, "mtime_ns": st and st.st_mtime_ns})  # fmt: skip
+    ident = {"version": 2, "config": cfg.to_dict(), "fields": ids}
     if size_prior is not None:
         ident["size_prior"] = size_prior.to_dict()
     if psf is not None:
