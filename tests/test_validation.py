@@ -72,11 +72,12 @@ def test_step1_manifest(step1):
 @pytest.mark.parametrize("which,scale", [("step1", 0.206), ("step2", 0.2)])
 def test_fits_wcs_and_truth(which, scale, request):
     man = request.getfixturevalue(which)
-    for f in man["fields"][:3] + man["star_fields"][:1]:
+    for f, side in ([(f, man["field_size"]) for f in man["fields"][:3]]
+                    + [(man["star_fields"][0], man["star_field_size"])]):  # fmt: skip
         with fits.open(f["path"]) as hdul:
             w = WCS(hdul[0].header)
             assert np.allclose(proj_plane_pixel_scales(w) * 3600, scale)
-            assert hdul[0].data.shape == (man["field_size"],) * 2
+            assert hdul[0].data.shape == (side, side)
             assert "WEIGHT" in hdul and "TRUTH" in hdul
 
 
