@@ -57,8 +57,7 @@ def test_step1_manifest(step1):
     assert sorted(f["psf"] for f in prior) == list(range(len(man["psfs"])))
     assert all(f["g1"] == 0 and f["g2"] == 0 for f in prior)
     assert len(man["star_fields"]) == len(man["psfs"])
-    # four times the stars of a shear field by default: the stacked PSF's noise halved
-    assert man["star_field_size"] == 2 * man["field_size"]
+    assert man["star_field_size"] == man["field_size"]  # by default
     # round, elliptical along e1, along e2, larger
     p = man["psfs"]
     assert any(q["e1"] == 0 and q["e2"] == 0 for q in p)

@@ -312,12 +312,11 @@ def simulate_step(
         Galaxy size range (px): scale length of the disc for step1 (default (1.2, 3.5)),
         half-light radius for step2 (default (1.5, 4.5)).
     star_field_size : int, optional
-        Size of the star-only fields (default: twice the side of the shear fields, four
-        times their stars). The stacked PSF's noise leaks into c: with the ~1,000 stars
-        of a 100,000-galaxy STEP1 set's star field of the shear fields' size, its
-        ellipticity is off by ~2e-5 per PSF and the STEP1 galaxies' c by about 3.5
-        times that (``pylensfit validate DIR --true-psf``, ``benchmarks/README.md``);
-        four times the stars halve it.
+        Size of the star-only fields (default: ``field_size``). The stacked PSF's noise
+        reaches c: on a 100,000-galaxy STEP1 set (~1,000 stars per PSF) its
+        ellipticity is off by ~2e-5 and the galaxies' c by up to 1.3e-4 per PSF, 0.6e-4
+        rms (``pylensfit validate DIR --true-psf``, ``benchmarks/README.md``); a star
+        field of twice the side halves that.
     psfs : tuple of dict, optional
         PSFs as ``{"fwhm", "beta", "e1", "e2"}`` (default ``STEP1_PSFS``/``STEP2_PSFS``).
     prior_ngal : int, optional
@@ -373,7 +372,7 @@ def simulate_step(
     negs = (False, True) if noise_twins else (False,)
     n_fields = len(psfs) * len(shears) * len(twins) * len(negs)
     size = int(field_size) if field_size else _field_size(ngal, n_fields, spacing, star_fraction)
-    star_size = int(star_field_size) if star_field_size else 2 * size
+    star_size = int(star_field_size) if star_field_size else size
     prior_size = (_field_size(prior_ngal, len(psfs), spacing, star_fraction)
                   if prior_ngal else size)  # fmt: skip
     pixel = _PIXEL[kind]
@@ -540,7 +539,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", type=int, default=None, help="field size (px)")
     p.add_argument("--nshear", type=int, default=None, help="shear values per PSF")
     p.add_argument("--star-field-size", type=int, default=None,
-                   help="side of the star fields (px; default twice the shear fields')")
+                   help="side of the star fields (px; default the shear fields')")
     p.add_argument("--twins", action=argparse.BooleanOptionalAction, default=None,
                    help="a 90-degree-rotated twin of every shear field (default: step2 "
                         "yes, step1 no); with twins the shape noise cancels in validate")
