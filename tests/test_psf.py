@@ -285,6 +285,9 @@ def test_psf_from_image_normalises_and_measures_like_a_stack():
     assert res.n_used == 0 and res.stars()["x"].size == 0 and res.source == "model"
     # the transform the likelihood uses is that of the image, whatever its scale
     np.testing.assert_allclose(psf_transform(res.image, 48), psf_transform(img, 48), atol=1e-12)
+    # the digest keys kept results: the image's bytes, whatever array order it came in
+    assert res.digest == psf_from_image(np.asfortranarray(img), source="other").digest
+    assert res.digest != psf_from_image(_moffat_image(g1=0.061), source="model").digest
 
 
 @pytest.mark.parametrize(

@@ -655,7 +655,7 @@ def _task_key(task: dict[str, Any]) -> str:
     psfs = [given] if given is not None else task.get("star_psfs", [])
     blob = json.dumps(
         [stamp, task["config"], task.get("star_column"), given is not None,
-         [hashlib.sha1(np.ascontiguousarray(r.image).tobytes()).hexdigest() for r in psfs],
+         [r.digest for r in psfs],
          __version__], sort_keys=True, default=str,
     )  # fmt: skip
     return hashlib.sha1(blob.encode()).hexdigest()[:16]

@@ -8,6 +8,7 @@ This assumes that the PSF band-limits the data at the pixel Nyquist frequency
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -191,6 +192,13 @@ class PSFResult:
     def size(self) -> int:
         """Side of the PSF image in pixels."""
         return int(self.image.shape[0])
+
+    @property
+    def digest(self) -> str:
+        """SHA-1 hex digest of the image's bytes (C order): what a kept result was fitted
+        with, for the resume keys of :func:`pylensfit.measure` and
+        :func:`pylensfit.validation.validate`."""
+        return hashlib.sha1(np.ascontiguousarray(self.image).tobytes()).hexdigest()
 
     def stars(self):
         """The per-star diagnostics as an :class:`astropy.table.Table`."""

@@ -23,7 +23,6 @@ Conventions are those of :mod:`pylensfit.simulate`: sizes in pixels, numpy ``(x,
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import math
@@ -737,7 +736,7 @@ def _ident(fields: list[dict], star: dict, cfg, size_prior=None, psf=None) -> di
     if size_prior is not None:
         ident["size_prior"] = size_prior.to_dict()
     if psf is not None:
-        ident["psf"] = hashlib.sha1(np.ascontiguousarray(psf.image).tobytes()).hexdigest()
+        ident["psf"] = psf.digest
     return json.loads(json.dumps(ident))
 
 
