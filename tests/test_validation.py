@@ -316,6 +316,21 @@ def test_validate_end_to_end(tmp_path):
     assert np.max(np.abs(ps["e1_meas"] - ps["e1_true"])) < 0.005
     assert np.max(np.abs(ps["e2_meas"] - ps["e2_true"])) < 0.005
     assert set(res.meta["diagnosis"]) >= {"m", "sigma_c", "Q", "all_met"}
+    assert res.meta["truth_control"] is False
+    # the truth's shape noise taken out (the kept catalogues reused): every image's error
+    # falls below two thirds of its plain one (S/N 15-150: the measurement noise is about
+    # half the shape noise) and the estimates move by about their plain errors
+    ctl = validate(d, config=_flat(), report=tmp_path / "ctl.md", progress=False, bins={},
+                   truth_control=True)  # fmt: skip
+    a, b = res.meta["images"], ctl.meta["images"]
+    assert all(v["reused"] for v in ctl.meta["measured"].values())
+    for i in (1, 2):
+        assert np.all(b[f"g{i}_err"] < 0.67 * a[f"g{i}_err"])
+        pull = (b[f"g{i}"] - a[f"g{i}"]) / a[f"g{i}_err"]
+        assert np.all(np.abs(pull) < 4) and np.std(pull) > 0.3
+    assert abs(ctl["m1"][-1]) < 4 * ctl["m1_err"][-1] and ctl["m1_err"][-1] < res["m1_err"][-1]
+    assert ctl.meta["truth_control"] is True
+    assert "truth's shape noise taken out" in (tmp_path / "ctl.md").read_text()
 
 
 # ----------------------------------------------------------------------------------------
@@ -417,6 +432,105 @@ def test_group_shear_cancels_shape_and_noise():
     for r in mem:  # one galaxy, four renderings of one key, one base
         assert len(set(tix[r])) == 1 and len(set(img[r])) == 4 and len(set(base[r])) == 1
         assert base[r[0]] == img[r[0]].split("_rot")[0].split("_neg")[0]
+
+
+def test_group_error_is_the_ratio_estimators():
+    """The group error is the scatter of ``e - g s``: galaxies whose summed ellipticity
+    is exactly their sensitivity times the shear carry no error however much their
+    sensitivities differ (``std(e)`` would give ``g std(s) sqrt(N) / sum s``)."""
+    from pylensfit.validation import group_shear
+
+    rng = np.random.default_rng(5)
+    n, g = 300, np.array([0.1, -0.05])
+    s = rng.uniform(0.6, 1.0, (n, 4, 2))
+    est = group_shear(s * g, s)
+    assert (est.g1, est.g2) == pytest.approx(tuple(g), abs=1e-15)
+    assert est.g1_err < 1e-14 and est.g2_err < 1e-14
+    # with noise in e the error is the noise's: pulls of unit spread
+    pulls = []
+    for _ in range(200):
+        e = s * g + 0.05 * rng.standard_normal((n, 4, 2))
+        est = group_shear(e, s)
+        pulls.append(((est.g1 - g[0]) / est.g1_err, (est.g2 - g[1]) / est.g2_err))
+    assert np.std(pulls, axis=0) == pytest.approx([1, 1], abs=0.12)
+
+
+def _controlled_trials(rng, n_trials, select):
+    """Plain and truth-controlled key2 estimates of single images of a population with
+    shape noise and measurement noise."""
+    from pylensfit.shear import apply_shear
+    from pylensfit.validation import truth_control_variate
+
+    n_pop, g = 3000, np.array([0.04, -0.02])
+    out = []
+    for _ in range(n_trials):
+        mod = np.abs(rng.normal(0.0, 0.3, n_pop)).clip(max=0.9)
+        phi = rng.uniform(0.0, np.pi, n_pop)
+        e1, e2 = apply_shear(mod * np.cos(2 * phi), mod * np.sin(2 * phi), *g)
+        e_true = np.column_stack([e1, e2])
+        # a response of 0.85; the sensitivities scatter about it galaxy by galaxy
+        e = 0.85 * e_true + 0.1 * rng.standard_normal((n_pop, 2))
+        resp = 0.85 + 0.05 * rng.standard_normal((n_pop, 1))
+        keep = select(e_true, rng)
+        row = []
+        for i in range(2):
+            ee, ss, tt = e[keep, i], resp[keep, 0], e_true[keep, i] - g[i]
+            den = ss.sum()
+            gh = ee.sum() / den
+            r = ee - gh * ss
+            err = np.std(r, ddof=1) * np.sqrt(r.size) / den
+            delta, err_c = truth_control_variate(r, tt, e_true[:, i] - g[i], 1.0 / den)
+            row.append((gh, err, gh - delta, err_c))
+        out.append(row)
+    return np.array(out), g  # (trials, component, [plain, err, controlled, err])
+
+
+def test_truth_control_variate_takes_out_the_shape_noise():
+    """The control variate keeps the estimate's expectation and takes the shape noise
+    out of it, with errors that match the scatter over independent images; a twin
+    group at g = 0 (``t`` zero) is left as it is."""
+    from pylensfit.validation import truth_control_variate
+
+    rng = np.random.default_rng(21)
+    a, g = _controlled_trials(rng, 150, lambda e, rng: rng.random(len(e)) < 0.7)
+    for i in range(2):
+        plain, err, ctl, err_c = a[:, i].T
+        # both unbiased (the sensitivities' mean is the response)
+        assert abs(plain.mean() - g[i]) < 4 * plain.std() / np.sqrt(len(plain))
+        assert abs(ctl.mean() - g[i]) < 4 * ctl.std() / np.sqrt(len(ctl))
+        # the shape noise goes (0.85 x 0.21 per component), the measurement noise (0.1)
+        # stays, and so does the unmeasured 30 %'s share of the shape noise:
+        # sqrt(0.1^2 + 0.3 (0.85 x 0.21)^2) / sqrt(0.1^2 + (0.85 x 0.21)^2) = 0.68
+        assert ctl.std() / plain.std() == pytest.approx(0.68, rel=0.1)
+        # the errors are the scatters (the lost galaxies' share of the population included)
+        assert err.mean() == pytest.approx(plain.std(), rel=0.15)
+        assert err_c.mean() == pytest.approx(ctl.std(), rel=0.15)
+    # nothing to take out: t = 0 (a twin pair at g = 0)
+    r = rng.standard_normal(100)
+    assert truth_control_variate(r, np.zeros(100), np.zeros(120), 0.01) == pytest.approx(
+        (0.0, np.std(r, ddof=1) * 10 * 0.01), rel=1e-12)  # fmt: skip
+
+
+def test_truth_control_variate_keeps_what_a_selection_does():
+    """Galaxies elongated along +x measured half as often: the plain estimate of g1 is
+    biased, and the controlled one keeps the same bias (the population's mean, not the
+    measured galaxies', is what it subtracts); g2 stays unbiased in both."""
+    rng = np.random.default_rng(22)
+
+    def select(e, rng):
+        return (e[:, 0] < 0.2) | (rng.random(len(e)) < 0.5)
+
+    a, g = _controlled_trials(rng, 100, select)
+    plain, _, ctl, _ = a[:, 0].T
+    n = len(plain)
+    bias = plain.mean() - g[0]
+    assert bias < -6 * plain.std() / np.sqrt(n)  # the selection's bias, resolved
+    # the controlled estimate has the same expectation: its mean differs from the plain
+    # one's by their difference's noise only
+    assert abs(ctl.mean() - plain.mean()) < 3 * (ctl - plain).std() / np.sqrt(n)
+    assert abs(ctl.mean() - g[0] - bias) < 0.2 * abs(bias)
+    plain2, _, ctl2, _ = a[:, 1].T
+    assert abs(ctl2.mean() - g[1]) < 4 * ctl2.std() / np.sqrt(n)
 
 
 def test_bins_partition():
@@ -705,6 +819,14 @@ def test_validate_groups_noise_twins(tmp_path):
     assert groups["g2_err"][0] < 0.3 * np.median(img["g2_err"])
     text = (tmp_path / "report.md").read_text()
     assert "image + rotated twin + noise twins" in text
+    # the truth control on a group: the rotation left the shapes' second order only
+    # (|g| <= 0.06), so it moves the estimate by a fraction of its error and the error
+    # by a little
+    ctl = validate(d, config=_exponential(), progress=False, bins={}, truth_control=True)
+    c = ctl.meta["pairs"]
+    for i in (1, 2):
+        assert 0 < abs(c[f"g{i}"][0] - groups[f"g{i}"][0]) < groups[f"g{i}_err"][0]
+        assert c[f"g{i}_err"][0] <= 1.001 * groups[f"g{i}_err"][0]
 
 
 def test_step2_flux_does_not_follow_the_shear():

@@ -217,7 +217,8 @@ def _validate(args: argparse.Namespace) -> int:
                          "--precision, --convergence)")  # fmt: skip
     res = validate(args.directory, config=cfg, jobs=args.jobs, estimator=args.estimator,
                    report=args.report, progress=not args.quiet, remeasure=args.remeasure,
-                   bins=bins, true_psf=args.true_psf)  # fmt: skip
+                   bins=bins, true_psf=args.true_psf,
+                   truth_control=args.truth_control)  # fmt: skip
     for c in res.colnames[1:-2]:
         res[c].format = "+.5f"
     res["Q"].format = ".0f"
@@ -374,6 +375,11 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--true-psf", action="store_true",
                    help="diagnostic: fit with the set's true PSFs instead of the PSFs stacked "
                         "from its stars (catalogues kept in DIR/measured_true_psf/)")
+    v.add_argument("--truth-control", action="store_true",
+                   help="take the truth's shape noise out of each image's or group's shear "
+                        "(the true sheared ellipticities' departure from the shear, of "
+                        "expectation zero, as a control variate): the same m and c, smaller "
+                        "errors")
     v.add_argument("--bins", type=int, default=4,
                    help="equal-count bins of magnitude, S/N and size (0: none)")
     v.add_argument("--quick", action="store_true",

@@ -64,6 +64,7 @@ __all__ = [
     "QUICK_PRIOR_NGAL",
     "fit_m_c",
     "true_psf_image",
+    "truth_control_variate",
     "quality_factor",
     "twin_shear",
     "group_shear",
@@ -643,7 +644,8 @@ def twin_shear(
     section 5.2, Massey et al. 2007 eq. 6). The pair's estimate is eq. ``key2`` over both
     images, ``g_i = sum_pairs (e_a,i + e_b,i) / sum_pairs (s_a,i + s_b,i)``, and its
     error comes from the scatter of the per-pair sums,
-    ``std(e_a,i + e_b,i) sqrt(N_pairs) / sum_pairs (s_a,i + s_b,i)``, so that it shows
+    ``std(e_a,i + e_b,i - g_i (s_a,i + s_b,i)) sqrt(N_pairs) / sum_pairs (s_a,i + s_b,i)``,
+    so that it shows
     the cancellation (only measurement noise and the residual ``O(g e^2)`` terms remain).
     :func:`group_shear` is the same for groups of any size (twins and noise twins).
 
@@ -679,7 +681,8 @@ def group_shear(e: np.ndarray, sens: np.ndarray) -> ShearEstimate:
     (the noise's first-order response cancels). The estimate is eq. ``key2`` over the
     whole group, ``g_i = sum_galaxies sum_members e_i / sum_galaxies sum_members s_i``,
     and its error comes from the scatter of the per-galaxy sums over the members,
-    ``std(sum_members e_i) sqrt(N) / sum s_i``, so that it shows the cancellations.
+    ``std(sum_members (e_i - g_i s_i)) sqrt(N) / sum s_i`` (the ratio estimator's), so
+    that it shows the cancellations.
 
     Parameters
     ----------
@@ -715,9 +718,111 @@ def group_shear(e: np.ndarray, sens: np.ndarray) -> ShearEstimate:
         s = float(ssum[:, i].sum())
         if not s > 0:
             raise ValueError(f"the sum of the group sensitivities (component {i + 1}) is {s}")
-        err = float(np.std(esum[:, i], ddof=1)) * math.sqrt(n) / s if n > 1 else math.nan
-        out.append((float(esum[:, i].sum()) / s, err))
+        g = float(esum[:, i].sum()) / s
+        # the ratio estimator's error: the scatter of the residuals e - g s (at STEP's
+        # shears of up to 0.1 the sensitivities' own scatter times g is most of std(e)
+        # once the twins have cancelled the shapes and the noise)
+        err = float(np.std(esum[:, i] - g * ssum[:, i], ddof=1)) * math.sqrt(n) / s if n > 1 \
+            else math.nan
+        out.append((g, err))
     return ShearEstimate(g1=out[0][0], g2=out[1][0], g1_err=out[0][1], g2_err=out[1][1], n=n)
+
+
+def truth_control_variate(r: np.ndarray, t: np.ndarray, t_pop: np.ndarray,
+                          scale: float) -> tuple[float, float]:
+    """The truth's shape noise as a control variate for one shear component of one image.
+
+    A simulation knows each galaxy's true sheared ellipticity ``e_true`` (for a group of
+    renderings, summed over its members), and ``t = e_true - g`` has expectation zero
+    over an isotropic population of intrinsic shapes, exactly (``e_true = (e_s + g) /
+    (1 + g* e_s)`` is analytic in ``e_s``, so its mean over the position angle is its
+    value at ``e_s = 0``). Its sample mean over an image's population is pure sampling
+    noise: for a single image, the shape noise itself; for a 90-degree twin pair, the
+    second-order term ``-2 g* e_s^2`` that the rotation leaves, which makes c2 of a STEP1
+    field at ``g1 = 0.1`` scatter 2.4 times as much as at ``g1 = 0``. The estimate
+    ``g_hat`` (whatever the estimator) becomes ``g_hat - beta N <t>_pop / D``, where
+    ``<t>_pop`` is the mean of ``t`` over **every** truth galaxy of the image (measured
+    or not), ``N`` the measured truth galaxies, ``D`` the estimator's denominator
+    (``sum s`` for eq. ``key2``) and ``beta`` the regression slope of the residuals
+    ``e - g s`` on ``t``. The galaxies lost to cuts and failed fits differ from the
+    population only by their own ``t``: what a selection that responds to the shape
+    does to the estimate stays in it; only the population's sampling noise goes. The
+    error is that of ``sum (e - g s) - beta sum_measured (t - <t>)`` (the measurement's
+    part) with the unmeasured galaxies' share of the population noise,
+    ``beta^2 var(t) N (1 - N / N_pop)``.
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        ``(n,)`` the residuals ``e - g s`` of the galaxies in the estimate: posterior mean
+        ellipticities less the shear times their sensitivities (group sums).
+    t : numpy.ndarray
+        ``(n,)`` their ``e_true - g`` (group sums); NaN for a row that is not a truth
+        galaxy (a star fitted as a galaxy, a spurious detection).
+    t_pop : numpy.ndarray
+        ``(N_pop,)`` the same for every truth galaxy of the image (or group).
+    scale : float
+        ``1 / D``, the estimator's denominator.
+
+    Returns
+    -------
+    delta, err : float
+        The correction to subtract from the estimate, and the corrected estimate's error.
+        ``delta = 0`` and the plain error where ``t`` does not vary (a twin pair at
+        ``g = 0``, where the rotation cancels it exactly).
+    """
+    r = np.asarray(r, dtype=float)
+    t = np.asarray(t, dtype=float)
+    t_pop = np.asarray(t_pop, dtype=float)
+    gal = np.isfinite(t)
+    n, n_g = r.size, int(gal.sum())
+    tc = t[gal] - t[gal].mean() if n_g else t[gal]
+    den = float(np.sum(tc**2))
+    beta = float(np.sum((r[gal] - r[gal].mean()) * tc) / den) if n_g > 2 and den > 1e-20 else 0.0
+    z = r.copy()
+    z[gal] -= beta * tc
+    frac = min(n_g / t_pop.size, 1.0) if t_pop.size else 1.0
+    var_pop = float(np.var(t_pop, ddof=1)) if t_pop.size > 1 else 0.0
+    delta = beta * n_g * float(t_pop.mean()) * scale if t_pop.size else 0.0
+    err = math.sqrt(n * float(np.var(z, ddof=1)) + beta**2 * var_pop * n_g * (1.0 - frac)) * scale
+    return delta, err
+
+
+def _truth_terms(fields: dict[str, dict], names: list[str]) -> np.ndarray:
+    """``(n_truth, 2)``: ``sum over the images names of (e_true - g)`` per truth object of a
+    group's images (which share their truth rows); NaN for stars."""
+    out = None
+    for name in names:
+        f = fields[name]
+        t = Table.read(f["path"], hdu="TRUTH")
+        d = np.column_stack([np.asarray(t["e1"], float) - f["g1"],
+                             np.asarray(t["e2"], float) - f["g2"]])  # fmt: skip
+        d[np.asarray(t["is_star"], bool)] = np.nan
+        out = d if out is None else out + d
+    return out
+
+
+def _controlled(res: tuple, e: np.ndarray, s: np.ndarray, t: np.ndarray, t_pop: np.ndarray,
+                own_scale: bool = False) -> tuple:  # fmt: skip
+    """``(g1, g1_err, g2, g2_err)`` of an estimate with :func:`truth_control_variate` applied
+    (``e, s``: the ``(n, 2)`` ellipticities and sensitivities, group sums, it used). The
+    estimator's denominator is ``sum s``, or with ``own_scale`` (a single image's fixed
+    point, whose error is ``std(e) sqrt(n)`` over its Jacobian) the one its error gives."""
+    out = list(res)
+    ok = np.all(np.isfinite(e), axis=1) & np.all(np.isfinite(s), axis=1)
+    e, s, t = e[ok], s[ok], t[ok]
+    for i in range(2):
+        g, err = res[2 * i], res[2 * i + 1]
+        den = float(s[:, i].sum())
+        if not (np.isfinite(g) and np.isfinite(err) and den > 0 and e.shape[0] > 2):
+            continue
+        scale = (err / (float(np.std(e[:, i], ddof=1)) * math.sqrt(e.shape[0])) if own_scale
+                 else 1.0 / den)  # fmt: skip
+        r = e[:, i] - (e[:, i].sum() / den) * s[:, i]
+        pop = t_pop[:, i][np.isfinite(t_pop[:, i])]
+        delta, err_c = truth_control_variate(r, t[:, i], pop, scale)
+        out[2 * i], out[2 * i + 1] = g - delta, err_c
+    return tuple(out)
 
 
 # -- measured catalogues, kept under DIR/measured/ ----------------------------------------
@@ -893,8 +998,9 @@ _EST_NAMES = ("psf", "file", "g1_true", "g2_true", "g1", "g1_err", "g2", "g2_err
 
 def _shear_estimates(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str, dict], *,
                      pairs: bool, estimator: str, prior: Prior, egrid: np.ndarray,
-                     refine: int) -> Table:  # fmt: skip
-    """One shear estimate per image (``pairs=False``) or per image + twin pair."""
+                     refine: int, truth_control: bool = False) -> Table:  # fmt: skip
+    """One shear estimate per image (``pairs=False``) or per image + twin pair, with the
+    truth's shape noise taken out (:func:`truth_control_variate`) if ``truth_control``."""
     from .shear import estimate_shear, shear_fixed_point
 
     images = np.asarray(gal["image"]).astype(str)
@@ -913,6 +1019,13 @@ def _shear_estimates(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str,
                                "sens2": s[sel, 1]})  # fmt: skip
                     est = estimate_shear(t)
                 res = (est.g1, est.g1_err, est.g2, est.g2_err)
+                if truth_control:
+                    t_all = _truth_terms(fields, [name])
+                    tix = np.asarray(gal["truth_index"])[sel]
+                    t = np.full((tix.size, 2), np.nan)
+                    t[tix >= 0] = t_all[tix[tix >= 0]]
+                    res = _controlled(res, e[sel], s[sel], t, t_all,
+                                      own_scale=estimator == "fixed-point")
             except ValueError:
                 res = nan4
             rows.append((f["psf"], f["file"], f["g1"], f["g2"], *res, int(sel.sum()), 0))
@@ -931,6 +1044,11 @@ def _shear_estimates(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str,
                 if estimator == "fixed-point":  # the group together; error from the sums
                     fp = shear_fixed_point(lnL[rows_k.ravel()], egrid, prior, refine=refine)
                     res = (fp.g1, est.g1_err, fp.g2, est.g2_err)
+                if truth_control and len(rows_k):
+                    names = sorted({str(images[r]) for r in rows_k[0]})
+                    t_all = _truth_terms(fields, names)
+                    t = t_all[np.asarray(gal["truth_index"])[rows_k[:, 0]]]
+                    res = _controlled(res, e[rows_k].sum(axis=1), s[rows_k].sum(axis=1), t, t_all)
             except ValueError:
                 res = nan4
             rows.append((f["psf"], f["file"], f["g1"], f["g2"], *res, rows_k.size,
@@ -1210,6 +1328,7 @@ def validate(
     bins: dict[str, int | Sequence[float]] | None = None,
     bin_min_count: int = 300,
     true_psf: bool = False,
+    truth_control: bool = False,
 ):
     """Run the pipeline on a simulated set and measure m, c, sigma_c and Q per PSF and bin.
 
@@ -1294,6 +1413,15 @@ def validate(
         the largest stamp) instead of the PSF stacked from the stars, keeping the
         catalogues in ``DIR/measured_true_psf/``. The difference from a run with the
         modelled PSF is what the PSF model does to m and c, measured on the same noise.
+    truth_control : bool
+        Take the truth's shape noise out of each image's (or group's) estimate with
+        :func:`truth_control_variate`: the true sheared ellipticities' departure from
+        the image's shear, whose expectation is zero, as a control variate. The same m
+        and c are estimated with smaller errors: a single image loses its shape noise;
+        a twin group the rotation's second-order residual at large shears. What a
+        selection does stays in. The per-image and per-group estimates only, not the
+        bins (whose galaxies are a measured subset: the population's mean is not
+        theirs).
 
     Returns
     -------
@@ -1391,7 +1519,8 @@ def validate(
 
     e, s = e_s_of(sg, prior)
     psfs = sorted(by_psf)
-    kw = dict(estimator=estimator, prior=prior, egrid=egrid, refine=refine)
+    kw = dict(estimator=estimator, prior=prior, egrid=egrid, refine=refine,
+              truth_control=truth_control)  # fmt: skip
     img = _shear_estimates(sg, e, s, fields, pairs=False, **kw)
     pairs = any(f["twin"] or f.get("noise_twin") for f in man["fields"])
     mc, fit_rows = _mc_rows(img, psfs)
@@ -1415,6 +1544,7 @@ def validate(
                                                    "rho"))  # fmt: skip
     out.meta["measured"] = measured
     out.meta["psf_source"] = "true" if true_psf else "stars"
+    out.meta["truth_control"] = bool(truth_control)
     # bins (paper Table 2): a group's value is the mean of its members'
     gid = _groups(sg, fields)[0] if pairs else np.full(len(sg), -1)
     has = gid >= 0
@@ -1750,7 +1880,10 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
                             0, 1, len(meta["bulge_weights"]))], meta["bulge_weights"],
                         strict=True))) + "."
              + (" Fitted with the true PSFs, not the stars' (diagnostic)."
-                if meta.get("psf_source") == "true" else ""), "",
+                if meta.get("psf_source") == "true" else "")
+             + (" The truth's shape noise taken out of each estimate (a control variate "
+                "of expectation zero: `validate --truth-control`); the bins without it."
+                if meta.get("truth_control") else ""), "",
              f"<m> = {meta['mean_m']:+.4f} +- {meta['mean_m_err']:.4f} (paper eq. averror: "
              f"+- {meta['mean_m_err_paper']:.4f}), sigma_c = {meta['sigma_c']:.2e} "
              f"(from the errors alone {meta['sigma_c_stat']:.2e}; the offsets' own spread "
