@@ -478,7 +478,7 @@ def test_bulge_fraction_prior_estimated_and_kept(fields, tmp_path):
     assert cl.meta["bulge_weights"].shape == (5,) and cl.meta["bulge_weights"][0] > 0.5
 
 
-def test_size_prior_estimated_given_and_kept(fields, tmp_path):
+def test_size_prior_estimated_given_and_kept(fields, tmp_path, caplog):
     """size_prior="estimated": a first pass fits with the flat prior and deconvolves the
     galaxies' half-light radii; its quantiles match those of the measured galaxies' true
     sizes, the second pass's fits equal a run given the same prior, and the prior
@@ -492,9 +492,16 @@ def test_size_prior_estimated_given_and_kept(fields, tmp_path):
     truths = [_field(p, seed=10 + k, size_range=(0.8, 2.0))[2] for k, p in enumerate(imgs)]
     cfg = CFG.replace(size_prior="estimated")
     out = tmp_path / "sp.fits"
-    cat = measure(imgs, stars=[d / "stars.fits"], config=cfg, prior=PRIOR, output=out,
-                  progress=False)  # fmt: skip
+    with caplog.at_level(logging.INFO, logger="pylensfit"):
+        cat = measure(imgs, stars=[d / "stars.fits"], config=cfg, prior=PRIOR, output=out,
+                      progress=False)  # fmt: skip
     sp = cat.meta["size_prior"]
+    # every measured galaxy enters the estimate, also those whose L(r) underflows at
+    # some sizes (-inf there); the first pass classifies a few faint ones differently
+    used = [int(r.getMessage().split()[-2]) for r in caplog.records
+            if r.getMessage().startswith("size prior estimated from")]
+    n_gal = int(np.sum((cat["flags"] == 0) & (cat["fitclass"] == 0)))
+    assert len(used) == 1 and used[0] > 0.97 * n_gal
     assert isinstance(sp, SizePrior)
     # the truth: exponential discs of scale radius r, half-light radius 1.678 r
     h = []
@@ -510,9 +517,11 @@ def test_size_prior_estimated_given_and_kept(fields, tmp_path):
     cdf = np.cumsum(sp.density) / np.sum(sp.density)
     q = np.array([0.16, 0.5, 0.84])
     est = np.exp(np.interp(q, cdf, sp.ln_h))
-    # measured: 1.62 / 2.27 / 2.93 px against 1.71 / 2.39 / 3.05 (L(r) marginalised over e
-    # with a uniform weight instead of the ellipticity prior: 1.58 / 2.23 / 2.90)
-    np.testing.assert_allclose(est, np.quantile(h, q), rtol=0.06)
+    # measured: 1.67 / 2.29 / 2.96 px against 1.71 / 2.39 / 3.05 (from the 140 galaxies
+    # finite at every size, as before the forty-fifth session: 1.62 / 2.27 / 2.93; L(r)
+    # marginalised over e with a uniform weight instead of the ellipticity prior: 1.58 /
+    # 2.23 / 2.90)
+    np.testing.assert_allclose(est, np.quantile(h, q), rtol=0.05)
     assert sp.star < 0.01
     back = read_catalogue(out)
     np.testing.assert_allclose(back.meta["size_prior"].density, sp.density)
