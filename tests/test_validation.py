@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -845,3 +846,26 @@ def test_step2_flux_does_not_follow_the_shear():
     assert not np.allclose(ta["e1"], tb["e1"])
     np.testing.assert_allclose(tb["flux"], ta["flux"], rtol=1e-6)
     np.testing.assert_allclose(tc["flux"], ta["flux"], rtol=1e-6)
+
+
+def test_truth_tables_are_read_once_per_file_version(tmp_path):
+    """validate reads each field's TRUTH for the matching and the truth control: once,
+    unless the file changes."""
+    from pylensfit import validation as V
+
+    path = tmp_path / "f.fits"
+
+    def write(e1):
+        t = Table({"x": [1.0, 2.0], "e1": [e1, -e1]})
+        fits.HDUList([fits.PrimaryHDU(), fits.table_to_hdu(t)]).writeto(path, overwrite=True)
+        with fits.open(path, mode="update") as h:
+            h[1].name = "TRUTH"
+
+    write(0.1)
+    a = V._truth(path)
+    assert V._truth(str(path)) is a and a["e1"][0] == pytest.approx(0.1)
+    write(0.25)  # a new version of the file (its size or time differs): read again
+    st = os.stat(path)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    b = V._truth(path)
+    assert b is not a and b["e1"][0] == pytest.approx(0.25)

@@ -29,6 +29,7 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import asdict
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -788,13 +789,25 @@ def truth_control_variate(r: np.ndarray, t: np.ndarray, t_pop: np.ndarray,
     return delta, err
 
 
+def _truth(path: str | os.PathLike) -> Table:
+    """The ``TRUTH`` table of a simulated field, read once per file version (matching the
+    galaxies and the truth control read each field's; do not modify it)."""
+    st = os.stat(path)
+    return _truth_cached(os.fspath(path), st.st_mtime_ns, st.st_size)
+
+
+@lru_cache(maxsize=256)
+def _truth_cached(path: str, mtime_ns: int, size: int) -> Table:
+    return Table.read(path, hdu="TRUTH")
+
+
 def _truth_terms(fields: dict[str, dict], names: list[str]) -> np.ndarray:
     """``(n_truth, 2)``: ``sum over the images names of (e_true - g)`` per truth object of a
     group's images (which share their truth rows); NaN for stars."""
     out = None
     for name in names:
         f = fields[name]
-        t = Table.read(f["path"], hdu="TRUTH")
+        t = _truth(f["path"])
         d = np.column_stack([np.asarray(t["e1"], float) - f["g1"],
                              np.asarray(t["e2"], float) - f["g2"]])  # fmt: skip
         d[np.asarray(t["is_star"], bool)] = np.nan
@@ -907,7 +920,7 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
     r, e1, e2 = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
     morph = np.full(n, np.nan)
     for name in np.unique(images):
-        truth = Table.read(fields[name]["path"], hdu="TRUTH")
+        truth = _truth(fields[name]["path"])
         sel = np.flatnonzero(images == name)
         tree = cKDTree(np.column_stack([truth["x"], truth["y"]]))
         xy = np.column_stack([np.asarray(g["x"])[sel], np.asarray(g["y"])[sel]])
