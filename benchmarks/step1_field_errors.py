@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
-from pylensfit.validation import truth_control_variate
+from pylensfit.validation import _truth, _truth_terms, truth_control_variate
 from step1_true_psf import MEMBERS, sums
 
 N_SIDE = 8  # spatial blocks per side
@@ -44,10 +44,10 @@ def field_rows(d: Path, run: str, k: int, fl: list[dict], rng) -> list[tuple]:
     rows = []
     for f in fl:
         g = np.array([f["g1"], f["g2"]])
-        t_all = 0.0
-        for m in MEMBERS:
-            t = fits.getdata(d / f["file"].replace(".fits", f"{m}.fits"), "TRUTH")
-            t_all = t_all + np.c_[t["e1"], t["e2"]] - g
+        # sum over the group's renderings of e_true - g per truth object (NaN: stars)
+        names = [f["file"].replace(".fits", f"{m}.fits") for m in MEMBERS]
+        t_all = _truth_terms({n: {"path": d / n, "g1": g[0], "g2": g[1]} for n in names}, names)
+        t = _truth(d / names[0])
         gal = ~np.asarray(t["is_star"], bool)
         x = S[f["file"]]
         ok = np.isfinite(x).all(1)
