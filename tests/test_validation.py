@@ -281,10 +281,13 @@ def test_validate_end_to_end(tmp_path):
     # three of the five PSFs (round, elliptical along e1 and along e2), with the fields of
     # a 1500-galaxy set
     d = simulate_step("step1", tmp_path / "s1", ngal=900, seed=4, psfs=STEP1_PSFS[:3])
-    # the flat size prior: the zero-shear fields of a set this small hold ~30 galaxies
-    # per PSF, too few to estimate one (the default)
+    # a zero-shear field of ~30 galaxies is too few to estimate a size prior from (the
+    # default): a clear error. This set's hold ~60 per PSF; it is measured with the flat
+    # size prior, to keep the test short
+    tiny = simulate_step("step1", tmp_path / "s0", ngal=150, seed=5, psfs=STEP1_PSFS[:1],
+                         prior_ngal=30)  # fmt: skip
     with pytest.raises(InputError, match="too few to estimate the size prior"):
-        validate(d, progress=False, bins={})
+        validate(tiny, progress=False, bins={})
     res = validate(d, config=_flat(), report=tmp_path / "report.md", progress=False)
     assert list(res["psf"]) == ["0", "1", "2", "all"]
     assert res["n_gal"][-1] > 600
