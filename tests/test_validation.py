@@ -742,6 +742,14 @@ def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
                  config=Config(model="bulge+disc", integration_refine=2))  # fmt: skip
     with pytest.raises(AssertionError, match="measure called"):
         validate(step2["dir"], config=_exponential(), progress=False, bins={}, remeasure=True)
+    # so does a catalogue kept by a version of the code that measured differently
+    from pylensfit import validation
+
+    monkeypatch.setattr(validation, "_MEASURE_VERSION", validation._MEASURE_VERSION + 1)
+    with pytest.raises(AssertionError, match="measure called"):
+        validate(step2["dir"], config=_exponential(), progress=False, bins={})
+    monkeypatch.undo()
+    monkeypatch.setattr(pipeline, "measure", boom)
     # so does a field written again (a set simulated again with other parameters and the
     # same seeds): here a star field, whose PSF every catalogue of its PSF used
     import os

@@ -839,6 +839,12 @@ def _controlled(res: tuple, e: np.ndarray, s: np.ndarray, t: np.ndarray, t_pop: 
 
 
 # -- measured catalogues, kept under DIR/measured/ ----------------------------------------
+#: the kept catalogues' version: one whose sidecar holds another is measured again. It
+#: changes when the same configuration measures differently (3: the size prior estimated
+#: from every measured galaxy, forty-fifth session)
+_MEASURE_VERSION = 3
+
+
 def _ident(fields: list[dict], star: dict, cfg, size_prior=None, psf=None) -> dict:
     """What a kept catalogue was made from: the configuration, the fields' seeds, the
     size prior given to the measurement (if any) and the PSF given to it (if any: a
@@ -850,7 +856,7 @@ def _ident(fields: list[dict], star: dict, cfg, size_prior=None, psf=None) -> di
         st = Path(f["path"]).stat() if f.get("path") else None
         ids.append({**{k: v for k, v in f.items() if k != "path"},
                     "bytes": st and st.st_size, "mtime_ns": st and st.st_mtime_ns})  # fmt: skip
-    ident = {"version": 2, "config": cfg.to_dict(), "fields": ids}
+    ident = {"version": _MEASURE_VERSION, "config": cfg.to_dict(), "fields": ids}
     if size_prior is not None:
         ident["size_prior"] = size_prior.to_dict()
     if psf is not None:
