@@ -752,8 +752,6 @@ def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
     monkeypatch.setattr(pipeline, "measure", boom)
     # so does a field written again (a set simulated again with other parameters and the
     # same seeds): here a star field, whose PSF every catalogue of its PSF used
-    import os
-
     star = Path(step2["star_fields"][0]["path"])
     st = star.stat()
     os.utime(star, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))

@@ -1002,22 +1002,18 @@ def _estimate_size_prior(tasks: list[dict], cfg: Config, prior: Prior | None, jo
     measured galaxy enters, sizes where its ``L(r)`` underflows (``-inf``) included.
     """
     from .models import model_bank
-    from .prior import estimate_size_prior
+    from .prior import estimate_size_prior, size_likelihood_rows
 
     first = [dict(t, keep_lnL_r=True, psf_dir=None, size_marginal_prior=prior) for t in tasks]
     lnL_r, lnL_b, lnL_s, egrid = [], [], [], None
     for _, res in _run(_image_task, first, jobs, scheduler, "size prior", progress, pool):
         rows = res["rows"]
-        # every measured galaxy: -inf in L(r) is a size whose likelihood underflows
-        # against the galaxy's best (the fit's exp(-746)), not a failed fit. Keeping
-        # only the rows finite at every size left out the galaxies whose L(r) rules out
-        # some sizes, the better measured half, and the deconvolution of the broad rest
-        # came out 8 % too large in h under STEP1's 3-pixel PSFs (mean ln h 1.007 for
-        # 0.933; 0.931 with every galaxy).
+        # every measured galaxy: keeping only the rows finite at every size took the
+        # deconvolved sizes 8 % large under STEP1's 3-pixel PSFs (size_likelihood_rows)
         lr = res["lnL_r"]
         gal = ((rows["flags"] == 0) & (rows["fitclass"] == FITCLASS["galaxy"])
-               & ~np.isnan(lr).any(axis=1) & np.isfinite(lr.max(axis=1)))  # fmt: skip
-        lnL_r.append(res["lnL_r"][gal])
+               & size_likelihood_rows(lr))  # fmt: skip
+        lnL_r.append(lr[gal])
         egrid = res["egrid"]
         if res["lnL_bulge"] is not None:
             lnL_b.append(res["lnL_bulge"][gal])

@@ -1349,6 +1349,16 @@ def _thin_floor(w: np.ndarray, floored: np.ndarray, n_sizes: int, stride: int) -
     return w
 
 
+def size_likelihood_rows(lnL_r: np.ndarray) -> np.ndarray:
+    """Rows of ``lnL_r`` that enter :func:`estimate_size_prior`: no NaN and some finite
+    size. ``-inf`` is a size whose likelihood underflows against the galaxy's best (or a
+    size not evaluated), zero likelihood, not a failed fit: a row finite at every size
+    would leave out the galaxies whose ``L(r)`` rules some sizes out, the better
+    measured ones."""
+    L = np.asarray(lnL_r)
+    return ~np.isnan(L).any(axis=1) & np.isfinite(L.max(axis=1))
+
+
 def estimate_size_prior(
     lnL_r: np.ndarray,
     bank,
@@ -1408,7 +1418,7 @@ def estimate_size_prior(
     n_r = bank.n_r
     if L.ndim != 2 or L.shape[1] != n_r + 1:
         raise ValueError(f"lnL_r must have shape (n, {n_r + 1}), got {L.shape}")
-    L = L[~np.isnan(L).any(axis=1) & np.isfinite(L.max(axis=1))]  # -inf: sizes not evaluated
+    L = L[size_likelihood_rows(L)]
     if L.shape[0] < 10:
         raise ValueError(f"{L.shape[0]} usable likelihoods: too few to estimate a size prior")
     r, r_w, h = _node_sizes(bank, config)
