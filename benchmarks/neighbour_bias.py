@@ -20,6 +20,11 @@ rows `cv`). Modes:
 
     python benchmarks/neighbour_bias.py --mode alone neighbours subtracted --ngal 2000
     python benchmarks/neighbour_bias.py --mode neighbours --noise-free --rd 2.5 3.5
+    python benchmarks/neighbour_bias.py --mode alone --size-prior true --g 0.1 --ngal 10000
+
+``--size-prior true`` fits with the population's own size prior (the disc scale length
+uniform in ``--rd``) instead of the flat one: with the ellipticity prior and the bulge
+fraction also the population's, every prior is then exact.
 """
 
 from __future__ import annotations
@@ -43,9 +48,13 @@ from pylensfit.precision import (
     reduce_renderings,
     shape_controls,
 )
-from pylensfit.prior import Prior
+from pylensfit.prior import Prior, SizePrior
 from pylensfit.simulate import _galaxy, draw_shapes
 from pylensfit.stamps import cut_stamps
+
+#: Half-light radius over disc scale length of the galaxy drawn here (bulge fraction 0.5,
+#: bulge half-light radius 0.6 scale lengths), measured on its GalSim profile.
+HLR_PER_RD = 1.1293544742710435
 
 _LATTICE = np.array([(0, 0)] + [(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if i or j])
 
@@ -128,6 +137,8 @@ def main() -> None:
                     help="rounds of neighbour subtraction (Config.neighbour_iterations)")
     ap.add_argument("--noise-free", action="store_true",
                     help="no noise (the fits still assume sigma = 1)")
+    ap.add_argument("--size-prior", choices=["flat", "true"], default="flat",
+                    help="the fit's size prior: flat, or the population's own")
     a = ap.parse_args()
     N = 32
     canvas = int(2 * a.spacing + 2 * N + 16)
@@ -138,6 +149,14 @@ def main() -> None:
     cfg = Config(model="bulge+disc", n_bulge_fractions=1, bulge_fraction=0.5,
                  bulge_size_ratio=0.6, stamp_size=N,
                  neighbour_iterations=a.iterations)  # fmt: skip
+    size_prior = None
+    if a.size_prior == "true":  # r uniform: p(ln h) proportional to h on the box
+        ln_h = np.arange(np.log(HLR_PER_RD * a.rd[0]) - 0.05,
+                         np.log(HLR_PER_RD * a.rd[1]) + 0.06, 0.005)  # fmt: skip
+        h = np.exp(ln_h)
+        dens = np.where((h >= HLR_PER_RD * a.rd[0]) & (h <= HLR_PER_RD * a.rd[1]), h, 0.0)
+        size_prior = SizePrior(ln_h=ln_h, density=dens * (1 - 1e-6) / np.trapezoid(dens, ln_h),
+                               star=1e-6)  # fmt: skip
     for mode in a.mode:
         rng = np.random.default_rng(a.seed)  # the same scenes and noise in every mode
         t0 = time.time()
@@ -157,7 +176,8 @@ def main() -> None:
                     st[i, k] = cut_stamps(img[k], pos[:1, 0], pos[:1, 1], N)[0][0]
             if mode == "subtracted":
                 st[:] = subtracted_centrals(scenes, canvas, N, psf_img, cfg)
-            f = fit_stamps(st.reshape(4 * block, N, N), psf_img, 1.0, config=cfg)
+            f = fit_stamps(st.reshape(4 * block, N, N), psf_img, 1.0, config=cfg,
+                           size_prior=size_prior)  # fmt: skip
             q, u = reduce_renderings(f, prior, a.g, refine=cfg.integration_refine)
             Q.append(q)
             U.append(u)
