@@ -139,7 +139,20 @@ def main() -> None:
                     help="no noise (the fits still assume sigma = 1)")
     ap.add_argument("--size-prior", choices=["flat", "true"], default="flat",
                     help="the fit's size prior: flat, or the population's own")
+    ap.add_argument("--config", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="Config overrides, e.g. amplitude_prior=snr amplitude_prior_power=1 "
+                         "(the population's own S/N distribution, log-uniform)")
     a = ap.parse_args()
+
+    def value(v: str):
+        for kind in (int, float):
+            try:
+                return kind(v)
+            except ValueError:
+                pass
+        return v
+
+    over = {k: value(v) for k, v in (s.split("=", 1) for s in a.config)}
     N = 32
     canvas = int(2 * a.spacing + 2 * N + 16)
     prior = Prior(B=0.19, C=0.58, D=2.4)
@@ -148,7 +161,7 @@ def main() -> None:
     psf_img, _ = _psf_image(p, N)
     cfg = Config(model="bulge+disc", n_bulge_fractions=1, bulge_fraction=0.5,
                  bulge_size_ratio=0.6, stamp_size=N,
-                 neighbour_iterations=a.iterations)  # fmt: skip
+                 neighbour_iterations=a.iterations, **over)  # fmt: skip
     size_prior = None
     if a.size_prior == "true":  # r uniform: p(ln h) proportional to h on the box
         ln_h = np.arange(np.log(HLR_PER_RD * a.rd[0]) - 0.05,
