@@ -72,6 +72,10 @@ def scene(rng, a, psf, prior, with_neighbours: bool, canvas: int):
     shown = nobj if with_neighbours else 1
     flux = np.empty(nobj)
     for k in range(shown):
+        if a.flux_range is not None:  # log-uniform in flux, the same draws as the S/N's
+            lo, hi = np.log(a.flux_range)
+            flux[k] = np.exp(lo + (np.log(snr[k]) - np.log(15.0)) / np.log(10.0) * (hi - lo))
+            continue
         ref = _draw(galsim.Convolve(_galaxy("bulge+disc", rd[k]), psf), 64)
         flux[k] = snr[k] / math.sqrt(float(np.sum(ref.astype(float) ** 2)))
     out = np.zeros((4, canvas, canvas))
@@ -139,6 +143,10 @@ def main() -> None:
                     help="no noise (the fits still assume sigma = 1)")
     ap.add_argument("--size-prior", choices=["flat", "true"], default="flat",
                     help="the fit's size prior: flat, or the population's own")
+    ap.add_argument("--flux-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="draw the fluxes log-uniform in [LO, HI] instead of the S/N in "
+                         "[15, 150]: with --config amplitude_prior=flux amplitude_prior_power=1 "
+                         "amplitude_prior_min=LO amplitude_prior_max=HI the flux prior is exact")
     ap.add_argument("--config", nargs="*", default=[], metavar="KEY=VALUE",
                     help="Config overrides, e.g. amplitude_prior=snr amplitude_prior_power=1 "
                          "(the population's own S/N distribution, log-uniform)")
