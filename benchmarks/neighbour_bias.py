@@ -37,6 +37,7 @@ import galsim
 import numpy as np
 
 import pylensfit.pipeline as pl
+from precision_ab import _kv
 from pylensfit.config import Config
 from pylensfit.likelihood import fit_stamps
 from pylensfit.precision import (
@@ -55,6 +56,8 @@ from pylensfit.stamps import cut_stamps
 #: Half-light radius over disc scale length of the galaxy drawn here (bulge fraction 0.5,
 #: bulge half-light radius 0.6 scale lengths), measured on its GalSim profile.
 HLR_PER_RD = 1.1293544742710435
+#: The galaxies' S/N, log-uniform (STEP1's, `simulate.FieldSpec.snr_range`).
+SNR_RANGE = (15.0, 150.0)
 
 _LATTICE = np.array([(0, 0)] + [(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if i or j])
 
@@ -64,7 +67,7 @@ def scene(rng, a, psf, prior, with_neighbours: bool, canvas: int):
     central galaxy at the canvas centre + a sub-pixel offset; positions, intrinsic e."""
     nobj = 9  # drawn in every mode, so that the modes share the central galaxies
     rd = rng.uniform(*a.rd, nobj)
-    snr = np.exp(rng.uniform(np.log(15.0), np.log(150.0), nobj))
+    snr = np.exp(rng.uniform(*np.log(SNR_RANGE), nobj))
     e = draw_shapes(prior, nobj, rng, 0.99)
     jit = rng.uniform(-6.0, 6.0, (nobj, 2))
     jit[0] = rng.uniform(-0.5, 0.5, 2)
@@ -73,8 +76,8 @@ def scene(rng, a, psf, prior, with_neighbours: bool, canvas: int):
     flux = np.empty(nobj)
     for k in range(shown):
         if a.flux_range is not None:  # log-uniform in flux, the same draws as the S/N's
-            lo, hi = np.log(a.flux_range)
-            flux[k] = np.exp(lo + (np.log(snr[k]) - np.log(15.0)) / np.log(10.0) * (hi - lo))
+            t = np.log(snr[k] / SNR_RANGE[0]) / np.log(SNR_RANGE[1] / SNR_RANGE[0])
+            flux[k] = a.flux_range[0] * (a.flux_range[1] / a.flux_range[0]) ** t
             continue
         ref = _draw(galsim.Convolve(_galaxy("bulge+disc", rd[k]), psf), 64)
         flux[k] = snr[k] / math.sqrt(float(np.sum(ref.astype(float) ** 2)))
@@ -145,22 +148,13 @@ def main() -> None:
                     help="the fit's size prior: flat, or the population's own")
     ap.add_argument("--flux-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                     help="draw the fluxes log-uniform in [LO, HI] instead of the S/N in "
-                         "[15, 150]: with --config amplitude_prior=flux amplitude_prior_power=1 "
+                         "SNR_RANGE: with --config amplitude_prior=flux amplitude_prior_power=1 "
                          "amplitude_prior_min=LO amplitude_prior_max=HI the flux prior is exact")
     ap.add_argument("--config", nargs="*", default=[], metavar="KEY=VALUE",
                     help="Config overrides, e.g. amplitude_prior=snr amplitude_prior_power=1 "
                          "(the population's own S/N distribution, log-uniform)")
     a = ap.parse_args()
-
-    def value(v: str):
-        for kind in (int, float):
-            try:
-                return kind(v)
-            except ValueError:
-                pass
-        return v
-
-    over = {k: value(v) for k, v in (s.split("=", 1) for s in a.config)}
+    over = _kv(a.config)
     N = 32
     canvas = int(2 * a.spacing + 2 * N + 16)
     prior = Prior(B=0.19, C=0.58, D=2.4)
