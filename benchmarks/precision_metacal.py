@@ -19,6 +19,8 @@ groups of 100 galaxies, and the paired differences ``metacal - lensfit``::
 
     python benchmarks/precision_metacal.py --ngal 4000 --psf e=0.10 --jobs 2
     python benchmarks/precision_metacal.py --ngal 8000 --psf e=0.10 --morphology-weights 0 0 0 1 0
+    python benchmarks/precision_metacal.py --ngal 8000 --psf e=0.10 --flux-bounds estimated \
+        --antithetic
 """
 
 from __future__ import annotations
@@ -148,6 +150,11 @@ def main() -> None:
                     help="also measure every rendering with its noise (and the added field) "
                          "negated, and average: the responses' noise cancels to first order")
     ap.add_argument("--save", default=None, help="also write the per-rendering arrays here (npz)")
+    ap.add_argument("--flux-bounds", choices=["none", "estimated", "oracle"], default="none",
+                    help="the flux prior's bounds: none (the unbounded power law of the "
+                         "thirty-fourth session's runs), estimated by the calibration (the "
+                         "precision mode's default since the thirty-sixth session) or the "
+                         "population's")  # fmt: skip
     a = ap.parse_args()
     kw = {} if a.morphology_weights is None else {"morphology_weights": tuple(a.morphology_weights)}
     if a.g is not None:
@@ -158,7 +165,7 @@ def main() -> None:
         kw["offset"] = a.offset
     spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **kw)
     cfg = P.default_config(spec)
-    prior, sps, bw, cfgs = _priors(spec, cfg, not a.true_priors, a.jobs, "none")
+    prior, sps, bw, cfgs = _priors(spec, cfg, not a.true_priors, a.jobs, a.flux_bounds)
     npsf = len(spec.psfs)
     nb = -(-spec.ngal // spec.block_size)
     tasks = [{"spec": spec, "config": cfgs[b % npsf], "prior": prior, "bulge_weights": bw,
