@@ -169,6 +169,10 @@ def main() -> None:
     ap.add_argument("--b-calibration-seed", type=int, default=None,
                     help="B's priors from the calibration sample of this seed (the same "
                          "population, other galaxies and noise): the priors' sampling noise")
+    ap.add_argument("--calibration-seed", type=int, default=None,
+                    help="the estimated priors (A's, and B's with --own-priors) from the "
+                         "calibration sample of this seed instead of --seed's, the main "
+                         "sample unchanged: a paired B - A over several calibration samples")
     ap.add_argument("--b-true-size-prior", action="store_true",
                     help="B's size priors the population's own (log-uniform per PSF)")
     ap.add_argument("--a-bulge-weights", nargs="+", type=float, default=None, metavar="W",
@@ -201,12 +205,13 @@ def main() -> None:
     if a.a_flux_bounds is None:
         a.a_flux_bounds = "estimated" if a.estimated else "none"
     b_bounds = a.b_flux_bounds or a.a_flux_bounds
-    pri = {"A": _priors(spec, cfg_a, a.estimated, a.jobs, a.a_flux_bounds)}
+    cal_spec = spec if a.calibration_seed is None else P.spec_with(spec, seed=a.calibration_seed)
+    pri = {"A": _priors(cal_spec, cfg_a, a.estimated, a.jobs, a.a_flux_bounds)}
     if a.b_calibration_seed is not None:  # B's priors from another calibration sample
         pri["B"] = _priors(P.spec_with(spec, seed=a.b_calibration_seed), cfg_b, True, a.jobs,
                            b_bounds)  # fmt: skip
     elif a.own_priors:  # B's priors from its own calibration (or its own bulge fractions)
-        pri["B"] = _priors(spec, cfg_b, a.estimated, a.jobs, b_bounds)
+        pri["B"] = _priors(cal_spec, cfg_b, a.estimated, a.jobs, b_bounds)
     else:  # A's priors; B's bounds A's, the oracle's, or estimated by a calibration of B
         if b_bounds == "estimated" and a.a_flux_bounds != "estimated":
             raise SystemExit("--b-flux-bounds estimated needs --own-priors")
@@ -265,6 +270,7 @@ def main() -> None:
           f"; flux bounds A {a.a_flux_bounds}, B {b_bounds}"
           f"{'; B prior ' + str(a.b_prior) if a.b_prior else ''}"
           f"{'' if a.b_calibration_seed is None else f'; B priors of seed {a.b_calibration_seed}'}"
+          f"{'' if a.calibration_seed is None else f'; calibration seed {a.calibration_seed}'}"
           f"{'; B size priors the population' + chr(39) + 's' if a.b_true_size_prior else ''}"
           f"{bw_txt}"
           f"{'; spec ' + str(_kv(a.spec)) if a.spec else ''}"
