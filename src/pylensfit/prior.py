@@ -1413,7 +1413,100 @@ def estimate_size_prior(
     if per_run is None:
         per_run = bool(getattr(config, "size_prior_per_run", False))
     if n_iter is None:
-        n_iter = int(max(500, round(100.0 / max(smooth, 1e-3))))
+        n_iter = _ems_steps(smooth)
+    comp, knots, n_blk, w0 = _size_mixture(lnL_r, bank, config, bulge_weights, knot_step,
+                                           per_run)  # fmt: skip
+    K = knots.size
+    w = _ems(comp, w0, n_blk, np.array([smooth]), np.array([n_iter]))[:, 0]
+    star = float(w[-1])
+    if not per_run:
+        return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=star)
+    n_b = n_blk
+    dens = w[:-1].reshape(n_b, K)
+    mass = dens.sum(axis=1, keepdims=True)
+    # a run EM has emptied to underflow takes the others' shape (its weight is ~0 anyway)
+    dens = np.where(mass > 1e-250, dens / np.maximum(mass, 1e-300), dens.sum(axis=0) / mass.sum())
+    dens = dens * (1.0 - star) / knot_step
+    return SizePrior(ln_h=knots, density=dens, star=star)
+
+
+#: the smoothings :func:`select_size_prior_smoothing` chooses among
+SIZE_PRIOR_SMOOTHINGS = (0.02, 0.05, 0.1, 0.25)
+
+
+def select_size_prior_smoothing(
+    lnL_r: np.ndarray,
+    bank,
+    config,
+    *,
+    candidates: tuple[float, ...] = SIZE_PRIOR_SMOOTHINGS,
+    folds: int = 5,
+    bulge_weights: np.ndarray | None = None,
+    knot_step: float = 0.1,
+    per_run: bool | None = None,
+    seed: int = 0,
+) -> tuple[float, np.ndarray]:
+    """The size prior's smoothing that predicts held-out galaxies best.
+
+    :func:`estimate_size_prior`'s EMS smoothing is a regularisation whose strength does
+    not fall as the sample grows: each EM step is followed by the same smoothing, so the
+    estimate stays softer than the population however many galaxies there are (the
+    edges of a box in size come out rounded, and ``m`` moves with them;
+    ``benchmarks/README.md``, forty-seventh session). This chooses it from the data:
+    the sample is cut into ``folds`` groups at random (``seed``); for each candidate,
+    the prior estimated from all groups but one gives the held-out group's galaxies
+    their evidence ``Z_a``, and the candidate whose held-out ``sum_a ln Z_a`` over the
+    groups is largest is returned. Every fit of every fold and candidate shares the
+    passes over the likelihoods (:func:`_ems`).
+
+    Parameters
+    ----------
+    lnL_r, bank, config, bulge_weights, knot_step, per_run :
+        As :func:`estimate_size_prior`.
+    candidates : tuple of float
+        Smoothings to choose among, each in ``(0, 0.5)``.
+    folds : int
+        Groups of the cross-validation (at least 2).
+    seed : int
+        Seed of the galaxies' assignment to groups.
+
+    Returns
+    -------
+    smooth : float
+        The chosen smoothing.
+    score : numpy.ndarray
+        Held-out ``sum ln Z`` per candidate, less its largest (0 at the chosen one).
+    """
+    cand = np.asarray(candidates, dtype=float)
+    if cand.ndim != 1 or cand.size == 0 or not np.all((cand > 0) & (cand < 0.5)):
+        raise ValueError("candidates must be smoothings in (0, 0.5)")
+    if int(folds) < 2:
+        raise ValueError("folds must be at least 2")
+    folds = int(folds)
+    if per_run is None:
+        per_run = bool(getattr(config, "size_prior_per_run", False))
+    comp, _, n_blk, w0 = _size_mixture(lnL_r, bank, config, bulge_weights, knot_step, per_run)
+    group = np.random.default_rng(seed).permutation(comp.shape[0]) % folds
+    fold = np.tile(np.arange(folds), cand.size)  # fit i: candidate i // folds, fold i % folds
+    train = group[:, None] != fold[None, :]
+    W = _ems(comp, w0, n_blk, np.repeat(cand, folds),
+             np.repeat([_ems_steps(c) for c in cand], folds), rows=train)  # fmt: skip
+    with np.errstate(divide="ignore"):
+        lnZ = np.log(np.maximum(comp @ W, 1e-300))
+    score = np.where(train, 0.0, lnZ).sum(axis=0).reshape(cand.size, folds).sum(axis=1)
+    best = int(np.argmax(score))
+    return float(cand[best]), score - score[best]
+
+
+def _ems_steps(smooth: float) -> int:
+    """EM steps for a smoothing: the less smoothing, the slower EM converges."""
+    return int(max(500, round(100.0 / max(smooth, 1e-3))))
+
+
+def _size_mixture(lnL_r, bank, config, bulge_weights, knot_step: float, per_run: bool):
+    """The mixture :func:`estimate_size_prior` fits: ``comp (n, n_blk K + 1)``, each
+    galaxy's likelihood per unit mass of each knot (and of the point source, last, in
+    units of its best size's), the knots, the number of blocks of knots and EM's start."""
     L = np.asarray(lnL_r, dtype=float)
     n_r = bank.n_r
     if L.ndim != 2 or L.shape[1] != n_r + 1:
@@ -1440,23 +1533,41 @@ def estimate_size_prior(
         blocks = [E[:, :n_r] @ M]
         share = np.ones(1)
     comp = np.column_stack([b / knot_step for b in blocks] + [E[:, n_r]])  # per unit mass
-    w = np.append(np.repeat(share / share.sum(), K), 1.0) / (K + 1)  # the point source last
-    for _ in range(n_iter):
-        tot = comp @ w
-        w = w * np.mean(comp / tot[:, None], axis=0)
-        for b in range(len(blocks)):
-            w[b * K:(b + 1) * K] = np.convolve(w[b * K:(b + 1) * K],
-                                               [smooth, 1 - 2 * smooth, smooth], mode="same")
-        w /= w.sum()
-    star = float(w[-1])
-    if not per_run:
-        return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=star)
-    dens = w[:-1].reshape(n_b, K)
-    mass = dens.sum(axis=1, keepdims=True)
-    # a run EM has emptied to underflow takes the others' shape (its weight is ~0 anyway)
-    dens = np.where(mass > 1e-250, dens / np.maximum(mass, 1e-300), dens.sum(axis=0) / mass.sum())
-    dens = dens * (1.0 - star) / knot_step
-    return SizePrior(ln_h=knots, density=dens, star=star)
+    w0 = np.append(np.repeat(share / share.sum(), K), 1.0) / (K + 1)  # the point source last
+    return comp, knots, len(blocks), w0
+
+
+def _ems(comp: np.ndarray, w0: np.ndarray, n_blk: int, smooth: np.ndarray,
+         n_iter: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+    """Smoothed EM (EMS) of the mixture weights, several fits at once.
+
+    Fit ``i`` (a column of the result) runs ``n_iter[i]`` steps with smoothing
+    ``smooth[i]`` on the galaxies ``rows[:, i]`` (a boolean ``(n, n_fits)``; all of
+    them by default), from ``w0``. Each step is EM's ``w <- w mean_a(comp_a / Z_a)``
+    followed by the smoothing of every block of knots with ``[s, 1 - 2 s, s]`` (0
+    outside the knots) and renormalisation. The fits share their passes over
+    ``comp``: two matrix products per step for all of them.
+    """
+    smooth = np.asarray(smooth, dtype=float)
+    n_iter = np.asarray(n_iter, dtype=int)
+    nf = smooth.size
+    K = (comp.shape[1] - 1) // n_blk
+    W = np.repeat(np.asarray(w0, dtype=float)[:, None], nf, axis=1)
+    inv_n = None if rows is None else rows / np.maximum(rows.sum(axis=0), 1)
+    for it in range(int(n_iter.max())):
+        live = n_iter > it
+        Z = comp @ W[:, live]
+        R = (1.0 / comp.shape[0]) / Z if inv_n is None else inv_n[:, live] / Z
+        Wl = W[:, live] * (comp.T @ R)
+        s = smooth[live]
+        for b in range(n_blk):
+            blk = Wl[b * K:(b + 1) * K]
+            sm = (1.0 - 2.0 * s) * blk
+            sm[1:] += s * blk[:-1]
+            sm[:-1] += s * blk[1:]
+            Wl[b * K:(b + 1) * K] = sm
+        W[:, live] = Wl / Wl.sum(axis=0)
+    return W
 
 
 def estimate_flux_slope(
