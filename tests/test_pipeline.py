@@ -637,7 +637,7 @@ def test_a_size_prior_per_run_survives_the_catalogue_file(tmp_path):
 
     knots = np.linspace(-1.0, 2.0, 31)
     dens = np.stack([np.exp(-0.5 * ((knots - c) / 0.3) ** 2) for c in (0.0, 0.7, 1.2)])
-    sp = SizePrior(ln_h=knots, density=dens, star=2e-3)
+    sp = SizePrior(ln_h=knots, density=dens, star=2e-3, smoothing=0.05)
     egrid = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1]])
     cat = Table({"x": [1.0, 2.0], "lnL": np.zeros((2, 3))})
     cat.meta.update(egrid=egrid, size_prior=sp)
@@ -646,4 +646,4 @@ def test_a_size_prior_per_run_survives_the_catalogue_file(tmp_path):
     assert back.per_run
     np.testing.assert_array_equal(back.density, dens)
     np.testing.assert_array_equal(back.ln_h, knots)
-    assert back.star == pytest.approx(2e-3)
+    assert back.star == pytest.approx(2e-3) and back.smoothing == 0.05

@@ -543,6 +543,7 @@ def test_size_prior_smoothing_chosen_by_held_out_evidence():
     scores are the held-out evidence of priors fitted to the other groups alone."""
     from pylensfit import Config
     from pylensfit.prior import (
+        SizePrior,
         _node_sizes,
         _size_mixture,
         estimate_size_prior,
@@ -578,6 +579,13 @@ def test_size_prior_smoothing_chosen_by_held_out_evidence():
             np.testing.assert_allclose(knots, sp.ln_h)
             total[sm] += np.log(comp[group == f] @ w).sum()
     assert total[0.25] - total[0.05] == pytest.approx(score[1], abs=1e-6)
+    # the configuration's switch: the estimate with the smoothing chosen, which it records
+    sp = estimate_size_prior(lnL_r, bank, cfg.replace(size_prior_smoothing_cv=True))
+    chosen, _ = select_size_prior_smoothing(lnL_r, bank, cfg)
+    assert sp.smoothing == chosen < cfg.size_prior_smoothing
+    ref = estimate_size_prior(lnL_r, bank, cfg, smooth=chosen)
+    np.testing.assert_array_equal(sp.density, ref.density)
+    assert SizePrior.from_dict(sp.to_dict()).smoothing == chosen
     with pytest.raises(ValueError, match="folds"):
         select_size_prior_smoothing(lnL_r, bank, cfg, folds=1)
     with pytest.raises(ValueError, match="candidates"):

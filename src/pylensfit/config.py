@@ -149,6 +149,13 @@ class Config:
         "(0.1 in ln h apart) per EM step. Less smoothing resolves sharper features of the "
         "size distribution (prior.estimate_size_prior)",
     )
+    size_prior_smoothing_cv: bool = _f(
+        False,
+        "choose the estimated size prior's smoothing from the data instead: the one of "
+        "prior.SIZE_PRIOR_SMOOTHINGS whose prior, fitted to four fifths of the sample, "
+        "gives the other fifth the largest evidence, over five folds "
+        "(prior.select_size_prior_smoothing); size_prior_smoothing is then unused",
+    )
     size_prior_per_run: bool = _f(
         False,
         "estimate one size distribution per run of the model family (bulge fraction), "

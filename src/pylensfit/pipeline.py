@@ -1165,6 +1165,8 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
         hs = fits.table_to_hdu(Table({"ln_h": sp.ln_h, "density": np.asarray(sp.density).T}))
         hs.name = "SIZEPRI"
         hs.header["STAR"] = (sp.star, "prior probability of a point source")
+        if sp.smoothing is not None:
+            hs.header["SMOOTH"] = (sp.smoothing, "EMS smoothing of the estimate")
         hdus.append(hs)
     if "psfs" in cat.meta:
         p = fits.table_to_hdu(cat.meta["psfs"])
@@ -1215,7 +1217,8 @@ def read_catalogue(path: str | os.PathLike) -> Table:
             hs = h["SIZEPRI"]
             cat.meta["size_prior"] = SizePrior(ln_h=np.array(hs.data["ln_h"], dtype=float),
                                                density=np.array(hs.data["density"], float).T,
-                                               star=float(hs.header["STAR"]))  # fmt: skip
+                                               star=float(hs.header["STAR"]),
+                                               smoothing=hs.header.get("SMOOTH"))  # fmt: skip
         if "PSFS" in h:
             cat.meta["psfs"] = Table(h["PSFS"].data)
         if "PSFIMG" in h:

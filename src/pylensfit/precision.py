@@ -1353,7 +1353,7 @@ def precision(
     }
     out.meta["size_prior"] = None if size_priors[0] is None else [
         {"psf": spec.psfs[k]["name"], "ln_h": sp.ln_h.tolist(), "density": sp.density.tolist(),
-         "star": sp.star,
+         "star": sp.star, "smoothing": sp.smoothing,
          # a prior per run: the runs mixed with the bulge weights, for the report
          **({"marginal": sp.marginal(bulge_weights).tolist()} if sp.per_run else {})}
         for k, sp in enumerate(size_priors)]  # fmt: skip
@@ -1420,8 +1420,9 @@ def _size_line(sps: list | None, spec: dict, given: bool = False) -> str:
         x, p = np.asarray(one["ln_h"]), np.asarray(one.get("marginal", one["density"]))
         cdf = np.cumsum(p) / np.sum(p)
         q = np.exp(np.interp([0.05, 0.5, 0.95], cdf, x))
+        sm = "" if one.get("smoothing") is None else f", smoothing {one['smoothing']:g}"
         parts.append(f"{one['psf']}: {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} px "
-                     f"(point sources {one['star']:.1e})")  # fmt: skip
+                     f"(point sources {one['star']:.1e}{sm})")  # fmt: skip
     how = ""
     if len(sps) > 1:
         shared = all(o["density"] == sps[0]["density"] for o in sps)

@@ -48,6 +48,7 @@ __all__ = [
     "estimate_prior_binned",
     "estimate_size_prior",
     "mix_bulge_fractions",
+    "select_size_prior_smoothing",
     "fit_functional_prior",
     "marginal_log_likelihood",
     "prior_is_valid",
@@ -1200,11 +1201,14 @@ class SizePrior:
         runs' shares stay the bulge weights'.
     star : float
         Prior probability of a point source.
+    smoothing : float, optional
+        The EMS smoothing of the estimate (:func:`estimate_size_prior`), where known.
     """
 
     ln_h: np.ndarray
     density: np.ndarray
     star: float = 1e-6
+    smoothing: float | None = None
 
     @property
     def per_run(self) -> bool:
@@ -1236,7 +1240,9 @@ class SizePrior:
         """JSON-able parameters (:meth:`from_dict` inverts it)."""
         return {"ln_h": [float(v) for v in self.ln_h],
                 "density": np.asarray(self.density, dtype=float).tolist(),
-                "star": float(self.star)}  # fmt: skip
+                "star": float(self.star),
+                **({} if self.smoothing is None
+                   else {"smoothing": float(self.smoothing)})}  # fmt: skip
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SizePrior:
@@ -1250,7 +1256,9 @@ class SizePrior:
         if not (np.all(np.diff(ln_h) > 0) and np.all(dens >= 0)
                 and np.all(dens.reshape(-1, ln_h.size).sum(axis=1) > 0)):
             raise ValueError("a size prior needs increasing ln_h and a non-negative density")
-        return cls(ln_h=ln_h, density=dens, star=float(d.get("star", 1e-6)))
+        sm = d.get("smoothing")
+        return cls(ln_h=ln_h, density=dens, star=float(d.get("star", 1e-6)),
+                   smoothing=None if sm is None else float(sm))  # fmt: skip
 
     def save(self, path: str | Path) -> None:
         """Write the prior as JSON."""
@@ -1367,7 +1375,7 @@ def estimate_size_prior(
     bulge_weights: np.ndarray | None = None,
     knot_step: float = 0.1,
     n_iter: int | None = None,
-    smooth: float | None = None,
+    smooth: float | str | None = None,
     per_run: bool | None = None,
 ) -> SizePrior:
     """The size prior by maximum marginal likelihood, smoothed EM on a ln(h) grid.
@@ -1392,8 +1400,10 @@ def estimate_size_prior(
     n_iter : int, optional
         EM steps (default ``max(500, 100 / smooth)``: the less smoothing, the slower EM
         converges).
-    smooth : float, optional
-        Weight moved to each neighbouring knot in a smoothing step (default
+    smooth : float or "cv", optional
+        Weight moved to each neighbouring knot in a smoothing step, or ``"cv"``: the
+        one :func:`select_size_prior_smoothing` chooses from this sample (default
+        ``"cv"`` with ``config.size_prior_smoothing_cv``, else
         ``config.size_prior_smoothing``).
     per_run : bool, optional
         One density per run of the model family (bulge fraction), estimated jointly: the
@@ -1409,9 +1419,19 @@ def estimate_size_prior(
     SizePrior
     """
     if smooth is None:
-        smooth = float(getattr(config, "size_prior_smoothing", 0.25))
+        smooth = ("cv" if getattr(config, "size_prior_smoothing_cv", False)
+                  else float(getattr(config, "size_prior_smoothing", 0.25)))  # fmt: skip
     if per_run is None:
         per_run = bool(getattr(config, "size_prior_per_run", False))
+    if isinstance(smooth, str):
+        if smooth != "cv":
+            raise ValueError(f"smooth must be a number or 'cv', got {smooth!r}")
+        smooth, score = select_size_prior_smoothing(
+            lnL_r, bank, config, bulge_weights=bulge_weights, knot_step=knot_step,
+            per_run=per_run)  # fmt: skip
+        log.info("size prior smoothing %g chosen by cross-validation (held-out ln Z "
+                 "relative to it: %s)", smooth, np.round(score, 1).tolist())  # fmt: skip
+    smooth = float(smooth)
     if n_iter is None:
         n_iter = _ems_steps(smooth)
     comp, knots, n_blk, w0 = _size_mixture(lnL_r, bank, config, bulge_weights, knot_step,
@@ -1420,14 +1440,14 @@ def estimate_size_prior(
     w = _ems(comp, w0, n_blk, np.array([smooth]), np.array([n_iter]))[:, 0]
     star = float(w[-1])
     if not per_run:
-        return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=star)
+        return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=star, smoothing=smooth)
     n_b = n_blk
     dens = w[:-1].reshape(n_b, K)
     mass = dens.sum(axis=1, keepdims=True)
     # a run EM has emptied to underflow takes the others' shape (its weight is ~0 anyway)
     dens = np.where(mass > 1e-250, dens / np.maximum(mass, 1e-300), dens.sum(axis=0) / mass.sum())
     dens = dens * (1.0 - star) / knot_step
-    return SizePrior(ln_h=knots, density=dens, star=star)
+    return SizePrior(ln_h=knots, density=dens, star=star, smoothing=smooth)
 
 
 #: the smoothings :func:`select_size_prior_smoothing` chooses among
