@@ -147,7 +147,10 @@ class Config:
         0.25,
         "the estimated size prior's EMS smoothing: weight moved to each neighbouring knot "
         "(0.1 in ln h apart) per EM step. Less smoothing resolves sharper features of the "
-        "size distribution (prior.estimate_size_prior)",
+        "size distribution (prior.estimate_size_prior). The precision populations' "
+        "held-out evidence prefers 0.02 (size_prior_smoothing_cv), which takes the "
+        "galaxies the family holds to m ~ 0 and moves the mix's m up by 0.0013 "
+        "(benchmarks/README.md, forty-eighth session)",
     )
     size_prior_smoothing_cv: bool = _f(
         False,
