@@ -700,6 +700,8 @@ def test_cli_precision_writes_report(tmp_path, capsys):
     assert "(the true centres: uniform within ±0.5 px along both axes)" in text
     sps = tab.meta["size_prior"]
     assert [sp["psf"] for sp in sps] == ["round", "e=0.10"] and tab.meta["size_prior_per_psf"]
+    # each with the smoothing it was estimated with, in the report too
+    assert [sp["smoothing"] for sp in sps] == [0.25, 0.25] and "smoothing 0.25)" in text
     assert not np.array_equal(sps[0]["density"], sps[1]["density"])
     for sp in sps:
         # one density per bulge fraction (default_config's size_prior_per_run), each the
