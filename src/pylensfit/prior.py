@@ -1423,26 +1423,23 @@ def estimate_size_prior(
                   else float(getattr(config, "size_prior_smoothing", 0.25)))  # fmt: skip
     if per_run is None:
         per_run = bool(getattr(config, "size_prior_per_run", False))
-    if isinstance(smooth, str):
-        if smooth != "cv":
-            raise ValueError(f"smooth must be a number or 'cv', got {smooth!r}")
-        smooth, score = select_size_prior_smoothing(
-            lnL_r, bank, config, bulge_weights=bulge_weights, knot_step=knot_step,
-            per_run=per_run)  # fmt: skip
+    if isinstance(smooth, str) and smooth != "cv":
+        raise ValueError(f"smooth must be a number or 'cv', got {smooth!r}")
+    comp, knots, n_blk, w0 = _size_mixture(lnL_r, bank, config, bulge_weights, knot_step,
+                                           per_run)  # fmt: skip
+    if smooth == "cv":
+        smooth, score = _cross_validate(comp, n_blk, w0, SIZE_PRIOR_SMOOTHINGS, 5, 0)
         log.info("size prior smoothing %g chosen by cross-validation (held-out ln Z "
                  "relative to it: %s)", smooth, np.round(score, 1).tolist())  # fmt: skip
     smooth = float(smooth)
     if n_iter is None:
         n_iter = _ems_steps(smooth)
-    comp, knots, n_blk, w0 = _size_mixture(lnL_r, bank, config, bulge_weights, knot_step,
-                                           per_run)  # fmt: skip
     K = knots.size
     w = _ems(comp, w0, n_blk, np.array([smooth]), np.array([n_iter]))[:, 0]
     star = float(w[-1])
     if not per_run:
         return SizePrior(ln_h=knots, density=w[:K] / knot_step, star=star, smoothing=smooth)
-    n_b = n_blk
-    dens = w[:-1].reshape(n_b, K)
+    dens = w[:-1].reshape(n_blk, K)
     mass = dens.sum(axis=1, keepdims=True)
     # a run EM has emptied to underflow takes the others' shape (its weight is ~0 anyway)
     dens = np.where(mass > 1e-250, dens / np.maximum(mass, 1e-300), dens.sum(axis=0) / mass.sum())
@@ -1506,6 +1503,13 @@ def select_size_prior_smoothing(
     if per_run is None:
         per_run = bool(getattr(config, "size_prior_per_run", False))
     comp, _, n_blk, w0 = _size_mixture(lnL_r, bank, config, bulge_weights, knot_step, per_run)
+    return _cross_validate(comp, n_blk, w0, tuple(cand), folds, seed)
+
+
+def _cross_validate(comp: np.ndarray, n_blk: int, w0: np.ndarray, candidates, folds: int,
+                    seed: int) -> tuple[float, np.ndarray]:
+    """:func:`select_size_prior_smoothing` on the mixture of :func:`_size_mixture`."""
+    cand = np.asarray(candidates, dtype=float)
     group = np.random.default_rng(seed).permutation(comp.shape[0]) % folds
     fold = np.tile(np.arange(folds), cand.size)  # fit i: candidate i // folds, fold i % folds
     train = group[:, None] != fold[None, :]
