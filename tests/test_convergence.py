@@ -104,9 +104,9 @@ def test_known_mean_recovered_at_finest_grid():
     e0 *= np.minimum(1.0, 0.8 / np.hypot(*e0.T))[:, None]  # no needle-thin galaxies
     e = np.column_stack(apply_shear(e0[:, 0], e0[:, 1], 0.12, -0.08))
     sample = render_sample(80, seed=7, snr=(200.0, 200.0), e=e, noise=False)
-    m = measure_setting(sample, Config(e_step=0.05))
+    m = measure_setting(sample, Config.paper(e_step=0.05))
     big = render_sample(80, seed=7, snr=(200.0, 200.0), e=e, noise=False, stamp_size=64)
-    m64 = measure_setting(big, Config(e_step=0.05, stamp_size=64))
+    m64 = measure_setting(big, Config.paper(e_step=0.05, stamp_size=64))
     assert m["usable"].all() and m64["usable"].all()
     for i, q in enumerate(("e1", "e2")):
         assert abs(m[q].mean() - m64[q].mean()) < 2e-4, (q, m[q].mean(), m64[q].mean())
@@ -122,7 +122,7 @@ def test_known_mean_recovered_at_finest_grid():
 
 def test_offset_within_position_prior_leaves_e_unchanged(noisy_table):
     sample, tab = noisy_table
-    b = Config().position_prior_sigma
+    b = Config.paper().position_prior_sigma
     for off in (1.0, 2.0):
         assert off <= b
         r = _row(tab, "offset", off)

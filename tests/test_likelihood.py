@@ -152,7 +152,7 @@ def test_laplace_matches_brute_force(snr, offset, e_step):
     galaxy's is 0.29): a third of the models, whose bank takes a third of the time.
     """
     e_max = 1.0 if e_step >= 0.1 else 0.6
-    cfg = Config(model="exponential", r_step=0.5, r_max=6.0, e_step=e_step, e_max=e_max)
+    cfg = Config.paper(model="exponential", r_step=0.5, r_max=6.0, e_step=e_step, e_max=e_max)
     sigma = 1.0
     d, psf_img = _galaxy(snr, offset)
     x0 = np.array([N // 2, N // 2], dtype=float)  # catalogue position: the stamp centre
@@ -202,7 +202,7 @@ def test_laplace_matches_brute_force(snr, offset, e_step):
 @pytest.mark.parametrize("e", [(0.3, 0.1), (-0.2, 0.45), (0.12, -0.33)])
 def test_noise_free_peak_at_input_ellipticity(model, e):
     psf = PSFS["kolmogorov_e2"]
-    cfg = Config(model=model)
+    cfg = Config.paper(model=model)
     img = draw(galsim.Convolve(galsim_model(model, 2.5, *e), psf), offset=(0.3, -0.4)) * 1e3
     fits = fit_stamps(img, draw(psf), 1.0, config=cfg)
     peak = fits.egrid[np.argmax(fits.lnL[0])]
@@ -224,7 +224,7 @@ def test_flux_of_an_on_grid_galaxy(model, e):
     """
     psf = PSFS["kolmogorov_e2"]
     img = draw(galsim.Convolve(galsim_model(model, 2.4, *e), psf), offset=(0.3, -0.4)) * 1e3
-    fits = fit_stamps(img, draw(psf), 1.0, config=Config(model=model))
+    fits = fit_stamps(img, draw(psf), 1.0, config=Config.paper(model=model))
     assert np.allclose(fits.egrid[np.argmax(fits.lnL[0])], e)
     assert fits.r_best[0] == pytest.approx(2.4)
     assert fits.flux[0] == pytest.approx(1e3 * draw(psf).sum(), rel=2e-3)
@@ -246,7 +246,7 @@ def test_catalogue_offset_does_not_move_the_peak(offset):
     img = draw(galsim.Convolve(galsim_model("exponential", 2.0, *e), psf)) * 800
     img = img + np.random.default_rng(7).normal(size=img.shape)
     centres = (np.array([N // 2 + offset[0]]), np.array([N // 2 + offset[1]]))
-    cfg = Config(model="exponential")
+    cfg = Config.paper(model="exponential")
     fits = fit_stamps(img, draw(psf), 1.0, config=cfg, centres=centres)
     base = fit_stamps(img, draw(psf), 1.0, config=cfg)
     assert np.argmax(fits.lnL[0]) == np.argmax(base.lnL[0])
@@ -289,7 +289,7 @@ def test_galaxy_partly_outside_the_stamp(rng):
     big = draw(galsim.Convolve(galsim_model("exponential", 2.0, 0.3, 0.0), psf), n=64) * 800
     big = big + rng.normal(size=big.shape)
     fits = fit_stamps(big, draw(psf), 1.0, centres=(np.array([45.0]), np.array([32.0])),
-                      config=Config(model="exponential"))  # fmt: skip
+                      config=Config.paper(model="exponential"))  # fmt: skip
     assert np.all(np.isfinite(fits.lnL))
     assert fits.flags[0] == 0
 
@@ -300,7 +300,7 @@ def test_larger_input_stamps_are_cut_to_config_size(rng):
     big = draw(gal, n=48) * 800
     small = draw(gal) * 800
     noise = rng.normal(size=(48, 48))
-    cfg = Config(model="exponential")
+    cfg = Config.paper(model="exponential")
     f_big = fit_stamps(big + noise, draw(psf), 1.0, config=cfg)
     f_small = fit_stamps(small + noise[8:40, 8:40], draw(psf), 1.0, config=cfg)
     assert np.allclose(f_big.lnL, f_small.lnL, atol=1e-3)
@@ -317,7 +317,7 @@ def test_fits_do_not_depend_on_the_blas_threads(rng):
                        for r, e1, f in zip(rng.uniform(1, 3, 150), rng.uniform(-.5, .5, 150),
                                            rng.uniform(50, 400, 150), strict=True)])  # fmt: skip
     stamps += rng.normal(size=stamps.shape)
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3)
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3)
     with threadpool_limits(1, user_api="blas"):
         one = fit_stamps(stamps, draw(psf), 1.0, config=cfg)
     with threadpool_limits(2, user_api="blas"):
@@ -339,13 +339,14 @@ def test_wrong_shapes_raise():
 def test_stampfits_roundtrip(tmp_path, rng):
     psf = PSFS["moffat_round"]
     gal = draw(galsim.Convolve(galsim.Exponential(scale_radius=2), psf)) * 500
-    fits = fit_stamps(gal[None] + rng.normal(size=(3, N, N)), draw(psf), 1.0)
+    fits = fit_stamps(gal[None] + rng.normal(size=(3, N, N)), draw(psf), 1.0,
+                      config=Config.paper())
     path = tmp_path / "fits.fits"
     fits.write(path)
     back = type(fits).read(path)
     assert np.array_equal(back.lnL, fits.lnL)
     assert back.lnL_bulge is None and fits.lnL_bulge is None
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, r_max=6.0)
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, r_max=6.0)
     fb = fit_stamps(gal[None] + rng.normal(size=(2, N, N)), draw(psf), 1.0, config=cfg)
     fb.write(tmp_path / "fb.fits")
     bb = type(fb).read(tmp_path / "fb.fits")
@@ -407,7 +408,7 @@ def test_box_size_prior_edge_moves_l_e_continuously(rng):
     nodes alone."""
     from pylensfit.prior import SizePrior, _node_sizes
 
-    cfg = Config(model="exponential", e_step=0.2)
+    cfg = Config.paper(model="exponential", e_step=0.2)
     bank = model_bank(cfg)
     _, _, h = _node_sizes(bank, cfg)
     x = np.log(h)
@@ -449,7 +450,7 @@ def test_marginal_bulge_fraction_is_the_mean_of_fixed_fraction_fits():
     img = draw(galsim.Convolve(galsim_model("bulge+disc", 2.5, 0.2, -0.1, bulge_fraction=0.3),
                                psf))  # fmt: skip
     d = img * 30.0 / np.sqrt((img**2).sum()) + np.random.default_rng(2).normal(size=img.shape)
-    base = Config(model="bulge+disc", e_step=0.1, r_step=0.25, r_max=6.0, dtype="float64")
+    base = Config.paper(model="bulge+disc", e_step=0.1, r_step=0.25, r_max=6.0, dtype="float64")
     marg = fit_stamps(d, draw(psf), 1.0, config=base.replace(n_bulge_fractions=3))
     fixed = [fit_stamps(d, draw(psf), 1.0, config=base.replace(bulge_fraction=b))
              for b in (0.0, 0.5, 1.0)]  # fmt: skip
@@ -481,16 +482,16 @@ def test_marginal_bulge_fraction_is_the_mean_of_fixed_fraction_fits():
     assert marg.r_best[0] > 0
 
 
-def test_n_bulge_fractions_needs_the_bulge_disc_model():
-    with pytest.raises(ValueError, match="bulge"):
-        Config(model="exponential", n_bulge_fractions=3)
+def test_one_profile_models_ignore_the_bulge_disc_family_settings():
+    cfg = Config(model="exponential", n_bulge_fractions=3, sersic_ladder=(0.5, 2.0))
+    assert cfg.n_bulge_fractions == 1 and cfg.sersic_ladder == () and len(cfg.bulge_runs) == 1
 
 
 @pytest.mark.parametrize(
     "cfg",
-    [Config(), Config(model="bulge+disc", n_bulge_fractions=3),
-     Config(stamp_size=33, e_step=0.2, r_max=5.0, model="exponential"),
-     Config(stamp_size=64, e_step=0.2, r_max=5.0, model="exponential", k_max=np.pi / 2)],
+    [Config.paper(), Config.paper(model="bulge+disc", n_bulge_fractions=3),
+     Config.paper(stamp_size=33, e_step=0.2, r_max=5.0, model="exponential"),
+     Config.paper(stamp_size=64, e_step=0.2, r_max=5.0, model="exponential", k_max=np.pi / 2)],
 )  # fmt: skip
 def test_folded_products_equal_the_direct_products(cfg):
     """The symmetry-folded products give every model's sum over frequencies exactly."""
@@ -537,7 +538,7 @@ def test_mixed_bulge_fractions_equal_their_own_products(rng, monkeypatch, ladder
     its two Sersic profiles') give the fits that the runs' own columns give."""
     import pylensfit.likelihood as lk
 
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2, sersic_ladder=ladder)
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, e_step=0.2, sersic_ladder=ladder)
     bank = model_bank(cfg)
     n_orb = int(((bank.egrid[:, 0] > 0) & (bank.egrid[:, 1] > 0)).sum())
     n_mixed = 4 if ladder else 1  # 0.5 (of 0 and 1); Sersic 0.5+1, 1+2 and 2+4
@@ -574,7 +575,7 @@ def test_sizes_outside_the_size_prior_are_not_evaluated(rng, monkeypatch):
     import pylensfit.likelihood as lk
     from pylensfit.prior import SizePrior
 
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2, dtype="float64")
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, e_step=0.2, dtype="float64")
     bank = model_bank(cfg)
     knots = np.linspace(np.log(0.3), np.log(6.0), 40)
     sp = SizePrior(ln_h=knots, density=np.exp(-0.5 * ((knots - np.log(1.5)) / 0.4) ** 2),
@@ -617,7 +618,7 @@ def test_floored_sizes_on_every_third_size_leave_galaxies_in_the_prior_alone(rng
     seeds), which also shows that the comparison can tell the two apart."""
     from pylensfit.prior import SizePrior
 
-    cfg1 = Config(model="exponential", e_step=0.2, dtype="float64", size_prior_floor_stride=1)
+    cfg1 = Config.paper(model="exponential", e_step=0.2, dtype="float64", size_prior_floor_stride=1)
     cfg3 = cfg1.replace(size_prior_floor_stride=3)
     lo, hi = np.log(1.5), np.log(4.0)  # a box in half-light radius, as the precision mode's
     knots = np.concatenate([[lo - 1e-4], np.linspace(lo, hi, 30), [hi + 1e-4]])
@@ -654,7 +655,7 @@ def test_size_prior_uniform_in_half_light_radius_is_the_flat_sum(rng):
     """A SizePrior of density ~ h per unit ln h reproduces the default sum over r."""
     from pylensfit.prior import SizePrior, _node_sizes
 
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
     bank = model_bank(cfg)
     _, _, h = _node_sizes(bank, cfg)
     knots = np.linspace(np.log(h.min()) - 0.1, np.log(h.max()) + 0.1, 400)
@@ -695,7 +696,7 @@ def test_lnL_r_by_annulus_reweights_to_another_prior(rng):
     from pylensfit.likelihood import e_annuli, reweight_lnL_r
     from pylensfit.prior import Prior
 
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
     psf = draw(PSFS["moffat_round"])
     imgs = [draw(galsim.Convolve(galsim_model("bulge+disc", r, *e, bulge_fraction=0.3),
                                  PSFS["moffat_round"]))
@@ -816,7 +817,7 @@ def test_flux_prior_bounds_favour_models_of_allowed_flux():
     gal = galsim.Convolve(galsim_model("exponential", 2.0), PSFS["moffat_round"])
     rng = np.random.default_rng(3)
     stamps = draw(gal, N, flux=100.0)[None] + rng.normal(0, 1.0, (1, N, N))
-    base = Config(model="exponential", amplitude_prior="flux")
+    base = Config.paper(model="exponential", amplitude_prior="flux")
     f0 = fit_stamps(stamps, psf, 1.0, config=base)
     assert f0.flux[0] == pytest.approx(100.0, rel=0.1) and 8 < f0.snr[0] < 11
     far = fit_stamps(stamps, psf, 1.0, config=base.replace(amplitude_prior_min=1.0))
@@ -864,7 +865,7 @@ def test_stamp_tiers_remove_the_edge_anisotropy():
     32-pixel stamp its posterior mean responds 1.3 % more to g2 than to g1 (the pixel
     axes see the stamp's edge nearer than the diagonals); fitted on the 64-pixel tier
     (the frequencies |k| <= pi/2) the two responses agree, as they must by symmetry."""
-    cfg = Config(model="exponential", position_prior_sigma=0.01)
+    cfg = Config.paper(model="exponential", position_prior_sigma=0.01)
     r1, r2, _ = _ring_responses(cfg, 32, 5.0)
     assert r2 / r1 - 1 > 5e-3
     r1, r2, fits = _ring_responses(cfg.replace(max_stamp_size=96), 96, 5.0)
@@ -883,7 +884,7 @@ def test_stamp_tiers_route_by_size_and_keep_input_coordinates(rng):
     imgs = np.array([draw(galsim.Convolve(o, KOLMOGOROV_4PX), n=96, offset=off) for o in objs])
     imgs = imgs * 200 / np.sqrt((imgs**2).sum(axis=(1, 2)))[:, None, None]
     imgs += rng.normal(size=imgs.shape) * 0.01
-    cfg = Config(model="exponential", max_stamp_size=96)
+    cfg = Config.paper(model="exponential", max_stamp_size=96)
     fits = fit_stamps(imgs, psf, 0.01, config=cfg)
     assert list(fits.stamp) == [32, 32, 64, 96]
     assert fits.meta["stamp_sizes"] == [32, 64, 96]
@@ -900,10 +901,11 @@ def test_stamp_tiers_route_by_size_and_keep_input_coordinates(rng):
 def test_max_stamp_size_must_be_a_multiple_of_the_stamp():
     from pylensfit.config import ConfigError
 
-    with pytest.raises(ConfigError, match="multiple"):
-        Config(max_stamp_size=40)
+    # rounded down to a whole tier; below two base stamps, one stamp for all
+    assert Config.paper(max_stamp_size=40).max_stamp_size == 0
+    assert Config(stamp_size=32, max_stamp_size=100).max_stamp_size == 96
     with pytest.raises(ConfigError, match="k_max"):
-        Config(k_max=-1.0)
+        Config.paper(k_max=-1.0)
 
 
 @pytest.mark.parametrize("beta", [0.0, 1.0, 2.0, 2.5, 4.0])
@@ -1131,7 +1133,7 @@ def test_refined_windows_are_the_finer_grid_fit(rng, model, n_b):
     from pylensfit.shear import refine_lnL
 
     stamps, psf = _refinement_set(rng, model, (60, 250))
-    cfg = Config(model=model, n_bulge_fractions=n_b)
+    cfg = Config.paper(model=model, n_bulge_fractions=n_b)
     ref = fit_stamps(stamps, psf, 1.0, config=cfg.replace(e_refine=2))
     fine = fit_stamps(stamps, psf, 1.0, config=cfg.replace(e_step=0.05))
     coarse = fit_stamps(stamps, psf, 1.0, config=cfg)
@@ -1158,7 +1160,7 @@ def test_broad_likelihoods_are_interpolated_not_refined(rng):
     from pylensfit.shear import refine_lnL
 
     stamps, psf = _refinement_set(rng, "exponential", (8, 12))
-    cfg = Config(model="exponential")
+    cfg = Config.paper(model="exponential")
     ref = fit_stamps(stamps, psf, 1.0, config=cfg.replace(e_refine=2))
     coarse = fit_stamps(stamps, psf, 1.0, config=cfg)
     interp = refine_lnL(coarse.lnL, coarse.egrid, refine=2)[0] + coarse.lnL_peak[:, None]
@@ -1169,13 +1171,13 @@ def test_broad_likelihoods_are_interpolated_not_refined(rng):
 
 
 def test_refinement_settings():
-    cfg = Config(e_refine=2)
+    cfg = Config.paper(e_refine=2)
     assert cfg.output_e_step == 0.05 and cfg.output_refine == 2
-    assert Config(e_refine=2, integration_refine=1).output_refine == 1
+    assert Config.paper(e_refine=2, integration_refine=1).output_refine == 1
     for bad in ({"e_refine": 0}, {"e_refine": 1.5}, {"refine_width": 0.0},
                 {"refine_lnl": -1.0}):  # fmt: skip
         with pytest.raises(ValueError):
-            Config(**bad)
+            Config.paper(**bad)
 
 
 def test_two_bulge_sizes_are_the_two_families_runs(rng, tmp_path):
@@ -1186,7 +1188,7 @@ def test_two_bulge_sizes_are_the_two_families_runs(rng, tmp_path):
     weights over the five runs."""
     from pylensfit.prior import mix_bulge_fractions
 
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
     two = cfg.replace(bulge_size_ratio2=1.2)
     assert [(run.fraction, run.size) for run in two.bulge_runs] == [
         (0.0, 0.6), (0.5, 0.6), (1.0, 0.6), (0.5, 1.2), (1.0, 1.2)]

@@ -142,7 +142,8 @@ def test_metacal_response_is_the_fit_s_response_to_a_real_shear():
     from pylensfit.likelihood import fit_stamps
     from pylensfit.shear import posterior_moments
 
-    cfg, prior = Config(model="exponential", position_prior_sigma=0.3), Prior(B=0.19, C=0.58, D=2.4)
+    cfg = Config.paper(model="exponential", position_prior_sigma=0.3)
+    prior = Prior(B=0.19, C=0.58, D=2.4)
     psf = galsim.Moffat(beta=3.5, fwhm=3.0).shear(g1=0.05)
     gals = [galsim.Sersic(n=0.6, half_light_radius=2.2).shear(g1=0.3, g2=-0.2),
             galsim.Sersic(n=2.5, half_light_radius=1.6).shear(g1=-0.1, g2=0.25)]  # fmt: skip

@@ -154,7 +154,8 @@ def test_truncated_model_matches_galsim_on_the_stamp(model, r, e1, e2):
 
 
 def test_bank_layout_and_point_source():
-    cfg = Config(model="exponential", e_step=0.2, r_step=1.0, r_max=4.0, truncate_models=False)
+    cfg = Config.paper(model="exponential", e_step=0.2, r_step=1.0, r_max=4.0,
+                       truncate_models=False)
     bank = model_bank(cfg)
     assert bank.G.shape == (N * (N // 2 + 1), bank.n_e * bank.n_r + 1)
     assert np.all(bank.G[:, -1] == 1.0)  # point source
@@ -173,7 +174,7 @@ def test_bank_layout_and_point_source():
 
 
 def test_paper_grid_size():
-    bank = model_bank(Config(model="exponential", r_rel_step=0.0))
+    bank = model_bank(Config.paper(model="exponential", r_rel_step=0.0))
     assert bank.n_r == 50 and bank.radii[0] == pytest.approx(0.2)
     assert bank.radii[-1] == pytest.approx(10.0)
     assert bank.n_models == 316 * 50 + 1
@@ -238,7 +239,7 @@ def test_sersic_ladder_bank_columns_match_galsim_on_the_stamp():
     disc's; bad ladders are rejected."""
     from pylensfit.models import DISC_HLR, Run, run_half_light_radius
 
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.2,
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, e_step=0.2,
                  sersic_ladder=(0.5, 2, 4))  # fmt: skip
     bank = model_bank(cfg)
     runs = cfg.bulge_runs

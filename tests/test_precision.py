@@ -416,7 +416,7 @@ def test_small_precision_run_bright_exponentials():
     spec = spec_with(ngal=200, block_size=20, ncal=600, seed=11, psfs=["round"],
                      snr_range=(40.0, 80.0), size_ratio_range=(1.0, 2.5),
                      morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
-    res = precision(spec, config=Config(model="exponential"), progress=False)
+    res = precision(spec, config=Config.paper(model="exponential"), progress=False)
     allrows = res[res["breakdown"] == "all"]
     assert set(allrows["estimator"]) == {"fixed-point", "exact", "paper"}
     for r in allrows:
@@ -436,7 +436,7 @@ def test_precision_run_with_noise_twins():
     kw = dict(ngal=200, block_size=20, ncal=600, seed=11, psfs=["round"],
               snr_range=(15.0, 40.0), size_ratio_range=(1.0, 2.5),
               morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
-    cfg = Config(model="exponential")
+    cfg = Config.paper(model="exponential")
     res = precision(spec_with(**kw, noise_twins=True), config=cfg, progress=False)
     ref = precision(spec_with(**kw), config=cfg, progress=False)
     assert res.meta["timing"]["renderings_per_s"] == pytest.approx(
@@ -526,7 +526,7 @@ def test_estimated_bulge_prior_finds_a_disc_population():
     spec = spec_with(ngal=200, block_size=20, ncal=600, seed=11, psfs=["round"],
                      snr_range=(40.0, 80.0), size_ratio_range=(1.0, 2.5),
                      morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3)
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3)
     res = precision(spec, config=cfg, progress=False, prior=Prior(B=0.19, C=0.58, D=2.4))
     bp = res.meta["bulge_prior"]
     assert bp["method"] == "estimated" and bp["fractions"] == [0.0, 0.5, 1.0]
@@ -535,7 +535,7 @@ def test_estimated_bulge_prior_finds_a_disc_population():
     for i in (1, 2):
         assert abs(r[f"m{i}"]) < 4 * r[f"m{i}_err"] + 0.01, r
     with pytest.raises(ValueError, match="bulge_prior"):
-        Config(model="bulge+disc", n_bulge_fractions=3, bulge_prior="flat")
+        Config.paper(model="bulge+disc", n_bulge_fractions=3, bulge_prior="flat")
 
 
 def test_two_bulge_sizes_in_the_precision_mode(tmp_path):
@@ -545,7 +545,7 @@ def test_two_bulge_sizes_in_the_precision_mode(tmp_path):
     spec = spec_with(ngal=40, block_size=20, ncal=400, seed=11, psfs=["round"],
                      snr_range=(40.0, 80.0), size_ratio_range=(1.0, 2.5),
                      morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, bulge_size_ratio2=1.2)
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, bulge_size_ratio2=1.2)
     res = precision(spec, config=cfg, progress=False, prior=Prior(B=0.19, C=0.58, D=2.4))
     bp = res.meta["bulge_prior"]
     assert bp["fractions"] == [0.0, 0.5, 1.0, 0.5, 1.0]
@@ -570,7 +570,7 @@ def test_sersic_ladder_in_the_precision_mode(tmp_path):
     spec = spec_with(ngal=40, block_size=20, ncal=400, seed=11, psfs=["round"],
                      snr_range=(40.0, 80.0), size_ratio_range=(1.0, 2.5),
                      morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, sersic_ladder=(0.5, 2, 4))
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, sersic_ladder=(0.5, 2, 4))
     res = precision(spec, config=cfg, progress=False, prior=Prior(B=0.19, C=0.58, D=2.4))
     bp = res.meta["bulge_prior"]
     assert bp["labels"] == ["0", "0.5 (bulge 0.6)", "1 (bulge 0.6)", "Sersic 0.5",
@@ -596,7 +596,8 @@ def test_flux_prior_bounds_are_estimated_from_the_calibration_fluxes(tmp_path):
     spec = spec_with(ngal=20, block_size=20, ncal=1000, seed=4, psfs=["round"],
                      snr_range=(10.0, 200.0), size_ratio_range=(0.5, 1.5),
                      morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
-    cfg = Config(model="exponential", amplitude_prior="flux", max_stamp_size=64)
+    cfg = Config.paper(model="exponential", amplitude_prior="flux", estimate_flux_prior=True,
+                       max_stamp_size=64)
     res = precision(spec, config=cfg, progress=False, prior=Prior(B=0.19, C=0.58, D=2.4),
                     flux_bounds=True)  # fmt: skip
     (b,) = res.meta["flux_bounds"]
@@ -627,8 +628,8 @@ def test_flux_bounds_size_prior_is_estimated_under_the_bounded_flux_prior():
     ``benchmarks/README.md``, thirty-third session.)"""
     spec = spec_with(ngal=10, block_size=100, ncal=300, seed=6, psfs=["round"],
                      morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
-    cfg = Config(model="exponential", amplitude_prior="flux", size_prior="estimated",
-                 max_stamp_size=64)  # fmt: skip
+    cfg = Config.paper(model="exponential", amplitude_prior="flux", estimate_flux_prior=True,
+                       size_prior="estimated", max_stamp_size=64)  # fmt: skip
     pri = Prior(B=0.19, C=0.58, D=2.4)
     res = precision(spec, config=cfg, progress=False, prior=pri, flux_bounds=True)
     (b,) = res.meta["flux_bounds"]
@@ -743,7 +744,7 @@ def test_estimated_size_prior_recovers_the_population_sizes():
     spec = spec_with(ngal=800, ncal=800, block_size=400, seed=4, psfs=["round"],
                      snr_range=(10.0, 20.0), size_ratio_range=(0.5, 2.5),
                      morphology_weights=(0, 1, 0, 0, 0))  # fmt: skip
-    cfg = Config(model="devaucouleurs")
+    cfg = Config.paper(model="devaucouleurs")
     prior = Prior(B=0.19, C=0.58, D=2.4)
     L, h = [], []
     for b in range(2):
@@ -777,7 +778,7 @@ def test_given_size_and_bulge_priors_replace_the_estimates(monkeypatch):
     # log-uniform: the drawn sizes fill the support evenly (20 galaxies: loose)
     assert abs(np.mean((lnr - lo) / (hi - lo)) - 0.5) < 0.15
     assert hi - lo == pytest.approx(np.log(spec.size_ratio_range[1] / spec.size_ratio_range[0]))
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated")
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated")
     prior = Prior(B=0.19, C=0.58, D=2.4)
 
     def estimated(*args, **kw):

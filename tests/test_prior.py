@@ -465,7 +465,7 @@ def test_size_prior_recovers_a_lognormal_population():
     from pylensfit import Config
     from pylensfit.prior import _node_sizes, estimate_size_prior
 
-    cfg = Config(model="exponential")
+    cfg = Config.paper(model="exponential")
     rng = np.random.default_rng(5)
     lnL_r, lnh, bank = _size_sample(20000, cfg, rng, star_frac=0.05)
     sp = estimate_size_prior(lnL_r, bank, cfg)
@@ -515,7 +515,7 @@ def test_less_size_prior_smoothing_resolves_a_narrow_population():
     from pylensfit import Config
     from pylensfit.prior import _node_sizes, estimate_size_prior
 
-    cfg = Config(model="exponential")
+    cfg = Config.paper(model="exponential")
     bank = model_bank(cfg)
     _, _, h = _node_sizes(bank, cfg)
     rng = np.random.default_rng(8)
@@ -551,7 +551,7 @@ def test_size_prior_smoothing_chosen_by_held_out_evidence():
         size_likelihood_rows,
     )
 
-    cfg = Config(model="exponential")
+    cfg = Config.paper(model="exponential")
     bank = model_bank(cfg)
     _, _, h = _node_sizes(bank, cfg)
     rng = np.random.default_rng(8)
@@ -686,7 +686,7 @@ def test_size_prior_per_run_recovers_each_fraction_s_sizes():
     from pylensfit import Config
     from pylensfit.prior import SizePrior, _node_sizes, estimate_size_prior
 
-    cfg = Config(model="bulge+disc", n_bulge_fractions=3)
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3)
     bank = model_bank(cfg)
     _, _, h = _node_sizes(bank, cfg)
     ns = bank.n_sizes
@@ -735,5 +735,6 @@ def test_size_prior_per_run_recovers_each_fraction_s_sizes():
                                0.5 * (joint.density[0] + joint.density[2]))  # fmt: skip
     np.testing.assert_allclose(joint.pdf(np.exp(joint.ln_h[5]))[[0, 2]],
                                joint.density[[0, 2], 5])  # fmt: skip
+    c1 = Config.paper(model="exponential")
     with pytest.raises(ValueError, match="runs"):
-        joint.node_weights(model_bank(Config(model="exponential")), Config(model="exponential"))
+        joint.node_weights(model_bank(c1), c1)

@@ -255,7 +255,7 @@ def test_write_read_roundtrip(bright, tmp_path):
 def test_stacked_psf_gives_the_same_likelihood_peak(bright):
     """A noise-free galaxy convolved with the true PSF: same L(e) argmax with either PSF."""
     res = bright[0]
-    cfg = Config(model="exponential")
+    cfg = Config.paper(model="exponential")
     for e in ((0.3, 0.1), (-0.12, -0.33)):
         gal = galsim.Convolve(galsim_model("exponential", 2.0, *e), PSF)
         stamp = draw(gal, offset=(0.3, -0.4)) * 1e3

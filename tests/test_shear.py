@@ -282,16 +282,16 @@ def test_unusable_rows_are_flagged_and_skipped():
     assert np.allclose(t["e1"][ok], ref["e1"][ok]) and np.allclose(t["sens2"][ok], ref["sens2"][ok])
     assert np.isfinite(t["e1"][13])
     # the shear estimate skips the flagged rows (not averaged in)
-    g = estimate_shear(t)
+    g = estimate_shear(t, estimator="key2")
     keep = np.ones(200, bool)
     keep[flagged] = False
-    g_ref = estimate_shear(t[keep])
+    g_ref = estimate_shear(t[keep], estimator="key2")
     assert g.n == 197 and g == g_ref
     # all rows unusable: flagged table, and no shear
     t_bad = shapes(np.full((4, EGRID.shape[0]), -np.inf), EGRID, PRIOR)
     assert np.all(t_bad["flags"] == FLAG_BAD_LIKELIHOOD)
     with pytest.raises(ValueError, match="empty sample"):
-        estimate_shear(t_bad)
+        estimate_shear(t_bad, estimator="key2")
 
 
 def test_bad_input_errors():
@@ -315,7 +315,7 @@ def test_bad_input_errors():
     empty = shapes(lnL[:0], EGRID, PRIOR)
     assert len(empty) == 0
     with pytest.raises(ValueError, match="empty sample"):
-        estimate_shear(empty)
+        estimate_shear(empty, estimator="key2")
 
 
 # ------------------------------------------------------------------------------------
@@ -332,7 +332,7 @@ def test_estimate_shear_formula():
             "sens2": rng.uniform(0.3, 0.9, n),
         }
     )
-    g = estimate_shear(t)  # no flags column: every finite row is used
+    g = estimate_shear(t, estimator="key2")  # no flags column: every finite row is used
     assert isinstance(g, ShearEstimate) and g.n == n
     assert g.g1 == pytest.approx(np.sum(t["e1"]) / np.sum(t["sens1"]))
     assert g.g2 == pytest.approx(np.sum(t["e2"]) / np.sum(t["sens2"]))
@@ -343,25 +343,26 @@ def test_estimate_shear_formula():
     t["flags"] = np.zeros(n, int)
     t["flags"][:100] = 1
     t["e1"][100] = np.nan
-    g2 = estimate_shear(t)
+    g2 = estimate_shear(t, estimator="key2")
     assert g2.n == 399
     assert g2.g1 == pytest.approx(np.sum(t["e1"][101:]) / np.sum(t["sens1"][101:]))
     # other column names
     t2 = Table({"a": t["e1"], "b": t["e2"], "s1": t["sens1"], "s2": t["sens2"]})
-    g3 = estimate_shear(t2, e1_col="a", e2_col="b", sens1_col="s1", sens2_col="s2")
+    g3 = estimate_shear(t2, e1_col="a", e2_col="b", sens1_col="s1", sens2_col="s2",
+                        estimator="key2")
     assert g3.g1 == pytest.approx(np.nansum(t["e1"]) / np.sum(t["sens1"][np.isfinite(t["e1"])]))
     with pytest.raises(ValueError, match="column"):
-        estimate_shear(t2)
+        estimate_shear(t2, estimator="key2")
     t["sens1"] = -t["sens1"]
     with pytest.raises(ValueError, match="not positive"):
-        estimate_shear(t)
+        estimate_shear(t, estimator="key2")
 
 
 def test_error_matches_the_scatter_of_the_estimate():
     # independent samples without twins: the scatter of g_hat matches the quoted error
     lnL, _, _ = noisy_sample(24_000, 0.05, 0.3, seed=8)
     t = shapes(lnL, EGRID, PRIOR, refine=1)
-    parts = [estimate_shear(t[i::8]) for i in range(8)]
+    parts = [estimate_shear(t[i::8], estimator="key2") for i in range(8)]
     g = np.array([p.g1 for p in parts] + [p.g2 for p in parts])
     err = np.mean([p.g1_err for p in parts] + [p.g2_err for p in parts])
     assert 0.6 < np.std(g, ddof=1) / err < 1.5
@@ -476,7 +477,7 @@ def test_fixed_point_shear_removes_the_second_order_bias():
         e1, e2 = apply_shear(es.real, es.imag, g1, 0.0)
         lnL = gaussian_lnL(np.column_stack([e1 + noise.real, e2 + noise.imag]), s)
         fp = shear_fixed_point(lnL, EGRID, prior)
-        key2 = estimate_shear(shapes(lnL, EGRID, prior))
+        key2 = estimate_shear(shapes(lnL, EGRID, prior), estimator="key2")
         return np.array([fp.g1, key2.g1]), fp
 
     m = {}

@@ -1,18 +1,20 @@
 """pylensfit: Bayesian galaxy shape and weak-lensing shear measurement (lensfit).
 
-The public API (see README.md and ``DESIGN.md`` section 6)::
+The public API (see README.md)::
 
     import pylensfit as plf
-    cfg = plf.Config()
-    egrid = plf.ellipticity_grid(step=0.1)
-    fits = plf.fit_stamps(stamps, psf, noise_sigma=4.0, config=cfg)
-    prior = plf.estimate_prior(fits.lnL, fits.egrid)
-    shapes = plf.shapes(fits.lnL, fits.egrid, prior)
-    g = plf.estimate_shear(shapes)
-    cat = plf.measure(["field.fits"], stars=["starfield.fits"], config=cfg, jobs=2)
+    priors = plf.calibrate(stamps, psf, noise_sigma=4.0)      # every prior, from the data
+    table = plf.measure_stamps(stamps, psf, noise_sigma=4.0, priors=priors)
+    g = plf.estimate_shear(table)                             # the sheared-prior fixed point
+    cat = plf.measure(["field.fits"], stars=["starfield.fits"], jobs=2)   # FITS to catalogue
+
+``plf.Config()`` is the recommended method, ``plf.Config.paper()`` Kitching et al.
+(2008)'s. The lower layer: :func:`fit_stamps` (likelihood grids), :func:`estimate_prior`,
+:func:`shapes` (posterior means and sensitivities).
 """
 
 from ._version import __version__
+from .calibration import CalibrationWarning, Priors, calibrate, measure_stamps
 from .config import Config, ConfigError
 from .grid import ellipticity_grid
 from .likelihood import StampFits, fit_stamps
@@ -22,6 +24,10 @@ from .shear import ShearEstimate, estimate_shear, shapes, shear_fixed_point
 
 __all__ = [
     "BinnedPrior",
+    "CalibrationWarning",
+    "Priors",
+    "calibrate",
+    "measure_stamps",
     "Config",
     "ConfigError",
     "InputError",

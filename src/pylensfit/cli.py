@@ -43,14 +43,15 @@ def _measure(args: argparse.Namespace) -> int:
     cat = measure(
         args.images, stars=args.stars, weights=args.weights, masks=args.masks,
         catalogues=args.catalogues, star_column=args.star_column, config=_config(args),
-        prior=args.prior, size_prior=args.size_prior, output=args.output, psf_dir=args.psf_dir,
+        prior=args.prior, size_prior=args.size_prior, priors=args.priors, output=args.output,
+        psf_dir=args.psf_dir,
         psf=_psf_arg(args.psf), overwrite=args.overwrite,
         jobs=args.jobs,
         scheduler=args.scheduler, progress=not args.quiet,
     )  # fmt: skip
     n_ok = int(np.sum(np.asarray(cat["weight"]) > 0))
     print(f"{args.output}: {len(cat)} objects, {n_ok} galaxies measured, "
-          f"{int(np.sum(cat['fitclass'] == 1))} stars; prior {cat.meta['prior']!r}")  # fmt: skip
+          f"{int(np.sum(cat['fitclass'] == 1))} stars; {cat.meta['priors']!r}")  # fmt: skip
     return 0
 
 
@@ -79,11 +80,10 @@ def _read_catalogues(paths):
 
 def _usable_galaxies(cat) -> np.ndarray:
     lnL = np.asarray(cat["lnL"])
-    return (
-        (np.asarray(cat["flags"]) == 0)
-        & (np.asarray(cat["fitclass"]) == 0)
-        & np.isfinite(lnL).all(axis=1)
-    )
+    use = (np.asarray(cat["flags"]) == 0) & (np.asarray(cat["fitclass"]) == 0)
+    if "weight" in cat.colnames:
+        use &= np.asarray(cat["weight"], dtype=float) > 0
+    return use & np.isfinite(lnL).all(axis=1)
 
 
 def _prior(args: argparse.Namespace) -> int:
@@ -233,13 +233,14 @@ def _validate(args: argparse.Namespace) -> int:
 def _dump_config(args: argparse.Namespace) -> int:
     from .config import Config
 
-    cfg = Config()
+    cfg = Config.preset(args.preset)
     if args.output:
         cfg.to_yaml(args.output)
-        print(f"{args.output}: default configuration written")
+        print(f"{args.output}: configuration '{args.preset}' written")
     else:
-        for name, (default, doc) in Config.describe().items():
-            print(f"# {doc}\n{name}: {default!r}")
+        docs = Config.describe()
+        for name, value in cfg.to_dict().items():
+            print(f"# {docs[name][1]}\n{name}: {value!r}")
     return 0
 
 
@@ -251,11 +252,11 @@ def _demo(args: argparse.Namespace) -> int:
     from .simulate import FieldSpec, simulate_field, write_field
 
     g1, g2 = args.g1, args.g2
-    cfg = Config(model="exponential")
+    cfg = Config()
     work = Path(args.outdir) if args.outdir else Path(tempfile.mkdtemp(prefix="pylensfit-demo-"))
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    spec = FieldSpec(size=args.size, g1=g1, g2=g2, model="exponential")
+    spec = FieldSpec(size=args.size, g1=g1, g2=g2, model="mixed")
     paths = []
     for k, rot in enumerate((False, True)):  # a field and its 90-degree-rotated twin
         s = FieldSpec(**{**spec.__dict__, "rotate": rot})
@@ -266,7 +267,8 @@ def _demo(args: argparse.Namespace) -> int:
     stars_spec = FieldSpec(**{**spec.__dict__, "size": 512, "star_fraction": 1.0})
     img, w, _ = simulate_field(stars_spec, seed=args.seed + 1000)
     write_field(work / "stars.fits", img, w, stars_spec)
-    print(f"simulated 2 x {len(truth)} objects ({int(truth['is_star'].sum())} stars each) in "
+    print(f"simulated 2 x {len(truth)} objects ({int(truth['is_star'].sum())} stars each; "
+          f"exponential, de Vaucouleurs and bulge+disc galaxies in turn) in "
           f"{args.size}x{args.size} px fields with g = ({g1:+.4f}, {g2:+.4f}), and a star "
           f"field, in {time.perf_counter() - t0:.1f} s -> {work}")  # fmt: skip
     t1 = time.perf_counter()
@@ -279,7 +281,8 @@ def _demo(args: argparse.Namespace) -> int:
     print(f"measured {len(cat)} objects ({ngal} galaxies, {nstar} stars, {nflag} flagged) in "
           f"{dt:.1f} s ({ngal / dt:.0f} galaxies/s from FITS to catalogue) -> "
           f"{work / 'catalog.fits'}")  # fmt: skip
-    print(f"prior estimated from the galaxies: {cat.meta['prior']!r}")
+    print(f"priors estimated from the galaxies (Config() defaults, the calibration recipe): "
+          f"{cat.meta['priors']!r}")
     tab = shear_table(cat, by="image")
     for c in ("g1", "g1_err", "g2", "g2_err"):
         tab[c].format = "+.4f"
@@ -304,6 +307,8 @@ def _bin_by(text: str):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .config import PRESETS
+
     p = argparse.ArgumentParser(prog="pylensfit", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
@@ -320,6 +325,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--prior", help="a saved prior (default: estimated from the run)")
     m.add_argument("--size-prior", help="a saved size prior (JSON, SizePrior.save); default "
                                         "the config's size_prior: flat, or estimated from the run")
+    m.add_argument("--priors", help="every prior, saved (JSON, Priors.save, or an earlier "
+                   "run's): measured once under them; default: estimated from the run")
     m.add_argument("-o", "--output", required=True, help="output catalogue (FITS)")
     m.add_argument("--psf-dir", help="write each image's PSF and star diagnostics here")
     m.add_argument("--psf", nargs="+", help="the PSF instead of stacking stars: a FITS image "
@@ -344,9 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
     sh.add_argument("--bin-by", type=_bin_by, metavar="COLUMN:EDGES",
                     help="also bin by a column, e.g. mag:20,22,24")  # fmt: skip
     sh.add_argument("--sensitivity", choices=("exact", "paper"), help="sensitivity formula")
-    sh.add_argument("--estimator", choices=("key2", "fixed-point"), default="key2",
-                    help="paper eq. key2 (default) or the sheared-prior fixed point, which "
-                    "has no g^2 bias")  # fmt: skip
+    sh.add_argument("--estimator", choices=("fixed-point", "key2"), default="fixed-point",
+                    help="the sheared-prior fixed point (default), exact to all orders in g, "
+                    "or Kitching et al. (2008)'s eq. key2, high by a factor 1 + |g|^2")  # fmt: skip
     sh.add_argument("--no-per-image", action="store_true", help="only bins and the total")
     sh.add_argument("-o", "--output", help="write the table (format from the extension)")
     sh.set_defaults(func=_shear)
@@ -432,6 +439,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("config", help="print or write the default configuration (YAML)")
     c.add_argument("-o", "--output", help="write to this file")
+    c.add_argument("--preset", default="default",
+                   help="a named configuration: " + ", ".join(
+                       f"'{k}' ({v[1]})" for k, v in PRESETS.items()))
     c.set_defaults(func=_dump_config)
 
     d = sub.add_parser("demo", help="simulate a small field with GalSim and run everything")

@@ -372,7 +372,7 @@ def convergence_table(
     """
     from tqdm.auto import tqdm
 
-    base = config if config is not None else Config(
+    base = config if config is not None else Config.paper(
         model=sample.model, stamp_size=sample.stamp_size
     )  # fmt: skip
     settings = _settings(des, drs, r_maxs, offsets)
@@ -502,8 +502,9 @@ def convergence(
         ``config.integration_refine`` = 4; ``refine=1`` integrates on the model grid as
         the paper did, which makes the ``de`` dependence stronger).
     config : Config, optional
-        Base settings (default ``Config(model=model)``); when given, its ``model`` and
-        ``stamp_size`` are also those of the rendered sample (``model`` is ignored).
+        Base settings (default ``Config.paper(model=model)``, the paper's grid); when
+        given, its ``model`` and ``stamp_size`` are also those of the rendered sample
+        (``model`` is ignored).
     progress : bool
         Show a progress bar.
 
@@ -525,7 +526,7 @@ def convergence(
         ``rel_q_err``. ``meta`` records the sample and settings.
     """
     t0 = time.perf_counter()
-    base = config if config is not None else Config(model=model)
+    base = config if config is not None else Config.paper(model=model)
     sample = render_sample(
         ngal, seed=seed, snr=snr, sizes=sizes, psf=psf, model=base.model, prior=prior,
         stamp_size=base.stamp_size,

@@ -23,6 +23,8 @@ FLAGS: dict[str, tuple[int, str]] = {
     "MASKED": (128, "masked or zero-weight pixels in the stamp"),
     "PSF_FAILED": (256, "no usable PSF for this object"),
     "NOT_MEASURED": (512, "not attempted"),
+    "LOW_SNR": (1024, "measured, but the best model's S/N is below Config.min_snr: most such "
+                "detections are noise"),
 }
 
 #: flags that make a row unusable for shear

@@ -44,14 +44,13 @@ from astropy.table import Table, vstack
 
 from . import flags as _flags
 from ._version import __version__
+from .calibration import CalibrationSample, Priors, run_recipe, usable_galaxies
 from .catalogue import COLUMNS, FITCLASS, atomic_write
 from .config import Config
 from .grid import ellipticity_grid
 from .prior import (
     Prior,
     SizePrior,
-    estimate_prior,
-    estimate_prior_and_bulge,
     mix_bulge_fractions,
 )
 from .psf import (
@@ -351,7 +350,14 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     lnL_bulge = None if n_b == 1 else np.full((n, n_b, egrid.shape[0]), np.nan, np.float32)
     lnL_star = np.full(n, np.nan)
     keep_r = bool(task.get("keep_lnL_r"))
-    lnL_r = np.full((n, bank.n_r + 1), np.nan, dtype=np.float32) if keep_r else None
+    rings = None
+    if task.get("keep_lnL_r") == "annuli":  # L(r) per ring of |e|, for any prior of |e|
+        from .likelihood import e_annuli
+
+        rings = e_annuli(bank.egrid)
+        lnL_r = np.full((n, int(rings.max()) + 1, bank.n_r + 1), np.nan, dtype=np.float32)
+    else:
+        lnL_r = np.full((n, bank.n_r + 1), np.nan, dtype=np.float32) if keep_r else None
     size_prior = task.get("size_prior")
     if size_prior is not None:
         size_prior = SizePrior.from_dict(size_prior)
@@ -377,7 +383,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
                                lj[:, o : o + cfg.stamp_size, o : o + cfg.stamp_size])  # fmt: skip
             parts.append((np.flatnonzero(sel), fit_stamps(
                 data, psf.image, noise[j], config=c, centres=(fcx[j], fcy[j]),
-                size_prior=size_prior,
+                size_prior=size_prior, lnL_r_groups=rings,
                 size_marginal_prior=task.get("size_marginal_prior"))))  # fmt: skip
         return parts[0][1] if len(parts) == 1 else _merge_fits(parts, idx.size)
 
@@ -450,7 +456,7 @@ def _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, col
     lnL[idx] = f.lnL
     flags[idx] = f.flags  # the objects fitted had no flag before the fit
     if lnL_r is not None:
-        lnL_r[idx] = f.lnL_r
+        lnL_r[idx] = f.lnL_r if lnL_r.ndim == 2 else f.lnL_r_grouped
     if lnL_bulge is not None:
         lnL_bulge[idx] = f.lnL_bulge
         lnL_star[idx] = f.lnL_star
@@ -655,7 +661,7 @@ def _task_key(task: dict[str, Any]) -> str:
     psfs = [given] if given is not None else task.get("star_psfs", [])
     blob = json.dumps(
         [stamp, task["config"], task.get("star_column"), given is not None,
-         [r.digest for r in psfs],
+         [r.digest for r in psfs], task.get("size_prior"),
          __version__], sort_keys=True, default=str,
     )  # fmt: skip
     return hashlib.sha1(blob.encode()).hexdigest()[:16]
@@ -799,6 +805,7 @@ def measure(
     config: Config | None = None,
     prior: Prior | str | os.PathLike | None = None,
     size_prior: SizePrior | str | os.PathLike | None = None,
+    priors: Priors | str | os.PathLike | None = None,
     psf: PSFResult | np.ndarray | str | os.PathLike | Sequence | None = None,
     output: str | os.PathLike | None = None,
     psf_dir: str | os.PathLike | None = None,
@@ -825,24 +832,21 @@ def measure(
         Column of the detection / input catalogue that marks the PSF stars (overrides
         the stellar-locus selection).
     config : Config, optional
-        Settings (the paper's by default).
+        Settings (default ``Config()``, the recommended method).
     prior : Prior or str, optional
-        The ellipticity prior, or the path of a saved one; by default it is estimated
-        from the run's galaxies (``config.prior_method``), together with the prior over
-        the bulge fractions when those are marginalised and ``config.bulge_prior`` is
-        ``"estimated"`` (a given prior leaves that one uniform; the catalogue keeps each
-        fraction's ``ln L`` to re-mix, :func:`pylensfit.prior.mix_bulge_fractions`).
+        An ellipticity prior (or the path of a saved one) to keep instead of estimating
+        it; the other priors are still estimated.
     size_prior : SizePrior or str, optional
-        The prior of the galaxies' half-light radius in the sum over r, or the path of a
-        saved one (:meth:`pylensfit.prior.SizePrior.save`). Without one,
-        ``config.size_prior`` decides: ``"flat"``, the paper's uniform prior; ``"estimated"``,
-        a first pass over the images fits every object with the flat prior, the size
-        prior is estimated from the galaxies' ``L(r)`` (marginalised over e with
-        ``prior`` when one is given, else with the default functional prior;
-        :func:`pylensfit.prior.estimate_size_prior`, with the bulge-fraction prior when
-        that is estimated) and the images are measured again with it (twice the fitting
-        and detection time). The catalogue keeps it (``meta["size_prior"]``, HDU
-        ``SIZEPRI``).
+        A size prior (or the path of a saved one, :meth:`pylensfit.prior.SizePrior.save`)
+        to keep instead of estimating it.
+    priors : Priors or str, optional
+        Every prior, as :func:`pylensfit.calibrate` or an earlier run gives them (or the
+        path of a saved :class:`~pylensfit.Priors`): the images are measured once, under
+        them. Without it the calibration recipe (:mod:`pylensfit.calibration`) estimates
+        them from the run's own galaxies: passes over the images with the starting
+        priors, then under the flux and position priors estimated, then under the size
+        prior (with the default configuration three passes; the last is the
+        measurement). The catalogue keeps them (``meta["priors"]``, HDU ``PRIORS``).
     output : str, optional
         Catalogue path (FITS). With an output, finished images are kept in
         ``<output>.parts/`` until the catalogue is written, and a restarted run resumes.
@@ -891,6 +895,13 @@ def measure(
             raise InputError(f"{p}: file not found")
     if isinstance(prior, (str, os.PathLike)):
         prior = Prior.load(prior)
+    if isinstance(priors, (str, os.PathLike)):
+        if not Path(priors).exists():
+            raise InputError(f"{priors}: file not found")
+        try:
+            priors = Priors.load(priors)
+        except ValueError as err:
+            raise InputError(str(err)) from None
     if isinstance(size_prior, (str, os.PathLike)):
         if not Path(size_prior).exists():
             raise InputError(f"{size_prior}: file not found")
@@ -923,44 +934,124 @@ def measure(
             for i, (p, w, m, c) in enumerate(zip(images, weights, masks, catalogues, strict=True))
         ]  # fmt: skip
         results: dict[int, dict] = {}
-        todo = tasks
-        sp_file = parts / "size_prior.json" if parts is not None else None
-        if size_prior is None and cfg.size_prior == "estimated":
-            if sp_file is not None and sp_file.exists():  # a resumed run keeps its size prior
-                size_prior = SizePrior.load(sp_file)
-            else:
-                size_prior = _estimate_size_prior(tasks, cfg, prior, jobs, scheduler, progress,
-                                                  pool)
-        if size_prior is not None:
-            for t in tasks:
-                t["size_prior"] = size_prior.to_dict()
+        pr_file = parts / "priors.json" if parts is not None else None
+        last: dict[str, Any] = {}
+        if priors is None and pr_file is not None and pr_file.exists():
+            priors = Priors.load(pr_file)  # a resumed run keeps its priors
+            log.info("priors of the interrupted run read from %s", pr_file)
+        if priors is None:
+            priors = _calibrate_images(tasks, cfg, prior, size_prior, jobs, scheduler,
+                                       progress, pool, last, parts)  # fmt: skip
+        run_cfg = priors.apply(cfg)
+        final = [dict(t, config=run_cfg.to_dict(),
+                      size_prior=None if priors.size is None else priors.size.to_dict())
+                 for t in tasks]  # fmt: skip
+        if last.get("key") == _pass_key(run_cfg, priors.size, False):
+            results = dict(last["results"])  # the recipe's last pass is the measurement
+        last.clear()
         if parts is not None:
             parts.mkdir(parents=True, exist_ok=True)
-            if size_prior is not None:  # for a resumed run (the same prior if it was read here)
-                size_prior.save(sp_file)
-            todo = []
-            for t in tasks:
-                pp = _part_path(parts, t)
-                if pp.exists():
-                    try:
-                        results[t["index"]] = _read_part(pp)
-                        log.info("%s: resumed from %s", t["path"], pp)
-                        continue
-                    except Exception as err:  # a damaged part is redone
-                        log.warning("%s: unreadable part file %s (%s); redoing", t["path"], pp, err)
-                todo.append(t)
+            priors.save(pr_file)
+        todo = []
+        for t in final:
+            if t["index"] in results:
+                if parts is not None:
+                    _write_part(_part_path(parts, t), results[t["index"]])
+                continue
+            pp = _part_path(parts, t) if parts is not None else None
+            if pp is not None and pp.exists():
+                try:
+                    results[t["index"]] = _read_part(pp)
+                    log.info("%s: resumed from %s", t["path"], pp)
+                    continue
+                except Exception as err:  # a damaged part is redone
+                    log.warning("%s: unreadable part file %s (%s); redoing", t["path"], pp, err)
+            todo.append(t)
         for t, res in _run(_image_task, todo, jobs, scheduler, "images", progress, pool):
             if parts is not None:
                 _write_part(_part_path(parts, t), res)
             results[t["index"]] = res
             log.info("%s: %d objects, %s", t["path"], len(res["rows"]["x"]),
                      ", ".join(f"{k} {v:.2f} s" for k, v in res["timing"].items()))  # fmt: skip
-    cat = _assemble([results[i] for i in range(len(tasks))], cfg, prior)
-    cat.meta["size_prior"] = size_prior
+    cat = _assemble([results[i] for i in range(len(tasks))], cfg, priors)
     if out is not None:
         write_catalogue(cat, out, overwrite=overwrite)
         shutil.rmtree(parts, ignore_errors=True)
     return cat
+
+
+def _pass_key(cfg: Config, size_prior: SizePrior | None, keep) -> str:
+    """What identifies a fitting pass over the images: its settings and size prior."""
+    sp = None if size_prior is None else size_prior.to_dict()
+    return json.dumps([cfg.to_dict(), sp, keep], sort_keys=True, default=str)
+
+
+def _calibrate_images(tasks: list[dict], cfg: Config, prior: Prior | None,
+                      size_prior: SizePrior | None, jobs: int, scheduler: str | None,
+                      progress: bool, pool, last: dict,
+                      parts: Path | None = None) -> Priors:  # fmt: skip
+    """The calibration recipe (:func:`pylensfit.calibration.run_recipe`) on the images.
+
+    Each pass measures every image (detection, PSF, neighbours and sky included) and hands
+    the recipe its usable galaxies (:func:`pylensfit.calibration.usable_galaxies`); the
+    last pass's results stay in ``last`` so that, when the measurement's settings are
+    those of the last pass, it is not done again. With ``parts``, the images of every
+    pass that keeps no ``L(r)`` are written there as they finish and read back by a
+    resumed run.
+    """
+
+    def fit_pass(cfgs, sps, keep, label):
+        keep_r = "annuli" if keep else False
+        run = [dict(t, config=cfgs[0].to_dict(), keep_lnL_r=keep_r,
+                    psf_dir=t["psf_dir"] if not keep else None,
+                    size_prior=None if sps[0] is None else sps[0].to_dict())
+               for t in tasks]  # fmt: skip
+        results, samples = {}, []
+        todo = run
+        if parts is not None and not keep:
+            parts.mkdir(parents=True, exist_ok=True)
+            todo = []
+            for t in run:
+                pp = _part_path(parts, t)
+                if pp.exists():
+                    try:
+                        results[t["index"]] = _read_part(pp)
+                        continue
+                    except Exception as err:  # a damaged part is redone
+                        log.warning("%s: unreadable part file %s (%s); redoing", t["path"], pp,
+                                    err)  # fmt: skip
+                todo.append(t)
+        for t, res in _run(_image_task, todo, jobs, scheduler, label, progress, pool):
+            if parts is not None and not keep:
+                _write_part(_part_path(parts, t), res)
+            results[t["index"]] = res
+        for i in range(len(tasks)):
+            res = results[i]
+            rows = res["rows"]
+            ok = (usable_galaxies(rows["flags"], rows["fitclass"] != FITCLASS["galaxy"],
+                                  rows["model_SNratio"], cfgs[0])
+                  & np.isfinite(res["lnL"]).all(axis=1))  # fmt: skip
+            flux = np.asarray(rows["model_flux"], dtype=float)
+            samples.append(CalibrationSample(
+                egrid=res["egrid"], lnL=res["lnL"][ok], flux=flux[ok],
+                flux_err=(flux / np.asarray(rows["model_SNratio"], dtype=float))[ok],
+                snr=np.asarray(rows["model_SNratio"], dtype=float)[ok],
+                dx=(rows["x"] - rows["x_detect"])[ok], dy=(rows["y"] - rows["y_detect"])[ok],
+                group=np.zeros(int(ok.sum()), dtype=int),
+                lnL_bulge=None if res["lnL_bulge"] is None else res["lnL_bulge"][ok],
+                lnL_star=rows["lnL_star"][ok] if "lnL_star" in rows else None,
+                lnL_r_grouped=[res["lnL_r"][ok]] if keep else None))  # fmt: skip
+            if keep:
+                res["lnL_r"] = None  # the sample holds what the recipe needs
+        last.clear()
+        if not keep:
+            last.update(key=_pass_key(cfgs[0], sps[0], False), results=results)
+        sample = CalibrationSample.concatenate(samples)
+        log.info("%s: %d usable galaxies", label, len(sample))
+        return sample
+
+    return run_recipe(fit_pass, cfg, 1, prior=prior,
+                      size_priors=None if size_prior is None else [size_prior])[0]
 
 
 def _given_psfs(psf, images: list[str]) -> list[PSFResult] | None:
@@ -992,47 +1083,8 @@ def _given_psfs(psf, images: list[str]) -> list[PSFResult] | None:
     return out
 
 
-def _estimate_size_prior(tasks: list[dict], cfg: Config, prior: Prior | None, jobs: int,
-                         scheduler: str | None, progress: bool,
-                         pool: ProcessPoolExecutor | None = None) -> SizePrior:  # fmt: skip
-    """First pass of ``size_prior="estimated"``: fit with the flat size prior, estimate it.
-
-    Each galaxy's ``L(r)`` is marginalised over e with ``prior`` if one is given, else
-    with the default functional prior (:func:`pylensfit.likelihood.fit_stamps`). Every
-    measured galaxy enters, sizes where its ``L(r)`` underflows (``-inf``) included.
-    """
-    from .models import model_bank
-    from .prior import estimate_size_prior, size_likelihood_rows
-
-    first = [dict(t, keep_lnL_r=True, psf_dir=None, size_marginal_prior=prior) for t in tasks]
-    lnL_r, lnL_b, lnL_s, egrid = [], [], [], None
-    for _, res in _run(_image_task, first, jobs, scheduler, "size prior", progress, pool):
-        rows = res["rows"]
-        # every measured galaxy: keeping only the rows finite at every size took the
-        # deconvolved sizes 8 % large under STEP1's 3-pixel PSFs (size_likelihood_rows)
-        lr = res["lnL_r"]
-        gal = ((rows["flags"] == 0) & (rows["fitclass"] == FITCLASS["galaxy"])
-               & size_likelihood_rows(lr))  # fmt: skip
-        lnL_r.append(lr[gal])
-        egrid = res["egrid"]
-        if res["lnL_bulge"] is not None:
-            lnL_b.append(res["lnL_bulge"][gal])
-            lnL_s.append(rows["lnL_star"][gal])
-    L = np.concatenate(lnL_r)
-    if L.shape[0] < 50:
-        raise InputError(f"only {L.shape[0]} measured galaxies in the run: too few to estimate "
-                         "the size prior (give one with size_prior=, or size_prior: flat)")
-    bw = None
-    if lnL_b and cfg.bulge_prior == "estimated":
-        _, bw = estimate_prior_and_bulge(np.concatenate(lnL_b), np.concatenate(lnL_s), egrid,
-                                         method=cfg.prior_method)  # fmt: skip
-    sp = estimate_size_prior(L, model_bank(cfg), cfg, bulge_weights=bw)
-    log.info("size prior estimated from %d galaxies", L.shape[0])
-    return sp
-
-
-def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
-    """Concatenate the images, estimate the prior, add the Bayesian shapes."""
+def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
+    """Concatenate the images, add the Bayesian shapes under the priors."""
     egrid = results[0]["egrid"]
     tabs = [Table(r["rows"]) for r in results]
     cat = vstack(tabs, metadata_conflicts="silent") if tabs else Table()
@@ -1043,21 +1095,15 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
     n = len(cat)
     cat.add_column(np.arange(1, n + 1, dtype=np.int64), name="id", index=0)
     usable = (np.asarray(cat["flags"]) == 0) & np.isfinite(lnL).all(axis=1)
-    gal = usable & (np.asarray(cat["fitclass"]) == FITCLASS["galaxy"])
-    bulge_weights = None
-    if prior is None:
-        if gal.sum() < 50:
-            raise InputError(f"only {int(gal.sum())} measured galaxies in the run: too few to "
-                             "estimate the prior (give one with prior=)")  # fmt: skip
-        if lnL_bulge is not None and cfg.bulge_prior == "estimated":
-            lnL_star = np.asarray(cat["lnL_star"], dtype=float)
-            prior, bulge_weights = estimate_prior_and_bulge(
-                lnL_bulge[gal], lnL_star[gal], egrid, method=cfg.prior_method)
-            lnL = np.where(usable[:, None], mix_bulge_fractions(lnL_bulge, lnL_star,
-                                                                bulge_weights), np.nan)
-        else:
-            prior = estimate_prior(lnL[gal], egrid, method=cfg.prior_method)
-        log.info("prior estimated from %d galaxies: %r", int(gal.sum()), prior)
+    galaxy = np.asarray(cat["fitclass"]) == FITCLASS["galaxy"]
+    low = usable & galaxy & ~(np.asarray(cat["model_SNratio"], dtype=float) >= cfg.min_snr)
+    cat["flags"] = np.asarray(cat["flags"]) | np.where(low, _flags.flag_value("LOW_SNR"), 0)
+    gal = usable & galaxy & ~low
+    prior, bulge_weights = priors.ellipticity, priors.bulge_weights
+    if lnL_bulge is not None and bulge_weights is not None:
+        lnL_star = np.asarray(cat["lnL_star"], dtype=float)
+        lnL = np.where(usable[:, None], mix_bulge_fractions(lnL_bulge, lnL_star,
+                                                            bulge_weights), np.nan)  # fmt: skip
     sh = _shapes(lnL, egrid, prior, sensitivity=cfg.sensitivity, refine=cfg.output_refine)
     for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
         cat[c] = np.where(usable, np.asarray(sh[c]), np.nan)
@@ -1081,6 +1127,9 @@ def _assemble(results: list[dict], cfg: Config, prior: Prior | None) -> Table:
     psfs["note"] = [r["psf_note"] for r in results]
     cat.meta["egrid"] = egrid
     cat.meta["prior"] = prior
+    cat.meta["priors"] = priors
+    cat.meta["size_prior"] = priors.size
+    cat.meta["refine"] = int(cfg.output_refine)
     if lnL_bulge is not None:
         cat.meta["bulge_fractions"] = np.array([run.bulge_fraction for run in cfg.bulge_runs])
         if cfg.bulge_size_ratio2 > 0 or cfg.sersic_ladder:
@@ -1168,6 +1217,11 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
         if sp.smoothing is not None:
             hs.header["SMOOTH"] = (sp.smoothing, "EMS smoothing of the estimate")
         hdus.append(hs)
+    pr = cat.meta.get("priors")
+    if pr is not None:  # every prior of the measurement, as Priors.save writes them
+        hp = fits.BinTableHDU(Table({"json": [json.dumps(pr.to_dict())]}))
+        hp.name = "PRIORS"
+        hdus.append(hp)
     if "psfs" in cat.meta:
         p = fits.table_to_hdu(cat.meta["psfs"])
         p.name = "PSFS"
@@ -1219,13 +1273,27 @@ def read_catalogue(path: str | os.PathLike) -> Table:
                                                density=np.array(hs.data["density"], float).T,
                                                star=float(hs.header["STAR"]),
                                                smoothing=hs.header.get("SMOOTH"))  # fmt: skip
+        if "PRIORS" in h:
+            try:
+                cat.meta["priors"] = Priors.from_dict(json.loads(str(h["PRIORS"].data["json"][0])),
+                                                      source=f"{path} PRIORS")  # fmt: skip
+            except ValueError as err:
+                log.warning("%s: the PRIORS HDU cannot be read (%s); left out", path, err)
         if "PSFS" in h:
             cat.meta["psfs"] = Table(h["PSFS"].data)
         if "PSFIMG" in h:
             cat.meta["psf_images"] = np.array(h["PSFIMG"].data, dtype=float)
         if "CONFIG" in h:
             t = h["CONFIG"].data
-            cat.meta["config"] = Config.from_dict(
-                {str(k): json.loads(str(v)) for k, v in zip(t["key"], t["value"], strict=True)}
-            )
+            vals = {str(k): json.loads(str(v)) for k, v in zip(t["key"], t["value"], strict=True)}
+            known = set(Config.describe())
+            extra = sorted(set(vals) - known)
+            if extra:  # written by another version: read what this one knows
+                log.warning("%s: configuration key(s) %s unknown to this version are left "
+                            "out", path, extra)  # fmt: skip
+            try:
+                cat.meta["config"] = Config.from_dict({k: v for k, v in vals.items()
+                                                       if k in known})  # fmt: skip
+            except ValueError as err:
+                log.warning("%s: its configuration cannot be read (%s); left out", path, err)
     return cat

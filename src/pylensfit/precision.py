@@ -85,6 +85,7 @@ from typing import Any
 import numpy as np
 from astropy.table import Table
 
+from .calibration import MIN_FLUX_RANGE_GALAXIES, CalibrationSample, run_recipe
 from .config import Config
 from .prior import Prior, SizePrior, mix_bulge_fractions
 from .simulate import draw_shapes
@@ -593,7 +594,8 @@ def reduce_likelihoods(
 
 def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4,
                       bulge_weights: np.ndarray | None = None,
-                      stencil: int | None = None, renderings: int = 4):  # fmt: skip
+                      stencil: int | None = None, renderings: int = 4,
+                      min_snr: float = 0.0):  # fmt: skip
     """:func:`reduce_likelihoods` of the fits of ``n`` galaxies' four (or eight) renderings.
 
     Parameters
@@ -614,6 +616,9 @@ def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4,
         As :func:`reduce_likelihoods`.
     renderings : int
         Renderings per galaxy ``R``: 4, or 8 with noise twins.
+    min_snr : float
+        Renderings whose best model's S/N is below this are not measured
+        (``Config.min_snr``).
 
     Returns
     -------
@@ -624,7 +629,7 @@ def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4,
     """
     plus, minus = _shear_sets(renderings)
     R = int(renderings)
-    ok = _usable(fits)
+    ok = _usable(fits, min_snr)
     n = ok.size // R
     lnL = fits.lnL
     if bulge_weights is not None and fits.lnL_bulge is not None:
@@ -640,9 +645,10 @@ def reduce_renderings(fits, prior: Prior, g: float, *, refine: int = 4,
     return Q.reshape(n, R, _NQ), ok.reshape(n, R)
 
 
-def _usable(fits) -> np.ndarray:
-    """Measured galaxies: no flag and not classified as a point source."""
-    return (np.asarray(fits.flags) == 0) & ~np.asarray(fits.is_star)
+def _usable(fits, min_snr: float = 0.0) -> np.ndarray:
+    """Measured galaxies: no flag, not a point source, S/N at least ``min_snr``."""
+    snr = np.asarray(fits.snr, dtype=float)
+    return (np.asarray(fits.flags) == 0) & ~np.asarray(fits.is_star) & ~(snr < min_snr)
 
 
 def _block_task(task: dict[str, Any]) -> dict[str, Any]:
@@ -671,26 +677,19 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
                       size_marginal_prior=task.get("size_marginal_prior"),
                       lnL_r_groups=groups)  # fmt: skip
     t2 = time.perf_counter()
-    ok = _usable(fits)
+    ok = _usable(fits, cfg.min_snr)
     res: dict[str, Any] = {"block": task["block"], "psf": task["psf"], "truth": truth,
                            "render_s": t1 - t0, "fit_s": t2 - t1}  # fmt: skip
     if task["calibration"]:
-        res["lnL"] = fits.lnL[ok]
-        res["flux"] = fits.flux[ok]
-        res["flux_err"] = (fits.flux / fits.snr)[ok]  # sigma / sqrt(S) of the best model
-        res["egrid"] = fits.egrid
-        res["n_usable"] = int(ok.sum())
-        if fits.lnL_bulge is not None:
-            res["lnL_bulge"] = fits.lnL_bulge[ok]
-            res["lnL_star"] = fits.lnL_star[ok]
-        if task.get("keep_lnL_r") == "annuli":
-            res["lnL_r_grouped"] = fits.lnL_r_grouped[ok]
-        elif task.get("keep_lnL_r"):
+        c = stamps.shape[-1] // 2  # the catalogue position: the stamp's centre
+        res["sample"] = CalibrationSample.from_fits(fits, ok, c, c, group=task["psf"])
+        if task.get("keep_lnL_r") and task.get("keep_lnL_r") != "annuli":
             res["lnL_r"] = fits.lnL_r[ok]
         return res
     Q, usable = reduce_renderings(fits, task["prior"], spec.g, refine=cfg.output_refine,
                                   bulge_weights=task.get("bulge_weights"),
-                                  stencil=task.get("stencil"), renderings=nr)  # fmt: skip
+                                  stencil=task.get("stencil"), renderings=nr,
+                                  min_snr=cfg.min_snr)  # fmt: skip
     res["Q"] = Q.astype(np.float32)
     res["usable"] = usable
     res["r_best"] = fits.r_best.reshape(n, nr)[:, 0].astype(np.float32)
@@ -952,41 +951,19 @@ def _breakdowns(gal: Table, psfs: tuple[dict, ...]) -> dict[str, dict[str, np.nd
     return out
 
 
-def default_config(spec: PrecisionSpec) -> Config:
-    """The configuration :func:`precision` fits with unless given one.
+def default_config(spec: PrecisionSpec | None = None) -> Config:
+    """The configuration :func:`precision` fits with unless given one: ``Config()``.
 
-    The bulge+disc model with three bulge fractions and the size prior estimated from
-    the calibration sample; a power law in the flux as the amplitude prior
-    (``amplitude_prior="flux"``; :func:`precision` estimates its power, the number
-    counts' slope, from the calibration sample's fluxes, and fits the first calibration
-    pass with the Euclidean 2.0 (``Config.amplitude_prior_power``)); and as the position
-    prior the catalogue positions' scatter about the true centres, which an analysis
-    takes from its detection's centroid errors (here the standard deviation ``offset /
-    sqrt(3)`` of the uniform offsets; 0.01 px if centred). With the paper's uniform
-    amplitude prior and a 2-pixel position prior instead, each model's likelihood
-    carries ``1 / sqrt(sum m^2)`` and the inverse square root of its position Fisher
-    matrix, which favour elongated models at the faint end (``benchmarks/README.md``,
-    thirteenth session). Large galaxies are fitted on 64-pixel stamps
-    (``Config.max_stamp_size``; the population's largest are 7 px in convolved
-    half-light radius, a ninth of it): on the 32-pixel stamp alone galaxies of 1.5-2.5
-    PSF radii responded 0.5-2.5 % more to g2 than to g1 (m2 - m1 = +0.005 over the
-    population, ``benchmarks/README.md``, fifteenth session). The size grid is
-    geometric (10 %) up to 4 px in scale length and uniform in 0.4 px above
-    (``r_step=0.4``; the default's 0.2 px steps above 2 px are 2-10 % apart where the
-    population's galaxies are few and large): 47 sizes per fraction instead of 72, the
-    fit a quarter cheaper, and m moved by +0.0005 +- 0.0004 / +0.0002 +- 0.0006 on the
-    same renderings (``benchmarks/precision_ab.py --b r_step=0.4``, twenty-fourth
-    session). The size prior is estimated per bulge fraction
-    (``Config.size_prior_per_run``): the mix's kinds differ in size, so the population's
-    (fraction, size) is not a product of a fraction prior and one size prior. On three
-    samples of 200,000 galaxies each kind the family holds moves 0.002-0.003 toward 0
-    while the mix's m stays where it was (+0.0000 / +0.0001 together), at no cost in
-    time (``benchmarks/README.md``, thirty-fifth and thirty-seventh sessions).
+    The defaults are the method this mode measures: the bulge+disc model with three
+    bulge fractions, every prior estimated from the calibration sample by the
+    calibration recipe (:mod:`pylensfit.calibration`: a size prior per bulge fraction,
+    a power law in the flux bounded where the fluxes end, the position prior's width
+    from the fitted centres' scatter), large galaxies on 64-pixel stamps and the size
+    grid geometric (10 %) up to 4 px in scale length and uniform in 0.4 px above. Each
+    choice's measured effect is in the ``Config`` field's documentation. ``spec`` is
+    accepted for compatibility and not used: nothing a survey cannot know is set.
     """
-    return Config(model="bulge+disc", n_bulge_fractions=3, size_prior="estimated",
-                  size_prior_per_run=True, amplitude_prior="flux", max_stamp_size=64,
-                  r_step=0.4,
-                  position_prior_sigma=max(spec.offset / math.sqrt(3.0), 0.01))  # fmt: skip
+    return Config()
 
 
 def precision(
@@ -1105,175 +1082,76 @@ def precision(
     from astropy.table import vstack
 
     from .pipeline import _pool, _run
-    from .prior import (
-        _MIN_FLUX_RANGE_SAMPLE,
-        estimate_bulge_weights,
-        estimate_flux_range,
-        estimate_flux_slope,
-        estimate_prior,
-        estimate_prior_and_bulge,
-    )
 
     spec = spec if spec is not None else PrecisionSpec()
     cfg = config if config is not None else default_config(spec)
     bulge_prior = cfg.bulge_prior
+    weights_given = bulge_weights is not None
     npsf = len(spec.psfs)
     t_start = time.perf_counter()
-    # 1. the priors, from an unsheared calibration sample of the same population: the
-    # size prior (with the size_prior setting) from fits with the flat one, then the
-    # ellipticity and bulge-fraction priors from fits with the size prior
-    given_bw = None
-    if bulge_weights is not None:
-        given_bw = np.asarray(bulge_weights, dtype=float)
-        nf = len(cfg.bulge_runs)
-        if given_bw.shape != (nf,) or given_bw.min() < 0 or given_bw.sum() <= 0:
-            raise ValueError(f"bulge_weights needs {nf} non-negative weights "
-                             f"(one per Config.bulge_runs), got {bulge_weights!r}")  # fmt: skip
-        given_bw = given_bw / given_bw.sum()
-    fit_bulge = bulge_prior == "estimated" and cfg.n_bulge_fractions > 1 and given_bw is None
+    # 1. the priors, from an unsheared calibration sample of the same population, by the
+    # calibration recipe that calibrate() and measure() run (pylensfit.calibration)
     given_sp = None
     if size_prior is not None:
         given_sp = [size_prior] * npsf if isinstance(size_prior, SizePrior) else list(size_prior)
         if len(given_sp) != npsf or not all(isinstance(s, SizePrior) for s in given_sp):
             raise ValueError(f"size_prior needs one SizePrior or one per PSF ({npsf})")
-    fit_size = cfg.size_prior == "estimated" and given_sp is None
     prior_given = prior is not None
-    fit_flux = cfg.amplitude_prior == "flux" and flux_slope is None
-    if cfg.amplitude_prior == "flux" and flux_slope is not None:  # validated by Config
-        cfg = cfg.replace(amplitude_prior_power=float(flux_slope))
-    fit_bounds = (flux_bounds and cfg.amplitude_prior == "flux" and cfg.amplitude_prior_min == 0
+    fit_bounds = (flux_bounds and cfg.amplitude_prior == "flux" and cfg.estimate_flux_prior
+                  and cfg.amplitude_prior_min == 0
                   and not math.isfinite(cfg.amplitude_prior_max))  # fmt: skip
-    need_cal = prior is None or fit_bulge or fit_size or fit_flux or fit_bounds
-    ncb = _n_blocks(spec.ncal, spec.block_size) if need_cal else 0
-    if need_cal and ncb == 0:
+    ncb = _n_blocks(spec.ncal, spec.block_size)
+    if ncb == 0:
         raise ValueError("spec.ncal is 0: a calibration sample is needed to estimate the "
-                         "priors (or give them: prior=, size_prior=, bulge_weights=, "
-                         "flux_slope=)")  # fmt: skip
+                         "priors")  # fmt: skip
     if fit_bounds:  # the calibration sample's size per PSF, before any fit: say it now
         per_psf = min(sum(min(spec.block_size, spec.ncal - b * spec.block_size)
                           for b in range(k, ncb, npsf)) for k in range(npsf))  # fmt: skip
-        if per_psf < _MIN_FLUX_RANGE_SAMPLE:
-            raise ValueError(f"flux_bounds needs at least {_MIN_FLUX_RANGE_SAMPLE} "
+        if per_psf < MIN_FLUX_RANGE_GALAXIES:
+            raise ValueError(f"flux_bounds needs at least {MIN_FLUX_RANGE_GALAXIES} "
                              f"calibration galaxies per PSF to estimate its flux range; "
                              f"spec.ncal = {spec.ncal} gives {per_psf} (a larger ncal, or "
                              f"flux_bounds=False)")  # fmt: skip
     render_s, fit_s = 0.0, 0.0
-    cfgs = [cfg] * npsf  # per PSF: the flux prior's bounds are in each PSF's flux units
 
-    def calibrate(size_priors, keep_lnL_r, label, marginal_prior=None):
+    def calibration_pass(cfgs, size_priors, keep, label):
         nonlocal render_s, fit_s
         tasks = [{"spec": spec, "config": cfgs[b % npsf], "psf": b % npsf, "block": b,
-                  "calibration": True,
-                  "size_prior": size_priors[b % npsf], "keep_lnL_r": keep_lnL_r,
-                  "size_marginal_prior": marginal_prior}
+                  "calibration": True, "size_prior": size_priors[b % npsf],
+                  "keep_lnL_r": "annuli" if keep else False}
                  for b in range(ncb)]  # fmt: skip
-        out: dict[str, list] = {"lnL": [], "lnL_bulge": [], "lnL_star": [], "lnL_r": [],
-                                "lnL_r_grouped": [], "flux": [], "flux_err": [],
-                                "psf": []}  # fmt: skip
-        egrid = None
+        parts = []
         for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, label, progress, pool),
                            key=lambda tr: tr[0]["block"]):  # fmt: skip
-            for k in out:
-                out[k].append(np.full(r["n_usable"], r["psf"]) if k == "psf" else r.get(k))
-            egrid = r["egrid"]
+            parts.append(r["sample"])
             render_s += r["render_s"]
             fit_s += r["fit_s"]
-        # the per-|e| L(r) stay in their blocks (~16 MB each) until they are reweighted;
-        # the rest joined one quantity at a time, each block's part freed as it is joined
-        cat = {}
-        for k in list(out):
-            v = out.pop(k)
-            cat[k] = (v if k == "lnL_r_grouped" else np.concatenate(v)) \
-                if v and v[0] is not None else None
-            del v
-        return cat, egrid
-
-    def ellipticity_priors(cal, egrid, prior):
-        if fit_bulge and prior is None:
-            return estimate_prior_and_bulge(cal["lnL_bulge"], cal["lnL_star"], egrid,
-                                            method=cfg.prior_method)  # fmt: skip
-        if fit_bulge:
-            return prior, estimate_bulge_weights(cal["lnL_bulge"], cal["lnL_star"], prior)
-        if prior is None:
-            lnL = cal["lnL"]
-            if given_bw is not None and cal["lnL_bulge"] is not None:
-                lnL = mix_bulge_fractions(cal["lnL_bulge"], cal["lnL_star"], given_bw)
-            return estimate_prior(lnL, egrid, method=cfg.prior_method), given_bw
-        return prior, given_bw
+        return CalibrationSample.concatenate(parts)
 
     with _pool(jobs, scheduler) as pool:  # one set of workers for every pass
-        size_priors: list = [None] * npsf if given_sp is None else given_sp
-        # with the size prior to estimate, the first pass keeps L(r) per |e| as well
-        first_keep = "annuli" if fit_size else False
-        cal, egrid = calibrate(size_priors, first_keep, "calibration") if ncb else ({}, None)
+        cal_priors = run_recipe(
+            calibration_pass, cfg, npsf, prior=prior, size_priors=given_sp,
+            bulge_weights=bulge_weights, flux_slope=flux_slope, flux_bounds=flux_bounds,
+            size_prior_per_group=size_prior_per_psf,
+            group_names=[p["name"] for p in spec.psfs])  # fmt: skip
+        prior = cal_priors[0].ellipticity
+        bulge_weights = cal_priors[0].bulge_weights
+        size_priors = [p.size for p in cal_priors]
+        cfgs = [p.apply(cfg) for p in cal_priors]
+        cfg = cfgs[0]
+        info = cal_priors[0].info
         flux_meta = None
-        if fit_flux:
-            # the counts' slope from the first pass's fluxes (those of the best models, which
-            # the amplitude prior barely moves); the later passes and the renderings use it
-            beta, beta_err = estimate_flux_slope(cal["flux"])
-            cfg = cfg.replace(amplitude_prior_power=float(beta))
-            flux_meta = {"value": float(beta), "error": beta_err, "estimated": True}
-        elif cfg.amplitude_prior == "flux":
-            flux_meta = {"value": cfg.amplitude_prior_power, "error": 0.0, "estimated": False}
-        cfgs = [cfg] * npsf
+        if cfg.amplitude_prior == "flux":
+            flux_meta = {"value": cfg.amplitude_prior_power,
+                         "error": info.get("flux_power_err", 0.0),
+                         "estimated": flux_slope is None and cfg.estimate_flux_prior}  # fmt: skip
         bounds_meta = None
-        if fit_bounds:
-            # each PSF's flux range from the first pass's fluxes and their errors, at the
-            # power just estimated (the same law as the prior's); later passes use it
-            bounds_meta = []
-            for k in range(npsf):
-                sel = cal["psf"] == k
-                try:
-                    fr = estimate_flux_range(cal["flux"][sel], cal["flux_err"][sel],
-                                             beta=cfg.amplitude_prior_power)  # fmt: skip
-                except ValueError as err:
-                    raise ValueError(f"PSF {spec.psfs[k]['name']}: {err} (a larger "
-                                     f"calibration sample, or flux_bounds=False)") from None
-                bounds_meta.append({"psf": spec.psfs[k]["name"], "lo": fr["lo"],
-                                    "hi": fr["hi"], "lo_err": fr["lo_err"],
-                                    "hi_err": fr["hi_err"], "error_scale": fr["error_scale"],
-                                    "true": list(population_flux_range(
-                                        spec, k, stamp_size=cfg.largest_stamp))})
-                cfgs[k] = cfg.replace(amplitude_prior_min=fr["lo"], amplitude_prior_max=fr["hi"])
-        # the first pass again under the flux prior just estimated, where its fits are
-        # used further: for the ellipticity and bulge priors when no size prior pass
-        # follows, and for the size prior's L(r) when the bounds changed the prior
-        # (estimated from the unbounded pass, the size prior came out 10 % small and,
-        # with the bounds in the later passes, m +0.009 on galaxies the family holds;
-        # benchmarks/README.md, thirty-third session)
-        redo = fit_bounds if fit_size else (fit_flux or fit_bounds) and (prior is None or fit_bulge)
-        if redo and ncb:
-            cal = None  # the first pass's grids freed before the second's arrive
-            cal, egrid = calibrate(size_priors, first_keep, "calibration with the flux prior")
-        prior0 = prior
-        if ncb:
-            prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
-        else:
-            bulge_weights = given_bw
-        if fit_size:
-            from .likelihood import e_annuli, reweight_lnL_r
-            from .models import model_bank
-            from .prior import estimate_size_prior
-
-            # each galaxy's L(r) marginalised over e with the ellipticity prior just
-            # estimated (not the fits' default, which is the population's own here): the
-            # first pass's L(r) per |e| reweighted, what a second pass with that prior as
-            # size_marginal_prior gives (its amplitude prior the first pass's power)
-            # (the groups are the model grid's cells, whatever grid the fits give L(e) on)
-            bank = model_bank(cfg)
-            groups = e_annuli(bank.egrid)
-            cal["lnL_r"] = np.concatenate([reweight_lnL_r(g, bank.egrid, groups, None, prior)
-                                           for g in cal.pop("lnL_r_grouped")])  # fmt: skip
-            if size_prior_per_psf:
-                size_priors = [estimate_size_prior(cal["lnL_r"][cal["psf"] == k], bank, cfg,
-                                                   bulge_weights=bulge_weights)
-                               for k in range(npsf)]  # fmt: skip
-            else:
-                size_priors = [estimate_size_prior(cal["lnL_r"], bank, cfg,
-                                                   bulge_weights=bulge_weights)] * npsf  # fmt: skip
-            cal = None
-            cal, egrid = calibrate(size_priors, False, "calibration with the size prior")
-            prior, bulge_weights = ellipticity_priors(cal, egrid, prior0)
+        if info.get("flux_range"):
+            bounds_meta = [None if fr is None else
+                           {"psf": spec.psfs[k]["name"], **fr,
+                            "true": list(population_flux_range(
+                                spec, k, stamp_size=cfg.largest_stamp))}
+                           for k, fr in enumerate(info["flux_range"])]  # fmt: skip
         t_cal = time.perf_counter() - t_start
         # 2. the four renderings of every galaxy, streamed block by block
         nb = _n_blocks(spec.ngal, spec.block_size)
@@ -1342,7 +1220,7 @@ def precision(
     total = time.perf_counter() - t_start
     out.meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D,
                          "given": prior_given}  # fmt: skip
-    bp_method = bulge_prior if given_bw is None else "given"
+    bp_method = "given" if weights_given else bulge_prior
     out.meta["bulge_prior"] = {
         "method": bp_method if cfg.n_bulge_fractions > 1 else "none",
         "fractions": [float(run.fraction) for run in cfg.bulge_runs],

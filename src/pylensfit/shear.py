@@ -753,26 +753,48 @@ class ShearEstimate:
 def estimate_shear(
     shapes_table: Table,
     *,
+    estimator: str = "fixed-point",
+    prior: Prior | None = None,
+    egrid: np.ndarray | None = None,
+    refine: int | None = None,
     e1_col: str = "e1",
     e2_col: str = "e2",
     sens1_col: str = "sens1",
     sens2_col: str = "sens2",
     flags_col: str = "flags",
+    weight_col: str = "weight",
 ) -> ShearEstimate:
-    """Shear of a sample from per-galaxy posterior means and sensitivities, eq. ``key2``.
+    """Shear of a sample of galaxies.
 
+    ``estimator="fixed-point"`` (the default): :func:`shear_fixed_point`, the shear
+    ``g`` at which the posterior means under the prior sheared by ``g`` average to
+    ``g``, exact to all orders in ``g``; it needs the table's ``lnL`` column and the
+    ellipticity prior and grid (``meta["prior"]``, ``meta["egrid"]`` and
+    ``meta["refine"]`` of :func:`pylensfit.measure_stamps`' table and of
+    :func:`pylensfit.measure`'s catalogue, or given here).
+
+    ``estimator="key2"``: Kitching et al. (2008)'s estimator (their eq. ``key2``, the
+    sum of the posterior means over the sum of the sensitivities), high by a factor
+    ``1 + |g|^2`` (``m ~ +8e-4`` at ``g = (0.02, 0.02)``); it needs only ``e1, e2,
+    sens1, sens2``, as :func:`shapes` gives them.
     ``g_i = sum_a <e_i>_a / sum_a d<e_i>_a/dg_i``, with the error of paper section 4.1,
     ``sigma / sqrt(N)`` in the form ``std_a(<e_i>_a) sqrt(N) / sum_a d<e_i>_a/dg_i``.
-    Rows with a nonzero flag (when the table has ``flags_col``) or non-finite values are
-    skipped. No weighted variant is offered: a per-galaxy weight that depends on the
-    data (as inverse-variance weights do) correlates with the shear response and biases
-    ``g`` unless its own response is included.
+    Rows with a nonzero flag (when the table has ``flags_col``), a zero weight (when it
+    has ``weight_col``) or non-finite values are skipped. No weighted variant is
+    offered: a per-galaxy weight that depends on the data (as inverse-variance weights
+    do) correlates with the shear response and biases ``g`` unless its own response is included.
 
     Parameters
     ----------
     shapes_table : astropy.table.Table
-        The output of :func:`shapes`, or any table with the same columns.
-    e1_col, e2_col, sens1_col, sens2_col, flags_col : str
+        :func:`pylensfit.measure_stamps`' table, a catalogue of :func:`pylensfit.measure`,
+        or (``"key2"``) the output of :func:`shapes`.
+    estimator : {"fixed-point", "key2"}
+        The estimator.
+    prior, egrid, refine
+        For ``"fixed-point"``: the ellipticity prior, grid and integration refinement
+        (default: the table's ``meta``).
+    e1_col, e2_col, sens1_col, sens2_col, flags_col, weight_col : str
         Column names.
 
     Returns
@@ -782,9 +804,31 @@ def estimate_shear(
     Raises
     ------
     ValueError
-        On a missing column, an empty sample (no usable row), or a sum of sensitivities
-        that is not positive.
+        On a missing column or prior, an empty sample (no usable row), or a sum of
+        sensitivities that is not positive.
     """
+    if estimator not in ("fixed-point", "key2"):
+        raise ValueError(f"estimator must be 'fixed-point' or 'key2', got {estimator!r}")
+    if estimator == "fixed-point":
+        meta = shapes_table.meta
+        prior = prior if prior is not None else meta.get("prior")
+        egrid = egrid if egrid is not None else meta.get("egrid")
+        if "lnL" not in shapes_table.colnames or not isinstance(prior, Prior) \
+                or egrid is None:
+            raise ValueError("the fixed-point estimator needs the table's lnL column and its "
+                             "prior and egrid (measure_stamps' table, a measure catalogue, or "
+                             "prior= and egrid=); for shapes()' output use estimator='key2'")
+        lnL = np.asarray(shapes_table["lnL"], dtype=float)
+        use = np.ones(len(shapes_table), dtype=bool)
+        if flags_col in shapes_table.colnames:
+            use &= np.asarray(shapes_table[flags_col]) == 0
+        if weight_col in shapes_table.colnames:
+            use &= np.asarray(shapes_table[weight_col], dtype=float) > 0
+        if not use.any():
+            raise ValueError("empty sample: no usable (unflagged, weighted) row to estimate "
+                             "shear")  # fmt: skip
+        ref = int(refine if refine is not None else meta.get("refine", DEFAULT_REFINE))
+        return shear_fixed_point(lnL[use], np.asarray(egrid, dtype=float), prior, refine=ref)
     for c in (e1_col, e2_col, sens1_col, sens2_col):
         if c not in shapes_table.colnames:
             raise ValueError(f"the table has no column {c!r}")
@@ -795,6 +839,8 @@ def estimate_shear(
     use = np.isfinite(e1) & np.isfinite(e2) & np.isfinite(s1) & np.isfinite(s2)
     if flags_col in shapes_table.colnames:
         use &= np.asarray(shapes_table[flags_col]) == 0
+    if weight_col in shapes_table.colnames:
+        use &= np.asarray(shapes_table[weight_col], dtype=float) > 0
     n = int(np.count_nonzero(use))
     if n == 0:
         raise ValueError("empty sample: no usable (unflagged, finite) row to estimate shear")
@@ -815,10 +861,10 @@ def shear_table(
     by: str | None = None,
     column: str | None = None,
     edges: Sequence[float] | None = None,
-    estimator: str = "key2",
+    estimator: str = "fixed-point",
     prior: Prior | None = None,
     egrid: np.ndarray | None = None,
-    refine: int = DEFAULT_REFINE,
+    refine: int | None = None,
 ) -> Table:
     """Shear of every group of a catalogue, with errors (eq. ``key2`` per group).
 
@@ -833,13 +879,14 @@ def shear_table(
         Bin the rows by ``column`` with bin ``edges`` (e.g. magnitude bins); rows
         outside the edges are left out of the binned rows.
 
-    estimator : {"key2", "fixed-point"}
-        ``"key2"``: :func:`estimate_shear` on the table's ``e1, e2, sens1, sens2``;
-        ``"fixed-point"``: :func:`shear_fixed_point` on its ``lnL`` column (a 2-D column
-        of ln L grids, as in :func:`pylensfit.measure`'s catalogue) with ``prior`` and
-        ``egrid``, rows with ``flags != 0`` left out.
+    estimator : {"fixed-point", "key2"}
+        ``"fixed-point"`` (default): :func:`shear_fixed_point` on its ``lnL`` column (a
+        2-D column of ln L grids, as in :func:`pylensfit.measure`'s catalogue) with
+        ``prior`` and ``egrid``, rows with ``flags != 0`` (or ``weight == 0``) left out;
+        ``"key2"``: :func:`estimate_shear` with ``estimator="key2"`` on the table's ``e1,
+        e2, sens1, sens2``.
     prior, egrid, refine
-        For ``"fixed-point"``.
+        For ``"fixed-point"`` (default: the table's ``meta``).
 
     Returns
     -------
@@ -868,20 +915,26 @@ def shear_table(
     if estimator not in ("key2", "fixed-point"):
         raise ValueError(f"estimator must be 'key2' or 'fixed-point', got {estimator!r}")
     if estimator == "fixed-point":
-        if prior is None or egrid is None or "lnL" not in shapes_table.colnames:
+        prior = prior if prior is not None else shapes_table.meta.get("prior")
+        egrid = egrid if egrid is not None else shapes_table.meta.get("egrid")
+        refine = int(refine if refine is not None
+                     else shapes_table.meta.get("refine", DEFAULT_REFINE))  # fmt: skip
+        if not isinstance(prior, Prior) or egrid is None or "lnL" not in shapes_table.colnames:
             raise ValueError("the fixed-point estimator needs the table's lnL column, "
-                             "prior= and egrid=")  # fmt: skip
+                             "prior= and egrid= (or estimator='key2')")  # fmt: skip
         lnL = np.asarray(shapes_table["lnL"])
         usable = np.ones(n, dtype=bool)
         if "flags" in shapes_table.colnames:
             usable = np.asarray(shapes_table["flags"]) == 0
+        if "weight" in shapes_table.colnames:
+            usable &= np.asarray(shapes_table["weight"], dtype=float) > 0
     rows = []
     for name, sel in keys:
         try:
             if estimator == "fixed-point":
                 g = shear_fixed_point(lnL[sel & usable], egrid, prior, refine=refine)
             else:
-                g = estimate_shear(shapes_table[sel])
+                g = estimate_shear(shapes_table[sel], estimator="key2")
             rows.append((name, g.n, g.g1, g.g1_err, g.g2, g.g2_err))
         except ValueError:
             rows.append((name, 0, np.nan, np.nan, np.nan, np.nan))

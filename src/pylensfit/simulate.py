@@ -39,7 +39,7 @@ class FieldSpec:
     g1: float = 0.0
     g2: float = 0.0
     rotate: bool = False
-    model: str = "exponential"
+    model: str = "exponential"  # or "devaucouleurs", "bulge+disc", "mixed" (MIXED_KINDS)
     psf_fwhm: float = 3.0
     psf_beta: float = 3.5
     psf_e1: float = 0.03
@@ -65,8 +65,15 @@ def _psf(spec: FieldSpec):
     )
 
 
-def _galaxy(model: str, r: float):
+#: the kinds of ``FieldSpec(model="mixed")``, taken in turn object by object
+MIXED_KINDS = ("exponential", "devaucouleurs", "bulge+disc")
+
+
+def _galaxy(model: str, r: float, index: int = 0):
     import galsim
+
+    if model == "mixed":
+        model = MIXED_KINDS[index % len(MIXED_KINDS)]
 
     from .models import DEVAUC_TRUNCATION as T
 
@@ -213,12 +220,12 @@ def simulate_field(
             obj = psf
             flux[i] = star_snr[i] * spec.noise_sigma / psf_peak  # peak S/N as drawn
         else:
-            gal = _galaxy(spec.model, r[i]).shear(g1=e_int[i, 0], g2=e_int[i, 1])
+            gal = _galaxy(spec.model, r[i], i).shear(g1=e_int[i, 0], g2=e_int[i, 1])
             obj = galsim.Convolve(gal.shear(g1=spec.g1, g2=spec.g2), psf)
             # the flux from the S/N of the unlensed, unrotated galaxy: lensing keeps the
             # flux, and a rotated twin gets the same flux as its original
             e0 = -e_int[i] if spec.rotate else e_int[i]
-            ref = galsim.Convolve(_galaxy(spec.model, r[i]).shear(g1=e0[0], g2=e0[1]), psf)
+            ref = galsim.Convolve(_galaxy(spec.model, r[i], i).shear(g1=e0[0], g2=e0[1]), psf)
             arr = ref.drawImage(nx=64, ny=64, scale=1.0).array
             flux[i] = snr[i] * spec.noise_sigma / np.sqrt((arr**2).sum())
         _add_object(image, obj, flux[i], x[i], y[i])

@@ -842,12 +842,12 @@ def _controlled(res: tuple, e: np.ndarray, s: np.ndarray, t: np.ndarray, t_pop: 
 #: the kept catalogues' version: one whose sidecar holds another is measured again. It
 #: changes when the same configuration measures differently (3: the size prior estimated
 #: from every measured galaxy, forty-fifth session)
-_MEASURE_VERSION = 3
+_MEASURE_VERSION = 4
 
 
-def _ident(fields: list[dict], star: dict, cfg, size_prior=None, psf=None) -> dict:
+def _ident(fields: list[dict], star: dict, cfg, priors=None, psf=None) -> dict:
     """What a kept catalogue was made from: the configuration, the fields' seeds, the
-    size prior given to the measurement (if any) and the PSF given to it (if any: a
+    priors given to the measurement (if any) and the PSF given to it (if any: a
     digest of its image; otherwise it came from the star field)."""
     ids = []
     for f in [*fields, star]:
@@ -857,30 +857,31 @@ def _ident(fields: list[dict], star: dict, cfg, size_prior=None, psf=None) -> di
         ids.append({**{k: v for k, v in f.items() if k != "path"},
                     "bytes": st and st.st_size, "mtime_ns": st and st.st_mtime_ns})  # fmt: skip
     ident = {"version": _MEASURE_VERSION, "config": cfg.to_dict(), "fields": ids}
-    if size_prior is not None:
-        ident["size_prior"] = size_prior.to_dict()
+    if priors is not None:
+        ident["priors"] = priors.to_dict()
     if psf is not None:
         ident["psf"] = psf.digest
     return json.loads(json.dumps(ident))
 
 
 def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, jobs: int,
-              progress: bool, remeasure: bool, size_prior=None,
+              progress: bool, remeasure: bool, priors=None,
               psf=None) -> tuple[Table, bool]:  # fmt: skip
     """The catalogue of ``fields`` from ``mdir/<name>.fits``, measured unless kept.
 
     A kept catalogue is reused when its sidecar ``<name>.json`` records the same
-    configuration, the same fields (names and seeds) and the same ``size_prior``.
+    configuration, the same fields (names and seeds) and the same ``priors``.
     Otherwise the fields are measured with :func:`pylensfit.pipeline.measure`
-    (``output=``: written atomically, resumable from its ``.parts`` folder; with
-    ``size_prior``, a :class:`~pylensfit.prior.SizePrior`, if given) and the sidecar
+    (``output=``: written atomically, resumable from its ``.parts`` folder; under
+    ``priors``, a :class:`~pylensfit.Priors`, if given, else with the priors estimated
+    from the fields by the calibration recipe) and the sidecar
     written after the catalogue. With ``psf`` (a :class:`~pylensfit.psf.PSFResult`) the
     fields are measured with it instead of the star field's PSF.
     """
     from . import pipeline
 
     cat_path, side = mdir / f"{name}.fits", mdir / f"{name}.json"
-    ident = _ident(fields, star, cfg, size_prior, psf)
+    ident = _ident(fields, star, cfg, priors, psf)
     if not remeasure and cat_path.exists() and side.exists():
         try:
             same = json.loads(side.read_text()) == ident
@@ -894,7 +895,7 @@ def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, job
     mdir.mkdir(parents=True, exist_ok=True)
     side.unlink(missing_ok=True)
     pipeline.measure([f["path"] for f in fields], stars=[star["path"]] if psf is None else None,
-                     psf=psf, config=cfg, prior=Prior(), size_prior=size_prior,
+                     psf=psf, config=cfg, priors=priors,
                      output=cat_path, overwrite=True, jobs=jobs, progress=progress)  # fmt: skip
     tmp = side.with_name(f".{side.name}.tmp")
     tmp.write_text(json.dumps(ident, indent=1))
@@ -1486,7 +1487,7 @@ def validate(
     stars = {int(s["psf"]): s for s in man["star_fields"]}
     mdir = Path(man["dir"]) / ("measured_true_psf" if true_psf else "measured")
     pgs, sgs, measured, psf_rows = [], [], {}, []
-    size_priors: dict = {}
+    priors_of: dict = {}
     egrid = None
     for k, fl in sorted(by_psf.items()):
         fwhm = float(man["psfs"][k]["fwhm"])
@@ -1497,13 +1498,13 @@ def validate(
             if not sel:
                 continue
             name = f"psf{k}_{role}"
-            # an estimated size prior comes from the zero-shear field, as the ellipticity
-            # prior does: the shear fields are measured once, with it
-            sp = size_priors.get(k) if role == "shear" else None
+            # the priors come from the zero-shear field by the calibration recipe (as a
+            # survey's from its own galaxies): the shear fields are measured once, with them
+            pr = priors_of.get(k) if role == "shear" else None
             cat, reused = _measured(name, sel, stars[k], cfg, mdir, jobs=jobs, progress=progress,
-                                    remeasure=remeasure, size_prior=sp, psf=given)  # fmt: skip
-            if role == "prior" and cfg.size_prior == "estimated":
-                size_priors[k] = cat.meta.get("size_prior")
+                                    remeasure=remeasure, priors=pr, psf=given)  # fmt: skip
+            if role == "prior":
+                priors_of[k] = cat.meta["priors"]
             measured[name] = {"path": str(mdir / f"{name}.fits"), "reused": reused}
             egrid = cat.meta["egrid"]
             lst.append(_galaxies(cat, fields, k, fwhm))
@@ -1551,6 +1552,7 @@ def validate(
     out = Table(rows=mc, names=_MC_NAMES)
     out.meta.update(_summary(out[:-1]))
     out.meta["prior"] = prior
+    out.meta["priors"] = [priors_of[k] for k in sorted(priors_of)]
     out.meta["bulge_weights"] = None if bulge_weights is None else bulge_weights.tolist()
     out.meta["bulge_runs"] = None if bulge_weights is None else cfg.run_labels
     out.meta["mode"] = "pairs" if pairs else "images"

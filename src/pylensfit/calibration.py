@@ -1,0 +1,771 @@
+"""The calibration recipe: every prior of the method estimated from the data themselves.
+
+lensfit is a Bayesian method: each galaxy's ellipticity is the mean of its posterior,
+and the posterior needs the priors of the population. pylensfit estimates all of them
+from a sample of the galaxies to be measured (a survey's own galaxies, or an unsheared
+sample of the same population), by maximum marginal likelihood, as Miller et al.
+(2007, "Bayesian galaxy shape measurement for weak lensing surveys I", arXiv:0708.2340)
+and Kitching et al. (2008, "lensfit II", arXiv:0802.1528) estimate the ellipticity
+prior:
+
+1. a first pass fits the sample with the configuration's starting priors (the flat size
+   prior, the flux prior's Euclidean power 2 unbounded, the configuration's position
+   prior), keeping each galaxy's likelihood of size ``L(r)`` per ring of ``|e|``;
+2. the flux prior's power (the number counts' slope,
+   :func:`~pylensfit.prior.estimate_flux_slope`) and its limits, deconvolved from the
+   flux errors (:func:`~pylensfit.prior.estimate_flux_range`), come from the measured
+   fluxes; the position prior's width from the scatter of the fitted centres about the
+   catalogue positions, less its part that falls as ``1 / S/N`` (:func:`estimate_position_sigma`);
+3. the first pass again under those priors; the ellipticity prior and the prior over
+   the bulge fractions from it (:func:`~pylensfit.prior.estimate_prior_and_bulge`);
+4. the size prior (one density per bulge fraction) from ``L(r)`` marginalised over
+   ``e`` with the ellipticity prior just estimated
+   (:func:`~pylensfit.prior.estimate_size_prior`);
+5. a last pass with the size prior, for the final ellipticity and bulge-fraction priors.
+
+Which steps run follows the :class:`~pylensfit.Config`: ``size_prior="estimated"``,
+``bulge_prior="estimated"``, ``amplitude_prior="flux"`` with ``estimate_flux_prior``,
+``estimate_position_prior``. The result is one :class:`Priors` object, saved and read
+as JSON, that :func:`measure_stamps` and :func:`pylensfit.measure` fit with.
+
+A sample too small for a prior (fewer than :data:`MIN_GALAXIES` usable galaxies, or
+:data:`MIN_FLUX_RANGE_GALAXIES` for the flux limits) gets that prior's documented
+default with a warning instead: the functional ellipticity prior ``Prior()``, uniform
+bulge weights, the flat size prior, the unbounded flux power law of power 2, the
+configuration's position prior.
+
+The same recipe serves :func:`calibrate` (postage stamps), :func:`pylensfit.measure`
+(FITS images) and the validation modes, through :func:`run_recipe`, whose fitting
+pass is given by the caller.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from astropy.table import Table
+
+from .config import Config
+from .flags import FLAGS
+from .prior import (
+    _MIN_FLUX_RANGE_SAMPLE,
+    Prior,
+    SizePrior,
+    estimate_bulge_weights,
+    estimate_flux_range,
+    estimate_flux_slope,
+    estimate_prior,
+    estimate_prior_and_bulge,
+    estimate_size_prior,
+    mix_bulge_fractions,
+)
+
+__all__ = [
+    "MIN_GALAXIES",
+    "MIN_FLUX_RANGE_GALAXIES",
+    "CalibrationSample",
+    "CalibrationWarning",
+    "Priors",
+    "calibrate",
+    "estimate_position_sigma",
+    "measure_stamps",
+    "run_recipe",
+    "usable_galaxies",
+]
+
+log = logging.getLogger(__name__)
+
+#: fewest usable galaxies for an estimated ellipticity, bulge-fraction or size prior
+MIN_GALAXIES = 50
+#: fewest usable galaxies (per group) for the flux prior's estimated limits
+MIN_FLUX_RANGE_GALAXIES = _MIN_FLUX_RANGE_SAMPLE
+#: the position prior's width is never estimated below this (pixels)
+MIN_POSITION_SIGMA = 0.01
+
+
+class CalibrationWarning(UserWarning):
+    """A prior could not be estimated from the sample and its default was used."""
+
+
+# ----------------------------------------------------------------------------------------
+# The priors
+# ----------------------------------------------------------------------------------------
+@dataclass
+class Priors:
+    """Every prior the method fits with, as estimated by :func:`calibrate`.
+
+    Attributes
+    ----------
+    ellipticity : Prior
+        The ellipticity prior (Kitching et al. 2008, the functional form of the
+        equation for ``P(e)``, section 2.2).
+    bulge_weights : numpy.ndarray or None
+        Prior probability of each run of the model family (bulge fraction,
+        ``Config.bulge_runs``), summing to 1; ``None``: uniform.
+    size : SizePrior or None
+        The prior of the half-light radius in the sum over sizes; ``None``: flat.
+    flux_power : float or None
+        The power ``beta`` of the flux prior ``A^-beta`` (``Config.amplitude_prior_power``
+        with ``amplitude_prior="flux"``); ``None``: the configuration's.
+    flux_range : tuple of float or None
+        The flux prior's limits ``(lo, hi)`` in data units; ``None``: unbounded (or the
+        configuration's).
+    position_sigma : float or None
+        Width of the Gaussian position prior about the catalogue position, pixels
+        (``Config.position_prior_sigma``); ``None``: the configuration's.
+    n_galaxies : int
+        Usable galaxies the priors were estimated from.
+    info : dict
+        Errors of the estimates and notes (``flux_power_err``, ``flux_lo_err``,
+        ``flux_hi_err``, ``flux_error_scale``, ``position_snr_term``, ``fallbacks``: the
+        priors that fell back to their defaults, and why).
+    """
+
+    ellipticity: Prior = field(default_factory=Prior)
+    bulge_weights: np.ndarray | None = None
+    size: SizePrior | None = None
+    flux_power: float | None = None
+    flux_range: tuple[float, float] | None = None
+    position_sigma: float | None = None
+    n_galaxies: int = 0
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def apply(self, config: Config) -> Config:
+        """``config`` with this object's flux and position priors set in it."""
+        kw: dict[str, Any] = {}
+        if self.flux_power is not None and config.amplitude_prior == "flux":
+            kw["amplitude_prior_power"] = float(self.flux_power)
+        if self.flux_range is not None and config.amplitude_prior == "flux":
+            kw["amplitude_prior_min"], kw["amplitude_prior_max"] = map(float, self.flux_range)
+        if self.position_sigma is not None:
+            kw["position_prior_sigma"] = float(self.position_sigma)
+        return config.replace(**kw) if kw else config
+
+    def mix(self, fits) -> np.ndarray:
+        """``ln L(e)`` of :class:`~pylensfit.StampFits` with the bulge fractions mixed
+        under :attr:`bulge_weights` (the fits' own ``lnL`` without marginalised
+        fractions or weights)."""
+        if fits.lnL_bulge is None or self.bulge_weights is None:
+            return np.asarray(fits.lnL)
+        if len(self.bulge_weights) != fits.lnL_bulge.shape[1]:
+            raise ValueError(f"the priors hold {len(self.bulge_weights)} bulge weights, the "
+                             f"fits {fits.lnL_bulge.shape[1]} runs of the model family")
+        mixed = mix_bulge_fractions(fits.lnL_bulge, fits.lnL_star, self.bulge_weights)
+        return np.where(np.isfinite(fits.lnL).all(axis=1)[:, None], mixed, np.nan)
+
+    # -- persistence ---------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able contents (:meth:`from_dict` inverts it)."""
+        return {
+            "ellipticity": self.ellipticity.to_dict(),
+            "bulge_weights": None if self.bulge_weights is None
+            else [float(w) for w in self.bulge_weights],
+            "size": None if self.size is None else self.size.to_dict(),
+            "flux_power": self.flux_power,
+            "flux_range": None if self.flux_range is None else [float(v) for v in self.flux_range],
+            "position_sigma": self.position_sigma,
+            "n_galaxies": int(self.n_galaxies),
+            "info": _jsonable(self.info),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], source: str = "priors") -> Priors:
+        """The object of :meth:`to_dict`; ``ValueError`` naming ``source`` if malformed."""
+        if not isinstance(d, dict) or "ellipticity" not in d:
+            raise ValueError(f"{source}: not a priors file (no 'ellipticity' entry)")
+        try:
+            e = d["ellipticity"]
+            egrid = np.asarray(e["egrid"], dtype=float) if "egrid" in e else None
+            ell = Prior(B=e["B"], C=e["C"], D=e["D"], step=None if egrid is not None
+                        else e["step"], egrid=egrid, method=e.get("method", "fixed"),
+                        history=e.get("history", []), info=e.get("info", {}))  # fmt: skip
+            bw = d.get("bulge_weights")
+            fr = d.get("flux_range")
+            return cls(
+                ellipticity=ell,
+                bulge_weights=None if bw is None else np.asarray(bw, dtype=float),
+                size=None if d.get("size") is None else SizePrior.from_dict(d["size"]),
+                flux_power=None if d.get("flux_power") is None else float(d["flux_power"]),
+                flux_range=None if fr is None else (float(fr[0]), float(fr[1])),
+                position_sigma=None if d.get("position_sigma") is None
+                else float(d["position_sigma"]),
+                n_galaxies=int(d.get("n_galaxies", 0)),
+                info=dict(d.get("info", {})),
+            )
+        except (KeyError, TypeError, ValueError, IndexError) as err:
+            raise ValueError(f"{source}: malformed priors ({type(err).__name__}: {err})") \
+                from None
+
+    def save(self, path: str | Path) -> None:
+        """Write as JSON."""
+        Path(path).write_text(json.dumps({"priors": self.to_dict()}, indent=1))
+
+    @classmethod
+    def load(cls, path: str | Path) -> Priors:
+        """Read a file written by :meth:`save`; ``ValueError`` naming the file if it is
+        not one."""
+        try:
+            d = json.loads(Path(path).read_text())
+        except OSError as err:
+            raise ValueError(f"{path}: cannot read ({err.strerror})") from None
+        except ValueError:
+            raise ValueError(f"{path}: not JSON") from None
+        if not isinstance(d, dict) or "priors" not in d:
+            raise ValueError(f"{path}: not a priors file (no 'priors' entry)")
+        return cls.from_dict(d["priors"], source=str(path))
+
+    def __repr__(self) -> str:
+        parts = [f"ellipticity={self.ellipticity!r}"]
+        if self.bulge_weights is not None:
+            parts.append("bulge_weights=[" + ", ".join(f"{w:.3f}" for w in self.bulge_weights)
+                         + "]")
+        if self.size is not None:
+            h = np.exp(self.size.ln_h)
+            dens = self.size.marginal(self.bulge_weights)
+            mean = float(np.sum(h * dens) / np.sum(dens)) if np.sum(dens) > 0 else math.nan
+            parts.append(f"size=SizePrior(mean half-light radius {mean:.3g} px"
+                         f"{', per run' if self.size.per_run else ''})")
+        else:
+            parts.append("size=flat")
+        if self.flux_power is not None:
+            parts.append(f"flux_power={self.flux_power:.3f}")
+        if self.flux_range is not None:
+            parts.append(f"flux_range=({self.flux_range[0]:.4g}, {self.flux_range[1]:.4g})")
+        if self.position_sigma is not None:
+            parts.append(f"position_sigma={self.position_sigma:.3f} px")
+        parts.append(f"n_galaxies={self.n_galaxies}")
+        if self.info.get("fallbacks"):
+            parts.append(f"fallbacks={sorted(self.info['fallbacks'])}")
+        return "Priors(" + ", ".join(parts) + ")"
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+# ----------------------------------------------------------------------------------------
+# What a fitting pass hands the recipe
+# ----------------------------------------------------------------------------------------
+@dataclass
+class CalibrationSample:
+    """The usable galaxies of one fitting pass, as the recipe needs them.
+
+    Attributes
+    ----------
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` the fits' ellipticity grid.
+    lnL : numpy.ndarray
+        ``(n, n_e)`` ``ln L(e)`` of each galaxy (bulge fractions mixed uniformly).
+    flux, flux_err, snr : numpy.ndarray
+        ``(n,)`` the best model's flux (data units), its fixed-model error ``flux /
+        snr`` and its matched-filter S/N.
+    dx, dy : numpy.ndarray
+        ``(n,)`` fitted centre less catalogue position, pixels.
+    group : numpy.ndarray
+        ``(n,)`` integer group (a PSF, an image set) of each galaxy; 0 for one group.
+    lnL_bulge, lnL_star : numpy.ndarray or None
+        Per bulge fraction ``ln L(e)`` and the point source's ``ln L`` (marginalised
+        fractions only).
+    lnL_r_grouped : list of numpy.ndarray or None
+        Blocks of ``StampFits.lnL_r_grouped`` (``L(r)`` per ring of ``|e|``) where kept.
+    """
+
+    egrid: np.ndarray
+    lnL: np.ndarray
+    flux: np.ndarray
+    flux_err: np.ndarray
+    snr: np.ndarray
+    dx: np.ndarray
+    dy: np.ndarray
+    group: np.ndarray
+    lnL_bulge: np.ndarray | None = None
+    lnL_star: np.ndarray | None = None
+    lnL_r_grouped: list | None = None
+
+    def __len__(self) -> int:
+        return int(self.lnL.shape[0])
+
+    @classmethod
+    def from_fits(cls, fits, keep: np.ndarray, cx, cy, group=0) -> CalibrationSample:
+        """The rows ``keep`` of :class:`~pylensfit.StampFits` fitted about ``(cx, cy)``."""
+        keep = np.asarray(keep, dtype=bool)
+        n = int(keep.sum())
+        grp = np.broadcast_to(np.asarray(group), keep.shape)[keep].astype(int)
+        return cls(
+            egrid=np.asarray(fits.egrid),
+            lnL=np.asarray(fits.lnL)[keep],
+            flux=np.asarray(fits.flux, dtype=float)[keep],
+            flux_err=(np.asarray(fits.flux, dtype=float) / np.asarray(fits.snr, float))[keep],
+            snr=np.asarray(fits.snr, dtype=float)[keep],
+            dx=(np.asarray(fits.x, float) - np.broadcast_to(cx, keep.shape))[keep],
+            dy=(np.asarray(fits.y, float) - np.broadcast_to(cy, keep.shape))[keep],
+            group=grp if grp.size == n else np.zeros(n, int),
+            lnL_bulge=None if fits.lnL_bulge is None else fits.lnL_bulge[keep],
+            lnL_star=None if fits.lnL_star is None else np.asarray(fits.lnL_star)[keep],
+            lnL_r_grouped=None if fits.lnL_r_grouped is None else [fits.lnL_r_grouped[keep]],
+        )
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[CalibrationSample]) -> CalibrationSample:
+        """One sample of several (blocks, images)."""
+        parts = [p for p in parts if p is not None]
+        if not parts:
+            raise ValueError("no calibration sample")
+
+        def cat(name):
+            vals = [getattr(p, name) for p in parts]
+            return None if any(v is None for v in vals) else np.concatenate(vals)
+
+        lr = [p.lnL_r_grouped for p in parts]
+        return cls(egrid=parts[0].egrid, lnL=cat("lnL"), flux=cat("flux"),
+                   flux_err=cat("flux_err"), snr=cat("snr"), dx=cat("dx"), dy=cat("dy"),
+                   group=cat("group"), lnL_bulge=cat("lnL_bulge"), lnL_star=cat("lnL_star"),
+                   lnL_r_grouped=None if any(v is None for v in lr)
+                   else [b for v in lr for b in v])  # fmt: skip
+
+
+def usable_galaxies(flags, is_star, snr, config: Config) -> np.ndarray:
+    """The rows that are galaxies to measure: no flag, not a point source, and a model
+    S/N of at least ``config.min_snr`` (below it the detections are mostly noise)."""
+    snr = np.asarray(snr, dtype=float)
+    return ((np.asarray(flags) == 0) & ~np.asarray(is_star, dtype=bool)
+            & np.isfinite(snr) & (snr >= config.min_snr))  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------
+# The position prior's width
+# ----------------------------------------------------------------------------------------
+def estimate_position_sigma(dx, dy, snr, *, n_bins: int = 8) -> tuple[float, float]:
+    """The scatter of the catalogue positions about the galaxies' true centres.
+
+    The fitted centre less the catalogue position scatters by the catalogue's own error
+    and by the fit's, which falls as ``1 / S/N``. Per bin of S/N the robust variance
+    (from the median absolute deviation) of ``dx`` and ``dy`` is fitted as ``s0^2 + a /
+    S/N^2`` by weighted least squares; ``s0`` is the part that does not fall with S/N
+    (a simulation's sub-pixel offsets, a catalogue's astrometric scatter). A catalogue
+    detected on the image itself has centroid errors that fall with S/N as the fit's
+    do, and then ``s0 ~ 0``: half of ``a`` is taken as the catalogue's. The width
+    returned is ``sqrt(max(s0^2, a / (2 S/N_med^2)))``, ``S/N_med`` the sample's median
+    S/N: the constant part where there is one (uniform offsets of +-0.5 px, standard
+    deviation 0.289: 0.285 estimated from 480 galaxies), else the detection's error at
+    the median S/N.
+
+    Parameters
+    ----------
+    dx, dy : array_like
+        Fitted centre less catalogue position, pixels.
+    snr : array_like
+        Matched-filter S/N of each galaxy's best model.
+    n_bins : int
+        Quantile bins of S/N.
+
+    Returns
+    -------
+    sigma, a : float
+        The width (pixels, at least :data:`MIN_POSITION_SIGMA`) and the fitted ``a``
+        (px^2).
+    """
+    dx, dy, snr = (np.asarray(v, dtype=float).ravel() for v in (dx, dy, snr))
+    ok = np.isfinite(dx) & np.isfinite(dy) & np.isfinite(snr) & (snr > 0)
+    dx, dy, snr = dx[ok], dy[ok], snr[ok]
+    if dx.size < 2 * n_bins:
+        raise ValueError(f"{dx.size} galaxies: too few to estimate the position prior")
+    edges = np.quantile(snr, np.linspace(0, 1, n_bins + 1))
+    idx = np.clip(np.searchsorted(edges, snr, side="right") - 1, 0, n_bins - 1)
+    X, y, w = [], [], []
+    for k in range(n_bins):
+        s = idx == k
+        if s.sum() < 8:
+            continue
+        d = np.concatenate([dx[s] - np.median(dx[s]), dy[s] - np.median(dy[s])])
+        d = d[np.abs(d) <= 5 * 1.4826 * np.median(np.abs(d))]  # failed centres out
+        v = float(np.mean(d**2))
+        X.append([1.0, float(np.mean(1.0 / snr[s] ** 2))])
+        y.append(v)
+        w.append(d.size / max(v, 1e-12) ** 2)  # var(v) ~ 2 v^2 / n
+    X, y, w = np.asarray(X), np.asarray(y), np.sqrt(np.asarray(w))
+    if len(y) < 2:
+        raise ValueError("too few galaxies per bin of S/N to estimate the position prior")
+    coef, *_ = np.linalg.lstsq(X * w[:, None], y * w, rcond=None)
+    s0, a = float(coef[0]), float(coef[1])
+    if a < 0:  # no fall with S/N: one variance for all
+        s0, a = float(np.average(y, weights=w**2)), 0.0
+    med = float(np.median(snr))
+    sig = math.sqrt(max(s0, 0.5 * a / med**2))
+    return max(sig, MIN_POSITION_SIGMA), a
+
+
+# ----------------------------------------------------------------------------------------
+# The recipe
+# ----------------------------------------------------------------------------------------
+FitPass = Callable[[list, list, bool, str], CalibrationSample]
+
+
+def _fallback(info: dict, what: str, why: str) -> None:
+    info.setdefault("fallbacks", {})[what] = why
+    warnings.warn(f"{why}: the {what} prior falls back to its default", CalibrationWarning,
+                  stacklevel=3)
+
+
+def run_recipe(
+    fit_pass: FitPass,
+    config: Config,
+    n_groups: int = 1,
+    *,
+    prior: Prior | None = None,
+    size_priors: Sequence[SizePrior | None] | None = None,
+    bulge_weights: Sequence[float] | None = None,
+    flux_slope: float | None = None,
+    flux_bounds: bool = True,
+    size_prior_per_group: bool = True,
+    group_names: Sequence[str] | None = None,
+) -> list[Priors]:
+    """Estimate the priors with a caller's fitting pass (see the module docstring).
+
+    Parameters
+    ----------
+    fit_pass : callable
+        ``fit_pass(configs, size_priors, keep_lnL_r, label) -> CalibrationSample``: fit
+        the calibration galaxies, group ``k`` with ``configs[k]`` and ``size_priors[k]``
+        (``None``: flat), keeping ``L(r)`` per ring of ``|e|``
+        (:func:`pylensfit.likelihood.e_annuli`) when ``keep_lnL_r``; only the usable
+        galaxies (:func:`usable_galaxies`) in the sample.
+    config : Config
+        The configuration: which priors to estimate, and the starting ones.
+    n_groups : int
+        Groups of galaxies whose size prior and flux limits are estimated apart (the
+        PSFs of a simulation, whose sizes and fluxes are drawn relative to the PSF); the
+        ellipticity, bulge and position priors and the flux power are common.
+    prior, size_priors, bulge_weights, flux_slope
+        Given instead of estimated (diagnostics).
+    flux_bounds : bool
+        Estimate the flux prior's limits (with ``amplitude_prior="flux"``,
+        ``estimate_flux_prior`` and no limits in the configuration).
+    size_prior_per_group : bool
+        One size prior per group (else one for all).
+    group_names : sequence of str, optional
+        For messages.
+
+    Returns
+    -------
+    list of Priors
+        One per group (sharing the ellipticity prior and bulge weights).
+    """
+    from .likelihood import e_annuli, reweight_lnL_r
+    from .models import model_bank
+
+    cfg = config
+    names = list(group_names) if group_names is not None else [str(k) for k in range(n_groups)]
+    info: dict[str, Any] = {}
+    given_bw = None
+    if bulge_weights is not None:
+        given_bw = np.asarray(bulge_weights, dtype=float)
+        nf = len(cfg.bulge_runs)
+        if given_bw.shape != (nf,) or given_bw.min() < 0 or given_bw.sum() <= 0:
+            raise ValueError(f"bulge_weights needs {nf} non-negative weights "
+                             f"(one per Config.bulge_runs), got {bulge_weights!r}")  # fmt: skip
+        given_bw = given_bw / given_bw.sum()
+    fit_bulge = cfg.bulge_prior == "estimated" and cfg.n_bulge_fractions > 1 and given_bw is None
+    given_sp = list(size_priors) if size_priors is not None else None
+    if given_sp is not None and len(given_sp) != n_groups:
+        raise ValueError(f"size_priors needs one per group ({n_groups})")
+    fit_size = cfg.size_prior == "estimated" and given_sp is None
+    flux = cfg.amplitude_prior == "flux" and cfg.estimate_flux_prior
+    if cfg.amplitude_prior == "flux" and flux_slope is not None:
+        cfg = cfg.replace(amplitude_prior_power=float(flux_slope))
+    fit_flux = flux and flux_slope is None
+    fit_bounds = (flux and flux_bounds and cfg.amplitude_prior_min == 0
+                  and not math.isfinite(cfg.amplitude_prior_max))  # fmt: skip
+    fit_pos = cfg.estimate_position_prior
+    prior_given = prior is not None
+    cfgs = [cfg] * n_groups
+    sps: list = [None] * n_groups if given_sp is None else given_sp
+    out_power = cfg.amplitude_prior_power if cfg.amplitude_prior == "flux" else None
+    ranges: list = [None] * n_groups
+    pos_sigma = None
+
+    def ellipticity_priors(cal: CalibrationSample, prior0):
+        if len(cal) < MIN_GALAXIES:
+            if prior0 is None:
+                _fallback(info, "ellipticity", f"{len(cal)} usable galaxies (fewer than "
+                          f"{MIN_GALAXIES})")  # fmt: skip
+            return (prior0 if prior0 is not None else Prior(egrid=cal.egrid)), given_bw
+        if fit_bulge and prior0 is None:
+            return estimate_prior_and_bulge(cal.lnL_bulge, cal.lnL_star, cal.egrid,
+                                            method=cfg.prior_method)  # fmt: skip
+        if fit_bulge:
+            return prior0, estimate_bulge_weights(cal.lnL_bulge, cal.lnL_star, prior0)
+        if prior0 is None:
+            lnL = cal.lnL
+            if given_bw is not None and cal.lnL_bulge is not None:
+                lnL = mix_bulge_fractions(cal.lnL_bulge, cal.lnL_star, given_bw)
+            return estimate_prior(lnL, cal.egrid, method=cfg.prior_method), given_bw
+        return prior0, given_bw
+
+    cal = fit_pass(cfgs, sps, fit_size, "calibration")
+    n_used = len(cal)
+    if fit_flux:
+        if len(cal) >= MIN_GALAXIES:
+            beta, beta_err = estimate_flux_slope(cal.flux)
+            cfg = cfg.replace(amplitude_prior_power=float(beta))
+            out_power = float(beta)
+            info["flux_power_err"] = float(beta_err)
+        else:
+            _fallback(info, "flux power", f"{len(cal)} usable galaxies (fewer than "
+                      f"{MIN_GALAXIES})")  # fmt: skip
+    cfgs = [cfg] * n_groups
+    if fit_bounds:
+        info["flux_range"] = []
+        for k in range(n_groups):
+            sel = cal.group == k
+            try:
+                fr = estimate_flux_range(cal.flux[sel], cal.flux_err[sel],
+                                         beta=cfg.amplitude_prior_power)  # fmt: skip
+            except ValueError as err:
+                _fallback(info, f"flux range ({names[k]})" if n_groups > 1 else "flux range",
+                          str(err))
+                info["flux_range"].append(None)
+                continue
+            ranges[k] = (fr["lo"], fr["hi"])
+            info["flux_range"].append({k2: fr[k2] for k2 in ("lo", "hi", "lo_err", "hi_err",
+                                                             "error_scale")})  # fmt: skip
+            cfgs[k] = cfg.replace(amplitude_prior_min=fr["lo"], amplitude_prior_max=fr["hi"])
+    if fit_pos:
+        try:
+            pos_sigma, a = estimate_position_sigma(cal.dx, cal.dy, cal.snr)
+            info["position_snr_term"] = a
+            cfgs = [c.replace(position_prior_sigma=pos_sigma) for c in cfgs]
+        except ValueError as err:
+            _fallback(info, "position", str(err))
+    changed = fit_bounds or fit_pos
+    redo = changed if fit_size else (changed or fit_flux) and (prior is None or fit_bulge)
+    if redo:
+        cal = None  # the first pass's grids freed before the second's arrive
+        cal = fit_pass(cfgs, sps, fit_size, "calibration with the flux and position priors")
+    prior0 = prior
+    prior, bw = ellipticity_priors(cal, prior0)
+    if fit_size:
+        if len(cal) < MIN_GALAXIES:
+            _fallback(info, "size", f"{len(cal)} usable galaxies (fewer than {MIN_GALAXIES})")
+        else:
+            # each galaxy's L(r) marginalised over e with the ellipticity prior just
+            # estimated: the first pass's L(r) per |e| reweighted
+            bank = model_bank(cfgs[0])
+            rings = e_annuli(bank.egrid)
+            lnL_r = np.concatenate([reweight_lnL_r(g, bank.egrid, rings, None, prior)
+                                    for g in cal.lnL_r_grouped])  # fmt: skip
+            cal.lnL_r_grouped = None
+            if size_prior_per_group and n_groups > 1:
+                for k in range(n_groups):
+                    sel = cal.group == k
+                    if sel.sum() < MIN_GALAXIES:
+                        _fallback(info, f"size ({names[k]})", f"{int(sel.sum())} usable "
+                                  f"galaxies (fewer than {MIN_GALAXIES})")  # fmt: skip
+                        continue
+                    sps[k] = estimate_size_prior(lnL_r[sel], bank, cfgs[k], bulge_weights=bw)
+            else:
+                sps = [estimate_size_prior(lnL_r, bank, cfgs[0], bulge_weights=bw)] * n_groups
+            del lnL_r
+            cal = None
+            cal = fit_pass(cfgs, sps, False, "calibration with the size prior")
+            prior, bw = ellipticity_priors(cal, prior0)
+    n_used = len(cal)
+    info["prior_given"] = prior_given
+    if isinstance(prior, Prior) and prior.info.get("at_bound"):
+        info["ellipticity_at_bound"] = list(prior.info["at_bound"])
+    log.info("priors estimated from %d galaxies: %r, bulge weights %s", n_used, prior,
+             None if bw is None else np.round(bw, 3).tolist())
+    return [Priors(ellipticity=prior, bulge_weights=None if bw is None else np.asarray(bw),
+                   size=sps[k], flux_power=out_power, flux_range=ranges[k],
+                   position_sigma=pos_sigma, n_galaxies=n_used,
+                   info={**info, "group": names[k]})
+            for k in range(n_groups)]  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------
+# Postage stamps
+# ----------------------------------------------------------------------------------------
+def _stamp_centres(stamps: np.ndarray, centres):
+    n, ny, nx = stamps.shape
+    if centres is None:
+        return np.full(n, nx // 2, dtype=float), np.full(n, ny // 2, dtype=float)
+    return (np.broadcast_to(np.asarray(centres[0], float), (n,)),
+            np.broadcast_to(np.asarray(centres[1], float), (n,)))  # fmt: skip
+
+
+def _as_stamps(stamps) -> np.ndarray:
+    s = np.asarray(stamps)
+    if s.ndim == 2:
+        s = s[None]
+    if s.ndim != 3:
+        raise ValueError(f"stamps must have shape (n, N, N), got {s.shape}")
+    return s
+
+
+def calibrate(
+    stamps: np.ndarray,
+    psf: np.ndarray,
+    noise_sigma,
+    *,
+    config: Config | None = None,
+    centres: tuple[np.ndarray, np.ndarray] | None = None,
+    prior: Prior | None = None,
+) -> Priors:
+    """Estimate every prior of the method from postage stamps of the galaxies.
+
+    The recipe of the module docstring on ``stamps``: two to three fitting passes of
+    :func:`~pylensfit.fit_stamps`, each prior estimated by maximum marginal likelihood.
+    The stamps may be the galaxies to be measured themselves (a survey's own galaxies:
+    the priors are of the population, not of a galaxy) or an unsheared sample of the
+    same population.
+
+    Parameters
+    ----------
+    stamps : numpy.ndarray
+        ``(n, N, N)`` background-subtracted stamps ``[k, y, x]``, as for
+        :func:`~pylensfit.fit_stamps` (``N >= Config.max_stamp_size`` for the largest
+        galaxies' stamps, 64 pixels by default).
+    psf : numpy.ndarray
+        The PSF image (pixel response included), centred on ``[s//2, s//2]``.
+    noise_sigma : float or numpy.ndarray
+        Per-pixel noise standard deviation (data units), scalar or one per stamp.
+    config : Config, optional
+        Settings (default ``Config()``, the recommended method).
+    centres : tuple of numpy.ndarray, optional
+        Catalogue positions ``(x, y)`` in stamp pixels (default the stamps' centres).
+    prior : Prior, optional
+        An ellipticity prior to keep instead of estimating it.
+
+    Returns
+    -------
+    Priors
+        The priors; ``Priors.save`` keeps them for :func:`measure_stamps` and
+        ``pylensfit measure --priors``.
+
+    Warns
+    -----
+    CalibrationWarning
+        For each prior that the sample is too small to estimate (its default is used).
+    """
+    from .likelihood import fit_stamps
+
+    cfg = config if config is not None else Config()
+    stamps = _as_stamps(stamps)
+    cx, cy = _stamp_centres(stamps, centres)
+
+    def fit_pass(cfgs, sps, keep, label):
+        groups = None
+        if keep:
+            from .likelihood import e_annuli
+            from .models import model_bank
+
+            groups = e_annuli(model_bank(cfgs[0]).egrid)
+        fits = fit_stamps(stamps, psf, noise_sigma, config=cfgs[0], centres=(cx, cy),
+                          size_prior=sps[0], lnL_r_groups=groups)  # fmt: skip
+        ok = usable_galaxies(fits.flags, fits.is_star, fits.snr, cfgs[0])
+        log.info("%s: %d of %d stamps usable", label, int(ok.sum()), len(ok))
+        return CalibrationSample.from_fits(fits, ok, cx, cy)
+
+    return run_recipe(fit_pass, cfg, 1, prior=prior)[0]
+
+
+#: catalogue columns of :func:`measure_stamps`
+STAMP_COLUMNS = ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2", "weight",
+                 "flags", "snr", "flux", "r_best", "x", "y", "e1_best", "e2_best",
+                 "bulge_best", "stamp")  # fmt: skip
+
+
+def measure_stamps(
+    stamps: np.ndarray,
+    psf: np.ndarray,
+    noise_sigma,
+    *,
+    priors: Priors | str | Path | None = None,
+    config: Config | None = None,
+    centres: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Table:
+    """Shapes, errors, sensitivities and weights of galaxies on postage stamps.
+
+    The same measurement as :func:`pylensfit.measure` on images: each stamp fitted
+    under the priors (:func:`~pylensfit.fit_stamps`), the bulge fractions mixed with
+    their prior, the posterior mean ellipticity, its covariance and the exact shear
+    sensitivity (:func:`~pylensfit.shapes`).
+
+    Parameters
+    ----------
+    stamps, psf, noise_sigma, centres
+        As for :func:`calibrate`.
+    priors : Priors or str, optional
+        The priors (or the path of a saved one); by default :func:`calibrate` estimates
+        them from ``stamps`` themselves.
+    config : Config, optional
+        Settings (default ``Config()``); the one the priors were estimated with.
+
+    Returns
+    -------
+    astropy.table.Table
+        One row per stamp: ``e1, e2`` (posterior means), ``e1_var, e2_var, e12_cov``,
+        ``sens1, sens2`` (the shear responses, dimensionless), ``weight`` (1 for a
+        galaxy to use, 0 otherwise), ``flags`` (:data:`pylensfit.flags.FLAGS`; usable
+        rows have ``flags == 0`` and ``weight > 0``), ``snr`` (the best model's
+        matched-filter S/N), ``flux`` (data units), ``r_best`` (pixels), ``x, y`` (fitted
+        centre, stamp pixels), ``e1_best, e2_best``, ``bulge_best``, ``stamp`` (the side
+        it was fitted on) and ``lnL`` (the ``(n, n_e)`` likelihood grid, for
+        :func:`~pylensfit.estimate_shear`'s fixed point). ``meta``: ``egrid``, ``prior``
+        (the ellipticity prior), ``priors``, ``refine``, ``sensitivity``.
+    """
+    from .likelihood import fit_stamps
+    from .shear import shapes
+
+    cfg = config if config is not None else Config()
+    stamps = _as_stamps(stamps)
+    if isinstance(priors, (str, Path)):
+        priors = Priors.load(priors)
+    if priors is None:
+        priors = calibrate(stamps, psf, noise_sigma, config=cfg, centres=centres)
+    if not isinstance(priors, Priors):
+        raise TypeError(f"priors must be a Priors object or a path, got {type(priors).__name__}")
+    cx, cy = _stamp_centres(stamps, centres)
+    run_cfg = priors.apply(cfg)
+    fits = fit_stamps(stamps, psf, noise_sigma, config=run_cfg, centres=(cx, cy),
+                      size_prior=priors.size)  # fmt: skip
+    lnL = priors.mix(fits)
+    sh = shapes(lnL, fits.egrid, priors.ellipticity, sensitivity=cfg.sensitivity,
+                refine=run_cfg.output_refine)  # fmt: skip
+    flags = np.asarray(fits.flags, dtype=np.int32) | np.asarray(sh["flags"], dtype=np.int32)
+    low = (flags == 0) & ~np.asarray(fits.is_star) & ~(np.asarray(fits.snr) >= cfg.min_snr)
+    flags = flags | np.where(low, FLAGS["LOW_SNR"][0], 0).astype(np.int32)
+    usable = usable_galaxies(flags, fits.is_star, fits.snr, cfg)
+    t = Table()
+    for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
+        t[c] = np.asarray(sh[c], dtype=float)
+    t["weight"] = np.where(usable, 1.0, 0.0)
+    t["flags"] = flags
+    for c in ("snr", "flux", "r_best", "x", "y", "e1_best", "e2_best"):
+        t[c] = np.asarray(getattr(fits, c), dtype=float)
+    t["bulge_best"] = (np.full(len(t), np.nan) if fits.bulge_best is None
+                       else np.asarray(fits.bulge_best, dtype=float))  # fmt: skip
+    t["stamp"] = (np.full(len(t), cfg.stamp_size, dtype=np.int16) if fits.stamp is None
+                  else np.asarray(fits.stamp))  # fmt: skip
+    t["lnL"] = np.asarray(lnL, dtype=np.float32)
+    t.meta.update(egrid=np.asarray(fits.egrid), prior=priors.ellipticity, priors=priors,
+                  refine=int(run_cfg.output_refine), sensitivity=cfg.sensitivity)  # fmt: skip
+    return t
