@@ -59,6 +59,7 @@ from .prior import (
     _MIN_FLUX_RANGE_SAMPLE,
     Prior,
     SizePrior,
+    _jsonable,
     estimate_bulge_weights,
     estimate_flux_range,
     estimate_flux_slope,
@@ -245,20 +246,6 @@ class Priors:
         if self.info.get("fallbacks"):
             parts.append(f"fallbacks={sorted(self.info['fallbacks'])}")
         return "Priors(" + ", ".join(parts) + ")"
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
 
 
 # ----------------------------------------------------------------------------------------

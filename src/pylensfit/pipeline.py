@@ -893,22 +893,9 @@ def measure(
     for p in [*images, *stars, *[q for q in (*weights, *masks, *catalogues) if q]]:
         if not Path(p).exists():
             raise InputError(f"{p}: file not found")
-    if isinstance(prior, (str, os.PathLike)):
-        prior = Prior.load(prior)
-    if isinstance(priors, (str, os.PathLike)):
-        if not Path(priors).exists():
-            raise InputError(f"{priors}: file not found")
-        try:
-            priors = Priors.load(priors)
-        except ValueError as err:
-            raise InputError(str(err)) from None
-    if isinstance(size_prior, (str, os.PathLike)):
-        if not Path(size_prior).exists():
-            raise InputError(f"{size_prior}: file not found")
-        try:
-            size_prior = SizePrior.load(size_prior)
-        except ValueError as err:
-            raise InputError(str(err)) from None
+    prior = _load(prior, Prior, "prior")
+    priors = _load(priors, Priors, "priors")
+    size_prior = _load(size_prior, SizePrior, "size prior")
     out = Path(output) if output is not None else None
     if out is not None and out.exists() and not overwrite:
         raise FileExistsError(f"{out}: output exists (use overwrite to replace it)")
@@ -952,21 +939,12 @@ def measure(
         if parts is not None:
             parts.mkdir(parents=True, exist_ok=True)
             priors.save(pr_file)
-        todo = []
         for t in final:
-            if t["index"] in results:
-                if parts is not None:
-                    _write_part(_part_path(parts, t), results[t["index"]])
-                continue
-            pp = _part_path(parts, t) if parts is not None else None
-            if pp is not None and pp.exists():
-                try:
-                    results[t["index"]] = _read_part(pp)
-                    log.info("%s: resumed from %s", t["path"], pp)
-                    continue
-                except Exception as err:  # a damaged part is redone
-                    log.warning("%s: unreadable part file %s (%s); redoing", t["path"], pp, err)
-            todo.append(t)
+            if t["index"] in results and parts is not None:
+                pp = _part_path(parts, t)
+                if not pp.exists():
+                    _write_part(pp, results[t["index"]])
+        todo = _resumed([t for t in final if t["index"] not in results], parts, results)
         for t, res in _run(_image_task, todo, jobs, scheduler, "images", progress, pool):
             if parts is not None:
                 _write_part(_part_path(parts, t), res)
@@ -978,6 +956,40 @@ def measure(
         write_catalogue(cat, out, overwrite=overwrite)
         shutil.rmtree(parts, ignore_errors=True)
     return cat
+
+
+def _resumed(tasks: list[dict], parts: Path | None, results: dict) -> list[dict]:
+    """The tasks still to do: those of ``tasks`` whose part file in ``parts`` is read into
+    ``results`` are not (a damaged part is redone)."""
+    if parts is None:
+        return list(tasks)
+    todo = []
+    for t in tasks:
+        pp = _part_path(parts, t)
+        if pp.exists():
+            try:
+                results[t["index"]] = _read_part(pp)
+                log.info("%s: resumed from %s", t["path"], pp)
+                continue
+            except Exception as err:  # a damaged part is redone
+                log.warning("%s: unreadable part file %s (%s); redoing", t["path"], pp, err)
+        todo.append(t)
+    return todo
+
+
+def _load(obj, cls, what: str):
+    """``obj`` as it is, or read with ``cls.load`` if a path: one line naming the file if
+    it is missing or not a ``what`` file."""
+    if not isinstance(obj, (str, os.PathLike)):
+        return obj
+    if not Path(obj).exists():
+        raise InputError(f"{obj}: file not found")
+    try:
+        return cls.load(obj)
+    except (ValueError, KeyError, TypeError, AttributeError) as err:
+        msg = str(err)
+        raise InputError(msg if msg.startswith(str(obj)) else
+                         f"{obj}: not a {what} file ({type(err).__name__}: {msg})") from None
 
 
 def _pass_key(cfg: Config, size_prior: SizePrior | None, keep) -> str:
@@ -1010,17 +1022,7 @@ def _calibrate_images(tasks: list[dict], cfg: Config, prior: Prior | None,
         todo = run
         if parts is not None and not keep:
             parts.mkdir(parents=True, exist_ok=True)
-            todo = []
-            for t in run:
-                pp = _part_path(parts, t)
-                if pp.exists():
-                    try:
-                        results[t["index"]] = _read_part(pp)
-                        continue
-                    except Exception as err:  # a damaged part is redone
-                        log.warning("%s: unreadable part file %s (%s); redoing", t["path"], pp,
-                                    err)  # fmt: skip
-                todo.append(t)
+            todo = _resumed(run, parts, results)
         for t, res in _run(_image_task, todo, jobs, scheduler, label, progress, pool):
             if parts is not None and not keep:
                 _write_part(_part_path(parts, t), res)
