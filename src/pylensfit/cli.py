@@ -366,10 +366,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     v = sub.add_parser("validate", help="m, c, sigma_c and Q on a simulated set")
     v.add_argument("directory", nargs="?", help="a set from `pylensfit simulate`")
-    v.add_argument("--config", help="YAML configuration (default: validation.step_config, "
-                   "the bulge+disc model with 5 bulge fractions (3 with --quick) and the size "
-                   "prior estimated; with --precision, precision.default_config: its flux "
-                   "and position priors too)")
+    v.add_argument("--config", help="YAML configuration (default: Config(), what `pylensfit "
+                   "measure` uses; see `pylensfit config`)")
     v.add_argument("--jobs", type=int, default=1, help="local worker processes")
     v.add_argument("--estimator", choices=("fixed-point", "key2"), default="fixed-point",
                    help="shear estimator: the fixed point (default) or the paper's eq. key2, "

@@ -35,6 +35,7 @@ For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of un
 from __future__ import annotations
 
 import hashlib
+import logging
 from dataclasses import dataclass, field, fields, replace
 from functools import lru_cache
 from pathlib import Path
@@ -577,7 +578,8 @@ def fit_stamps(
     noise_sigma : float or numpy.ndarray
         Per-pixel noise standard deviation, scalar or one per stamp.
     config : Config, optional
-        Grid, model and marginalisation settings (the paper's by default).
+        Grid, model and marginalisation settings (default ``Config()``; the priors it
+        estimates are applied with :meth:`pylensfit.Priors.apply` and ``size_prior=``).
     centres : tuple of numpy.ndarray, optional
         Catalogue positions ``(x, y)`` in stamp pixels (0-based), the centres of the
         position prior.
@@ -645,6 +647,11 @@ def _fit_stamps(stamps, psf, noise_sigma, config, centres, size_prior, size_marg
         cx = per_object(centres[0], n_gal, "centres[0]")
         cy = per_object(centres[1], n_gal, "centres[1]")
     n_tiers = min(cfg.largest_stamp, *stamps.shape[1:]) // cfg.stamp_size
+    if n_gal and cfg.largest_stamp > n_tiers * cfg.stamp_size:
+        logging.getLogger(__name__).warning(
+            "stamps of %dx%d px: max_stamp_size=%d cannot act, the largest galaxies are "
+            "fitted on %d-pixel stamps (give stamps of %d px)", stamps.shape[1],
+            stamps.shape[2], cfg.largest_stamp, n_tiers * cfg.stamp_size, cfg.largest_stamp)
     if n_tiers <= 1 or n_gal == 0:
         return _fit_window(stamps, psf, sigma, cfg, cx, cy, size_prior, size_marginal_prior,
                            lnL_r_groups)  # fmt: skip

@@ -1316,12 +1316,11 @@ def _prior_check(prior: Prior, e_int: np.ndarray, true_params, n_bins: int = 20)
 
 
 def step_config(n_bulge_fractions: int = 5) -> Config:
-    """The configuration that :func:`validate` measures STEP-like sets with by default.
+    """``Config()`` with ``n_bulge_fractions`` bulge fractions (the default's three, or five).
 
     The bulge+disc model (bulge half-light radius 0.6 disc scale lengths) with its bulge
-    fraction marginalised over ``n_bulge_fractions`` values evenly spaced on [0, 1], their
-    prior estimated with the ellipticity prior, and the size prior estimated per PSF on
-    the zero-shear fields.
+    fraction marginalised over ``n_bulge_fractions`` values evenly spaced on [0, 1], every
+    prior estimated by the calibration recipe on the zero-shear fields.
 
     * Five fractions rather than three take 0.004 off STEP2's ``<m>``: -0.0042 +- 0.0020
       (m1) and -0.0043 +- 0.0021 (m2), paired on the same 100,000-galaxy set, for about
@@ -1332,8 +1331,7 @@ def step_config(n_bulge_fractions: int = 5) -> Config:
     Measurements in ``benchmarks/README.md``. The quick tier
     (:func:`quick_validation`) uses three fractions, to stay within its 10 minutes.
     """
-    return Config(model="bulge+disc", n_bulge_fractions=n_bulge_fractions,
-                  size_prior="estimated")  # fmt: skip
+    return Config(n_bulge_fractions=n_bulge_fractions)
 
 
 def validate(
@@ -1402,9 +1400,9 @@ def validate(
     directory : str or pathlib.Path
         A set written by :func:`simulate_step`.
     config : Config, optional
-        Pipeline settings (default :func:`step_config`: the bulge+disc model with its
-        bulge fraction marginalised over 0, 0.25, ..., 1, and the size prior estimated
-        per PSF on the zero-shear field, as the ellipticity prior is).
+        Pipeline settings (default ``Config()``, what a user gets: every prior estimated
+        per PSF on the zero-shear field by the calibration recipe; :func:`step_config`
+        is the variant with five bulge fractions).
     jobs : int
         Local worker processes of :func:`pylensfit.measure`.
     estimator : {"fixed-point", "key2"}
@@ -1479,7 +1477,7 @@ def validate(
     for k in bins:
         if k not in _BIN_LABEL:
             raise ValueError(f"unknown bin quantity {k!r}; use {sorted(_BIN_LABEL)}")
-    cfg = config if config is not None else step_config()
+    cfg = config if config is not None else Config()
     fields = {f["file"]: f for f in man["fields"]}
     by_psf: dict[int, list] = {}
     for f in man["fields"]:
@@ -2039,9 +2037,7 @@ def quick_validation(
     ngal : dict, optional
         ``{"step1": n, "step2": n}`` overriding :data:`QUICK_NGAL`.
     config : Config, optional
-        Pipeline settings (default ``step_config(3)``: :func:`validate`'s with three bulge
-        fractions, which keeps the tier within 10 minutes; the sets cannot resolve the
-        0.004 that five take off ``<m>``).
+        Pipeline settings (default ``Config()``, :func:`validate`'s).
     estimator : {"fixed-point", "key2"}
         Shear estimator (as :func:`validate`).
 
@@ -2076,7 +2072,7 @@ def quick_validation(
         t1 = time.perf_counter()
         if progress:
             print(f"quick tier: validating {kind}", flush=True)
-        res = validate(d, config=config or step_config(3), jobs=jobs, estimator=estimator,
+        res = validate(d, config=config or Config(), jobs=jobs, estimator=estimator,
                        report=d / "report.md", progress=progress)  # fmt: skip
         t2 = time.perf_counter()
         res.meta["timing"] = {"simulate": t1 - t0, "validate": t2 - t1}
