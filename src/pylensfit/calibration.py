@@ -53,6 +53,7 @@ from typing import Any
 import numpy as np
 from astropy.table import Table
 
+from ._util import per_object
 from .config import Config
 from .flags import FLAGS
 from .prior import (
@@ -77,6 +78,7 @@ __all__ = [
     "Priors",
     "calibrate",
     "estimate_position_sigma",
+    "flag_low_snr",
     "measure_stamps",
     "run_recipe",
     "usable_galaxies",
@@ -183,11 +185,7 @@ class Priors:
         if not isinstance(d, dict) or "ellipticity" not in d:
             raise ValueError(f"{source}: not a priors file (no 'ellipticity' entry)")
         try:
-            e = d["ellipticity"]
-            egrid = np.asarray(e["egrid"], dtype=float) if "egrid" in e else None
-            ell = Prior(B=e["B"], C=e["C"], D=e["D"], step=None if egrid is not None
-                        else e["step"], egrid=egrid, method=e.get("method", "fixed"),
-                        history=e.get("history", []), info=e.get("info", {}))  # fmt: skip
+            ell = Prior.from_dict(d["ellipticity"])
             bw = d.get("bulge_weights")
             fr = d.get("flux_range")
             return cls(
@@ -329,12 +327,21 @@ class CalibrationSample:
                    else [b for v in lr for b in v])  # fmt: skip
 
 
-def usable_galaxies(flags, is_star, snr, config: Config) -> np.ndarray:
+def usable_galaxies(flags, is_star, snr, min_snr: float) -> np.ndarray:
     """The rows that are galaxies to measure: no flag, not a point source, and a model
-    S/N of at least ``config.min_snr`` (below it the detections are mostly noise)."""
+    S/N of at least ``min_snr`` (``Config.min_snr``: below it detections are mostly
+    noise)."""
     snr = np.asarray(snr, dtype=float)
     return ((np.asarray(flags) == 0) & ~np.asarray(is_star, dtype=bool)
-            & np.isfinite(snr) & (snr >= config.min_snr))  # fmt: skip
+            & np.isfinite(snr) & (snr >= min_snr))  # fmt: skip
+
+
+def flag_low_snr(flags, is_star, snr, min_snr: float) -> np.ndarray:
+    """``flags`` with ``LOW_SNR`` set on the unflagged galaxies whose model S/N is below
+    ``min_snr`` (or not finite)."""
+    flags = np.asarray(flags, dtype=np.int32)
+    low = (flags == 0) & ~np.asarray(is_star, dtype=bool) & ~(np.asarray(snr, float) >= min_snr)
+    return flags | np.where(low, FLAGS["LOW_SNR"][0], 0).astype(np.int32)
 
 
 # ----------------------------------------------------------------------------------------
@@ -594,8 +601,7 @@ def _stamp_centres(stamps: np.ndarray, centres):
     n, ny, nx = stamps.shape
     if centres is None:
         return np.full(n, nx // 2, dtype=float), np.full(n, ny // 2, dtype=float)
-    return (np.broadcast_to(np.asarray(centres[0], float), (n,)),
-            np.broadcast_to(np.asarray(centres[1], float), (n,)))  # fmt: skip
+    return per_object(centres[0], n, "centres[0]"), per_object(centres[1], n, "centres[1]")
 
 
 def _as_stamps(stamps) -> np.ndarray:
@@ -667,7 +673,7 @@ def calibrate(
             groups = e_annuli(model_bank(cfgs[0]).egrid)
         fits = fit_stamps(stamps, psf, noise_sigma, config=cfgs[0], centres=(cx, cy),
                           size_prior=sps[0], lnL_r_groups=groups)  # fmt: skip
-        ok = usable_galaxies(fits.flags, fits.is_star, fits.snr, cfgs[0])
+        ok = usable_galaxies(fits.flags, fits.is_star, fits.snr, cfgs[0].min_snr)
         log.info("%s: %d of %d stamps usable", label, int(ok.sum()), len(ok))
         return CalibrationSample.from_fits(fits, ok, cx, cy)
 
@@ -738,9 +744,8 @@ def measure_stamps(
     sh = shapes(lnL, fits.egrid, priors.ellipticity, sensitivity=cfg.sensitivity,
                 refine=run_cfg.output_refine)  # fmt: skip
     flags = np.asarray(fits.flags, dtype=np.int32) | np.asarray(sh["flags"], dtype=np.int32)
-    low = (flags == 0) & ~np.asarray(fits.is_star) & ~(np.asarray(fits.snr) >= cfg.min_snr)
-    flags = flags | np.where(low, FLAGS["LOW_SNR"][0], 0).astype(np.int32)
-    usable = usable_galaxies(flags, fits.is_star, fits.snr, cfg)
+    flags = flag_low_snr(flags, fits.is_star, fits.snr, cfg.min_snr)
+    usable = usable_galaxies(flags, fits.is_star, fits.snr, cfg.min_snr)
     t = Table()
     for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
         t[c] = np.asarray(sh[c], dtype=float)

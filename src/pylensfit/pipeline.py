@@ -44,7 +44,7 @@ from astropy.table import Table, vstack
 
 from . import flags as _flags
 from ._version import __version__
-from .calibration import CalibrationSample, Priors, run_recipe, usable_galaxies
+from .calibration import CalibrationSample, Priors, flag_low_snr, run_recipe, usable_galaxies
 from .catalogue import COLUMNS, FITCLASS, atomic_write
 from .config import Config
 from .grid import ellipticity_grid
@@ -1031,7 +1031,7 @@ def _calibrate_images(tasks: list[dict], cfg: Config, prior: Prior | None,
             res = results[i]
             rows = res["rows"]
             ok = (usable_galaxies(rows["flags"], rows["fitclass"] != FITCLASS["galaxy"],
-                                  rows["model_SNratio"], cfgs[0])
+                                  rows["model_SNratio"], cfgs[0].min_snr)
                   & np.isfinite(res["lnL"]).all(axis=1))  # fmt: skip
             flux = np.asarray(rows["model_flux"], dtype=float)
             samples.append(CalibrationSample(
@@ -1098,9 +1098,10 @@ def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
     cat.add_column(np.arange(1, n + 1, dtype=np.int64), name="id", index=0)
     usable = (np.asarray(cat["flags"]) == 0) & np.isfinite(lnL).all(axis=1)
     galaxy = np.asarray(cat["fitclass"]) == FITCLASS["galaxy"]
-    low = usable & galaxy & ~(np.asarray(cat["model_SNratio"], dtype=float) >= cfg.min_snr)
-    cat["flags"] = np.asarray(cat["flags"]) | np.where(low, _flags.flag_value("LOW_SNR"), 0)
-    gal = usable & galaxy & ~low
+    f0 = np.asarray(cat["flags"])
+    cat["flags"] = np.where(usable, flag_low_snr(f0, ~galaxy, cat["model_SNratio"],
+                                                 cfg.min_snr), f0)  # fmt: skip
+    gal = usable & galaxy & (np.asarray(cat["flags"]) == 0)
     prior, bulge_weights = priors.ellipticity, priors.bulge_weights
     if lnL_bulge is not None and bulge_weights is not None:
         lnL_star = np.asarray(cat["lnL_star"], dtype=float)

@@ -377,7 +377,11 @@ class Prior:
     @classmethod
     def load(cls, path: str | Path) -> Prior:
         """Read a prior written by :meth:`save`."""
-        d = json.loads(Path(path).read_text())
+        return cls.from_dict(json.loads(Path(path).read_text()))
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Prior:
+        """The prior of :meth:`to_dict`."""
         egrid = np.asarray(d["egrid"], dtype=float) if "egrid" in d else None
         return cls(
             B=d["B"],
