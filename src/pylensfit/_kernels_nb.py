@@ -11,12 +11,57 @@ together).
 
 from __future__ import annotations
 
+import functools
 import math
+import os
+import threading
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 
+import numba
 import numpy as np
 from numba import njit, prange
 
 _LN2PI = math.log(2.0 * math.pi)
+
+#: held around each launch of a parallel kernel while numba's threading layer is its
+#: work queue (the fork-safe layer where TBB is absent, chosen by
+#: :func:`pylensfit.likelihood._fork_safe_threading`): that layer aborts the process
+#: ("Concurrent access has been detected") when two threads launch kernels at once, as
+#: the image tasks of a dask worker with several threads do
+_LAUNCH_LOCK = threading.Lock()
+
+
+def _renew_launch_lock() -> None:
+    """A fresh lock in a forked child: a thread of the parent may have held the old one."""
+    global _LAUNCH_LOCK
+    _LAUNCH_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_renew_launch_lock)
+
+
+def _launch_guard() -> AbstractContextManager:
+    """The lock on the work queue (and before any layer has started, since this launch
+    may start the work queue); a context that does nothing on TBB or OpenMP."""
+    try:
+        layer = numba.threading_layer()
+    except ValueError:  # no parallel kernel has run yet
+        return _LAUNCH_LOCK
+    return _LAUNCH_LOCK if layer == "workqueue" else nullcontext()
+
+
+def _one_launch_at_a_time(kernel: Callable) -> Callable:
+    """``kernel`` (a parallel numba dispatcher) called from Python under :func:`_launch_guard`."""
+
+    @functools.wraps(kernel, updated=())
+    def launch(*args):
+        with _launch_guard():
+            return kernel(*args)
+
+    launch.kernel = kernel
+    return launch
 
 
 def _phi_table(t0: float, t1: float, step: float):
@@ -593,7 +638,7 @@ def amplitude_table(amp_pow):
 
 
 @njit(cache=True)
-def laplace_grid(
+def _laplace_grid_nb(
     prod, members, mix_a, mix_b, mix_f, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma,
     x0, y0, b2, max_step,
     node_w, w_star, ln_pi, e_w, e_grp, amp_pow, amp_lns, amp_lo, amp_hi, cubic, out_lnle,
@@ -604,14 +649,17 @@ def laplace_grid(
         pt0, ptab = _power_law_table(amp_pow)
     else:
         pt0, ptab = 0.0, np.empty((4, 0))
-    laplace_grid_tab(prod, members, mix_a, mix_b, mix_f, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy,
-                     myy, sigma, x0, y0, b2, max_step, node_w, w_star, ln_pi, e_w, e_grp,
-                     amp_pow, amp_lns, amp_lo, amp_hi, cubic, pt0, ptab, out_lnle, out_lnlb,
-                     out_lnlr, out_best, out_h, out_x, out_y)  # fmt: skip
+    _laplace_grid_tab_nb(prod, members, mix_a, mix_b, mix_f, n_gal, n_e, n_r, n_sub, s_m,
+                         mxx, mxy, myy, sigma, x0, y0, b2, max_step, node_w, w_star, ln_pi,
+                         e_w, e_grp, amp_pow, amp_lns, amp_lo, amp_hi, cubic, pt0, ptab,
+                         out_lnle, out_lnlb, out_lnlr, out_best, out_h, out_x, out_y)  # fmt: skip
+
+
+laplace_grid = _one_launch_at_a_time(_laplace_grid_nb)
 
 
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
-def laplace_grid_tab(
+def _laplace_grid_tab_nb(
     prod, members, mix_a, mix_b, mix_f, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma,
     x0, y0, b2, max_step,
     node_w, w_star, ln_pi, e_w, e_grp, amp_pow, amp_lns, amp_lo, amp_hi, cubic, pt0, ptab,
@@ -871,6 +919,9 @@ def laplace_grid_tab(
             out_lnlr[g, a, n_r] = buf[star]
 
 
+laplace_grid_tab = _one_launch_at_a_time(_laplace_grid_tab_nb)
+
+
 @njit(cache=True, fastmath={"contract", "arcp", "afn"}, inline="always")
 def _profile_value(rr, model_code, fb, bsr, b_dev, norm_dev, trunc, inv_n):
     """Surface brightness of a unit-flux round profile of unit scale at radius ``rr``.
@@ -913,8 +964,8 @@ def _stamp_share(a, i, shared):
 
 
 @njit(parallel=True, cache=True)
-def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trunc, inv_n, n,
-                  max_copies, out):  # fmt: skip
+def _wrapped_wings_nb(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trunc, inv_n,
+                      n, max_copies, out):  # fmt: skip
     """The wings that a periodic model wraps into an ``n x n`` stamp (DESIGN.md s. 3).
 
     A model evaluated on the stamp's discrete frequencies is the periodic sum of its
@@ -985,3 +1036,6 @@ def wrapped_wings(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trun
                         acc += keep * _profile_value(rr, model_code, fb, bsr, b_dev,
                                                      norm_dev, trunc, inv_n) / (r * r)  # fmt: skip
                 out[i, col, iy, ix] = acc
+
+
+wrapped_wings = _one_launch_at_a_time(_wrapped_wings_nb)
