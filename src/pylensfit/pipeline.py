@@ -672,15 +672,23 @@ def _part_path(parts: Path, task: dict[str, Any]) -> Path:
 
 
 def _write_part(path: Path, res: dict[str, Any]) -> None:
+    """One finished image as a part file, which :func:`_read_part` reads back as it was.
+
+    The arrays go in HDUs of their own dtypes; the rest (index, path, PSF summary, PSF
+    note, timing) as JSON in the one-row table ``INFO``: floats by ``repr`` and text of
+    any length and characters, so that a resumed run writes the catalogue of a run never
+    stopped (header cards round floats to 16 digits; the PSF HDU's are for reading).
+    """
     t = Table(res["rows"])
+    psf = None if res["psf"] is None else {k: res["psf"][k] for k in _PSF_KEYS}
+    info = {"index": int(res["index"]), "path": res["path"], "psf": psf,
+            "psf_note": res["psf_note"], "timing": res["timing"]}  # fmt: skip
     hdr = fits.Header()
-    hdr["PATH"] = res["path"]
-    hdr["INDEX"] = res["index"]
-    hdr["PSFNOTE"] = res["psf_note"][:60]
-    hdr["TIMING"] = json.dumps(res["timing"])
+    hdr["INDEX"] = int(res["index"])
     hdus = [fits.PrimaryHDU(header=hdr), fits.table_to_hdu(t),
             fits.ImageHDU(res["lnL"], name="LNL"),
-            fits.ImageHDU(res["egrid"], name="EGRID")]  # fmt: skip
+            fits.ImageHDU(res["egrid"], name="EGRID"),
+            fits.BinTableHDU(Table({"json": [json.dumps(info)]}), name="INFO")]  # fmt: skip
     hdus[1].name = "ROWS"
     if res.get("lnL_bulge") is not None:
         hdus.append(fits.ImageHDU(res["lnL_bulge"], name="LNLB"))
@@ -693,19 +701,21 @@ def _write_part(path: Path, res: dict[str, Any]) -> None:
 
 
 def _read_part(path: Path) -> dict[str, Any]:
+    """An image's result from its part file (:func:`_write_part`); a file without the
+    ``INFO`` table (an older format) raises, and the image is redone."""
     with fits.open(path, memmap=False) as h:
+        info = json.loads(str(h["INFO"].data["json"][0]))
         rows = Table(h["ROWS"].data)
         psf = None
-        if "PSF" in h:
-            psf = {k: h["PSF"].header[k.upper()[:8]] for k in _PSF_KEYS}
-            psf["image"] = np.array(h["PSF"].data, dtype=float)
+        if info["psf"] is not None:
+            psf = dict(info["psf"], image=np.array(h["PSF"].data, dtype=float))
         return {
-            "index": int(h[0].header["INDEX"]), "path": h[0].header["PATH"],
+            "index": int(info["index"]), "path": info["path"],
             "rows": {c: np.asarray(rows[c]) for c in rows.colnames},
             "lnL": np.array(h["LNL"].data, dtype=np.float32),
             "lnL_bulge": np.array(h["LNLB"].data, dtype=np.float32) if "LNLB" in h else None,
             "egrid": np.array(h["EGRID"].data, dtype=float), "psf": psf,
-            "psf_note": h[0].header["PSFNOTE"], "timing": json.loads(h[0].header["TIMING"]),
+            "psf_note": info["psf_note"], "timing": info["timing"],
         }  # fmt: skip
 
 
