@@ -318,7 +318,7 @@ class Prior:
         return g * e1, g * e2
 
     def radial_pdf(self, r: np.ndarray | float) -> np.ndarray:
-        """1-D density of ``|e|``, ``2 pi |e| P(|e|)`` (paper section 3.1), per unit |e|."""
+        """1-D density of ``|e|``, ``2 pi |e| P(|e|)`` (paper section 3.1), per unit ``|e|``."""
         r = np.asarray(r, dtype=float)
         return 2.0 * np.pi * r * self.pdf(r, np.zeros_like(r))
 
