@@ -8,7 +8,8 @@ same galaxies.
 
 Usage::
 
-    python benchmarks/bench_pipeline.py                 # 2 x 4096^2 fields, ~3 min on 2 cores
+    python benchmarks/bench_pipeline.py                 # 2 x 4096^2 fields, Config()
+    python benchmarks/bench_pipeline.py --method paper  # Config.paper(), one pass
     python benchmarks/bench_pipeline.py --size 1024     # quick
     python benchmarks/bench_pipeline.py --jobs 1,2 --threads 1 --keep /tmp/bench-fields
 
@@ -26,8 +27,10 @@ the area).
 
 What is timed
 -------------
-Each run is one ``measure(images, stars=[star field], config=Config(model=...),
-prior=Prior(), output=<tmp>/catalog.fits, jobs=N)`` call in a fresh ``spawn`` process
+Each run is one ``measure(images, stars=[star field], config=Config(),
+output=<tmp>/catalog.fits, jobs=N)`` call (the calibration recipe's passes, every prior
+estimated from the fields' galaxies; with ``--method paper``, ``config=Config.paper(model=
+...), prior=Prior()``, one pass) in a fresh ``spawn`` process
 (so that its peak RSS is its own), after an untimed warm-up ``measure`` of a 512^2 field
 in that process (numba kernels loaded from their cache, model bank built). ``wall`` is
 the wall time of the call, output written. With N > 1 the pool's workers are new
@@ -126,11 +129,21 @@ def simulate(work: Path, args) -> tuple[list[str], str, str]:
 _KEEP: dict = {}
 
 
-def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras):
+def _config(method: str, model: str):
+    """``Config()`` (the recipe: every prior estimated in the run) or ``Config.paper``."""
+    from pylensfit import Config
+
+    if method == "default":
+        return Config()
+    fit_model = "devaucouleurs" if model == "mixed" else model
+    return Config.paper(model=fit_model)
+
+
+def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras, method):
     import numba
 
     import pylensfit
-    from pylensfit import Config, Prior
+    from pylensfit import Prior
 
     if threads:
         from threadpoolctl import threadpool_limits
@@ -138,8 +151,8 @@ def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras):
         _KEEP["limits"] = threadpool_limits(threads)  # a reference keeps the limit in force
         numba.set_num_threads(threads)
 
-    cfg = Config(model=model)
-    prior = Prior() if prior_mode == "fixed" else None
+    cfg = _config(method, model)
+    prior = Prior() if prior_mode == "fixed" and method == "paper" else None
     pylensfit.measure([warm], stars=[stars], config=cfg, prior=Prior(), output=out + ".warm",
                       overwrite=True, jobs=1, progress=False)  # fmt: skip
     t0 = time.perf_counter()
@@ -182,21 +195,19 @@ def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras):
 def timed_run(images, stars, warm, out, jobs, args, extras) -> dict:
     with cf.ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as ex:
         return ex.submit(_run, images, stars, warm, out, jobs, args.model, args.prior,
-                         args.threads, extras).result()  # fmt: skip
+                         args.threads, extras, args.method).result()  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------
 # peers and details, in this process
 
 
-def detection_detail(path: str, model: str) -> dict:
+def detection_detail(path: str, cfg) -> dict:
     """Split "read+detect" of one image: FITS read, background, detection + photometry."""
     from astropy.io import fits
 
-    from pylensfit import Config
     from pylensfit.detection import detect, measure_background
 
-    cfg = Config(model=model)
     t0 = time.perf_counter()
     with fits.open(path, memmap=False) as h:
         data = np.asarray(h[0].data, dtype=np.float64)
@@ -299,21 +310,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--nimages", type=int, default=2,
                    help="number of size x size fields (2: one per job with --jobs 2)")  # fmt: skip
     p.add_argument("--jobs", default="1,2", help="jobs values to time (1,2)")
-    p.add_argument("--model", default="exponential",
-                   choices=["exponential", "devaucouleurs", "bulge+disc"],
-                   help="FieldSpec.model and Config(model=) (exponential)")  # fmt: skip
+    p.add_argument("--model", default="mixed",
+                   choices=["mixed", "exponential", "devaucouleurs", "bulge+disc"],
+                   help="FieldSpec.model: the simulated population (mixed: exponential, de "
+                        "Vaucouleurs and bulge+disc in turn)")  # fmt: skip
+    p.add_argument("--method", choices=["default", "paper"], default="default",
+                   help="Config() with every prior estimated in the run (default), or "
+                        "Config.paper(model=) (de Vaucouleurs for the mixed population)")
     p.add_argument("--seed", type=int, default=1, help="random seed (1)")
     p.add_argument("--spacing", type=float, default=40.0,
                    help="lattice pitch in px (40: ~10,000 objects per 4096^2 field)")  # fmt: skip
     p.add_argument("--threads", type=int, default=0,
                    help="threads of the jobs=1 run (0: numba/BLAS default)")  # fmt: skip
     p.add_argument("--prior", choices=["fixed", "estimate"], default="fixed",
-                   help="prior=Prior() (fixed) or estimated by measure (estimate)")  # fmt: skip
+                   help="with --method paper: prior=Prior() (fixed) or estimated by measure "
+                        "(estimate)")  # fmt: skip
     p.add_argument("--no-hsm", action="store_true", help="skip the HSM REGAUSS peer")
     p.add_argument("--keep", metavar="DIR", help="keep the simulated fields and catalogues here")
     args = p.parse_args(argv)
-    if args.model == "bulge+disc":
-        p.error("--model bulge+disc: Config has no bulge+disc model to fit")
     jobs = [int(j) for j in args.jobs.split(",") if j.strip()]
 
     import astropy
@@ -322,15 +336,14 @@ def main(argv: list[str] | None = None) -> int:
     import sep
 
     import pylensfit
-    from pylensfit import Config
-
-    cfg = Config(model=args.model)
+    cfg = _config(args.method, args.model)
     print(f"pylensfit {pylensfit.__version__} ({os.path.dirname(pylensfit.__file__)})")
     print(f"GalSim {galsim.__version__}, sep {sep.__version__}, astropy {astropy.__version__}, "
           f"numpy {np.__version__}, numba {numba.__version__} ({numba.get_num_threads()} "
           f"threads), {os.cpu_count()} CPUs, load {load()}")  # fmt: skip
     print(f"model {cfg.model}, {cfg.stamp_size}x{cfg.stamp_size} stamps, de={cfg.e_step}, "
-          f"r={cfg.r_min:g}..{cfg.r_max:g} px step {cfg.r_step}, prior {args.prior}",
+          f"r={cfg.r_min:g}..{cfg.r_max:g} px step {cfg.r_step}, method {args.method}"
+          + (f", prior {args.prior}" if args.method == "paper" else ", every prior estimated"),
           flush=True)  # fmt: skip
 
     if args.keep:
@@ -359,13 +372,13 @@ def main(argv: list[str] | None = None) -> int:
             hs = hsm(images, extras["gal"], extras["psf_images"], cfg.stamp_size)
         hs_rss = rss_mib()
         print("detection detail (first image, outside measure) ...", flush=True)
-        det = detection_detail(images[0], args.model)
+        det = detection_detail(images[0], cfg)
 
         # ---------------------------------------------------------------- report
         nimg = len(images)
         print()
         print(f"{nimg} x {args.size}^2 fields + {STAR_SIZE}^2 star field, model {args.model}, "
-              f"prior {args.prior}; FITS in -> FITS catalogue out")  # fmt: skip
+              f"method {args.method}; FITS in -> FITS catalogue out")  # fmt: skip
         hdr = (f"{'method':<14} {'procs x thr':>11} {'objects':>8} {'galaxies':>8} "
                f"{'wall s':>7} {'gal/s':>7} {'RSS MiB main':>12} {'worker':>7}")  # fmt: skip
         print(hdr)
@@ -403,7 +416,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{e['ngal']} galaxies -> {e['prior_est']}; shapes {e['t_shapes']:.2f} s "
                   f"({e['nobj']} rows); write_catalogue {e['t_write']:.2f} s "
                   f"({e['out_mib']:.0f} MiB)")  # fmt: skip
-            if args.prior == "fixed":
+            if args.prior == "fixed" and args.method == "paper":
                 print(f"  (the timed runs used prior=Prior(); estimating it in measure adds "
                       f"~{e['t_prior']:.1f} s to wall)")  # fmt: skip
         print(f"read+detect of {Path(images[0]).name} ({det['n']} detections): FITS read "

@@ -1053,25 +1053,38 @@ def _shear_estimates(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str,
         gid, base = _groups(gal, fields)
         members = _group_members(gid)
         members_base = base[members[:, 0]]
+        group_files: dict[tuple, list[str]] = {}
+        for g in fields.values():
+            if g["role"] == "shear":
+                group_files.setdefault((g["psf"], g["shear_index"]), []).append(g["file"])
         for name in np.unique(images):
             f = fields[name]
             if f["twin"] or f.get("noise_twin"):
                 continue
             rows_k = members[members_base == name]
+            # every usable detection of the group's images counts, as in a survey: the
+            # galaxies that all members measured are summed over the members (their shape
+            # noise and noise cancel), the others (unmatched detections, galaxies that a
+            # member missed) are units of their own
+            in_group = np.flatnonzero(np.isin(images, group_files[(f["psf"], f["shear_index"])]))
+            left = np.setdiff1d(in_group, rows_k.ravel())
+            e_u = np.concatenate([e[rows_k].sum(axis=1), e[left]])[:, None, :]
+            s_u = np.concatenate([s[rows_k].sum(axis=1), s[left]])[:, None, :]
             try:
-                est = group_shear(e[rows_k], s[rows_k])
+                est = group_shear(e_u, s_u)
                 res = (est.g1, est.g1_err, est.g2, est.g2_err)
                 if estimator == "fixed-point":  # the group together; error from the sums
-                    fp = shear_fixed_point(lnL[rows_k.ravel()], egrid, prior, refine=refine)
+                    fp = shear_fixed_point(lnL[in_group], egrid, prior, refine=refine)
                     res = (fp.g1, est.g1_err, fp.g2, est.g2_err)
                 if truth_control and len(rows_k):
                     names = sorted({str(images[r]) for r in rows_k[0]})
                     t_all = _truth_terms(fields, names)
-                    t = t_all[np.asarray(gal["truth_index"])[rows_k[:, 0]]]
-                    res = _controlled(res, e[rows_k].sum(axis=1), s[rows_k].sum(axis=1), t, t_all)
+                    t = np.full((e_u.shape[0], 2), np.nan)
+                    t[: len(rows_k)] = t_all[np.asarray(gal["truth_index"])[rows_k[:, 0]]]
+                    res = _controlled(res, e_u[:, 0], s_u[:, 0], t, t_all)
             except ValueError:
                 res = nan4
-            rows.append((f["psf"], f["file"], f["g1"], f["g2"], *res, rows_k.size,
+            rows.append((f["psf"], f["file"], f["g1"], f["g2"], *res, in_group.size,
                          rows_k.shape[0]))  # fmt: skip
     if not rows:
         return Table(names=_EST_NAMES, dtype=(int, str, *[float] * 6, int, int))
@@ -1359,14 +1372,17 @@ def validate(
        size prior is estimated on each PSF's zero-shear field and the shear fields are
        measured with it (recorded in their sidecars), as the ellipticity prior comes
        from the zero-shear fields.
-    2. **Match** every measured galaxy (``flags == 0``, ``fitclass == 0``) to the truth of
-       its image (nearest truth object within 5 px).
+    2. **Match** every usable galaxy (``flags == 0``, ``fitclass == 0``) to the truth of
+       its image (nearest truth object within 5 px), for the diagnostics, the pairing of
+       the twins and the truth control variate only: every usable row enters the shear,
+       matched or not, as in a survey.
     3. **Prior** from the galaxies of the zero-shear fields of all PSFs (as in the paper).
     4. **Shear** per image (eq. ``key2`` or the sheared-prior fixed point,
        ``estimator``). For STEP2-like sets, each image and its 90-degree-rotated twin are
-       combined galaxy by galaxy (:func:`twin_shear`; only galaxies measured in both, as
-       the paper's matched catalogue), which cancels the shape noise; these pair
-       estimates enter the fits and Q, the single-image ones are kept in ``meta``.
+       combined galaxy by galaxy (the galaxies measured in every member are summed over
+       the members, which cancels their shape noise; every other usable detection of the
+       group's images enters on its own); these group estimates enter the fits and Q,
+       the single-image ones are kept in ``meta``. The bins use the matched galaxies.
     5. **Fit** ``g_meas - g_true = m g_true + c`` per PSF and component, ``<m>``,
        ``sigma_c`` and Q (paper section 5).
     6. **Bins** (paper Table 2): the same per bin of each quantity in ``bins``, with a
@@ -1840,7 +1856,8 @@ def _group_words(man: dict) -> str:
         parts.append("noise twins")
     why = [w for w, on in (("shape noise", rot), ("the noise's first order", neg)) if on]
     return (" + ".join(parts) + " (matched galaxy by galaxy; " + " and ".join(why)
-            + " cancel" + ("s" if len(why) == 1 else "") + ")")
+            + " cancel" + ("s" if len(why) == 1 else "")
+            + "; every unmatched usable detection counted on its own)")
 
 
 def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
