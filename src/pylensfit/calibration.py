@@ -60,7 +60,10 @@ from .prior import (
     _MIN_FLUX_RANGE_SAMPLE,
     Prior,
     SizePrior,
+    _json_kind,
     _jsonable,
+    _other_file_hint,
+    _read_json,
     estimate_bulge_weights,
     estimate_flux_range,
     estimate_flux_slope,
@@ -183,15 +186,19 @@ class Priors:
     def from_dict(cls, d: dict[str, Any], source: str = "priors") -> Priors:
         """The object of :meth:`to_dict`; ``ValueError`` naming ``source`` if malformed."""
         if not isinstance(d, dict) or "ellipticity" not in d:
-            raise ValueError(f"{source}: not a priors file (no 'ellipticity' entry)")
+            detail = (f"a JSON {_json_kind(d)}" if not isinstance(d, dict)
+                      else "no 'ellipticity' entry")  # fmt: skip
+            raise ValueError(f"{source}: not a priors file ({detail})")
         try:
-            ell = Prior.from_dict(d["ellipticity"])
+            ell = Prior.from_dict(d["ellipticity"], source="entry 'ellipticity'")
+            size = None if d.get("size") is None else SizePrior.from_dict(
+                d["size"], source="entry 'size'")  # fmt: skip
             bw = d.get("bulge_weights")
             fr = d.get("flux_range")
             return cls(
                 ellipticity=ell,
                 bulge_weights=None if bw is None else np.asarray(bw, dtype=float),
-                size=None if d.get("size") is None else SizePrior.from_dict(d["size"]),
+                size=size,
                 flux_power=None if d.get("flux_power") is None else float(d["flux_power"]),
                 flux_range=None if fr is None else (float(fr[0]), float(fr[1])),
                 position_sigma=None if d.get("position_sigma") is None
@@ -200,8 +207,8 @@ class Priors:
                 info=dict(d.get("info", {})),
             )
         except (KeyError, TypeError, ValueError, IndexError) as err:
-            raise ValueError(f"{source}: malformed priors ({type(err).__name__}: {err})") \
-                from None
+            why = str(err) if type(err) is ValueError else f"{type(err).__name__}: {err}"
+            raise ValueError(f"{source}: malformed priors ({why})") from None
 
     def save(self, path: str | Path) -> None:
         """Write as JSON."""
@@ -211,14 +218,12 @@ class Priors:
     def load(cls, path: str | Path) -> Priors:
         """Read a file written by :meth:`save`; ``ValueError`` naming the file if it is
         not one."""
-        try:
-            d = json.loads(Path(path).read_text())
-        except OSError as err:
-            raise ValueError(f"{path}: cannot read ({err.strerror})") from None
-        except ValueError:
-            raise ValueError(f"{path}: not JSON") from None
+        d = _read_json(path)
         if not isinstance(d, dict) or "priors" not in d:
-            raise ValueError(f"{path}: not a priors file (no 'priors' entry)")
+            detail = (f"a JSON {_json_kind(d)}" if not isinstance(d, dict) else
+                      "no 'priors' entry" + _other_file_hint(
+                          d, {"B": "prior", "size_prior": "size prior"}))  # fmt: skip
+            raise ValueError(f"{path}: not a priors file ({detail})")
         return cls.from_dict(d["priors"], source=str(path))
 
     def __repr__(self) -> str:

@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
@@ -62,7 +63,11 @@ def _psf_arg(paths):
     return paths[0] if len(paths) == 1 else paths
 
 
-def _read_catalogues(paths):
+def _read_catalogues(paths: list[str], need: tuple[str, ...] = ("flags", "fitclass"),
+                     bin_column: str | None = None):
+    """The catalogues of ``paths`` stacked; ``InputError`` naming the file that lacks a
+    column of ``need`` (numeric) or ``bin_column`` (``--bin-by``), or whose ellipticity
+    grid differs from the first's."""
     from astropy.table import vstack
 
     from .pipeline import InputError, read_catalogue
@@ -70,12 +75,43 @@ def _read_catalogues(paths):
     cats = [read_catalogue(p) for p in paths]
     egrid = cats[0].meta["egrid"]
     for p, c in zip(paths, cats, strict=True):
+        missing = [n for n in need if n not in c.colnames]
+        if missing:
+            raise InputError(f"{p}: no column {', '.join(missing)} (not a catalogue from "
+                             "`pylensfit measure`?)")  # fmt: skip
+        for n in need:
+            if n != "image" and not _numeric(c[n]):
+                raise InputError(f"{p}: column {n} is not numeric ({c[n].dtype})")
+        if bin_column is not None:
+            _check_bin_column(c, bin_column, p)
         if c.meta["egrid"].shape != egrid.shape or not np.allclose(c.meta["egrid"], egrid):
             raise InputError(f"{p}: its ellipticity grid differs from {paths[0]}'s")
     meta = dict(cats[0].meta)
     cat = vstack(cats, metadata_conflicts="silent") if len(cats) > 1 else cats[0]
     cat.meta.update(meta)
     return cat
+
+
+def _numeric(col) -> bool:
+    """Whether a table column holds numbers (or booleans), one per row."""
+    dt = np.asarray(col).dtype
+    return np.ndim(col) == 1 and (np.issubdtype(dt, np.number) or np.issubdtype(dt, np.bool_))
+
+
+def _check_bin_column(cat, column: str, path: str) -> None:
+    """``ValueError`` naming ``--bin-by`` and ``path`` if ``cat`` cannot be binned by
+    ``column``."""
+    if column not in cat.colnames:
+        import difflib
+
+        close = difflib.get_close_matches(column, cat.colnames, n=3)
+        hint = f"; closest: {', '.join(close)}" if close else ""
+        raise ValueError(f"--bin-by: {path} has no column {column!r}{hint}")
+    if not _numeric(cat[column]):
+        what = ("holds arrays, not one number per row" if np.ndim(cat[column]) > 1
+                else f"is not numeric ({cat[column].dtype})")  # fmt: skip
+        raise ValueError(f"--bin-by: column {column!r} of {path} {what}; bin by a numeric "
+                         "column such as mag")  # fmt: skip
 
 
 def _usable_galaxies(cat) -> np.ndarray:
@@ -106,7 +142,9 @@ def _shear(args: argparse.Namespace) -> int:
     from .prior import Prior
     from .shear import shapes, shear_table
 
-    cat = _read_catalogues(args.catalogs)
+    per_image = () if args.no_per_image else ("image",)
+    cat = _read_catalogues(args.catalogs, need=("flags", "fitclass", *per_image),
+                           bin_column=args.bin_column)  # fmt: skip
     cfg = cat.meta.get("config")
     prior = Prior.load(args.prior) if args.prior else cat.meta.get("prior")
     if prior is None:
@@ -118,7 +156,7 @@ def _shear(args: argparse.Namespace) -> int:
         raise ValueError("no measured galaxy in the catalogue(s)")
     sh = shapes(np.asarray(cat["lnL"])[gal], cat.meta["egrid"], prior, sensitivity=sens,
                 refine=refine)  # fmt: skip
-    for c in ("image", *([args.bin_column] if args.bin_column else [])):
+    for c in (*per_image, *([args.bin_column] if args.bin_column else [])):
         sh[c] = cat[c][gal]
     if args.estimator == "fixed-point":
         sh["lnL"] = np.asarray(cat["lnL"])[gal]
@@ -296,21 +334,48 @@ def _demo(args: argparse.Namespace) -> int:
     return 0 if ok1 and ok2 else 2
 
 
-def _bin_by(text: str):
+def _bin_by(text: str) -> tuple[str, list[float]]:
+    """``--bin-by COLUMN:EDGE,EDGE,...``: the column and at least two increasing edges."""
+    usage = f"expects COLUMN:EDGE,EDGE,... (e.g. mag:20,22,24), got {text!r}"
     try:
         col, edges = text.split(":", 1)
-        return col, [float(v) for v in edges.split(",")]
+        e = [float(v) for v in edges.split(",")]
     except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"--bin-by expects COLUMN:EDGE,EDGE,... (e.g. mag:20,22,24), got {text!r}"
-        ) from None
+        raise argparse.ArgumentTypeError(usage) from None
+    if not col.strip():
+        raise argparse.ArgumentTypeError(f"no column: {usage}")
+    if len(e) < 2:
+        raise argparse.ArgumentTypeError(f"one bin needs two edges: {usage}")
+    if not (np.all(np.isfinite(e)) and np.all(np.diff(e) > 0)):
+        raise argparse.ArgumentTypeError(f"the edges must be finite and increase: {usage}")
+    return col.strip(), e
+
+
+def _jobs(text: str) -> int:
+    """``--jobs N``: a positive number of worker processes."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expects a positive integer, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expects a positive number of worker processes, "
+                                         f"got {n}")  # fmt: skip
+    return n
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line: the command, the option and the
+    problem, and where to find the usage."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} -h`)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
     from .config import PRESETS
 
-    p = argparse.ArgumentParser(prog="pylensfit", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    p = _Parser(prog="pylensfit", description=__doc__,
+                formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -333,7 +398,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "(pixel response included, centred on pixel [n//2, n//2]; a --psf-dir "
                    "file will do) for every image, or one per image")  # fmt: skip
     m.add_argument("--overwrite", action="store_true", help="replace an existing output")
-    m.add_argument("--jobs", type=int, default=1, help="local worker processes")
+    m.add_argument("--jobs", type=_jobs, default=1, help="local worker processes")
     m.add_argument("--scheduler", help="dask.distributed scheduler address")
     m.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     m.set_defaults(func=_measure)
@@ -368,7 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("directory", nargs="?", help="a set from `pylensfit simulate`")
     v.add_argument("--config", help="YAML configuration (default: Config(), what `pylensfit "
                    "measure` uses; see `pylensfit config`)")
-    v.add_argument("--jobs", type=int, default=1, help="local worker processes")
+    v.add_argument("--jobs", type=_jobs, default=1, help="local worker processes")
     v.add_argument("--estimator", choices=("fixed-point", "key2"), default="fixed-point",
                    help="shear estimator: the fixed point (default) or the paper's eq. key2, "
                         "whose +g^2 term shows at STEP's shears of up to 0.1")
@@ -447,7 +512,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--g1", type=float, default=0.04, help="true shear g1")
     d.add_argument("--g2", type=float, default=-0.02, help="true shear g2")
     d.add_argument("--seed", type=int, default=1, help="random seed")
-    d.add_argument("--jobs", type=int, default=1, help="local worker processes")
+    d.add_argument("--jobs", type=_jobs, default=1, help="local worker processes")
     d.add_argument("--outdir", help="keep the files here (default: a temporary folder)")
     d.set_defaults(func=_demo)
     return p

@@ -428,21 +428,31 @@ class Config:
                 raise ConfigError(f"unknown preset {name!r}; known: {sorted(PRESETS)}")
             values = {**PRESETS[name][0], **values}
         known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(values) - set(known))
+        unknown = sorted(set(values) - set(known), key=str)
         if unknown:
             import difflib
 
-            hints = {u: difflib.get_close_matches(u, known, n=1) for u in unknown}
-            said = ", ".join(f"{u!r}" + (f" (did you mean {h[0]!r}?)" if h else "")
-                             for u, h in hints.items())  # fmt: skip
-            raise ConfigError(f"unknown configuration key(s) {said}; `pylensfit config` "
-                              "lists the known ones")  # fmt: skip
+            # one line: the keys (at most three named) and the closest known ones (the
+            # three closest to a single key, the closest to each of two or three)
+            shown = unknown[:3]
+            n_close = 3 if len(unknown) == 1 else 1 if len(unknown) <= 3 else 0
+            said = []
+            for u in shown:
+                close = difflib.get_close_matches(str(u), known, n=n_close) if n_close else []
+                said.append(f"{u!r}" + (f" (did you mean {' or '.join(map(repr, close))}?)"
+                                         if close else ""))  # fmt: skip
+            more = f" and {len(unknown) - len(shown)} more" if len(unknown) > len(shown) else ""
+            raise ConfigError(f"unknown configuration key{'s' if len(unknown) > 1 else ''} "
+                              f"{', '.join(said)}{more}; `pylensfit config` lists them "
+                              "all")  # fmt: skip
         kw = {}
         for name, val in values.items():
             typ = type(known[name].default)
             try:
                 if typ is bool:
                     kw[name] = _as_bool(val)
+                elif typ in (int, float) and isinstance(val, bool):
+                    raise ValueError(val)  # yes/no is no number
                 elif typ is int and not float(val).is_integer():
                     raise ValueError(val)
                 else:

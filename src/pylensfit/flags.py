@@ -25,6 +25,8 @@ FLAGS: dict[str, tuple[int, str]] = {
     "NOT_MEASURED": (512, "not attempted"),
     "LOW_SNR": (1024, "measured, but the best model's S/N is below Config.min_snr: most such "
                 "detections are noise"),
+    "BAD_POSITION": (2048, "the input catalogue's position is not finite (NaN or inf): the "
+                     "row is kept, with NaN positions, and not measured"),
 }
 
 #: flags that make a row unusable for shear

@@ -97,7 +97,10 @@ def _open(path: str, what: str) -> Iterator[fits.HDUList]:
             hdul = fits.open(fh, memmap=False)
             hdul.verify("exception")
         except Exception as err:  # astropy raises OSError, ValueError, VerifyError, ...
-            raise InputError(f"{path}: not a readable FITS file ({err})") from None
+            # on one line: a verification report spans several, between boilerplate lines
+            why = " ".join(ln.strip() for ln in str(err).splitlines() if ln.strip() and not
+                           ln.startswith(("Verification reported errors", "Note: astropy")))
+            raise InputError(f"{path}: not a readable FITS file ({why})") from None
         with hdul:
             yield hdul
 
@@ -169,17 +172,31 @@ def _read_positions(path: str, image_path: str) -> Table:
         raise InputError(f"{path}: input catalogue needs columns x, y (0-based) or "
                          "X_IMAGE, Y_IMAGE (1-based)")  # fmt: skip
     out = Table()
-    out["x"] = np.asarray(x, dtype=float)
-    out["y"] = np.asarray(y, dtype=float)
+    try:
+        out["x"] = np.asarray(x, dtype=float)
+        out["y"] = np.asarray(y, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{path}: the input catalogue's positions are not numbers "
+                         f"({err})") from None  # fmt: skip
     for c in t.colnames:
         if c not in out.colnames:
             out[c] = t[c]
+    lost = ~(np.isfinite(out["x"]) & np.isfinite(out["y"]))
+    if lost.any():
+        log.warning("%s: %d row(s) without a finite position (rows %s): kept, flagged "
+                    "BAD_POSITION and not measured", path, int(lost.sum()),
+                    ", ".join(map(str, np.flatnonzero(lost)[:5])) + (", ..." if lost.sum() > 5
+                                                                     else ""))  # fmt: skip
     return out
 
 
 # ----------------------------------------------------------------------------------------
 # One image
 # ----------------------------------------------------------------------------------------
+#: where an input catalogue's row without a finite position is put (times its rank)
+_NOWHERE = -1e7
+
+
 def _detect(img: _Image, cfg: Config, positions: Table | None):
     """Background-subtracted image, the object table (detections or input positions) and
     the :class:`~pylensfit.detection.Background`."""
@@ -198,6 +215,11 @@ def _detect(img: _Image, cfg: Config, positions: Table | None):
 
     out = positions.copy()
     out["id"] = np.arange(1, len(out) + 1)
+    # a row without a finite position: far off the image and from every other row, where
+    # it is cut, paired and fitted with nothing (flagged BAD_POSITION by _image_task)
+    lost = ~(np.isfinite(out["x"]) & np.isfinite(out["y"]))
+    out["no_position"] = lost
+    out["x"][lost] = out["y"][lost] = _NOWHERE * np.arange(1, lost.sum() + 1)
     photometry = ("flux", "flux_err", "snr", "peak_snr", "r_half", "mag", "sep_flag")
     for c in photometry:
         out[c] = np.nan if c != "sep_flag" else 0
@@ -287,6 +309,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     sub, det, bkg = _detect(img, cfg, positions)
     t_detect = time.perf_counter()
     n = len(det)
+    lost = np.asarray(det["no_position"]) if "no_position" in det.colnames else np.zeros(n, bool)
     flags = np.zeros(n, dtype=np.int32)
     # the PSF: this image's stars co-added with the star fields'
     psfs = list(task.get("star_psfs", []))
@@ -442,6 +465,10 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
               "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
     rows["refit_neighbours"] = np.zeros(n, dtype=bool)
     rows["refit_neighbours"][redo] = True
+    for c in ("x", "y", "x_detect", "y_detect", "ALPHA_J2000", "DELTA_J2000", "background",
+              "noise_sigma"):  # an input catalogue's rows without a position: kept as NaN
+        rows[c][lost] = np.nan
+    flags[lost] = _flags.flag_value("BAD_POSITION")
     return {
         "index": task["index"], "path": path, "rows": rows, "lnL": lnL,
         "lnL_bulge": lnL_bulge, "lnL_r": lnL_r, "egrid": egrid,
@@ -804,6 +831,133 @@ def _as_list(v, n: int, name: str) -> list:
     return v
 
 
+def _image_shapes(path: str, what: str) -> dict[str, tuple[int, ...]]:
+    """The shapes of a FITS file's first 2-D image (key ``""``) and of its ``WEIGHT`` and
+    ``MASK`` HDUs, from the headers: :func:`measure` opens every input this way before
+    any work starts, so that a damaged file is reported at once, on one line naming it.
+
+    Raises
+    ------
+    InputError
+        A file that cannot be opened or is truncated (an HDU's data or header cut short:
+        astropy reads what is there with a warning, and would leave the rest out or fail
+        when the image's task runs), or one without a 2-D image.
+    """
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # astropy's truncation warnings: reported below
+        with _open(path, what) as hdul:
+            n = len(hdul)  # every header read
+            size = hdul.fileinfo(0)["file"].size  # 0 where unknown: a compressed file
+            end = 0
+            for i in range(n):
+                info = hdul.fileinfo(i)
+                end = info["datLoc"] + info["datSpan"]
+                if size and end > size:
+                    raise InputError(f"{path}: truncated {what} file ({size} bytes, HDU {i} "
+                                     f"ends at byte {end})")  # fmt: skip
+                if not size:  # compressed: its data must be read to know it is all there
+                    try:
+                        _ = hdul[i].data
+                    except Exception as err:
+                        raise InputError(f"{path}: cannot read HDU {i} of the {what} file "
+                                         f"({type(err).__name__}: {err})") from None  # fmt: skip
+            if size and size > end and _not_blank(path, end):
+                raise InputError(f"{path}: truncated {what} file ({size - end} bytes after "
+                                 f"HDU {n - 1} are not a whole HDU)")  # fmt: skip
+            shapes = {}
+            for h in hdul:
+                if (isinstance(h, (fits.PrimaryHDU, fits.ImageHDU)) and len(h.shape) == 2
+                        and min(h.shape) > 0):  # fmt: skip
+                    shapes.setdefault("", tuple(h.shape))
+            for name in ("WEIGHT", "MASK"):
+                if name in hdul:
+                    h = hdul[name]
+                    shapes[name] = tuple(h.shape) if isinstance(
+                        h, (fits.PrimaryHDU, fits.ImageHDU)) else ()  # fmt: skip
+    if "" not in shapes:
+        raise InputError(f"{path}: no 2-D image in the file")
+    return shapes
+
+
+def _not_blank(path: str, start: int) -> bool:
+    """Whether the bytes of ``path`` from ``start`` on are not all zeros or blanks (the
+    padding some writers leave after the last HDU, which astropy reads past)."""
+    with open(path, "rb") as fh:
+        fh.seek(start)
+        while chunk := fh.read(1 << 16):
+            if chunk.strip(b"\0 "):
+                return True
+    return False
+
+
+def _check_inputs(images: list[str], weights: list, masks: list, stars: list[str]) -> None:
+    """Open every input image, weight map, mask and star field before any work starts
+    (:func:`_image_shapes`), and refuse an image given twice (its rows would be
+    duplicated): one line naming the file and the problem."""
+    first: dict[Any, str] = {}
+    for p in images:
+        st = os.stat(p)
+        key = (st.st_dev, st.st_ino) if st.st_ino else os.path.normcase(os.path.realpath(p))
+        if key in first:
+            also = "" if first[key] == p else f" (the same file as {first[key]})"
+            raise InputError(f"{p}: image given twice{also}; each image must be given once")
+        first[key] = p
+    for p, w, m in zip(images, weights, masks, strict=True):
+        shapes = _image_shapes(p, "image")
+        # a weight or mask file given replaces the image's own HDU (as _read_image reads)
+        for f, name, what in ((w, "WEIGHT", "weight map"), (m, "MASK", "mask")):
+            if f is not None:
+                shape = _image_shapes(f, what)[""]
+            elif name in shapes:
+                shape = shapes[name]
+            else:
+                continue
+            if len(shape) != 2:
+                raise InputError(f"{p}: its {name} HDU is not a 2-D image")
+            if shape != shapes[""]:
+                raise InputError(f"{f or p}: {what} shape {shape} differs from the image's "
+                                 f"{shapes['']}" + (f" ({p})" if f else ""))  # fmt: skip
+    for p in stars:
+        _image_shapes(p, "star field")
+
+
+def _is_temporary(p: Path, name: str | None = None) -> bool:
+    """Whether ``p`` is a temporary of :func:`pylensfit.catalogue.atomic_write` (of the
+    file ``name``, else of any file): ``.<name>.<8 characters>.tmp``."""
+    import re
+
+    stem = re.escape(name) if name is not None else r".+"
+    return re.fullmatch(rf"\.{stem}\.[a-z0-9_]{{8}}\.tmp", p.name) is not None
+
+
+def _remove_stale_temporaries(out: Path, parts: Path) -> None:
+    """Remove what writes of ``out`` and of its part files killed before they finished
+    left behind (a write that finishes renames its temporary)."""
+    stale = []
+    if out.parent.is_dir():
+        stale += [p for p in out.parent.iterdir() if _is_temporary(p, out.name)]
+    if parts.is_dir():
+        stale += [p for p in parts.iterdir() if _is_temporary(p)]
+    for p in stale:
+        log.info("%s: removing the temporary of a write that did not finish", p)
+        p.unlink(missing_ok=True)
+
+
+@contextmanager
+def _parts_dropped_if_unused(parts: Path | None) -> Iterator[None]:
+    """A run's context: if it fails, ``parts`` is removed when it holds nothing that a
+    later run could resume from (no part file, no priors: at most temporaries)."""
+    try:
+        yield
+    except BaseException:
+        if parts is not None and parts.is_dir() and all(_is_temporary(p)
+                                                        for p in parts.iterdir()):
+            shutil.rmtree(parts, ignore_errors=True)
+        raise
+
+
 def measure(
     images: str | os.PathLike | Iterable[str | os.PathLike],
     *,
@@ -884,8 +1038,10 @@ def measure(
     Raises
     ------
     InputError
-        A missing or unreadable file, an empty image, an empty input catalogue, a star
-        field without usable stars: one line naming the file and the problem.
+        A missing, unreadable or truncated file, an image given twice, an empty image, an
+        empty input catalogue, a star field without usable stars: one line naming the
+        file and the problem. Every image, weight map, mask and star field is opened
+        (its headers read) before any work starts.
     """
     cfg = config if config is not None else Config()
     if isinstance(images, (str, os.PathLike)):
@@ -903,6 +1059,7 @@ def measure(
     for p in [*images, *stars, *[q for q in (*weights, *masks, *catalogues) if q]]:
         if not Path(p).exists():
             raise InputError(f"{p}: file not found")
+    _check_inputs(images, weights, masks, stars)
     prior = _load(prior, Prior, "prior")
     priors = _load(priors, Priors, "priors")
     size_prior = _load(size_prior, SizePrior, "size prior")
@@ -910,11 +1067,15 @@ def measure(
     if out is not None and out.exists() and not overwrite:
         raise FileExistsError(f"{out}: output exists (use overwrite to replace it)")
     parts = out.with_name(out.name + ".parts") if out is not None else None
+    if out is not None:
+        _remove_stale_temporaries(out, parts)
     cfgd = cfg.to_dict()
     if psf_dir is not None:
         Path(psf_dir).mkdir(parents=True, exist_ok=True)
 
-    with _pool(jobs, scheduler) as pool:  # one set of workers for every pass
+    # one set of workers for every pass; a run failing before it has written a part
+    # leaves no empty <output>.parts/
+    with _pool(jobs, scheduler) as pool, _parts_dropped_if_unused(parts):
         # star fields first: their PSFs go to every image
         star_psfs = []
         st_tasks = [{"path": p, "config": cfgd, "index": i} for i, p in enumerate(stars)]
@@ -1252,61 +1413,91 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
 
 
 def read_catalogue(path: str | os.PathLike) -> Table:
-    """Read a catalogue written by :func:`write_catalogue` (``lnL`` as a 2-D column)."""
+    """Read a catalogue written by :func:`write_catalogue` (``lnL`` as a 2-D column).
 
+    Raises
+    ------
+    InputError
+        One line naming the file: not a pylensfit catalogue (an HDU missing, ``LNL`` and
+        ``EGRID`` of inconsistent shapes) or a header card or HDU that cannot be read.
+    """
     with _open(str(path), "catalogue") as h:
         for need in ("CATALOG", "LNL", "EGRID"):
             if need not in h:
                 raise InputError(f"{path}: not a pylensfit catalogue (no {need} HDU)")
-        cat = Table(h["CATALOG"].data)
-        lnL = np.array(h["LNL"].data, dtype=np.float32)
-        if lnL.shape[0] != len(cat):
-            raise InputError(f"{path}: LNL has {lnL.shape[0]} rows for {len(cat)} objects")
-        cat["lnL"] = lnL
-        cat.meta["egrid"] = np.array(h["EGRID"].data, dtype=float)
-        if "LNLB" in h:
-            hb = h["LNLB"]
-            cat["lnL_bulge"] = np.array(hb.data, dtype=np.float32)
-            cat.meta["bulge_fractions"] = np.array(hb.header["BULGEFR"].split(","), float)
-            if "BULGESZ" in hb.header:
-                cat.meta["bulge_sizes"] = np.array(hb.header["BULGESZ"].split(","), float)
-            if "RUNS" in hb.header:
-                cat.meta["runs"] = hb.header["RUNS"].split(";")
-            w = hb.header.get("BULGEW")
-            cat.meta["bulge_weights"] = None if w is None else np.array(w.split(","), float)
-        hdr = h[0].header
-        if "PRIOR_B" in hdr:
-            cat.meta["prior"] = Prior(
-                B=hdr["PRIOR_B"], C=hdr["PRIOR_C"], D=hdr["PRIOR_D"], egrid=cat.meta["egrid"],
-                method=hdr.get("PRIORMTH", "fixed"),
-            )
-        if "SIZEPRI" in h:
-            hs = h["SIZEPRI"]
-            cat.meta["size_prior"] = SizePrior(ln_h=np.array(hs.data["ln_h"], dtype=float),
-                                               density=np.array(hs.data["density"], float).T,
-                                               star=float(hs.header["STAR"]),
-                                               smoothing=hs.header.get("SMOOTH"))  # fmt: skip
-        if "PRIORS" in h:
-            try:
-                cat.meta["priors"] = Priors.from_dict(json.loads(str(h["PRIORS"].data["json"][0])),
-                                                      source=f"{path} PRIORS")  # fmt: skip
-            except ValueError as err:
-                log.warning("%s: the PRIORS HDU cannot be read (%s); left out", path, err)
-        if "PSFS" in h:
-            cat.meta["psfs"] = Table(h["PSFS"].data)
-        if "PSFIMG" in h:
-            cat.meta["psf_images"] = np.array(h["PSFIMG"].data, dtype=float)
-        if "CONFIG" in h:
-            t = h["CONFIG"].data
-            vals = {str(k): json.loads(str(v)) for k, v in zip(t["key"], t["value"], strict=True)}
-            known = set(Config.describe())
-            extra = sorted(set(vals) - known)
-            if extra:  # written by another version: read what this one knows
-                log.warning("%s: configuration key(s) %s unknown to this version are left "
-                            "out", path, extra)  # fmt: skip
-            try:
-                cat.meta["config"] = Config.from_dict({k: v for k, v in vals.items()
-                                                       if k in known})  # fmt: skip
-            except ValueError as err:
-                log.warning("%s: its configuration cannot be read (%s); left out", path, err)
+        hdu = "CATALOG"  # the HDU being read, for the message
+        try:
+            cat = Table(h["CATALOG"].data)
+            hdu = "LNL"
+            lnL = np.array(h["LNL"].data, dtype=np.float32)
+            hdu = "EGRID"
+            egrid = np.array(h["EGRID"].data, dtype=float)
+            if lnL.ndim != 2 or lnL.shape[0] != len(cat):
+                raise InputError(f"{path}: LNL has shape {lnL.shape} for {len(cat)} objects "
+                                 "(one row of ln L per object)")  # fmt: skip
+            if egrid.shape != (lnL.shape[1], 2) or not np.isfinite(egrid).all():
+                raise InputError(f"{path}: EGRID has shape {egrid.shape}; LNL's "
+                                 f"{lnL.shape[1]} columns need ({lnL.shape[1]}, 2) finite "
+                                 "ellipticities")  # fmt: skip
+            cat["lnL"] = lnL
+            cat.meta["egrid"] = egrid
+            if "LNLB" in h:
+                hdu = "LNLB"
+                hb = h["LNLB"]
+                cat["lnL_bulge"] = np.array(hb.data, dtype=np.float32)
+                cat.meta["bulge_fractions"] = np.array(hb.header["BULGEFR"].split(","), float)
+                if "BULGESZ" in hb.header:
+                    cat.meta["bulge_sizes"] = np.array(hb.header["BULGESZ"].split(","), float)
+                if "RUNS" in hb.header:
+                    cat.meta["runs"] = hb.header["RUNS"].split(";")
+                w = hb.header.get("BULGEW")
+                cat.meta["bulge_weights"] = None if w is None else np.array(w.split(","), float)
+            hdu = "PRIMARY"
+            hdr = h[0].header
+            if "PRIOR_B" in hdr:
+                cat.meta["prior"] = Prior(
+                    B=hdr["PRIOR_B"], C=hdr["PRIOR_C"], D=hdr["PRIOR_D"],
+                    egrid=cat.meta["egrid"], method=hdr.get("PRIORMTH", "fixed"),
+                )  # fmt: skip
+            if "SIZEPRI" in h:
+                hdu = "SIZEPRI"
+                hs = h["SIZEPRI"]
+                cat.meta["size_prior"] = SizePrior(ln_h=np.array(hs.data["ln_h"], dtype=float),
+                                                   density=np.array(hs.data["density"], float).T,
+                                                   star=float(hs.header["STAR"]),
+                                                   smoothing=hs.header.get("SMOOTH"))  # fmt: skip
+            if "PRIORS" in h:
+                try:
+                    cat.meta["priors"] = Priors.from_dict(
+                        json.loads(str(h["PRIORS"].data["json"][0])), source=f"{path} PRIORS")
+                except ValueError as err:
+                    log.warning("%s: the PRIORS HDU cannot be read (%s); left out", path, err)
+            if "PSFS" in h:
+                hdu = "PSFS"
+                cat.meta["psfs"] = Table(h["PSFS"].data)
+            if "PSFIMG" in h:
+                hdu = "PSFIMG"
+                cat.meta["psf_images"] = np.array(h["PSFIMG"].data, dtype=float)
+            if "CONFIG" in h:
+                hdu = "CONFIG"
+                t = h["CONFIG"].data
+                vals = {str(k): json.loads(str(v))
+                        for k, v in zip(t["key"], t["value"], strict=True)}  # fmt: skip
+                known = set(Config.describe())
+                extra = sorted(set(vals) - known)
+                if extra:  # written by another version: read what this one knows
+                    log.warning("%s: configuration key(s) %s unknown to this version are left "
+                                "out", path, extra)  # fmt: skip
+                try:
+                    cat.meta["config"] = Config.from_dict({k: v for k, v in vals.items()
+                                                           if k in known})  # fmt: skip
+                except ValueError as err:
+                    log.warning("%s: its configuration cannot be read (%s); left out", path,
+                                err)  # fmt: skip
+        except InputError:
+            raise
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+            msg = err.args[0] if isinstance(err, KeyError) and err.args else err
+            raise InputError(f"{path}: cannot read HDU {hdu} ({type(err).__name__}: "
+                             f"{msg})") from None  # fmt: skip
     return cat

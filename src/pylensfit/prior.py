@@ -376,29 +376,110 @@ class Prior:
 
     @classmethod
     def load(cls, path: str | Path) -> Prior:
-        """Read a prior written by :meth:`save`."""
-        return cls.from_dict(json.loads(Path(path).read_text()))
+        """Read a prior written by :meth:`save`.
+
+        Raises
+        ------
+        ValueError
+            One line naming the file: unreadable, not JSON, or not a prior.
+        """
+        return cls.from_dict(_read_json(path), source=str(path))
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> Prior:
-        """The prior of :meth:`to_dict`."""
-        egrid = np.asarray(d["egrid"], dtype=float) if "egrid" in d else None
-        return cls(
-            B=d["B"],
-            C=d["C"],
-            D=d["D"],
-            step=None if egrid is not None else d["step"],
-            egrid=egrid,
-            method=d.get("method", "fixed"),
-            history=d.get("history", []),
-            info=d.get("info", {}),
-        )
+    def from_dict(cls, d: dict[str, Any], source: str = "prior dict") -> Prior:
+        """The prior of :meth:`to_dict`.
+
+        Parameters
+        ----------
+        d : dict
+            ``B``, ``C``, ``D`` and ``step`` (or ``egrid``); optionally ``method``,
+            ``history`` and ``info``.
+        source : str
+            What ``d`` came from (a file name), for the error message.
+
+        Raises
+        ------
+        ValueError
+            One line naming ``source`` if ``d`` is not a prior.
+        """
+        what = f"{source}: not an ellipticity prior"
+        need = "a prior holds B, C, D and step"
+        if not isinstance(d, dict):
+            raise ValueError(f"{what} (a JSON {_json_kind(d)}; {need})")
+        missing = [k for k in ("B", "C", "D") if k not in d]
+        if "step" not in d and "egrid" not in d:
+            missing.append("step")
+        if missing:
+            hint = _other_file_hint(d, {"priors": "priors", "size_prior": "size prior"})
+            raise ValueError(f"{what} (no entry {', '.join(map(repr, missing))}; {need}{hint})")
+        try:
+            egrid = np.asarray(d["egrid"], dtype=float) if "egrid" in d else None
+            if egrid is not None:
+                egrid = _check_egrid(egrid)
+            return cls(
+                B=d["B"],
+                C=d["C"],
+                D=d["D"],
+                step=None if egrid is not None else d["step"],
+                egrid=egrid,
+                method=str(d.get("method", "fixed")),
+                history=d.get("history") or [],
+                info=d.get("info") or {},
+            )
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{what} ({err})") from None
 
     def __repr__(self) -> str:
         return (
             f"Prior(B={self.B:.4g}, C={self.C:.4g}, D={self.D:.4g}, step={self.step:g}, "
             f"method={self.method!r})"
         )
+
+
+def _json_kind(obj: Any) -> str:
+    """The JSON name of ``obj``'s type (``"list"``, ``"number"``, ...)."""
+    if isinstance(obj, list):
+        return "list"
+    if isinstance(obj, str):
+        return "string"
+    if obj is None:
+        return "null"
+    if isinstance(obj, (bool, int, float)):
+        return "number" if not isinstance(obj, bool) else "boolean"
+    return type(obj).__name__
+
+
+def _other_file_hint(d: dict, kinds: dict[str, str]) -> str:
+    """``"; it holds 'priors': a priors file?"`` where ``d`` holds the entry of another
+    kind of file (``kinds``: entry -> kind), else the entries it holds."""
+    for key, kind in kinds.items():
+        if key in d:
+            return f"; it holds {key!r}: a {kind} file?"
+    keys = ", ".join(repr(str(k)) for k in list(d)[:4]) + (", ..." if len(d) > 4 else "")
+    return f"; it holds {keys}" if d else "; it is empty"
+
+
+def _read_json(path: str | Path) -> Any:
+    """The content of the JSON file ``path``.
+
+    Raises
+    ------
+    ValueError
+        One line naming the file: it cannot be read, or it is not JSON.
+    """
+    try:
+        text = Path(path).read_text()
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not JSON (not a text file)") from None
+    except OSError as err:
+        raise ValueError(f"{path}: cannot read ({err.strerror or err})") from None
+    if not text.strip():
+        raise ValueError(f"{path}: not JSON (empty file)")
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not JSON ({err.msg} at line {err.lineno} column "
+                         f"{err.colno})") from None  # fmt: skip
 
 
 def _jsonable(obj: Any) -> Any:
@@ -1251,20 +1332,48 @@ class SizePrior:
                    else {"smoothing": float(self.smoothing)})}  # fmt: skip
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> SizePrior:
-        """The prior of :meth:`to_dict`."""
-        ln_h = np.asarray(d["ln_h"], dtype=float)
-        dens = np.asarray(d["density"], dtype=float)
+    def from_dict(cls, d: dict[str, Any], source: str = "size prior dict") -> SizePrior:
+        """The prior of :meth:`to_dict`.
+
+        Parameters
+        ----------
+        d : dict
+            ``ln_h`` and ``density``; optionally ``star`` and ``smoothing``.
+        source : str
+            What ``d`` came from (a file name), for the error message.
+
+        Raises
+        ------
+        ValueError
+            One line naming ``source`` if ``d`` is not a size prior.
+        """
+        what = f"{source}: not a size prior"
+        if not isinstance(d, dict):
+            raise ValueError(f"{what} (a JSON {_json_kind(d)}; a size prior holds ln_h and "
+                             "density)")  # fmt: skip
+        missing = [k for k in ("ln_h", "density") if k not in d]
+        if missing:
+            raise ValueError(f"{what} (no entry {', '.join(map(repr, missing))}; a size prior "
+                             f"holds ln_h and density{_other_file_hint(d, {})})")  # fmt: skip
+        try:
+            ln_h = np.asarray(d["ln_h"], dtype=float)
+            dens = np.asarray(d["density"], dtype=float)
+            star = float(d.get("star", 1e-6))
+            sm = d.get("smoothing")
+            sm = None if sm is None else float(sm)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{what} ({err})") from None
         if ln_h.ndim != 1 or dens.ndim not in (1, 2) or dens.shape[-1] != ln_h.size \
                 or ln_h.size < 2:
-            raise ValueError("a size prior needs ln_h and density (one row per run, or one) "
-                             "of the same length >= 2")  # fmt: skip
-        if not (np.all(np.diff(ln_h) > 0) and np.all(dens >= 0)
+            raise ValueError(f"{what} (it needs ln_h and density (one row per run, or one) "
+                             "of the same length >= 2)")  # fmt: skip
+        if not (np.all(np.isfinite(ln_h)) and np.all(np.diff(ln_h) > 0)
+                and np.all(np.isfinite(dens)) and np.all(dens >= 0)
                 and np.all(dens.reshape(-1, ln_h.size).sum(axis=1) > 0)):
-            raise ValueError("a size prior needs increasing ln_h and a non-negative density")
-        sm = d.get("smoothing")
-        return cls(ln_h=ln_h, density=dens, star=float(d.get("star", 1e-6)),
-                   smoothing=None if sm is None else float(sm))  # fmt: skip
+            raise ValueError(f"{what} (it needs increasing ln_h and a non-negative density)")
+        if not 0 <= star < 1:
+            raise ValueError(f"{what} (star must be in [0, 1), got {star:g})")
+        return cls(ln_h=ln_h, density=dens, star=star, smoothing=sm)
 
     def save(self, path: str | Path) -> None:
         """Write the prior as JSON."""
@@ -1272,12 +1381,20 @@ class SizePrior:
 
     @classmethod
     def load(cls, path: str | Path) -> SizePrior:
-        """Read a prior written by :meth:`save`."""
-        try:
-            d = json.loads(Path(path).read_text())
-            return cls.from_dict(d["size_prior"])
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            raise ValueError(f"{path}: not a size prior file ({err})") from None
+        """Read a prior written by :meth:`save`.
+
+        Raises
+        ------
+        ValueError
+            One line naming the file: unreadable, not JSON, or not a size prior.
+        """
+        d = _read_json(path)
+        if not isinstance(d, dict) or "size_prior" not in d:
+            detail = (f"a JSON {_json_kind(d)}" if not isinstance(d, dict) else
+                      "no 'size_prior' entry" + _other_file_hint(
+                          d, {"priors": "priors", "B": "prior"}))  # fmt: skip
+            raise ValueError(f"{path}: not a size prior file ({detail})")
+        return cls.from_dict(d["size_prior"], source=str(path))
 
     def node_weights(self, bank, config) -> tuple[np.ndarray, float]:
         """Weights of the model bank's sizes and of the point source in the sum over r.

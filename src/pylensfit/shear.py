@@ -905,10 +905,20 @@ def shear_table(
     if column is not None:
         if column not in shapes_table.colnames:
             raise ValueError(f"the table has no column {column!r} to bin by")
-        e = np.asarray(edges, dtype=float)
-        if e.ndim != 1 or e.size < 2 or np.any(np.diff(e) <= 0):
-            raise ValueError(f"bin edges must increase, got {list(e)}")
-        v = np.asarray(shapes_table[column], dtype=float)
+        try:
+            e = np.asarray(edges, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"bin edges must be numbers, got {edges!r}") from None
+        if e.ndim != 1 or e.size < 2 or not np.all(np.isfinite(e)) or np.any(np.diff(e) <= 0):
+            raise ValueError(f"bin edges must be at least two finite increasing numbers, got "
+                             f"{e.tolist()}")  # fmt: skip
+        v = np.asarray(shapes_table[column])
+        if v.ndim != 1:
+            raise ValueError(f"column {column!r} holds arrays of shape {v.shape[1:]}, not one "
+                             "number per row: cannot bin by it")  # fmt: skip
+        if not (np.issubdtype(v.dtype, np.number) or np.issubdtype(v.dtype, np.bool_)):
+            raise ValueError(f"column {column!r} is not numeric ({v.dtype}): cannot bin by it")
+        v = v.astype(float)
         for lo, hi in zip(e[:-1], e[1:], strict=True):
             keys.append((f"{lo:g}<={column}<{hi:g}", (v >= lo) & (v < hi)))
     keys.append(("all", np.ones(n, dtype=bool)))
