@@ -188,6 +188,63 @@ def test_missing_and_corrupt_files(fields, tmp_path):
         measure([cut], config=CFG, prior=PRIOR, progress=False)
 
 
+def _no_task_runs(monkeypatch) -> list:
+    """The tasks that start (none should), in place of the pipeline's."""
+    calls = []
+    monkeypatch.setattr(pl, "_image_task", lambda t: calls.append(t["path"]))
+    monkeypatch.setattr(pl, "_starfield_task", lambda t: calls.append(t["path"]))
+    return calls
+
+
+def test_every_input_is_checked_before_any_work(fields, tmp_path, monkeypatch):
+    """A truncated image (cut in an HDU's data or in a header, which astropy would read
+    without the rest), weight map, mask or star field, or a weight map of another shape,
+    is reported before any task starts, on one line naming the file."""
+    d, *_ = fields
+    calls = _no_task_runs(monkeypatch)
+    a, b, stars = d / "a.fits", d / "b.fits", d / "stars.fits"
+    raw = a.read_bytes()
+    with fits.open(a) as h:
+        weight_header = h.fileinfo(1)["hdrLoc"]
+    cut_data = tmp_path / "cut_data.fits"
+    cut_data.write_bytes(raw[: 2880 + 1000])
+    cut_header = tmp_path / "cut_header.fits"
+    cut_header.write_bytes(raw[: weight_header + 400])
+    small = tmp_path / "small_weight.fits"
+    fits.PrimaryHDU(np.ones((100, 100), dtype=np.float32)).writeto(small)
+    args = dict(config=CFG, prior=PRIOR, output=tmp_path / "out.fits", progress=False)
+    cases = [
+        (dict(images=[a, cut_data], stars=[stars]), f"{cut_data}: truncated image file"),
+        (dict(images=[a, cut_header], stars=[stars]), f"{cut_header}: truncated image file"),
+        (dict(images=[a, b], weights=[None, cut_data]), f"{cut_data}: truncated weight map"),
+        (dict(images=[a, b], masks=[cut_data, None]), f"{cut_data}: truncated mask file"),
+        (dict(images=[a, b], stars=[stars, cut_data]), f"{cut_data}: truncated star field"),
+        (dict(images=[a, b], weights=[small, None]),
+         f"{small}: weight map shape (100, 100) differs from the image's (512, 512) ({a})"),
+    ]  # fmt: skip
+    for kw, msg in cases:
+        with pytest.raises(InputError) as err:
+            measure(kw.pop("images"), **kw, **args)
+        assert str(err.value).startswith(msg) and "\n" not in str(err.value), str(err.value)
+    assert calls == [] and not (tmp_path / "out.fits.parts").exists()
+
+
+def test_an_image_given_twice_is_refused(fields, tmp_path, monkeypatch):
+    """The same image twice (by name or through a link) would give its rows twice."""
+    d, *_ = fields
+    calls = _no_task_runs(monkeypatch)
+    a = d / "a.fits"
+    with pytest.raises(InputError, match=r"a\.fits: image given twice; each image must be "
+                                         r"given once$"):  # fmt: skip
+        measure([a, d / "b.fits", a], config=CFG, prior=PRIOR, progress=False)
+    link = tmp_path / "link.fits"
+    link.symlink_to(a)
+    with pytest.raises(InputError, match=r"link\.fits: image given twice \(the same file as "
+                                         r".*a\.fits\)"):  # fmt: skip
+        measure([a, link], config=CFG, prior=PRIOR, progress=False)
+    assert calls == []
+
+
 def test_large_galaxies_are_fitted_on_the_stamp_tiers(tmp_path):
     """With ``max_stamp_size``, ``measure`` fits each galaxy larger than the base stamp
     allows on a larger stamp (``stamp_size`` column) and the rest as before: the same
@@ -397,6 +454,45 @@ def test_resume_after_a_killed_run(fields, tmp_path, monkeypatch):
     np.testing.assert_array_equal(cat["e1"], ref["e1"])
     with pytest.raises(FileExistsError):
         measure([d / "a.fits"], **args)
+
+
+def _left_by_a_killed_write(where, name):
+    """The temporary that a write of ``name`` killed outright (SIGKILL: nothing cleans up)
+    leaves, named as :func:`pylensfit.catalogue.atomic_write` names it."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    fd, p = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=where)
+    os.close(fd)
+    return Path(p)
+
+
+def test_no_leftovers_after_a_kill_or_an_error(fields, tmp_path):
+    """The next run of an output removes the temporaries of its own killed writes (the
+    catalogue's and the part files'), not those of other files; a run that fails on an
+    input error inside an image task before any part is written leaves no
+    ``<output>.parts/``, one that fails after keeps its parts for the resume."""
+    d, *_ = fields
+    out = tmp_path / "run.fits"
+    parts = tmp_path / "run.fits.parts"
+    stale = _left_by_a_killed_write(tmp_path, out.name)
+    other = _left_by_a_killed_write(tmp_path, "other.fits")
+    zeros = tmp_path / "zeros.fits"  # empty: found when its task reads the pixels
+    fits.PrimaryHDU(np.zeros((256, 256), dtype=np.float32)).writeto(zeros)
+    parts.mkdir()
+    stale_part = _left_by_a_killed_write(parts, "00000_a_0123456789abcdef.fits")
+    args = dict(config=CFG, prior=PRIOR, output=out, progress=False)
+    with pytest.raises(InputError, match="zeros.fits: empty image"):
+        measure([zeros], **args)
+    assert not stale.exists() and not stale_part.exists() and other.exists()
+    assert not parts.exists() and not out.exists()
+    with pytest.raises(InputError, match="zeros.fits: empty image"):
+        measure([d / "a.fits", zeros], stars=[d / "stars.fits"], **args)
+    assert len(list(parts.glob("*_a_*.fits"))) == 1, "a finished image is kept"
+    stale = _left_by_a_killed_write(tmp_path, out.name)
+    measure([d / "a.fits"], stars=[d / "stars.fits"], **args)
+    assert out.exists() and not stale.exists() and not parts.exists() and other.exists()
 
 
 def test_cli_measure_prior_shear(fields, tmp_path, capsys):
