@@ -1,11 +1,11 @@
 """Throughput and memory of the likelihood engine, next to GalSim HSM and AnaCal FPFS.
 
-For the paper's grid (``Config()``: de = 0.1, r = 0 ... 10 px in 0.2 px, 15,801 models)
-on 32 x 32 stamps this prints galaxies per second of :func:`pylensfit.fit_stamps` with
-1 and 2 single-threaded worker processes and with one multithreaded process, the peak
-resident memory of every process, and, measured in the same run on the same stamps,
-GalSim HSM REGAUSS (``galsim.hsm.EstimateShear``) and, where ``pip install anacal``
-works, AnaCal's FPFS.
+For one profile's grid (``Config(model=--model)``: de = 0.1, sizes up to 10 px; de
+Vaucouleurs by default) on 32 x 32 stamps this prints galaxies per second of
+:func:`pylensfit.fit_stamps` with 1 and 2 single-threaded worker processes and with one
+multithreaded process, the peak resident memory of every process, and, measured in the
+same run on the same stamps, GalSim HSM REGAUSS (``galsim.hsm.EstimateShear``) and,
+where ``pip install anacal`` works, AnaCal's FPFS.
 
 Usage::
 

@@ -36,7 +36,7 @@ import numpy as np
 from pylensfit import precision as P
 from pylensfit.pipeline import _pool, _run
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
 from precision_ab import _jk_err, _m_jk, _priors  # noqa: E402
 
 _EST = ("lensfit", "lensfit-mc", "metacal")
@@ -151,9 +151,8 @@ def main() -> None:
                          "negated, and average: the responses' noise cancels to first order")
     ap.add_argument("--save", default=None, help="also write the per-rendering arrays here (npz)")
     ap.add_argument("--flux-bounds", choices=["none", "estimated", "oracle"], default="none",
-                    help="the flux prior's bounds: none (the unbounded power law of the "
-                         "thirty-fourth session's runs), estimated by the calibration (the "
-                         "precision mode's default since the thirty-sixth session) or the "
+                    help="the flux prior's bounds: none (the unbounded power law), estimated "
+                         "by the calibration (as the precision mode's default does) or the "
                          "population's")  # fmt: skip
     a = ap.parse_args()
     kw = {} if a.morphology_weights is None else {"morphology_weights": tuple(a.morphology_weights)}

@@ -68,7 +68,7 @@ the galaxy and the rotation but not on the sign of the shear,
 the noise field of k = 3 that of k = 1, and the two rotations have independent noise.
 ``--independent-noise`` gives every rendering its own noise instead (seed
 ``SeedSequence([seed, sample, i, k])``; k = 0, 1 are then the same images as in the
-shared design), the old behaviour, where only the intrinsic shapes cancel. Stamps are
+shared design), where only the intrinsic shapes cancel. Stamps are
 64 x 64 float32 ``[k, y, x]``, drawn with ``method="auto"`` (the pixel response
 included), the galaxy at pixel ``[32, 32]`` plus its offset; the PSF image given to both
 methods is drawn the same way, centred on ``[32, 32]`` of a 64 x 64 image. A separate

@@ -6,7 +6,7 @@ the largest |d ln L| over up to 12 cells where L > 1e-3 of its peak, with the qu
 expansion only (``cubic_snr = 0``) and with the cubic terms (``cubic_snr = inf``). This is
 the measurement behind the default ``Config.cubic_snr = 20``.
 
-    python benchmarks/bench_cubic_terms.py [--snr 10 14 20 30]
+    python benchmarks/studies/bench_cubic_terms.py [--snr 10 14 20 30]
 """
 
 import argparse
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
 from pylensfit import Config, fit_stamps  # noqa: E402
 from test_likelihood import N, _galaxy, brute_force_lnL  # noqa: E402
 

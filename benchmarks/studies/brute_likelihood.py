@@ -18,8 +18,9 @@ GalSim at +-g with their 90-degree twins as in ``validate --precision``. Each st
 Point sources are kept (flag STAR cleared) so that no selection enters. m, c are the
 fixed-point estimator's, with the intrinsic shapes' control variates::
 
-    python benchmarks/brute_likelihood.py devaucouleurs --snr 10 20 --size 0.5 0.7
-    python benchmarks/brute_likelihood.py devaucouleurs --snr 10 20 --size 0.5 0.7 --noise-free
+    python benchmarks/studies/brute_likelihood.py devaucouleurs --snr 10 20 --size 0.5 0.7
+    python benchmarks/studies/brute_likelihood.py devaucouleurs --snr 10 20 --size 0.5 0.7 \
+        --noise-free
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ galaxy. The workers' memory (their model banks, one block's renderings and fits)
 grow with the calibration and is not in it. Needs psutil (installed with the ``test`` or
 ``dask`` extras, through dask.distributed)::
 
-    python benchmarks/calibration_memory.py --ncal 4000 12000
+    python benchmarks/studies/calibration_memory.py --ncal 4000 12000
 """
 
 from __future__ import annotations

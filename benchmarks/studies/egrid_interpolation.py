@@ -21,7 +21,7 @@ same 0.025 cells as the default's refinement by 4 of the 0.1 grid), m is compute
 It prints each one's m minus the exact one's per bin of true S/N (fixed point, paired
 jackknife over groups of 100 galaxies)::
 
-    python benchmarks/egrid_interpolation.py --ngal 4000 --snr 10 30 --psf round e=0.10
+    python benchmarks/studies/egrid_interpolation.py --ngal 4000 --snr 10 30 --psf round e=0.10
 """
 
 from __future__ import annotations
@@ -135,7 +135,7 @@ def main() -> None:
 
 
 def precision_ab():
-    """The module ``benchmarks/precision_ab.py`` (its paired jackknife and helpers)."""
+    """The module ``benchmarks/studies/precision_ab.py`` (its paired jackknife and helpers)."""
     path = Path(__file__).with_name("precision_ab.py")
     mod = importlib.util.spec_from_file_location("precision_ab", path)
     ab = importlib.util.module_from_spec(mod)

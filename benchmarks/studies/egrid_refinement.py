@@ -20,7 +20,7 @@ true S/N, minus the exact grid's m):
 The fits of 0.025 are cached per block (``--cache``), so that other variants can be
 tried without fitting again::
 
-    python benchmarks/egrid_refinement.py --ngal 2000 --seed 21     # ~12 min on 2 cores
+    python benchmarks/studies/egrid_refinement.py --ngal 2000 --seed 21     # ~12 min on 2 cores
 """
 
 from __future__ import annotations
@@ -114,7 +114,7 @@ def _task(t: dict) -> dict:
 
 
 def _helpers():
-    """``benchmarks/egrid_interpolation.py`` (its paired table) and ``precision_ab.py``."""
+    """``benchmarks/studies/egrid_interpolation.py`` (its paired table) and ``precision_ab.py``."""
     path = Path(__file__).with_name("egrid_interpolation.py")
     mod = importlib.util.spec_from_file_location("egrid_interpolation", path)
     ei = importlib.util.module_from_spec(mod)

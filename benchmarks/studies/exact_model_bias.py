@@ -9,9 +9,9 @@ galaxies by index. The bins by true size are
 conditional on the truth: with a size prior, a Bayesian estimate is biased low for the
 smallest and high for the largest galaxies of the population while the whole is not::
 
-    python benchmarks/exact_model_bias.py exponential --snr 40 200 --size 0.5 1.0
-    python benchmarks/exact_model_bias.py devaucouleurs --stamp 64 --config r_rel_step=0
-    python benchmarks/exact_model_bias.py exponential --snr 30 30.01 --size 0.5 0.7 \
+    python benchmarks/studies/exact_model_bias.py exponential --snr 40 200 --size 0.5 1.0
+    python benchmarks/studies/exact_model_bias.py devaucouleurs --stamp 64 --config r_rel_step=0
+    python benchmarks/studies/exact_model_bias.py exponential --snr 30 30.01 --size 0.5 0.7 \
         --noise-free --size-prior estimate --ngal 4000
 """
 
@@ -21,8 +21,8 @@ import argparse
 import time
 
 import numpy as np
-
 from brute_likelihood import true_size_prior  # this folder's (run as a script)
+
 from pylensfit.config import Config
 from pylensfit.likelihood import fit_stamps
 from pylensfit.models import model_bank

@@ -11,10 +11,10 @@ to the stamp), it prints:
 - ``proj``: that residual projected onto the signal, the fraction of the response the
   fits would misread (a shear bias of that order).
 
-Sixteenth session: residuals 1e-5 of the norm, projections -1e-5 (``benchmarks/README.md``,
-"Exact models and every prior the population's own")::
+It measures residuals of 1e-5 of the norm and projections of -1e-5: the models are
+exact::
 
-    python benchmarks/model_residual.py
+    python benchmarks/studies/model_residual.py
 """
 
 from __future__ import annotations

@@ -18,9 +18,9 @@ rows `cv`). Modes:
 
 ::
 
-    python benchmarks/neighbour_bias.py --mode alone neighbours subtracted --ngal 2000
-    python benchmarks/neighbour_bias.py --mode neighbours --noise-free --rd 2.5 3.5
-    python benchmarks/neighbour_bias.py --mode alone --size-prior true --g 0.1 --ngal 10000
+    python benchmarks/studies/neighbour_bias.py --mode alone neighbours subtracted --ngal 2000
+    python benchmarks/studies/neighbour_bias.py --mode neighbours --noise-free --rd 2.5 3.5
+    python benchmarks/studies/neighbour_bias.py --mode alone --size-prior true --g 0.1 --ngal 10000
 
 ``--size-prior true`` fits with the population's own size prior (the disc scale length
 uniform in ``--rd``) instead of the flat one: with the ellipticity prior and the bulge
@@ -35,9 +35,9 @@ import time
 
 import galsim
 import numpy as np
+from precision_ab import _kv
 
 import pylensfit.pipeline as pl
-from precision_ab import _kv
 from pylensfit.config import Config
 from pylensfit.likelihood import fit_stamps
 from pylensfit.precision import (

@@ -12,7 +12,7 @@ of the errors divided by that.
 
 ::
 
-    python benchmarks/noise_twins.py --out /tmp/nt --ngal 16000 --npsf 2 --seed 21
+    python benchmarks/studies/noise_twins.py --out /tmp/nt --ngal 16000 --npsf 2 --seed 21
 
 (8 minutes on 2 cores: 2 to simulate, 5 and 3 to validate.)
 """

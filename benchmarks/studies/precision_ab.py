@@ -15,9 +15,9 @@ estimates, without control variates (the shape noise is common to both).
 It prints, per PSF and for the mean of PSFs, m1 and m2 of A and B (fixed point, with the
 precision mode's control variates) and B - A, and the fit's CPU seconds of each::
 
-    python benchmarks/precision_ab.py --ngal 20000 --seed 5 --b size_prior_floor_stride=1
-    python benchmarks/precision_ab.py --ngal 4000 --b cubic_snr=0 --jobs 2
-    python benchmarks/precision_ab.py --ngal 20000 --estimated --by-morphology \
+    python benchmarks/studies/precision_ab.py --ngal 20000 --seed 5 --b size_prior_floor_stride=1
+    python benchmarks/studies/precision_ab.py --ngal 4000 --b cubic_snr=0 --jobs 2
+    python benchmarks/studies/precision_ab.py --ngal 20000 --estimated --by-morphology \
         --b stamp_hlr_ratio=14
 """
 

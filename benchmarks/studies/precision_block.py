@@ -1,12 +1,12 @@
 """Time one block of ``validate --precision`` (render, fit, reduce) in one process, one thread.
 
-The unit of work of the precision run, without the process pool: this is what the
-seventeenth session's A/B of the likelihood kernel measured. For an A/B against an
-older commit, run it once as is and once with that commit's ``src`` first on the path::
+The unit of work of the precision run, without the process pool: the measure for an
+A/B of the likelihood kernel. For an A/B against an older commit, run it once as is and
+once with that commit's ``src`` first on the path::
 
-    python benchmarks/precision_block.py
+    python benchmarks/studies/precision_block.py
     git worktree add --detach /tmp/old <commit>
-    PYTHONPATH=/tmp/old/src python benchmarks/precision_block.py
+    PYTHONPATH=/tmp/old/src python benchmarks/studies/precision_block.py
 
 Prints the seconds of the block, of the GalSim rendering, of the fit and of the
 reduction, per PSF (blocks ``psf + 4`` of ``PrecisionSpec(seed=5)``, after one warm-up
@@ -16,7 +16,7 @@ block that compiles the kernels and builds the banks).
 flux range (the precision mode's default estimates it) and prints both fits' CPU
 seconds, the better of ``--repeat`` tries each, interleaved::
 
-    python benchmarks/precision_block.py --psf 1 --seed 41 --flux-bounds --repeat 5
+    python benchmarks/studies/precision_block.py --psf 1 --seed 41 --flux-bounds --repeat 5
 """
 
 from __future__ import annotations

@@ -22,9 +22,11 @@ The seed fixes the renderings and the noise, so runs that differ only in the pri
 paired and their difference in m is far better measured than either m. It prints the
 fixed-point rows of the ``all``, PSF, S/N, size and morphology breakdowns::
 
-    python benchmarks/precision_priors.py --ngal 20000 --seed 5
-    python benchmarks/precision_priors.py --ngal 20000 --seed 5 --morphology-weights 1 1 0 0 0
-    python benchmarks/precision_priors.py --ngal 20000 --seed 5 --morphology-weights 1 1 0 0 0 \\
+    python benchmarks/studies/precision_priors.py --ngal 20000 --seed 5
+    python benchmarks/studies/precision_priors.py --ngal 20000 --seed 5 \\
+        --morphology-weights 1 1 0 0 0
+    python benchmarks/studies/precision_priors.py --ngal 20000 --seed 5 \\
+        --morphology-weights 1 1 0 0 0 \\
         --true-prior --true-size-prior --bulge-weights 0.5 0 0.5
 """
 

@@ -1,6 +1,6 @@
 """What the sky estimate does to m: one PSF of a STEP-like set measured three ways.
 
-    python benchmarks/sky_bias.py DIR --psf K [--jobs 2]
+    python benchmarks/studies/sky_bias.py DIR --psf K [--jobs 2]
 
 ``DIR`` is a set of ``pylensfit simulate step1|step2``. The shear fields of PSF ``K``
 (and their star field) are measured
@@ -16,7 +16,8 @@ each mode from the same galaxies (those measured in every mode; twins paired whe
 set has them), with one ellipticity prior estimated from the ``sep`` catalogues, and
 the paired difference of each mode from ``sep`` (a fit of the difference of the shear
 estimates against the true shear: the galaxies and the noise are shared, so the
-difference is measured far better than m itself). Results: ``benchmarks/README.md``.
+difference is measured far better than m itself). What it found: ``benchmarks/README.md``,
+"What the studies found".
 """
 
 from __future__ import annotations

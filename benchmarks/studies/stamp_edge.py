@@ -10,12 +10,12 @@ square stamp breaks the symmetry between the pixel axes (e1) and the diagonals (
 the models are cut at the edge (``Config.truncate_models``), but the light that the
 PSF scatters across it is not where the periodic model puts it, and a galaxy whose
 convolved half-light radius is more than a tenth of the stamp responds differently to
-g1 and g2. ``Config.max_stamp_size`` fits such galaxies on larger stamps (fifteenth
-session, ``benchmarks/README.md``)::
+g1 and g2. ``Config.max_stamp_size`` fits such galaxies on larger stamps
+(``benchmarks/README.md``, "What the studies found")::
 
-    python benchmarks/stamp_edge.py
-    python benchmarks/stamp_edge.py --psf round kolmogorov --ratio 1 1.5 2 2.5 --snr 200
-    python benchmarks/stamp_edge.py --profile devaucouleurs --psf kolmogorov --ratio 1.5 2
+    python benchmarks/studies/stamp_edge.py
+    python benchmarks/studies/stamp_edge.py --psf round kolmogorov --ratio 1 1.5 2 2.5 --snr 200
+    python benchmarks/studies/stamp_edge.py --profile devaucouleurs --psf kolmogorov --ratio 1.5 2
 
 ``--profile devaucouleurs`` renders and fits de Vaucouleurs galaxies (truncated at 8
 half-light radii, as the model): their wings need more than the tiers' ten convolved

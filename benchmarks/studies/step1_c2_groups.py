@@ -10,7 +10,7 @@ not `validate`'s prior per PSF, so the values differ from the report's by their 
 
 ::
 
-    python benchmarks/step1_c2_groups.py DIR
+    python benchmarks/studies/step1_c2_groups.py DIR
 
 (1 minute.)
 """

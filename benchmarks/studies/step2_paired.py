@@ -32,13 +32,14 @@ each (about 0.004) are not.
 
 ::
 
-    python benchmarks/step2_paired.py --out /tmp/s2p --psf 0 --fields 2 --seed 1
-    python benchmarks/step2_paired.py --out /tmp/s2p --psf 0 --fields 2 --seed 1 --true-psf
-    python benchmarks/step2_paired.py --out /tmp/s2p --psf 0 --fields 2 --seed 1 \
+    python benchmarks/studies/step2_paired.py --out /tmp/s2p --psf 0 --fields 2 --seed 1
+    python benchmarks/studies/step2_paired.py --out /tmp/s2p --psf 0 --fields 2 --seed 1 --true-psf
+    python benchmarks/studies/step2_paired.py --out /tmp/s2p --psf 0 --fields 2 --seed 1 \
         --compare five_fractions.yaml
 
 Each configuration's catalogues are kept under ``OUT/<set>/<tag>/`` and reused; the
-renderings under ``OUT/<set>/``. Results: ``benchmarks/README.md``.
+renderings under ``OUT/<set>/``. What it found: ``benchmarks/README.md``, "What the
+studies found".
 """
 
 from __future__ import annotations
@@ -107,7 +108,7 @@ def _measure(task) -> str:
 
         pipeline._psf_from_stars = psf_from_stars
     if true_sky is not None:
-        from sky_bias import patch_true_sky  # benchmarks/ is the script's path
+        from sky_bias import patch_true_sky  # benchmarks/studies/ is the script's path
 
         patch_true_sky(true_sky)
     pipeline.measure([path], stars=[star], config=Config.from_dict(cfg_dict), prior=Prior(),

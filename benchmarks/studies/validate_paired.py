@@ -12,9 +12,9 @@ shear estimate against its true shear,
 
 per component, over all PSFs and per PSF, the error from the residuals::
 
-    python benchmarks/validate_paired.py /tmp/runs/step2 - /tmp/runs/step2b five.yaml
+    python benchmarks/studies/validate_paired.py /tmp/runs/step2 - /tmp/runs/step2b five.yaml
 
-(``-``: `validate`'s default configuration). Results: ``benchmarks/README.md``.
+(``-``: `validate`'s default configuration).
 """
 
 from __future__ import annotations
