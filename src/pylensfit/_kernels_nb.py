@@ -42,7 +42,7 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_renew_launch_lock)
 
 
-def _launch_guard() -> AbstractContextManager:
+def launch_guard() -> AbstractContextManager:
     """The lock on the work queue (and before any layer has started, since this launch
     may start the work queue); a context that does nothing on TBB or OpenMP."""
     try:
@@ -53,11 +53,11 @@ def _launch_guard() -> AbstractContextManager:
 
 
 def _one_launch_at_a_time(kernel: Callable) -> Callable:
-    """``kernel`` (a parallel numba dispatcher) called from Python under :func:`_launch_guard`."""
+    """``kernel`` (a parallel numba dispatcher) called from Python under :func:`launch_guard`."""
 
     @functools.wraps(kernel, updated=())
     def launch(*args):
-        with _launch_guard():
+        with launch_guard():
             return kernel(*args)
 
     launch.kernel = kernel

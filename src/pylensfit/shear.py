@@ -32,6 +32,7 @@ import numba
 import numpy as np
 from astropy.table import Table
 
+from ._kernels_nb import launch_guard
 from .flags import flag_value
 from .grid import grid_step
 from .prior import BinnedPrior, Prior, _check_egrid, _check_lnL, usable_rows
@@ -1050,6 +1051,7 @@ def _sums_with(lnL, egrid, K, refine, block_size, stencil: int = DEFAULT_STENCIL
     nb = block_size or max(1, _BLOCK_ELEMENTS // (r.m * r.m))
     for i in range(0, n, nb):
         X = r.lattice(_relative_lnL(lnL[i : i + nb]))
-        _fine_sums_kernel(X, r.excess(X), r.m, r.j0, r.w, r.row_y, r.row_lo, r.row_hi, K,
-                          S[i : i + nb])  # fmt: skip
+        with launch_guard():  # the work queue takes one parallel launch at a time
+            _fine_sums_kernel(X, r.excess(X), r.m, r.j0, r.w, r.row_y, r.row_lo, r.row_hi, K,
+                              S[i : i + nb])  # fmt: skip
     return S
