@@ -352,20 +352,24 @@ def flag_low_snr(flags, is_star, snr, min_snr: float) -> np.ndarray:
 # ----------------------------------------------------------------------------------------
 # The position prior's width
 # ----------------------------------------------------------------------------------------
-def estimate_position_sigma(dx, dy, snr, *, n_bins: int = 8) -> tuple[float, float]:
+def estimate_position_sigma(dx, dy, snr, *, n_bins: int = 8) -> tuple[float | None, float]:
     """The scatter of the catalogue positions about the galaxies' true centres.
 
     The fitted centre less the catalogue position scatters by the catalogue's own error
     and by the fit's, which falls as ``1 / S/N``. Per bin of S/N the robust variance
     (from the median absolute deviation) of ``dx`` and ``dy`` is fitted as ``s0^2 + a /
     S/N^2`` by weighted least squares; ``s0`` is the part that does not fall with S/N
-    (a simulation's sub-pixel offsets, a catalogue's astrometric scatter). A catalogue
-    detected on the image itself has centroid errors that fall with S/N as the fit's
-    do, and then ``s0 ~ 0``: half of ``a`` is taken as the catalogue's. The width
-    returned is ``sqrt(max(s0^2, a / (2 S/N_med^2)))``, ``S/N_med`` the sample's median
-    S/N: the constant part where there is one (uniform offsets of +-0.5 px, standard
-    deviation 0.289: 0.285 estimated from 480 galaxies), else the detection's error at
-    the median S/N.
+    (a simulation's sub-pixel offsets, an external catalogue's astrometric scatter), and
+    it is the width returned (uniform offsets of +-0.5 px, standard deviation 0.289:
+    0.285 estimated from 480 galaxies).
+
+    A catalogue detected on the image itself has no such part: its centroid errors fall
+    with S/N as the fit's do, and they are correlated with the fit's (both come from the
+    same pixels), so the scatter of the one about the other does not measure them. On
+    STEP1-like fields detected by sep the difference scatters by 0.03 px where the
+    detections are 0.05-0.28 px from the true centres. Where ``s0^2`` is not larger than
+    the S/N term at the sample's median S/N, ``a / S/N_med^2``, no width is returned and
+    the configured one (a broad prior) is kept.
 
     Parameters
     ----------
@@ -378,9 +382,11 @@ def estimate_position_sigma(dx, dy, snr, *, n_bins: int = 8) -> tuple[float, flo
 
     Returns
     -------
-    sigma, a : float
-        The width (pixels, at least :data:`MIN_POSITION_SIGMA`) and the fitted ``a``
-        (px^2).
+    sigma : float or None
+        The width (pixels, at least :data:`MIN_POSITION_SIGMA`), or None when the
+        scatter has no part that does not fall with S/N.
+    a : float
+        The fitted ``a`` (px^2).
     """
     dx, dy, snr = (np.asarray(v, dtype=float).ravel() for v in (dx, dy, snr))
     ok = np.isfinite(dx) & np.isfinite(dy) & np.isfinite(snr) & (snr > 0)
@@ -408,8 +414,9 @@ def estimate_position_sigma(dx, dy, snr, *, n_bins: int = 8) -> tuple[float, flo
     if a < 0:  # no fall with S/N: one variance for all
         s0, a = float(np.average(y, weights=w**2)), 0.0
     med = float(np.median(snr))
-    sig = math.sqrt(max(s0, 0.5 * a / med**2))
-    return max(sig, MIN_POSITION_SIGMA), a
+    if not s0 > a / med**2:  # no constant part: a catalogue detected on the image itself
+        return None, a
+    return max(math.sqrt(s0), MIN_POSITION_SIGMA), a
 
 
 # ----------------------------------------------------------------------------------------
@@ -551,7 +558,13 @@ def run_recipe(
         try:
             pos_sigma, a = estimate_position_sigma(cal.dx, cal.dy, cal.snr)
             info["position_snr_term"] = a
-            cfgs = [c.replace(position_prior_sigma=pos_sigma) for c in cfgs]
+            if pos_sigma is None:  # positions from the image itself: the broad prior kept
+                info["position_kept"] = ("no scatter independent of S/N (positions "
+                                         "detected on the image): the configured width")
+                pos_sigma = cfg.position_prior_sigma
+                fit_pos = False
+            else:
+                cfgs = [c.replace(position_prior_sigma=pos_sigma) for c in cfgs]
         except ValueError as err:
             _fallback(info, "position", str(err))
     changed = fit_bounds or fit_pos

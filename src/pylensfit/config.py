@@ -243,7 +243,8 @@ class Config:
         True,
         "calibrate estimates position_prior_sigma from the scatter of the fitted centres "
         "about the catalogue positions, less the part that falls as 1 / S/N "
-        "(calibration.estimate_position_sigma)",
+        "(calibration.estimate_position_sigma); positions detected on the image itself "
+        "have no other part, and keep position_prior_sigma",
     )
     max_offset: float = _f(
         8.0, "search radius for the cross-correlation peak about the catalogue position, px"
