@@ -116,7 +116,7 @@ def test_known_mean_recovered_at_finest_grid():
         assert tol < 0.005
     # at this S/N the exact sensitivity is the noise-free response 1 -+ (e1^2 - e2^2)
     resp = 1.0 - (e[:, 0] ** 2 - e[:, 1] ** 2)
-    # (measured 0.0013 off; the paper's eq. partial, which tends to 1, is 0.015 off)
+    # (measured 0.0013 off; the paper's sensitivity (eq-partial), which tends to 1, is 0.015 off)
     assert abs(m["sens1"].mean() - resp.mean()) < 0.005
 
 

@@ -31,7 +31,7 @@ def render(model, r, e1, e2, psf_img, n=N, **kw):
 # The comparison is made on 128 x 128 images so that the cyclic model does not wrap
 # (on a 32-pixel stamp, up to 8% of a large model's flux wraps round: that is the stamp
 # approximation of the paper, not a model error). What remains is the band-limit
-# assumption (DESIGN.md s.1: G(k) P(k) equals the sampled convolution only if the
+# assumption (docs: method, conventions: G(k) P(k) equals the sampled convolution only if the
 # pixelised PSF has no power above Nyquist). Measured residuals for these PSFs (FWHM
 # >= 3 px) are below 3.2e-5 of the peak pixel, while an ellipticity wrong by 0.05, a
 # wrong shear sign or a wrong size definition gives 1e-2 to 1e-1.

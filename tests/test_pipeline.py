@@ -611,7 +611,7 @@ def test_size_prior_estimated_given_and_kept(fields, tmp_path, caplog):
     q = np.array([0.16, 0.5, 0.84])
     est = np.exp(np.interp(q, cdf, sp.ln_h))
     # measured: 1.67 / 2.29 / 2.96 px against 1.71 / 2.39 / 3.05 (from the 140 galaxies
-    # finite at every size, as before the forty-fifth session: 1.62 / 2.27 / 2.93; L(r)
+    # finite at every size only, the former estimate: 1.62 / 2.27 / 2.93; L(r)
     # marginalised over e with a uniform weight instead of the ellipticity prior: 1.58 /
     # 2.23 / 2.90)
     np.testing.assert_allclose(est, np.quantile(h, q), rtol=0.05)

@@ -333,8 +333,8 @@ def test_fixed_point_is_unbiased_for_narrow_gaussian_likelihoods():
     0.1: the narrower likelihood spans a third of a cell). With the population's prior
     the posterior is the exact one, so the fixed point's m is zero: measured within
     2e-5 +- 5e-5 and 3e-4 +- 4e-4 (10,000 galaxies). The paper's sensitivity is biased
-    here, by +0.002 and +0.0065 (sixteenth session: the precision run's m at the bright
-    end is not the estimator's or the grid's).
+    here, by +0.002 and +0.0065 (so the precision run's m at the bright end is not the
+    estimator's or the grid's).
     """
     from pylensfit.shear import apply_shear
     from pylensfit.simulate import draw_shapes
@@ -521,7 +521,7 @@ def test_estimated_bulge_prior_finds_a_disc_population():
     The bulge-fraction prior estimated from the calibration sample puts nearly all its
     weight on the pure disc (with the size prior uniform in half-light radius for every
     fraction), and m is then as for the exact model. (Uniform weights give m ~ +0.02 on
-    such a population at S/N 10-200, ``benchmarks/exact_model_bias.py``.)
+    such a population at S/N 10-200, ``benchmarks/studies/exact_model_bias.py``.)
     """
     spec = spec_with(ngal=200, block_size=20, ncal=600, seed=11, psfs=["round"],
                      snr_range=(40.0, 80.0), size_ratio_range=(1.0, 2.5),
@@ -625,7 +625,7 @@ def test_flux_bounds_size_prior_is_estimated_under_the_bounded_flux_prior():
     given those bounds and that power from the start (whose own bounds the default
     ``flux_bounds=True`` keeps). (Estimated from the unbounded
     first pass instead, it came out 10 % small and gave m = +0.009 with the bounds;
-    ``benchmarks/README.md``, thirty-third session.)"""
+    ``benchmarks/studies/precision_priors.py --estimate-flux-bounds``.)"""
     spec = spec_with(ngal=10, block_size=100, ncal=300, seed=6, psfs=["round"],
                      morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
     cfg = Config.paper(model="exponential", amplitude_prior="flux", estimate_flux_prior=True,
@@ -839,7 +839,7 @@ def test_cli_precision_e_refine_reaches_the_configuration(monkeypatch):
 
 
 def test_breakdowns_take_a_table_or_a_dict_and_bin_sersic_indices():
-    """``_breakdowns`` (the report's bins, also used by ``benchmarks/precision_ab.py``
+    """``_breakdowns`` (the report's bins, also used by ``benchmarks/studies/precision_ab.py``
     on a dict of columns): the Sersic-index bins hold the Sersic galaxies and only them,
     each once; without Sersic galaxies there is no such breakdown."""
     from astropy.table import Table

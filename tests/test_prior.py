@@ -1,4 +1,4 @@
-"""Tests of the functional prior (paper eq. funcprior), its fit and its estimation."""
+"""Tests of the functional prior (docs: method, eq-funcprior), its fit and its estimation."""
 
 import json
 import logging
@@ -20,7 +20,7 @@ from pylensfit.prior import (
     prior_is_valid,
 )
 
-TRUE = {"B": 0.19, "C": 0.58, "D": 2.4}  # STEP-like population (DESIGN.md section 4)
+TRUE = {"B": 0.19, "C": 0.58, "D": 2.4}  # STEP-like population (docs: method, eq-funcprior)
 EGRID = ellipticity_grid(0.1)
 
 
@@ -65,7 +65,7 @@ def test_normalised_on_grid(step, params):
     v = p.pdf(0.4 * np.cos(phi), 0.4 * np.sin(phi))
     assert np.allclose(v, v[0], rtol=1e-13)
     assert np.all(p.pdf(np.array([1.0, 0.8, 2.0]), np.array([0.0, 0.6, 0.0])) == 0)
-    # A is the grid normalisation of eq. funcprior
+    # A is the grid normalisation of the functional prior (eq-funcprior)
     r = 0.3
     u = 2 * r / (p.B * (1 + r**p.D))
     assert p.pdf(r, 0.0) == pytest.approx(p.A * np.cos(r * np.pi / 2) * np.exp(-(u**p.C)))
@@ -161,7 +161,7 @@ def test_save_load_roundtrip(tmp_path):
 # The cross-entropy fit
 # ------------------------------------------------------------------------------------
 def test_cross_entropy_fit_recovers_a_functional_distribution():
-    # -sum p_out ln P_func (DESIGN.md's order) recovers a distribution of the functional
+    # -sum p_out ln P_func (eq-prior-iteration's order) recovers a distribution of the functional
     # form; the paper's displayed order, -sum P_func ln p_out, would collapse onto a spike
     # at the maximum of p_out and fail this.
     target = Prior(B=0.3, C=0.9, D=1.8)

@@ -20,7 +20,7 @@ from pylensfit.shear import (
     shear_sensitivity,
 )
 
-TRUE = {"B": 0.19, "C": 0.58, "D": 2.4}  # STEP-like population (DESIGN.md section 4)
+TRUE = {"B": 0.19, "C": 0.58, "D": 2.4}  # STEP-like population (docs: method, eq-funcprior)
 EGRID = ellipticity_grid(0.1)
 PRIOR = Prior(**TRUE)
 
@@ -52,7 +52,7 @@ def brute_force(lnL, egrid, prior):
         v1 = np.sum((e1 - m1) ** 2 * P * L) / Z
         v2 = np.sum((e2 - m2) ** 2 * P * L) / Z
         c12 = np.sum((e1 - m1) * (e2 - m2) * P * L) / Z
-        paper1 = 1 - np.sum((m1 - e1) * L * P1) / Z  # eq. partial
+        paper1 = 1 - np.sum((m1 - e1) * L * P1) / Z  # the paper's (eq-partial)
         paper2 = 1 - np.sum((m2 - e2) * L * P2) / Z
         dPg1 = P1 * (-1 + e1**2 - e2**2) + P2 * 2 * e1 * e2 + 4 * e1 * P
         dPg2 = P1 * 2 * e1 * e2 + P2 * (-1 - e1**2 + e2**2) + 4 * e2 * P
@@ -183,8 +183,8 @@ def test_quintic_interpolation_integrates_a_non_gaussian_likelihood():
     |e|^2)^3``, the posterior means and sensitivities from the grid of 0.1 (refined by 4)
     match direct evaluation on the fine grid to 3e-5 rms, and the mean sensitivity to
     1e-5, with the default quintic stencil; the Keys cubic misses both (7e-5 and 2e-5,
-    the bias in m that ``benchmarks/README.md`` measured on galaxies, twenty-eighth
-    session). The compiled kernel of :func:`shapes` gives what :func:`refine_lnL` does."""
+    the bias in m that ``benchmarks/studies/egrid_interpolation.py`` measures on
+    galaxies). The compiled kernel of :func:`shapes` gives what :func:`refine_lnL` does."""
     rng = np.random.default_rng(7)
     n = 400
     e0 = rng.uniform(-0.6, 0.6, (n, 2))
@@ -319,7 +319,7 @@ def test_bad_input_errors():
 
 
 # ------------------------------------------------------------------------------------
-# The shear estimator, eq. key2
+# The shear estimator: mean shear over mean sensitivity (docs: method, eq-key2)
 # ------------------------------------------------------------------------------------
 def test_estimate_shear_formula():
     rng = np.random.default_rng(7)
@@ -453,8 +453,9 @@ def test_shear_bias_exact_vs_paper_vs_none():
         m, c, x1, x2 = report["exact", DEFAULT_REFINE, comp]
         assert abs(m) <= 0.003
         assert abs(c) < 5e-4 and abs(x1) < 5e-4 and abs(x2) < 5e-4
-        # the paper's eq. partial, as the paper used it (integrals on the de = 0.1 grid),
-        # is measurably biased, and stays above the exact response on the refined grid
+        # the paper's sensitivity (eq-partial), as the paper used it (integrals on the
+        # de = 0.1 grid), is measurably biased, and stays above the exact response on the
+        # refined grid
         assert report["paper", 1, comp][0] > 0.003
         assert report["paper", DEFAULT_REFINE, comp][0] > m + 0.002
         # the exact response on the likelihood grid itself is worse than refined
@@ -464,7 +465,7 @@ def test_shear_bias_exact_vs_paper_vs_none():
 
 
 def test_fixed_point_shear_removes_the_second_order_bias():
-    """At g = 0.1 with narrow likelihoods, eq. key2 with the exact sensitivity is high by
+    """At g = 0.1 with narrow likelihoods, eq-key2 with the exact sensitivity is high by
     ~g^2 (the sensitivity is evaluated at g = 0 on sheared data); the fixed point
     ``sum <e>(P_g) = N g`` with the sheared prior is not (m at g = 0.02 and 0.1 agree)."""
     from pylensfit.shear import shear_fixed_point

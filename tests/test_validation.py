@@ -352,7 +352,7 @@ def test_twin_shear_cancels_shape_noise():
     est = twin_shear(e_int + g, -e_int + g, ones, ones)
     assert (est.g1, est.g2) == pytest.approx(tuple(g), abs=1e-15)
     assert est.g1_err < 1e-14 and est.g2_err < 1e-14 and est.n == n
-    # sensitivities divide as in eq. key2: responses of 0.8 scale e and s together
+    # sensitivities divide as in eq-key2: responses of 0.8 scale e and s together
     est = twin_shear(0.8 * (e_int + g), 0.8 * (-e_int + g), 0.8 * ones, 0.8 * ones)
     assert (est.g1, est.g2) == pytest.approx(tuple(g), abs=1e-15)
     # with measurement noise: the error is that of the noise alone (pulls of unit spread),

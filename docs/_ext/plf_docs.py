@@ -15,10 +15,11 @@ Directives (each reads the package at build time, so that the pages never go sta
 ``.. plf-cli-help:: [SUBCOMMAND]``
     The real ``pylensfit [SUBCOMMAND] --help`` output, as a literal block.
 
-Descriptions and docstrings written for the source tree may point at notes that are
-not part of the documentation, or date a measurement; :func:`clean_text` rewrites
-those references before they reach a page, and the build warns (an error under ``-W``)
-if a page still holds one, or if a name of ``pylensfit.__all__`` is left undocumented.
+Descriptions and docstrings cite the method page's equations by their labels, as
+"(docs: method, eq-key2)"; each ``eq-...`` label becomes a link to the equation (an
+unknown label is an undefined reference, a warning). The build warns (an error under
+``-W``) if a page speaks of working sessions or of notes that are not shipped, or if a
+name of ``pylensfit.__all__`` is left undocumented.
 """
 
 from __future__ import annotations
@@ -39,82 +40,35 @@ from sphinx.util import logging
 logger = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------------------------------
-# Cleaning the text that comes from the source tree
+# The method page's labels in the text that comes from the source tree
 # ---------------------------------------------------------------------------------------
-_UNITS = ("first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|"
-          "twelfth|thirteenth|fourteenth|fifteenth|sixteenth|seventeenth|eighteenth|"
-          "nineteenth")
-_TENS = "twentieth|thirtieth|fortieth|fiftieth|sixtieth|seventieth|eightieth|ninetieth"
-_DECADES = "twenty|thirty|forty|fifty|sixty|seventy|eighty|ninety"
-_ORD = rf"(?:(?:{_DECADES})-(?:{_UNITS})|{_TENS}|{_UNITS})"
-_ORDS = rf"(?:the\s+)?{_ORD}(?:(?:,\s*|,?\s+and\s+){_ORD})*\s+sessions?"
-#: "(..., thirtieth session)" -> "(...)"; "(thirty-sixth session)" -> ""
-_SESSION_PATTERNS = [
-    (re.compile(rf"\s*\(\s*{_ORDS}\s*\)", re.I), ""),
-    (re.compile(rf"\s*[,;]\s*{_ORDS}\b", re.I), ""),
-    (re.compile(rf"\b{_ORDS}\s*[,;]\s*", re.I), ""),
-    (re.compile(rf"\s*\b{_ORDS}\b", re.I), ""),
-]
-#: the notes' sections -> the method page's labels
-_NOTE_SECTIONS = {"1": "conventions", "2": "likelihood", "3": "likelihood",
-                  "2-3": "likelihood", "4": "eq-sensitivity-exact"}
-_NOTE_TITLES = {"conventions": "the conventions", "likelihood": "the likelihood",
-                "eq-sensitivity-exact": "the exact shear sensitivity",
-                "bayes": "the prior, the posterior and the shear"}
-_NOTE = re.compile(
-    r"`{0,2}(?:\.\./)?(?:shared/)?DESIGN\.md`{0,2}(?P<own>'s)?"
-    r"(?:,?\s*(?:s\.\s*|sections?\s+)(?P<sec>\d(?:\s*-\s*\d|\s+and\s+\d)?))?"
-)
+#: an equation label of docs/method.rst (``eq-key2``, ``eq-sensitivity-exact``)
+_LABEL = re.compile(r"(?<![\w`<>/.-])eq-[a-z0-9]+(?:-[a-z0-9]+)*\b")
+#: inline literals and roles, left as they are
+_INLINE = re.compile(r"``.*?``|:\w+:`[^`]*`")
 
 
-def _note_target(sec: str | None) -> str:
-    if not sec:
-        return "method"
-    key = re.sub(r"\s+", "", sec).replace("and", "-")
-    return _NOTE_SECTIONS.get(key, _NOTE_SECTIONS.get(key[:1], "method"))
+def _link_labels(text: str) -> str:
+    """reST ``text`` with each bare ``eq-...`` label made a ``:ref:`` to it."""
+    out, pos = [], 0
+    for m in _INLINE.finditer(text):
+        out.append(_LABEL.sub(lambda x: f":ref:`{x.group(0)} <{x.group(0)}>`",
+                              text[pos:m.start()]))
+        out.append(m.group(0))
+        pos = m.end()
+    out.append(_LABEL.sub(lambda x: f":ref:`{x.group(0)} <{x.group(0)}>`", text[pos:]))
+    return "".join(out)
 
 
-def clean_text(text: str, *, rst: bool = True) -> str:
-    """``text`` with the source tree's references to its notes and their dates rewritten.
-
-    A reference to the design notes becomes one to the method page (a ``:ref:`` role
-    when ``rst``, plain words otherwise); a measurement dated by a working period keeps
-    its numbers and its file, without the date.
-    """
-    def note(m: re.Match) -> str:
-        target = _note_target(m.group("sec"))
-        before = text[max(0, m.start() - 80):m.start()]
-        if target == "eq-sensitivity-exact" and "sensitiv" not in before:
-            target = "bayes"  # section 4 is the prior, the posterior and the shear as well
-        if target == "method":
-            return ":doc:`the method page </method>`" if rst else "the method page"
-        title = _NOTE_TITLES[target]
-        return f":ref:`{title} <{target}>`" if rst else f"{title} (method page)"
-
-    text = _NOTE.sub(note, text)
-    for pat, rep in _SESSION_PATTERNS:
-        text = pat.sub(rep, text)
-    return text
-
-
-def _note_nodes(text: str) -> list[nodes.Node]:
-    """Plain-text ``text`` (not parsed as reST) as nodes, its note references as links."""
+def _text_nodes(text: str) -> list[nodes.Node]:
+    """Plain-text ``text`` (not parsed as reST) as nodes, its ``eq-...`` labels as links."""
     out: list[nodes.Node] = []
     pos = 0
-    text = clean_text(text, rst=False)
-    titles = {t: label for label, t in _NOTE_TITLES.items()}
-    alts = "|".join(re.escape(t) for t in titles)
-    for m in re.finditer(rf"({alts}) \(method page\)|the method page", text):
+    for m in _LABEL.finditer(text):
         out.append(nodes.Text(text[pos:m.start()]))
-        if m.group(1):
-            label = titles[m.group(1)]
-            ref = addnodes.pending_xref("", refdomain="std", reftype="ref",
-                                        reftarget=label, refexplicit=True)
-            ref += nodes.inline(m.group(1), m.group(1))
-        else:
-            ref = addnodes.pending_xref("", refdomain="std", reftype="doc",
-                                        reftarget="/method", refexplicit=True)
-            ref += nodes.inline("the method page", "the method page")
+        ref = addnodes.pending_xref("", refdomain="std", reftype="ref",
+                                    reftarget=m.group(0), refexplicit=True)
+        ref += nodes.inline(m.group(0), m.group(0))
         out.append(ref)
         pos = m.end()
     out.append(nodes.Text(text[pos:]))
@@ -122,11 +76,8 @@ def _note_nodes(text: str) -> list[nodes.Node]:
 
 
 def _process_docstring(app, what, name, obj, options, lines):
-    """autodoc: clean every docstring line by line (whole text, to catch wrapped phrases)."""
-    if not lines:
-        return
-    cleaned = clean_text("\n".join(lines)).split("\n")
-    lines[:] = cleaned
+    """autodoc: link the method page's labels of every docstring line."""
+    lines[:] = [_link_labels(line) for line in lines]
 
 
 # ---------------------------------------------------------------------------------------
@@ -214,16 +165,14 @@ class ConfigTable(Directive):
         out: list[nodes.Node] = []
         for title, names in _config_groups(Config):
             if title:
-                rubric = nodes.rubric(text=clean_text(title, rst=False)[:1].upper()
-                                      + clean_text(title, rst=False)[1:])
-                out.append(rubric)
+                out.append(nodes.rubric("", "", *_text_nodes(title[:1].upper() + title[1:])))
             rows = []
             for name in names:
                 f = fields[name]
                 typ = f.type if isinstance(f.type, str) else getattr(f.type, "__name__",
                                                                       str(f.type))
                 rows.append([_lit(name), _lit(typ), _lit(repr(f.default)),
-                             _note_nodes(f.metadata.get("doc", ""))])
+                             _text_nodes(f.metadata.get("doc", ""))])
             out.append(_table(["field", "type", "default", "description"], rows,
                               [18, 6, 10, 66], ids=[f"config-{n}" for n in names]))
         return out
@@ -242,7 +191,7 @@ class PresetsTable(Directive):
         rows = []
         for name, (overrides, desc) in PRESETS.items():
             over = ", ".join(f"{k}={v!r}" for k, v in overrides.items()) or "(none)"
-            rows.append([_lit(name), _note_nodes(desc), _lit(over)])
+            rows.append([_lit(name), _text_nodes(desc), _lit(over)])
         return [_table(["preset", "description", "overrides of Config()"], rows,
                        [10, 40, 50])]
 
@@ -257,7 +206,7 @@ class ColumnsTable(Directive):
         from pylensfit.catalogue import COLUMNS
 
         _depend(self, catalogue)
-        rows = [[_lit(name), unit, _note_nodes(desc)] for name, (unit, desc) in COLUMNS.items()]
+        rows = [[_lit(name), unit, _text_nodes(desc)] for name, (unit, desc) in COLUMNS.items()]
         return [_table(["column", "unit", "meaning"], rows, [16, 6, 78],
                        ids=[f"column-{n.lower()}" for n in COLUMNS])]
 
@@ -272,7 +221,7 @@ class FlagsTable(Directive):
         from pylensfit.flags import FLAGS
 
         _depend(self, flags)
-        rows = [[str(bit), _lit(name), _note_nodes(desc)]
+        rows = [[str(bit), _lit(name), _text_nodes(desc)]
                 for name, (bit, desc) in FLAGS.items()]
         return [_table(["bit", "name", "meaning"], rows, [8, 16, 76])]
 
@@ -317,7 +266,6 @@ class CliHelp(Directive):
         if not text:
             return [self.state.document.reporter.warning(
                 f"pylensfit {' '.join(argv)} printed nothing", line=self.lineno)]
-        text = clean_text(text, rst=False)
         block = nodes.literal_block(text, text, language="text")
         return [block]
 
@@ -369,7 +317,7 @@ def _merge_info(app, env, docnames, other):
 
 
 def _check_pages(app, exception):
-    """Warn if a built page still refers to the source tree's notes or dates its numbers."""
+    """Warn if a built page speaks of working sessions or of the unshipped design notes."""
     if exception is not None or app.builder.format != "html":
         return
     outdir = Path(app.outdir)
@@ -388,7 +336,7 @@ def setup(app):
     app.add_directive("plf-columns", ColumnsTable)
     app.add_directive("plf-flags", FlagsTable)
     app.add_directive("plf-cli-help", CliHelp)
-    # numpydoc connects at priority 500: clean the raw docstring before it parses it
+    # numpydoc connects at priority 500: link the labels before it parses the docstring
     app.connect("autodoc-process-docstring", _process_docstring, priority=400)
     app.connect("env-check-consistency", _check_public_api)
     app.connect("env-check-consistency", _check_cli)

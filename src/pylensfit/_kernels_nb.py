@@ -1,8 +1,8 @@
 """numba kernel of the likelihood engine: Laplace terms and the sum over r, fused.
 
-Called by :mod:`pylensfit.likelihood` on the outputs of the six matrix products
-(``DESIGN.md`` section 3). One pass over (galaxy, model) pairs, parallel over galaxies,
-with the sum over radius kept as a running log-sum-exp so that nothing of size
+Called by :mod:`pylensfit.likelihood` on the outputs of the six matrix products (docs:
+method, eq-matrix-products). One pass over (galaxy, model) pairs, parallel over
+galaxies, with the sum over radius kept as a running log-sum-exp so that nothing of size
 (galaxies x models) is written back. :func:`_laplace_lnl` is the per-model reference of
 the Laplace terms; :func:`laplace_grid` evaluates them a tile of models at a time, in
 branch-free loops that LLVM vectorises (``tests/test_likelihood.py`` holds the two
@@ -966,16 +966,17 @@ def _stamp_share(a, i, shared):
 @njit(parallel=True, cache=True)
 def _wrapped_wings_nb(e1s, e2s, radii, fracs, model_code, bsr, b_dev, norm_dev, trunc, inv_n,
                       n, max_copies, out):  # fmt: skip
-    """The wings that a periodic model wraps into an ``n x n`` stamp (DESIGN.md s. 3).
+    """The wings that a periodic model wraps into an ``n x n`` stamp.
 
     A model evaluated on the stamp's discrete frequencies is the periodic sum of its
-    copies ``m(x + j n)``; a stamp cut from the sky holds only ``m(x)``. For each
-    ellipticity ``(e1s[i], e2s[i])``, bulge fraction ``fracs[b]`` and size ``radii[j]``
-    (column ``b * len(radii) + j``), ``out[i, col]`` receives the sum of the copies
-    ``j != 0`` on the stamp's pixels (offsets ``-n/2 ... n/2 - 1`` from the centre,
-    ``[iy, ix]``), with the two pixel lines at ``+-n/2`` (one periodic line) shared
-    half and half, which keeps the square's symmetries. Pixel-centre values: the wings
-    are smooth on the pixel scale. Columns without wings beyond the stamp stay zero.
+    copies ``m(x + j n)``; a stamp cut from the sky holds only ``m(x)`` (docs: method,
+    eq-fourier-model, ``Config.truncate_models``). For each ellipticity
+    ``(e1s[i], e2s[i])``, bulge fraction ``fracs[b]`` and size ``radii[j]`` (column
+    ``b * len(radii) + j``), ``out[i, col]`` receives the sum of the copies ``j != 0``
+    on the stamp's pixels (offsets ``-n/2 ... n/2 - 1`` from the centre, ``[iy, ix]``),
+    with the two pixel lines at ``+-n/2`` (one periodic line) shared half and half,
+    which keeps the square's symmetries. Pixel-centre values: the wings are smooth on
+    the pixel scale. Columns without wings beyond the stamp stay zero.
     """
     n_e = e1s.size
     n_r = radii.size

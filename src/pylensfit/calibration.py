@@ -111,8 +111,8 @@ class Priors:
     Attributes
     ----------
     ellipticity : Prior
-        The ellipticity prior (Kitching et al. 2008, the functional form of the
-        equation for ``P(e)``, section 2.2).
+        The ellipticity prior: the functional form of Kitching et al. (2008,
+        arXiv:0802.1528, section 3.1; docs: method, eq-funcprior).
     bulge_weights : numpy.ndarray or None
         Prior probability of each run of the model family (bulge fraction,
         ``Config.bulge_runs``), summing to 1; ``None``: uniform.

@@ -61,15 +61,17 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "stamp_size": ("pix", "side of the postage stamp the object was fitted on: "
                    "Config.stamp_size, or for a large galaxy a larger tier up to "
                    "Config.max_stamp_size; 0 if not fitted"),
-    "e1": ("", "posterior mean ellipticity <e1> (paper eq. expecte), e = (a-b)/(a+b)"),
+    "e1": ("", "posterior mean ellipticity <e1> (docs: method, eq-posterior), "
+               "e = (a-b)/(a+b)"),
     "e2": ("", "posterior mean ellipticity <e2>"),
     "e1_var": ("", "posterior variance of e1"),
     "e2_var": ("", "posterior variance of e2"),
     "e12_cov": ("", "posterior covariance of e1 and e2"),
-    "sens1": ("", "shear sensitivity d<e1>/dg1 (exact by default, DESIGN.md s.4)"),
+    "sens1": ("", "shear sensitivity d<e1>/dg1 (exact by default: docs: method, "
+                  "eq-sensitivity-exact)"),
     "sens2": ("", "shear sensitivity d<e2>/dg2"),
     "weight": ("", "1 for a galaxy usable for shear, 0 otherwise (the shear estimator "
-               "of paper eq. key2 is unweighted)"),
+               "of Kitching et al. 2008, eq-key2, is unweighted)"),
     "fitclass": ("", "0 galaxy measured, 1 star (most likely r = 0), -1 not measured "
                  "(see flags)"),
     "is_star": ("", "most likely model size is 0 (a point source)"),

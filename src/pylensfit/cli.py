@@ -418,7 +418,8 @@ def build_parser() -> argparse.ArgumentParser:
     sh.add_argument("--sensitivity", choices=("exact", "paper"), help="sensitivity formula")
     sh.add_argument("--estimator", choices=("fixed-point", "key2"), default="fixed-point",
                     help="the sheared-prior fixed point (default), exact to all orders in g, "
-                    "or Kitching et al. (2008)'s eq. key2, high by a factor 1 + |g|^2")  # fmt: skip
+                    "or Kitching et al. (2008)'s mean shear over mean sensitivity (docs: method, "
+                    "eq-key2), high by a factor 1 + |g|^2")  # fmt: skip
     sh.add_argument("--no-per-image", action="store_true", help="only bins and the total")
     sh.add_argument("-o", "--output", help="write the table (format from the extension)")
     sh.set_defaults(func=_shear)
@@ -435,7 +436,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "measure` uses; see `pylensfit config`)")
     v.add_argument("--jobs", type=_jobs, default=1, help="local worker processes")
     v.add_argument("--estimator", choices=("fixed-point", "key2"), default="fixed-point",
-                   help="shear estimator: the fixed point (default) or the paper's eq. key2, "
+                   help="shear estimator: the fixed point (default) or the paper's mean shear "
+                        "over mean sensitivity (docs: method, eq-key2), "
                         "whose +g^2 term shows at STEP's shears of up to 0.1")
     v.add_argument("--report", help="write a Markdown report (and a PNG beside it)")
     v.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

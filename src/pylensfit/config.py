@@ -56,7 +56,7 @@ class Config:
         "/ stamp_hlr_ratio is fitted on a stamp j times as large, with the frequencies |k| "
         "<= pi / j: the same cost. On a 32-pixel stamp a galaxy of 2 PSF radii under a "
         "4-pixel Kolmogorov PSF responds 1.3% more to g2 than to g1 (the edge, "
-        "benchmarks/stamp_edge.py); the stamps given to fit_stamps must be this large. "
+        "benchmarks/studies/stamp_edge.py); the stamps given to fit_stamps must be this large. "
         "measure cuts them where they lie in the image with no bad pixel (else the base "
         "stamp); flags and close pairs stay the base stamp's",
     )
@@ -79,7 +79,7 @@ class Config:
         "maximum only inside refine_width of its peak cell is fitted again on the fine cells "
         "of that window, the other cells and galaxies are interpolated (1: none). For "
         "likelihoods narrower than the grid, where interpolation from the e_step cells "
-        "biases m (+0.003 with exact models: benchmarks/README.md, thirtieth session)",
+        "biases m (+0.003 with exact models: benchmarks/studies/egrid_refinement.py)",
     )
     refine_width: float = _f(
         0.4, "with e_refine > 1: the largest half-width in e of a refined galaxy's window"
@@ -94,7 +94,7 @@ class Config:
         0.4,
         "model size step Delta r in pixels (the largest step). 0.4: 47 sizes per fraction "
         "instead of 72 at 0.2 and a quarter of the fit's time, m moved by +0.0005 +- "
-        "0.0004 on the precision population (benchmarks/precision_ab.py --b r_step=0.4)",
+        "0.0004 on the precision population (benchmarks/studies/precision_ab.py --b r_step=0.4)",
     )
     r_rel_step: float = _f(
         0.1,
@@ -124,7 +124,8 @@ class Config:
         "size (2 n_bulge_fractions - 1 runs of sizes, their weights estimated as the "
         "fractions'): the bulge's size marginalised with its fraction, a second parameter of "
         "the profile's shape (0: one size, bulge_size_ratio). 1.6x the fit's time; on the "
-        "precision mix a second size of 1.0 moves m by +0.0007 (benchmarks/README.md)",
+        "precision mix a second size of 1.0 moves m by +0.0007 "
+        "(benchmarks/studies/precision_ab.py)",
     )
     sersic_ladder: tuple = _f(
         (),
@@ -137,8 +138,8 @@ class Config:
         "and by +0.011 on its Sersic and bulge+disc galaxies alone, noise-free as well; "
         "the rise is at S/N 12-50, where the posterior mixes the runs under their "
         "estimated priors, while at S/N 300 it takes the Sersic galaxies' model bias "
-        "(+0.011) to 0 (benchmarks/README.md, thirty-second, thirty-ninth and fortieth "
-        "sessions): off by default",
+        "(+0.011) to 0 (benchmarks/studies/precision_ab.py --own-priors and "
+        "benchmarks/studies/exact_model_bias.py): off by default",
     )
     n_bulge_fractions: int = _f(
         3,
@@ -152,14 +153,14 @@ class Config:
         "estimated",
         "prior over the marginalised bulge fractions: 'estimated' from the data with the "
         "ellipticity prior (prior.estimate_prior_and_bulge), or 'uniform'. Uniform weights "
-        "bias discs by m ~ +0.02 (benchmarks/exact_model_bias.py)",
+        "bias discs by m ~ +0.02 (benchmarks/studies/exact_model_bias.py)",
     )
     size_prior: str = _f(
         "estimated",
         "prior over the model size in the sum over r: 'flat' (the paper's, uniform in "
         "half-light radius) or 'estimated' from the data (prior.estimate_size_prior; "
         "validate --precision). The flat prior biases faint compact galaxies, m ~ -0.07 "
-        "for de Vaucouleurs galaxies at S/N 10-20 (benchmarks/exact_model_bias.py)",
+        "for de Vaucouleurs galaxies at S/N 10-20 (benchmarks/studies/exact_model_bias.py)",
     )
     size_prior_smoothing: float = _f(
         0.25,
@@ -168,7 +169,7 @@ class Config:
         "size distribution (prior.estimate_size_prior). The precision populations' "
         "held-out evidence prefers 0.02 (size_prior_smoothing_cv), which takes the "
         "galaxies the family holds to m ~ 0 and moves the mix's m up by 0.0013 "
-        "(benchmarks/README.md, forty-eighth session)",
+        "(benchmarks/studies/precision_ab.py --b size_prior_smoothing=0.02)",
     )
     size_prior_smoothing_cv: bool = _f(
         False,
@@ -199,9 +200,9 @@ class Config:
         "the stride sizes about it: a coarser quadrature where the models are compact and "
         "the weights 1e-4 of the prior's peak. 1: every size. Three take 15 % of the "
         "precision mode's models out (estimated size priors), m moved by 1e-5 "
-        "(benchmarks/precision_ab.py)",
+        "(benchmarks/studies/precision_ab.py)",
     )
-    # --- marginalisation over amplitude (paper eqs. likee1, likee) ---
+    # --- marginalisation over amplitude (docs: method, eq-amplitude and eq-flux-prior) ---
     amplitude_prior: str = _f(
         "flux",
         "prior of the model amplitude: 'uniform' (the paper's; positive amplitudes) or "
@@ -234,7 +235,7 @@ class Config:
     amplitude_prior_max: float = _f(
         math.inf, "with amplitude_prior 'flux': the prior's upper bound in flux (inf: none)"
     )
-    # --- marginalisation over position (paper eq. eq:likelihood) ---
+    # --- marginalisation over position (docs: method, eq-position) ---
     position_prior_sigma: float = _f(
         2.0, "width b of the Gaussian prior on position about the catalogue position, px "
         "(with estimate_position_prior, the starting value of the calibration)"
@@ -265,7 +266,11 @@ class Config:
     dtype: str = _f("float32", "precision of the matrix products: 'float32' or 'float64'")
     block_size: int = _f(128, "galaxies per block of matrix products")
     # --- Bayesian shear (paper sections 2.1 and 3) ---
-    sensitivity: str = _f("exact", "shear sensitivity: 'exact' (DESIGN.md s.4) or 'paper'")
+    sensitivity: str = _f(
+        "exact",
+        "shear sensitivity: 'exact' (docs: method, eq-sensitivity-exact) or 'paper' "
+        "(Kitching et al. 2008, arXiv:0802.1528, section 2.1; docs: method, eq-partial)",
+    )
     integration_refine: int = _f(
         4, "the Bayesian integrals run on an e grid this many times finer (ln L interpolated)"
     )
@@ -312,7 +317,7 @@ class Config:
         "measure the sky background again on the image less every fitted object's model "
         "and fit the galaxies again with it: the objects' wings raise SEP's estimate "
         "(0.02-0.06 noise sigma in the STEP2-like fields), which biases m by up to +0.03 "
-        "(benchmarks/README.md, the sky)",
+        "(benchmarks/studies/sky_bias.py)",
     )
     neighbour_iterations: int = _f(
         2,
@@ -320,7 +325,7 @@ class Config:
         "neighbours' models and (model_background) measures the sky again less all models. "
         "The sky needs the second round (STEP2-like field, large PSF: sky error 0.056 -> "
         "0.017 -> 0.006 noise sigma); for the neighbours alone a second moved m by < 2e-4 "
-        "(benchmarks/neighbour_bias.py). Each round costs another fit",
+        "(benchmarks/studies/neighbour_bias.py). Each round costs another fit",
     )
     neighbour_min_chi2: float = _f(
         0.01,

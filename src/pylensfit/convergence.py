@@ -24,10 +24,11 @@ keep the paper's values (``de = 0.1``, ``dr = 0.2`` px, ``r_max = 10`` px, no of
   isolates the numerics from prior estimation;
 * per setting: the sample means of ``<e_i>_a``, of ``<e_i>_a^2`` (the paper's
   ``<e_i^2>``, the variance of the ensemble of posterior means about zero) and of the
-  sensitivities (exact response, the default, and the paper's eq. ``partial``), with
-  standard errors ``std / sqrt(n)``; and their change against the finest setting of the
-  same parameter, from paired per-galaxy differences (same galaxies, same noise), whose
-  errors are much smaller than those of the means themselves.
+  sensitivities (exact response, the default, and the paper's: docs: method,
+  eq-partial), with standard errors ``std / sqrt(n)``; and their change against the
+  finest setting of the same parameter, from paired per-galaxy differences (same
+  galaxies, same noise), whose errors are much smaller than those of the means
+  themselves.
 
 ``<e_i^2>`` here is the mean square of the per-galaxy posterior means (what the paper
 plots), not the posterior second moment.
@@ -273,7 +274,7 @@ def measure_setting(
     -------
     dict of numpy.ndarray
         ``e1, e2`` (posterior means), ``e1sq, e2sq`` (their squares), ``sens1, sens2``
-        (exact response), ``sens1_paper, sens2_paper`` (eq. ``partial``), ``flags`` (the
+        (exact response), ``sens1_paper, sens2_paper`` (the paper's, eq-partial), ``flags`` (the
         fit's), ``usable`` (no flag of :data:`pylensfit.flags.BAD` -- ``STAR`` is one,
         ``NO_PEAK`` is not -- and finite values), and the 0-d arrays ``fit_time``
         (seconds) and ``refine`` (the refinement used: 1 when the grid is too coarse to
@@ -519,7 +520,7 @@ def convergence(
         at the reference), ``fit_time`` (s); for every quantity ``q`` of
         :data:`QUANTITIES` (``e1, e2``: mean posterior ellipticity; ``e1sq, e2sq``: mean
         square of the posterior means, the paper's ``<e_i^2>``; ``sens1, sens2``: mean
-        exact sensitivity; ``sens1_paper, sens2_paper``: eq. ``partial``) the mean ``q``
+        exact sensitivity; ``sens1_paper, sens2_paper``: the paper's, eq-partial) the mean ``q``
         and its standard error ``q_err`` over the usable galaxies, the paired change
         ``d_q`` against the reference and its error ``d_q_err`` (over galaxies usable in
         both), and for all but ``e1, e2`` the relative change ``rel_q = d_q / q_ref`` with
@@ -576,7 +577,8 @@ def _markdown(t: Table, png: str) -> str:
         "One parameter varied at a time about de = {e_step}, dr = {r_step} px, "
         "r_max = {r_max} px, no offset (offset along +x).".format(**m["base"]),
         "`<e_i^2>` is the mean square of the posterior means; sens is the exact response,"
-        " sens_paper eq. `partial`. Δ: paired change against the finest value (*).",
+        " sens_paper the paper's (Kitching et al. 2008, arXiv:0802.1528, section 2.1)."
+        " Δ: paired change against the finest value (*).",
         "",
         "| parameter | value | n | <e1> | <e2> | <e1^2> | <e2^2> | sens1 | sens2 "
         "| sens1_paper | Δ<e1> | Δ<e2> | Δ<e1^2>/<e1^2> | Δsens1/sens1 | fit s |",

@@ -4,7 +4,7 @@ The grid is made of the *centres* of square cells of side ``step`` tiling the
 (e1, e2) plane, ``+-step/2, +-3 step/2, ...``, kept where ``|e| < emax`` (``emax = 1``
 by default). No grid point ever sits at ``e = 0``: the fitted prior has a cusp there
 when its exponent ``C < 1`` and a grid through the origin biases the shear
-(``../shared/DESIGN.md`` section 4). For ``step = 0.1`` this is the paper's
+(docs: method, eq-egrid). For ``step = 0.1`` this is the paper's
 "less than 20 x 20" grid: 20 x 20 cells minus the corners outside the unit circle.
 """
 

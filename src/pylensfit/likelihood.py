@@ -1,6 +1,9 @@
 """The likelihood of every galaxy on the (e1, e2, r) grid, summed over r.
 
-Paper section 2.2 (eqs. ``likee1``, ``likee``, ``eq:likelihood``); ``DESIGN.md`` sections 2-3.
+Miller et al. (2007, arXiv:0708.2340), section 3, and Kitching et al. (2008,
+arXiv:0802.1528), section 2.2: the likelihood marginalised over the amplitude and over
+the position (docs: method, eq-amplitude, eq-flux-prior, eq-position, eq-matrix-products
+and eq-radius).
 
 For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of unit flux:
 
@@ -9,19 +12,20 @@ For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of un
       ln L(e, r, X) = h^2 / (2 sigma^2 S) + ln Phi(h / (sigma sqrt S)) - ln(S) / 2
 
   with ``h(X) = sum_x d(x) m(x - X)`` the cross-correlation and ``S = sum m^2``
-  (paper eq. ``likee``; the ``Phi`` term is the positive-flux prior, which keeps a
-  negative cross-correlation from being read as a bright negative galaxy);
+  (Kitching et al. 2008, section 2.2; docs: method, eq-amplitude; the ``Phi`` term is
+  the positive-flux prior, which keeps a negative cross-correlation from being read as a
+  bright negative galaxy);
 * **position**: the data are re-centred once per galaxy on the peak of their
-  cross-correlation with a round model (found by FFT and refined by a parabola,
-  then applied exactly by a Fourier phase ramp). ``h``, its gradient and Hessian at
-  the re-centred origin are sums over frequencies, which for all galaxies and all
-  models are six matrix products (folded by the symmetries of the square pixel grid
-  into four products over an octant of frequencies for each orbit ``(+-e1, +-e2)`` of
-  four models, a quarter of the operations: :class:`_FoldedBank`; Nyquist
-  frequencies are left out, :func:`_interior`). One Newton step gives the peak ``X*``, ``h*``, and
-  the Laplace approximation of the integral over ``X`` with a Gaussian prior of width
-  ``b`` about the catalogue position ``X0`` is the 2-D form of paper eq.
-  ``eq:likelihood``::
+  cross-correlation with a round model (found by FFT and refined by a parabola, then
+  applied exactly by a Fourier phase ramp). ``h``, its gradient and Hessian at the
+  re-centred origin are sums over frequencies, which for all galaxies and all models are
+  six matrix products (folded by the symmetries of the square pixel grid into four
+  products over an octant of frequencies for each orbit ``(+-e1, +-e2)`` of four models,
+  a quarter of the operations: :class:`_FoldedBank`; Nyquist frequencies are left out,
+  :func:`_interior`). One Newton step gives the peak ``X*``, ``h*``, and the Laplace
+  approximation of the integral over ``X`` with a Gaussian prior of width ``b`` about
+  the catalogue position ``X0`` is the 2-D form of the paper's likelihood marginalised
+  over the position (section 2.2; docs: method, eq-position)::
 
       ln L(e, r) = l* - ln det(I + b^2 F) / 2 - (X* - X0)^T (F^-1 + b^2 I)^-1 (X* - X0) / 2
 
@@ -282,7 +286,7 @@ class _FoldedBank:
     into ``h_{g e} = sum_chi chi(g) A_chi[e]`` with ``A_chi = sum_k0 c(k0)/4 fhat_chi(k0)
     Ghat_chi,e(k0)``: four products over an octant for the four models ``(+-e1, +-e2)``
     instead of one product over the half-plane per model, a quarter of the operations,
-    exactly (``DESIGN.md`` section 3).
+    exactly (docs: method, eq-matrix-products).
 
     A bulge+disc bank's fractions between 0 and 1 are linear in the two ends' transforms
     (:func:`pylensfit.models.model_bank`), and so are their products: ``G`` holds the
@@ -588,7 +592,7 @@ def fit_stamps(
     exponentials first), with the Fourier terms ``|k| <= pi / j`` only: as many as on
     the base stamp, and all that a galaxy that large has signal in. On one stamp, the
     light that the PSF scatters across the edge makes large galaxies respond to shear
-    differently along the pixel axes and the diagonals (``benchmarks/stamp_edge.py``).
+    differently along the pixel axes and the diagonals (``benchmarks/studies/stamp_edge.py``).
 
     Parameters
     ----------
@@ -1091,8 +1095,8 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
     fine cells next to them: the likelihood that the coarse grid samples too sparsely is
     computed where it matters, at the cost of the window's models only. Elsewhere its
     values stay interpolated (``exp(-12)`` or less of the peak; the emulation of
-    ``benchmarks/egrid_refinement.py`` found interpolated values outside a window of 4-6
-    sigma as good as exact ones).
+    ``benchmarks/studies/egrid_refinement.py`` found interpolated values outside a
+    window of 4-6 sigma as good as exact ones).
 
     The window's products are the unfolded ones (a window has none of the square's
     symmetries): the half-plane of frequencies with the Hermitian weights. They are made

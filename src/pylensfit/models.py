@@ -1,6 +1,8 @@
 """Galaxy models in Fourier space and the model bank of the (e1, e2, r) grid.
 
-Paper section 2.2; ``DESIGN.md`` sections 1 and 3.
+Miller et al. (2007, arXiv:0708.2340), section 3, and Kitching et al. (2008,
+arXiv:0802.1528), section 2.2 (docs: method, conventions, eq-shear-matrix and
+eq-fourier-model).
 
 Conventions
 -----------
@@ -620,7 +622,7 @@ def radius_grid(r_min: float, r_max: float, r_step: float, r_rel_step: float = 0
     ``r_c = r_step / r_rel_step`` the sizes are geometric, ``r_c / (1 + r_rel_step)^k``,
     down to ``max(r_min, r_step / 2)``; above it, uniform with step ``r_step``. A small
     galaxy's likelihood in ``r`` is as narrow in ``r`` as its size, so a uniform step
-    samples it too coarsely (``DESIGN.md``, section 1; ``validate --precision``).
+    samples it too coarsely (docs: method, eq-radius; ``validate --precision``).
     """
     if r_step <= 0 or r_max <= 0 or r_min < 0 or r_max < r_min or r_rel_step < 0:
         raise ValueError(f"bad radius grid r_min={r_min}, r_max={r_max}, r_step={r_step}, "

@@ -1356,7 +1356,7 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
                    "UTC time the catalogue was written")  # fmt: skip
     hdr["NOBJ"] = (len(cat), "objects (rows)")
     if prior is not None:
-        hdr["PRIOR_B"] = (prior.B, "prior B, paper eq. funcprior")
+        hdr["PRIOR_B"] = (prior.B, "prior B (Kitching et al. 2008, section 3.1)")
         hdr["PRIOR_C"] = (prior.C, "prior C")
         hdr["PRIOR_D"] = (prior.D, "prior D")
         hdr["PRIORMTH"] = (prior.method, "how the prior was obtained")

@@ -38,10 +38,13 @@ Both components are sheared together, so ``m_1`` includes the cross term
 
 Three shear estimators are reported side by side:
 
-- ``exact``: paper eq. ``key2``, ``sum <e> / sum s``, with the exact sensitivity
-  (DESIGN.md section 4). Its known second-order bias is ``m ~ +|g|^2`` (noise-free,
-  ``sum s = N (1 - |g|^2)``), ``+8e-4`` at ``g = (0.02, 0.02)``.
-- ``paper``: eq. ``key2`` with the paper's eq. ``partial``.
+- ``exact``: the paper's mean shear over mean sensitivity (Kitching et al. 2008,
+  arXiv:0802.1528, section 3.3; docs: method, eq-key2), ``sum <e> / sum s``, with the
+  exact sensitivity (docs: method, eq-sensitivity-exact). Its known second-order bias is
+  ``m ~ +|g|^2`` (noise-free, ``sum s = N (1 - |g|^2)``), ``+8e-4`` at
+  ``g = (0.02, 0.02)``.
+- ``paper``: the same with the paper's sensitivity (section 2.1; docs: method,
+  eq-partial).
 - ``fixed-point``: the sheared-prior fixed point of
   :func:`pylensfit.shear.shear_fixed_point`, exact to all orders in ``g``. Streaming
   keeps per galaxy the posterior mean and its derivative under the prior sheared by the
@@ -69,7 +72,7 @@ The work streams: each block is rendered, fitted and reduced to 12 numbers per
 rendering in a worker; nothing is written to disk and memory grows by ~0.3 kB per
 galaxy. The calibration sample's likelihood grids are kept while the priors are
 estimated, about 40 kB per calibration galaxy at their peak
-(``benchmarks/calibration_memory.py``). Blocks run on the project's runner (local
+(``benchmarks/studies/calibration_memory.py``). Blocks run on the project's runner (local
 processes or dask.distributed).
 """
 
@@ -182,7 +185,7 @@ class PrecisionSpec:
         every kind of galaxy, and the jackknife's errors hold it fixed: with 20,000,
         ``(m1 + m2) / 2`` on the mean of PSFs scattered by 0.0010 between four
         independent 200,000-galaxy samples where the jackknife gives 0.0004
-        (``benchmarks/README.md``, thirty-eighth session). 80,000 take that noise's
+        (``benchmarks/README.md``, "What the studies found"). 80,000 take that noise's
         variance to a quarter for about 8 more minutes and 2.4 GB more memory in a
         200,000-galaxy run (40 kB per calibration galaxy).
     stratified_calibration : bool
@@ -196,7 +199,7 @@ class PrecisionSpec:
         population adds a noise of its own to m, which the jackknife does not see. Over
         six calibration samples the standard deviation of m on the mean of PSFs fell
         from 0.0009 to 0.0004 (per PSF from 0.0008-0.0019 to 0.0005-0.0008), its mean
-        unchanged (``benchmarks/precision_size_prior_noise.py``, twenty-sixth session).
+        unchanged (``benchmarks/studies/precision_size_prior_noise.py``).
         False: drawn at random, as the main sample.
     noise_twins : bool
         Render every galaxy eight times instead of four: the four of the module table and
@@ -1038,25 +1041,24 @@ def precision(
         (``amplitude_prior_min`` 0, ``amplitude_prior_max`` infinite), estimate the flux
         range of each PSF's calibration galaxies from the first pass's fluxes and their
         errors (:func:`~pylensfit.prior.estimate_flux_range`: the power law's limits,
-        deconvolved from the noise) and fit the later passes and the renderings with
-        the prior bounded there. The population's flux range is finite, and a prior
-        without its lower bound keeps a weight, at the faint end, for models that fit a
-        galaxy with less flux than it has: m +0.003 for exponential galaxies fitted with
-        their own model (``benchmarks/README.md``, seventeenth session). The errors'
-        scale is fitted with the limits (the best model's flux scatters about twice its
-        fixed-model error), and with the size prior to estimate, the first pass is
-        repeated under the bounded prior so that the size prior's ``L(r)`` have the
-        flux prior of the later passes. On by default: every prior is then estimated
+        deconvolved from the noise) and fit the later passes and the renderings with the
+        prior bounded there. The population's flux range is finite, and a prior without
+        its lower bound keeps a weight, at the faint end, for models that fit a galaxy
+        with less flux than it has: m +0.003 for exponential galaxies fitted with their
+        own model (``benchmarks/studies/precision_priors.py --flux-bounds``). The
+        errors' scale is fitted with the limits (the best model's flux scatters about
+        twice its fixed-model error), and with the size prior to estimate, the first
+        pass is repeated under the bounded prior so that the size prior's ``L(r)`` have
+        the flux prior of the later passes. On by default: every prior is then estimated
         consistently, and each kind of galaxy alone is measured at m = 0 within its
         error where the family holds it (exponentials +0.010 unbounded, -0.0001 /
         -0.0028 ± 0.0016 bounded; knotty discs +0.0085 and +0.0006 / +0.0018), because
         the size prior estimated under the unbounded power law is 7-10 % small
-        (``benchmarks/README.md``, thirty-third to thirty-fifth sessions); on the
+        (``benchmarks/studies/precision_priors.py --estimate-flux-bounds``); on the
         precision mix m is +0.0012 / +0.0013 on the mean of PSFs against +0.0016 /
-        +0.0020 unbounded (seed 7, 200,000 galaxies; thirty-sixth and twenty-eighth
-        sessions). The calibration takes a third pass and the fits about 1.14 times as
-        long (``False``: the unbounded power law, the default before the thirty-sixth
-        session).
+        +0.0020 unbounded (seed 7, 200,000 galaxies). The calibration takes a third pass
+        and the fits about 1.14 times as long (``False``: the unbounded power law, the
+        former default).
 
     Returns
     -------
@@ -1407,7 +1409,7 @@ def write_report(res: Table, path: str | Path) -> None:
         "(m1 + m2) / 2 on the mean of PSFs scattered by 0.0010 between four independent "
         "200,000-galaxy samples where the jackknife gives 0.0004: a noise of about 0.0009 "
         "common to both components, whose variance 80,000, the default, take to a "
-        "quarter; benchmarks/README.md, thirty-eighth session). m and c "
+        "quarter; benchmarks/README.md, \"What the studies found\"). m and c "
         "are corrected with "
         "control variates, the spin-4 parts of the intrinsic ellipticity (e1² - e2², "
         "2 e1 e2), whose population mean is zero: they remove the shape noise that the "

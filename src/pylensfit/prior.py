@@ -1,6 +1,7 @@
 """The ellipticity prior: its functional form, its fit, and its estimation from the data.
 
-The prior is the paper's eq. ``funcprior`` (Kitching et al. 2008, section 3.1)::
+The prior is the functional form of Kitching et al. (2008, arXiv:0802.1528, section 3.1;
+docs: method, eq-funcprior)::
 
     P(e) = A cos(|e| pi / 2) exp[-(2 |e| / (B (1 + |e|^D)))^C],
 
@@ -17,7 +18,7 @@ maximises the marginal likelihood of the sample,
 either with the paper's iteration (section 3: the summed posterior is the next prior,
 refitted to the functional form by minimising a cross-entropy; this *is* the EM
 algorithm for (B, C, D)) or by maximising ``l`` directly (the default). Both reach the
-same fixed point; see :func:`estimate_prior` and ``DESIGN.md`` section 4.
+same fixed point; see :func:`estimate_prior` (docs: method, eq-prior-iteration).
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Box bounds on the parameters ``(B, C, D)`` of eq. ``funcprior``. Together with the
+#: Box bounds on the parameters ``(B, C, D)`` of the functional prior. Together with the
 #: joint conditions of :func:`prior_is_valid` they keep the prior positive, finite and
 #: free of turning points for ``0 < |e| < 1``. The lower bounds on ``B`` and ``C`` stop
 #: the degenerate direction (``B -> 0`` with ``C`` falling, which small or noisy samples
@@ -82,7 +83,7 @@ _TURN_RADII = np.linspace(0.78, 0.9995, 444)
 #: Required margin of the decrease of ``ln P`` near ``|e| = 1``, relative to that of the
 #: cosine factor alone.
 _TURN_MARGIN = 0.02
-#: The STEP-like defaults measured in DESIGN.md section 4.
+#: The defaults, a STEP-like population (docs: method, eq-funcprior).
 DEFAULT_PARAMS = (0.19, 0.58, 2.4)
 
 _NAMES = ("B", "C", "D")
@@ -90,7 +91,7 @@ _LOG_BOUNDS = [(math.log(PRIOR_BOUNDS[k][0]), math.log(PRIOR_BOUNDS[k][1])) for 
 
 
 # ----------------------------------------------------------------------------------------
-# The functional form, eq. funcprior
+# The functional form (docs: method, eq-funcprior)
 # ----------------------------------------------------------------------------------------
 def _exponent_terms(r: np.ndarray, B: float, C: float, D: float):
     """``t = u^C`` with ``u = 2 r / (B (1 + r^D))``, plus ``ln u`` and ``r^D``.
@@ -105,7 +106,7 @@ def _exponent_terms(r: np.ndarray, B: float, C: float, D: float):
 
 
 def _log_f(r: np.ndarray, B: float, C: float, D: float) -> np.ndarray:
-    """Unnormalised ``ln P`` of eq. ``funcprior`` at radii ``0 <= r < 1``."""
+    """Unnormalised ``ln P`` of the functional prior (eq-funcprior) at radii ``0 <= r < 1``."""
     t, _, _ = _exponent_terms(r, B, C, D)
     return np.log(np.cos(0.5 * np.pi * r)) - t
 
@@ -160,9 +161,9 @@ def _constraints(B: float, C: float, D: float) -> np.ndarray:
 def prior_is_valid(B: float, C: float, D: float) -> bool:
     """Whether ``(B, C, D)`` lies in the allowed parameter region.
 
-    The region is the box :data:`PRIOR_BOUNDS` and joint conditions that keep eq.
-    ``funcprior`` positive, finite and strictly decreasing in ``|e|`` on ``0 < |e| < 1``
-    (no turning points, paper section 3.1): the exponent
+    The region is the box :data:`PRIOR_BOUNDS` and joint conditions that keep the
+    functional prior (eq-funcprior) positive, finite and strictly decreasing in ``|e|``
+    on ``0 < |e| < 1`` (no turning points, paper section 3.1): the exponent
     ``(2|e| / (B (1 + |e|^D)))^C <= 200``, and ``d ln P / d|e| < 0`` with a margin on a
     fine set of radii where the ``1 + |e|^D`` factor can create a turning point (near
     ``|e| = 1`` when ``D > 2``); see ``_constraints``.
@@ -170,7 +171,7 @@ def prior_is_valid(B: float, C: float, D: float) -> bool:
     Parameters
     ----------
     B, C, D : float
-        Parameters of eq. ``funcprior`` (dimensionless).
+        Parameters of the functional prior (docs: method, eq-funcprior; dimensionless).
 
     Returns
     -------
@@ -188,14 +189,14 @@ def prior_is_valid(B: float, C: float, D: float) -> bool:
 # The Prior class
 # ----------------------------------------------------------------------------------------
 class Prior:
-    """The functional ellipticity prior of eq. ``funcprior``, normalised on a grid.
+    """The functional ellipticity prior (docs: method, eq-funcprior), normalised on a grid.
 
     Parameters
     ----------
     B, C, D : float
-        Parameters of eq. ``funcprior`` (dimensionless). The defaults (0.19, 0.58, 2.4)
-        describe a STEP-like population (DESIGN.md section 4). They must satisfy
-        :func:`prior_is_valid`.
+        Parameters of the functional prior (docs: method, eq-funcprior; dimensionless).
+        The defaults (0.19, 0.58, 2.4) describe a STEP-like population. They must
+        satisfy :func:`prior_is_valid`.
     step : float, optional
         Cell side ``de`` of the normalisation grid (default 0.1, the paper's grid).
         Ignored when ``egrid`` is given.
@@ -279,7 +280,7 @@ class Prior:
         return out
 
     def pdf(self, e1: np.ndarray | float, e2: np.ndarray | float) -> np.ndarray:
-        """Prior density at ``(e1, e2)``, eq. ``funcprior``.
+        """Prior density at ``(e1, e2)`` (docs: method, eq-funcprior).
 
         Parameters
         ----------
@@ -679,13 +680,14 @@ def fit_functional_prior(
     *,
     start: tuple[float, float, float] | None = None,
 ) -> Prior:
-    """Fit eq. ``funcprior`` to a gridded distribution by minimum cross-entropy.
+    """Fit the functional prior (eq-funcprior) to a gridded distribution by minimum cross-entropy.
 
-    Minimises ``H = -sum_e p_out(e) ln P_func(e)`` over ``(B, C, D)`` (paper section 3.1),
-    with ``P_func`` normalised on the grid. The argument order is DESIGN.md's: the
-    paper's displayed equation swaps the two distributions, which would let the fit
-    collapse onto a spike at the maximum of ``p_out``. Minimising ``H`` with ``p_out`` the
-    summed posterior is exactly the M-step of the EM algorithm for ``(B, C, D)``.
+    Minimises ``H = -sum_e p_out(e) ln P_func(e)`` over ``(B, C, D)`` (paper section
+    3.1), with ``P_func`` normalised on the grid. The argument order is that of the
+    documentation (docs: method, eq-prior-iteration): the paper's displayed equation
+    swaps the two distributions, which would let the fit collapse onto a spike at the
+    maximum of ``p_out``. Minimising ``H`` with ``p_out`` the summed posterior is
+    exactly the M-step of the EM algorithm for ``(B, C, D)``.
 
     Parameters
     ----------
@@ -748,7 +750,7 @@ def estimate_prior(
     weights: np.ndarray | None = None,
     tol: float = 1e-12,
 ) -> Prior:
-    """Estimate the prior of eq. ``funcprior`` from stored likelihood grids.
+    """Estimate the functional prior (eq-funcprior) from stored likelihood grids.
 
     Both methods maximise the marginal likelihood of the sample,
     ``l(B, C, D) = sum_a w_a ln sum_e P(e) L_a(e) de^2`` (``P`` normalised on the grid),
@@ -836,9 +838,9 @@ def estimate_prior(
             if it == n_iter:
                 break
             ell_prev = ell
-            # E-step: the summed posterior, eq. (cent) -> cell probabilities p_out
+            # E-step: the summed posterior (eq-prior-iteration) -> cell probabilities p_out
             p_out = q * ((w / z) @ L) / wsum
-            # M-step: minimum cross-entropy fit of eq. funcprior
+            # M-step: minimum cross-entropy fit of the functional form (eq-funcprior)
             x, _ = _cross_entropy_fit(p_out, r, x)
         n_steps = len(history) - 1
     else:
@@ -879,7 +881,7 @@ def estimate_prior(
     if bounds_hit:
         log.warning(
             "prior estimate ended on a bound (%s): the sample may be too small or too noisy "
-            "to fix the prior's shape (DESIGN.md section 4)",
+            "to fix the prior's shape",
             ", ".join(bounds_hit),
         )
     B, C, D = np.exp(x)
@@ -991,7 +993,7 @@ def estimate_bulge_weights(
     a disc-dominated population it puts two thirds of the weight on models with a bulge,
     and the mixture of ill-fitting models biases the ellipticities of faint galaxies
     (``m ~ +0.025`` for exponential discs fitted with fractions 0, 0.5, 1;
-    ``benchmarks/exact_model_bias.py``).
+    ``benchmarks/studies/exact_model_bias.py``).
 
     Parameters
     ----------
@@ -1408,13 +1410,12 @@ class SizePrior:
         apart. Below the prior's mode the mass is floored there: sizes well under the
         PSF's are hard to tell apart, and what the prior holds there is the estimate's
         smoothing more than the data; those compact models keep a say in a bright
-        galaxy's ``L(e)`` near ``|e| = 1``; without them ``m`` moved by +0.003 in the
-        twenty-first session, by less than 0.0005 with the present engine (no floor and
-        no tail cut, ``size_prior_cut=0``, paired; ``benchmarks/README.md``,
-        thirty-second session). Above the mode the sizes are
-        resolved, and the nodes in the tail get 0: the fit leaves them out of the sum over
-        r and does not evaluate their models (a disc's largest sizes, a fifth of the
-        bank in the precision mode).
+        galaxy's ``L(e)`` near ``|e| = 1``; without them (no floor and no tail cut,
+        ``size_prior_cut=0``) ``m`` moves by less than 0.0005, paired
+        (``benchmarks/studies/precision_ab.py --b size_prior_cut=0``). Above the mode
+        the sizes are resolved, and the nodes in the tail get 0: the fit leaves them out
+        of the sum over r and does not evaluate their models (a disc's largest sizes, a
+        fifth of the bank in the precision mode).
 
         The floored nodes are summed on a coarser grid, every
         ``config.size_prior_floor_stride``-th size of the bank (the same sizes for every
@@ -1424,8 +1425,8 @@ class SizePrior:
         the default stride of three (in the precision mode 15 % of the models with the
         estimated size priors, a third with the population's own). The models there are
         compact and weigh 1e-4 of the prior's peak; the coarser sum moved the precision
-        run's ``m`` by 1e-5 (``benchmarks/precision_ab.py``). A bright galaxy far below
-        the prior, whose size those models resolve, is the case it is not for.
+        run's ``m`` by 1e-5 (``benchmarks/studies/precision_ab.py``). A bright galaxy
+        far below the prior, whose size those models resolve, is the case it is not for.
         """
         r, r_w, h = _node_sizes(bank, config)
         basis = _node_basis(h, bank.n_sizes, self.ln_h)
@@ -1590,14 +1591,14 @@ def select_size_prior_smoothing(
 
     :func:`estimate_size_prior`'s EMS smoothing is a regularisation whose strength does
     not fall as the sample grows: each EM step is followed by the same smoothing, so the
-    estimate stays softer than the population however many galaxies there are (the
-    edges of a box in size come out rounded, and ``m`` moves with them;
-    ``benchmarks/README.md``, forty-seventh session). This chooses it from the data:
-    the sample is cut into ``folds`` groups at random (``seed``); for each candidate,
-    the prior estimated from all groups but one gives the held-out group's galaxies
-    their evidence ``Z_a``, and the candidate whose held-out ``sum_a ln Z_a`` over the
-    groups is largest is returned. Every fit of every fold and candidate shares the
-    passes over the likelihoods (:func:`_ems`).
+    estimate stays softer than the population however many galaxies there are (the edges
+    of a box in size come out rounded, and ``m`` moves with them:
+    ``benchmarks/studies/precision_ab.py --b size_prior_smoothing=0.02``). This chooses
+    it from the data: the sample is cut into ``folds`` groups at random (``seed``); for
+    each candidate, the prior estimated from all groups but one gives the held-out
+    group's galaxies their evidence ``Z_a``, and the candidate whose held-out
+    ``sum_a ln Z_a`` over the groups is largest is returned. Every fit of every fold and
+    candidate shares the passes over the likelihoods (:func:`_ems`).
 
     Parameters
     ----------
@@ -1825,7 +1826,7 @@ def estimate_flux_range(
     the bounds of :class:`~pylensfit.Config`'s ``amplitude_prior_min`` and
     ``amplitude_prior_max``: a flux prior that allows fluxes the population never has
     keeps a weight at the faint end for models that fit a galaxy with less flux than
-    it has (``benchmarks/README.md``, seventeenth session).
+    it has (``benchmarks/studies/precision_priors.py --flux-bounds``).
 
     The errors are taken as ``error_scale * flux_err``, the scale fitted with the limits
     unless given. The most likely model's flux has a larger scatter than its
@@ -1834,7 +1835,7 @@ def estimate_flux_range(
     with the bulge+disc family the scatter is 1.6-3.2 times ``flux / snr`` at every
     S/N, and with the errors as given the lower limit came out 8 % below the true one
     (the fluxes' spill below it read as counts), with the fitted scale (2.0) 1.7 %
-    below (``benchmarks/README.md``, thirty-third session).
+    below.
 
     Parameters
     ----------

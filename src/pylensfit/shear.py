@@ -2,21 +2,22 @@
 
 For each galaxy ``a`` with a log-likelihood grid ``ln L_a(e)`` and a prior ``P(e)``
 (:class:`pylensfit.prior.Prior`), the posterior is ``p_a(e) = P(e) L_a(e) / sum_e P L_a``
-and (paper eq. ``expecte``)
+and (Kitching et al. 2008, arXiv:0802.1528, section 3.3; docs: method, eq-posterior)
 
     <e_i>_a = sum_e e_i P(e) L_a(e) / sum_e P(e) L_a(e),
 
 with the variances and covariance computed likewise. The *shear sensitivity*
 ``d<e_i>_a / dg_i`` comes in two versions (:func:`shear_sensitivity`):
 
-- ``"paper"``, eq. ``partial`` (Kitching et al. 2008, section 2.1), which treats a shear
-  as a translation of the prior in the e plane;
+- ``"paper"``, the paper's sensitivity (Kitching et al. 2008, section 2.1; docs: method,
+  eq-partial), which treats a shear as a translation of the prior in the e plane;
 - ``"exact"`` (the default), the first-order response to the reduced-shear map
-  ``e = (e_s + g) / (1 + g* e_s)`` of section 2.1 (DESIGN.md section 4), which removes the
-  multiplicative bias (~ +0.008) that the translation approximation leaves even when the
-  prior and likelihoods are exact.
+  ``e = (e_s + g) / (1 + g* e_s)`` of section 2.1 (docs: method, eq-sensitivity-exact),
+  which removes the multiplicative bias (~ +0.008) that the translation approximation
+  leaves even when the prior and likelihoods are exact.
 
-The shear of a sample is paper eq. ``key2``, ``g_i = sum_a <e_i>_a / sum_a d<e_i>_a/dg_i``
+The shear of a sample is the paper's mean shear over mean sensitivity (section 3.3;
+docs: method, eq-key2), ``g_i = sum_a <e_i>_a / sum_a d<e_i>_a/dg_i``
 (:func:`estimate_shear`). Everything is vectorised: for a block of galaxies all the sums
 are one matrix product ``L (n_gal, n_e) @ K (n_e, 14)``.
 """
@@ -65,7 +66,7 @@ DEFAULT_REFINE = 4
 #: 6, the quintic Lagrange interpolant. The Keys cubic (4) reproduces quadratics only:
 #: between nodes 0.1 apart the likelihood of a galaxy at S/N 10-30 is not quadratic
 #: enough, and its interpolation raised m by +0.0006; the quintic's moves it by -0.00005
-#: +- 0.00003 (``benchmarks/egrid_interpolation.py``, twenty-eighth session).
+#: +- 0.00003 (``benchmarks/studies/egrid_interpolation.py``).
 DEFAULT_STENCIL = 6
 
 #: Before interpolation ``ln L - max ln L`` is floored here (``-inf`` entries included):
@@ -525,7 +526,7 @@ def _sensitivity_from_sums(S: np.ndarray, method: str) -> tuple[np.ndarray, np.n
     m1 = S[:, 1] / s0
     m2 = S[:, 2] / s0
     if method == "paper":
-        # eq. partial: 1 - sum (<e_i> - e_i) L dP/de_i / sum P L
+        # the paper's sensitivity (eq-partial): 1 - sum (<e_i> - e_i) L dP/de_i / sum P L
         s1 = 1.0 - (m1 * S[:, 10] - S[:, 11]) / s0
         s2 = 1.0 - (m2 * S[:, 12] - S[:, 13]) / s0
     else:
@@ -581,7 +582,7 @@ def posterior_moments(
     refine: int = DEFAULT_REFINE,
     block_size: int | None = None,
 ) -> dict[str, np.ndarray]:
-    """Posterior means, variances and covariance of ``(e1, e2)``, paper eq. ``expecte``.
+    """Posterior means, variances and covariance of ``(e1, e2)`` (docs: method, eq-posterior).
 
     ``<e_i> = sum_e e_i P L / sum_e P L`` and
     ``var(e_i) = sum_e (e_i - <e_i>)^2 P L / sum_e P L``, ``cov`` likewise.
@@ -620,7 +621,8 @@ def shear_sensitivity(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Shear sensitivities ``d<e_1>/dg_1`` and ``d<e_2>/dg_2`` of each galaxy.
 
-    ``method="paper"`` is eq. ``partial`` (section 2.1, recast in section 3.3),
+    ``method="paper"`` is the paper's sensitivity (Kitching et al. 2008, arXiv:0802.1528,
+    section 2.1, recast in section 3.3; docs: method, eq-partial),
 
         d<e_i>/dg_i = 1 - sum_e (<e_i> - e_i) L(e) dP/de_i / sum_e P L,
 
@@ -669,7 +671,8 @@ def shapes(
 ) -> Table:
     """Posterior ellipticities, their covariance and shear sensitivities per galaxy.
 
-    The Bayesian integrals (eq. ``expecte`` and :func:`shear_sensitivity`) are sums over
+    The Bayesian integrals (the posterior means, docs: method, eq-posterior, and
+    :func:`shear_sensitivity`) are sums over
     an integration grid. With ``refine = k > 1`` that grid has cells of side ``de / k``
     and ``ln L`` is interpolated onto it (:func:`refine_lnL`: the quintic Lagrange
     interpolant of the 6 x 6 nearest cells, exact for Gaussian likelihoods and, unlike
@@ -691,8 +694,8 @@ def shapes(
     prior : Prior or BinnedPrior
         The prior; a :class:`~pylensfit.prior.BinnedPrior` needs ``values``.
     sensitivity : {"exact", "paper"}
-        The shear response (see :func:`shear_sensitivity`); ``"paper"`` is eq.
-        ``partial`` and reproduces the paper.
+        The shear response (see :func:`shear_sensitivity`); ``"paper"`` is the
+        paper's (docs: method, eq-partial) and reproduces the paper.
     refine : int
         Integration grid refinement factor (1: integrate on ``egrid`` itself).
     values : numpy.ndarray, optional
@@ -728,11 +731,11 @@ def shapes(
 
 
 # ----------------------------------------------------------------------------------------
-# The shear of a sample, eq. key2
+# The shear of a sample (docs: method, eq-key2 and eq-fixed-point)
 # ----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ShearEstimate:
-    """Shear of a sample, paper eq. ``key2``.
+    """Shear of a sample (docs: method, eq-key2 and eq-fixed-point).
 
     Attributes
     ----------
@@ -774,10 +777,11 @@ def estimate_shear(
     ``meta["refine"]`` of :func:`pylensfit.measure_stamps`' table and of
     :func:`pylensfit.measure`'s catalogue, or given here).
 
-    ``estimator="key2"``: Kitching et al. (2008)'s estimator (their eq. ``key2``, the
-    sum of the posterior means over the sum of the sensitivities), high by a factor
-    ``1 + |g|^2`` (``m ~ +8e-4`` at ``g = (0.02, 0.02)``); it needs only ``e1, e2,
-    sens1, sens2``, as :func:`shapes` gives them.
+    ``estimator="key2"``: Kitching et al. (2008)'s estimator (their mean shear over mean
+    sensitivity, section 3.3; docs: method, eq-key2: the sum of the posterior means over
+    the sum of the sensitivities), high by a factor ``1 + |g|^2`` (``m ~ +8e-4`` at
+    ``g = (0.02, 0.02)``); it needs only ``e1, e2, sens1, sens2``, as :func:`shapes`
+    gives them.
     ``g_i = sum_a <e_i>_a / sum_a d<e_i>_a/dg_i``, with the error of paper section 4.1,
     ``sigma / sqrt(N)`` in the form ``std_a(<e_i>_a) sqrt(N) / sum_a d<e_i>_a/dg_i``.
     Rows with a nonzero flag (when the table has ``flags_col``), a zero weight (when it
@@ -867,7 +871,7 @@ def shear_table(
     egrid: np.ndarray | None = None,
     refine: int | None = None,
 ) -> Table:
-    """Shear of every group of a catalogue, with errors (eq. ``key2`` per group).
+    """Shear of every group of a catalogue, with errors (:func:`estimate_shear` per group).
 
     Parameters
     ----------
@@ -957,7 +961,7 @@ def _sheared_prior_columns(prior: Prior, grid: np.ndarray, g: np.ndarray, h: flo
 
     ``P_g(e) = P(e_s) |de_s/de|^2`` with ``e_s = (e - g)/(1 - g* e)``: the density of the
     population ``P`` after the reduced shear ``g`` (paper section 2.1); at ``g = 0`` its
-    derivative is DESIGN.md section 4's ``dPg``.
+    derivative is the exact sensitivity's ``dP_g/dg`` (docs: method, eq-sensitivity-exact).
     """
     e = grid[:, 0] + 1j * grid[:, 1]
 
@@ -984,16 +988,18 @@ def shear_fixed_point(
 ) -> ShearEstimate:
     """Shear of a sample as the fixed point ``sum_a <e>_a(P_g) = N g`` (all orders in g).
 
-    The estimator of eq. ``key2`` divides by sensitivities computed at ``g = 0`` on data
-    that are sheared; for a noise-free ring ``<e> = g`` and ``<e^2> = g^2`` exactly, so
-    the summed exact sensitivity is ``N (1 - |g|^2)`` and the estimate is high by a
-    factor ``1 + |g|^2`` (``m ~ +0.006`` at ``g = 0.1`` for likelihood widths 0.05-0.1).
-    Here the prior itself is sheared: with ``P_g`` the density of the population ``P``
-    after a shear ``g``, the posterior mean under the true population averages to the
-    population mean ``g`` exactly, so ``g`` solves ``f(g) = sum_a <e>_a(P_g) - N g = 0``,
-    found by Newton steps from ``g = 0`` with the Jacobian ``sum_a d<e>_a/dg - N``
-    (the prior's share of the exact response; the first step is eq. ``key2`` with the
-    data part of the sensitivity replaced by its expectation, 1).
+    The paper's mean shear over mean sensitivity (Kitching et al. 2008, arXiv:0802.1528,
+    section 3.3; docs: method, eq-key2) divides by sensitivities computed at ``g = 0``
+    on data that are sheared; for a noise-free ring ``<e> = g`` and ``<e^2> = g^2``
+    exactly, so the summed exact sensitivity is ``N (1 - |g|^2)`` and the estimate is
+    high by a factor ``1 + |g|^2`` (``m ~ +0.006`` at ``g = 0.1`` for likelihood widths
+    0.05-0.1). Here the prior itself is sheared: with ``P_g`` the density of the
+    population ``P`` after a shear ``g``, the posterior mean under the true population
+    averages to the population mean ``g`` exactly, so ``g`` solves
+    ``f(g) = sum_a <e>_a(P_g) - N g = 0``, found by Newton steps from ``g = 0`` with the
+    Jacobian ``sum_a d<e>_a/dg - N`` (the prior's share of the exact response; the first
+    step is eq-key2 with the data part of the sensitivity replaced by its expectation,
+    1).
 
     Parameters
     ----------

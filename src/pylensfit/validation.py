@@ -316,14 +316,14 @@ def simulate_step(
         Size of the star-only fields (default: ``field_size``). The stacked PSF's noise
         reaches c: on a 100,000-galaxy STEP1 set (~1,000 stars per PSF) its
         ellipticity is off by ~2e-5 and the galaxies' c by up to 1.3e-4 per PSF, 0.6e-4
-        rms (``pylensfit validate DIR --true-psf``, ``benchmarks/README.md``); a star
+        rms (``pylensfit validate DIR --true-psf``, ``benchmarks/step1_true_psf.py``); a star
         field of twice the side halves that.
     psfs : tuple of dict, optional
         PSFs as ``{"fwhm", "beta", "e1", "e2"}`` (default ``STEP1_PSFS``/``STEP2_PSFS``).
     prior_ngal : int, optional
         Total number of galaxies over the zero-shear (prior) fields, one per PSF; sets
         their size (default: the size of the shear fields). The prior needs a few
-        thousand galaxies (DESIGN.md section 4), more than one shear field holds in a
+        thousand galaxies (docs: method, eq-prior-iteration), more than one shear field holds in a
         small set.
     twins : bool, optional
         Give every shear field a twin whose galaxies are rotated by 90 degrees before
@@ -578,9 +578,10 @@ if __name__ == "__main__":  # pragma: no cover
     raise SystemExit(main())
 
 # ----------------------------------------------------------------------------------------
-# Validation: m, c, sigma_c and Q (paper section 5, DESIGN.md section 5)
+# Validation: m, c, sigma_c and Q (Kitching et al. 2008, sections 4 and 5.1; docs: method,
+# eq-m-c and eq-quality-factor)
 # ----------------------------------------------------------------------------------------
-#: Targets of the issue: ``|<m>| <= 0.006`` (within its error), ``sigma_c <= 2e-4``, ``Q >= 100``.
+#: Targets: ``|<m>| <= 0.006`` (within its error), ``sigma_c <= 2e-4``, ``Q >= 100``.
 TARGETS: dict[str, float] = {"m": 0.006, "sigma_c": 2e-4, "Q": 100.0}
 
 #: Default binnings of :func:`validate`: four bins (equal counts) of each quantity.
@@ -641,14 +642,15 @@ def twin_shear(
     """Shear of an image and its 90-degree-rotated twin, galaxy by galaxy (STEP2).
 
     Each galaxy ``a`` of the image is paired with its rotated counterpart ``b``; the
-    intrinsic ellipticities cancel in ``e_a + e_b`` to first order in the shear (paper
-    section 5.2, Massey et al. 2007 eq. 6). The pair's estimate is eq. ``key2`` over both
-    images, ``g_i = sum_pairs (e_a,i + e_b,i) / sum_pairs (s_a,i + s_b,i)``, and its
-    error comes from the scatter of the per-pair sums,
+    intrinsic ellipticities cancel in ``e_a + e_b`` to first order in the shear
+    (Kitching et al. 2008, section 4.2, after Massey et al. 2007). The pair's estimate
+    is the mean shear over mean sensitivity (docs: method, eq-key2) over both images,
+    ``g_i = sum_pairs (e_a,i + e_b,i) / sum_pairs (s_a,i + s_b,i)``, and its error comes
+    from the scatter of the per-pair sums,
     ``std(e_a,i + e_b,i - g_i (s_a,i + s_b,i)) sqrt(N_pairs) / sum_pairs (s_a,i + s_b,i)``,
-    so that it shows
-    the cancellation (only measurement noise and the residual ``O(g e^2)`` terms remain).
-    :func:`group_shear` is the same for groups of any size (twins and noise twins).
+    so that it shows the cancellation (only measurement noise and the residual
+    ``O(g e^2)`` terms remain). :func:`group_shear` is the same for groups of any size
+    (twins and noise twins).
 
     Parameters
     ----------
@@ -679,9 +681,10 @@ def group_shear(e: np.ndarray, sens: np.ndarray) -> ShearEstimate:
 
     A group is an image and its twins: the 90-degree-rotated one (the intrinsic shapes
     cancel) and, for a set simulated with noise twins, the two with their noise negated
-    (the noise's first-order response cancels). The estimate is eq. ``key2`` over the
-    whole group, ``g_i = sum_galaxies sum_members e_i / sum_galaxies sum_members s_i``,
-    and its error comes from the scatter of the per-galaxy sums over the members,
+    (the noise's first-order response cancels). The estimate is the mean shear over mean
+    sensitivity (docs: method, eq-key2) over the whole group,
+    ``g_i = sum_galaxies sum_members e_i / sum_galaxies sum_members s_i``, and its error
+    comes from the scatter of the per-galaxy sums over the members,
     ``std(sum_members (e_i - g_i s_i)) sqrt(N) / sum s_i`` (the ratio estimator's), so
     that it shows the cancellations.
 
@@ -744,12 +747,13 @@ def truth_control_variate(r: np.ndarray, t: np.ndarray, t_pop: np.ndarray,
     ``g_hat`` (whatever the estimator) becomes ``g_hat - beta N <t>_pop / D``, where
     ``<t>_pop`` is the mean of ``t`` over **every** truth galaxy of the image (measured
     or not), ``N`` the measured truth galaxies, ``D`` the estimator's denominator
-    (``sum s`` for eq. ``key2``) and ``beta`` the regression slope of the residuals
-    ``e - g s`` on ``t``. The galaxies lost to cuts and failed fits differ from the
-    population only by their own ``t``: what a selection that responds to the shape
-    does to the estimate stays in it; only the population's sampling noise goes. The
-    error is that of ``sum (e - g s) - beta sum_measured (t - <t>)`` (the measurement's
-    part) with the unmeasured galaxies' share of the population noise,
+    (``sum s`` for the mean shear over mean sensitivity, eq-key2) and ``beta`` the
+    regression slope of the residuals ``e - g s`` on ``t``. The galaxies lost to cuts
+    and failed fits differ from the population only by their own ``t``: what a selection
+    that responds to the shape does to the estimate stays in it; only the population's
+    sampling noise goes. The error is that of
+    ``sum (e - g s) - beta sum_measured (t - <t>)`` (the measurement's part) with the
+    unmeasured galaxies' share of the population noise,
     ``beta^2 var(t) N (1 - N / N_pop)``.
 
     Parameters
@@ -841,7 +845,7 @@ def _controlled(res: tuple, e: np.ndarray, s: np.ndarray, t: np.ndarray, t_pop: 
 # -- measured catalogues, kept under DIR/measured/ ----------------------------------------
 #: the kept catalogues' version: one whose sidecar holds another is measured again. It
 #: changes when the same configuration measures differently (3: the size prior estimated
-#: from every measured galaxy, forty-fifth session)
+#: from every measured galaxy; 4: the calibration recipe of :func:`pylensfit.calibrate`)
 _MEASURE_VERSION = 4
 
 
@@ -1190,7 +1194,7 @@ def _summary(per: Table) -> dict[str, float]:
         "mean_m": float(np.mean(ms[ok])) if ok.any() else math.nan,
         # error of the mean of the PSFs' m (independent fits)
         "mean_m_err": float(math.sqrt(np.sum(me[ok] ** 2)) / ok.sum()) if ok.any() else math.nan,
-        # the paper's eq. (averror): the average of the PSFs' errors
+        # the paper's error of <m> (Kitching et al. 2008, section 4.2): the PSFs' mean error
         "mean_m_err_paper": float(np.mean(me[ok])) if ok.any() else math.nan,
         "sigma_c": float(math.hypot(_nanstd(c1), _nanstd(c2))),
         # what sigma_c would be from the fits' errors alone
@@ -1377,7 +1381,8 @@ def validate(
        the twins and the truth control variate only: every usable row enters the shear,
        matched or not, as in a survey.
     3. **Prior** from the galaxies of the zero-shear fields of all PSFs (as in the paper).
-    4. **Shear** per image (eq. ``key2`` or the sheared-prior fixed point,
+    4. **Shear** per image (the mean shear over mean sensitivity, docs: method, eq-key2,
+       or the sheared-prior fixed point, eq-fixed-point,
        ``estimator``). For STEP2-like sets, each image and its 90-degree-rotated twin are
        combined galaxy by galaxy (the galaxies measured in every member are summed over
        the members, which cancels their shape noise; every other usable detection of the
@@ -1424,8 +1429,9 @@ def validate(
     estimator : {"fixed-point", "key2"}
         Shear estimator: the fixed point of :func:`pylensfit.shear_fixed_point` (default;
         for twins, that of both images together, with the error of :func:`twin_shear`),
-        or the paper's eq. ``key2``, whose ``+g^2`` term STEP's shears of up to 0.1 bring
-        out: +0.009 in m on the 100k STEP1 set (``benchmarks/README.md``).
+        or the paper's mean shear over mean sensitivity (docs: method, eq-key2), whose
+        ``+g^2`` term STEP's shears of up to 0.1 bring out: +0.009 in m on the 100k STEP1
+        set (``benchmarks/README.md``, "What the studies found").
     report : str or pathlib.Path, optional
         Write a Markdown report here with its PNG figures beside it
         (:func:`write_report`).
@@ -1460,13 +1466,15 @@ def validate(
     Returns
     -------
     astropy.table.Table
-        One row per PSF and a last row ``all`` (a joint fit): ``m1, m1_err, c1, c1_err,
-        m2, m2_err, c2, c2_err, Q, n_gal``. ``meta`` holds ``mean_m`` (over PSFs and
-        components), ``mean_m_err`` (its error), ``mean_m_err_paper`` (eq. averror),
-        ``sigma_c``, ``sigma_c_stat`` (what the fits' errors alone give),
-        ``sigma_c_hat`` and ``sigma_c_upper`` (the offsets' own spread over PSFs with the
-        noise taken out, and its 95 % upper limit: :func:`c_scatter`; ``c1_chi2``,
-        ``c2_chi2``, ``c_dof``, ``c1_p``, ``c2_p`` its chi-squares), ``prior``,
+        One row per PSF and a last row ``all`` (a joint fit):
+        ``m1, m1_err, c1, c1_err, m2, m2_err, c2, c2_err, Q, n_gal``. ``meta`` holds
+        ``mean_m`` (over PSFs and components), ``mean_m_err`` (its error),
+        ``mean_m_err_paper`` (the paper's, the mean of the PSFs' errors: Kitching et al.
+        2008, section 4.2), ``sigma_c``, ``sigma_c_stat`` (what the fits' errors alone
+        give), ``sigma_c_hat`` and ``sigma_c_upper`` (the offsets' own spread over PSFs
+        with the noise taken out, and its 95 % upper limit: :func:`c_scatter`;
+        ``c1_chi2``, ``c2_chi2``, ``c_dof``, ``c1_p``, ``c2_p`` its chi-squares),
+        ``prior``,
         ``mode`` (``"pairs"`` or ``"images"``), ``estimates`` (the per-image or per-pair
         table the fits used), ``images`` (single-image estimates), ``pairs`` (step2),
         ``single`` (step2: the per-PSF fit table from single images), ``fits`` (per PSF and
@@ -1920,7 +1928,8 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
              + (" The truth's shape noise taken out of each estimate (a control variate "
                 "of expectation zero: `validate --truth-control`); the bins without it."
                 if meta.get("truth_control") else ""), "",
-             f"<m> = {meta['mean_m']:+.4f} +- {meta['mean_m_err']:.4f} (paper eq. averror: "
+             f"<m> = {meta['mean_m']:+.4f} +- {meta['mean_m_err']:.4f} (the paper's mean of the "
+             f"PSFs' errors: "
              f"+- {meta['mean_m_err_paper']:.4f}), sigma_c = {meta['sigma_c']:.2e} "
              f"(from the errors alone {meta['sigma_c_stat']:.2e}; the offsets' own spread "
              f"{meta.get('sigma_c_hat', math.nan):.1e}, < "
