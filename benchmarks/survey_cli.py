@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         out.unlink(missing_ok=True)
         _cli("shear", str(cat), "-o", str(out))
         tab = Table.read(out)
-        c = Table.read(cat)
+        c = Table.read(cat, hdu="CATALOG")
         usable = (np.asarray(c["flags"]) == 0) & (np.asarray(c["weight"]) > 0)
         n_meas += int(usable.sum())
         per = {str(g).split("=", 1)[1]: r
