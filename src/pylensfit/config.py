@@ -332,6 +332,45 @@ class Config:
         "refit a galaxy only if the neighbours' models in its stamp sum to more than this "
         "(sum of squares in noise variances)",
     )
+    max_reduced_chi2: float = _f(
+        10.0,
+        "an object whose best model, rendered, leaves on its base stamp a residual (the "
+        "stamp less its own and its neighbours' models) of reduced chi-square above this "
+        "and of more than max_residual_fraction of the model's power is flagged DEFECT "
+        "(weight 0): its model is subtracted neither from its neighbours' stamps nor from "
+        "the sky, and a first fit spoiled by a neighbour is cleared when its refit fits. "
+        "Measured on simulated 512^2 fields: galaxies of S/N 10-200 (exponential, de "
+        "Vaucouleurs, bulge+disc; fitted with the same or another profile; Config() and "
+        "paper) stay below 3.2, stars of peak S/N 40-1000 under a PSF 0.036 off in "
+        "ellipticity below 6.2; bright galaxies (S/N 200-3000) reach 465 and stars of "
+        "peak S/N 1e4 584, but with residuals below 0.085 and 0.001 of their models' "
+        "power; a 10x10 block at 65,000 or 1e9 ADU, a pixel at 1e30 or +2000 sigma, a "
+        "bleed trail and stars saturated 40-16,000 times reach 3e3 to 1e57 "
+        "(tests/test_defects.py). inf: no such check",
+    )
+    max_residual_fraction: float = _f(
+        0.1,
+        "with max_reduced_chi2: the residual's power beyond the noise as a fraction of the "
+        "model's own on the base stamp, sum(r^2 - sigma^2) / sum(m^2), above which an "
+        "object is DEFECT. Faint galaxies reach 3.5 from the noise alone (their reduced "
+        "chi-square stays near 1); bright galaxies of another profile than the model's "
+        "0.085, stars under a wrong PSF 0.001; the defects above 0.34 (blocks), 4.8 (a "
+        "pixel), 22 (a trail), 0.13-0.18 (stars saturated 40-16,000 times; 2-5 times: "
+        "0.003-0.06, a model close enough to subtract)",
+    )
+    saturation: float | None = _f(
+        None,
+        "saturation level of the raw pixel values (data units, background included): "
+        "pixels at or above it are masked (grown by saturation_grow px) before the "
+        "background, the detection and the fit, and the objects whose stamps hold them "
+        "are flagged SATURATED and MASKED. None: the image's SATURATE card, as SExtractor "
+        "reads it; no cut without one",
+    )
+    saturation_grow: int = _f(
+        2,
+        "margin in pixels by which the saturated and the non-finite pixels are masked "
+        "about them (a square of side 2 saturation_grow + 1)",
+    )
 
     def __post_init__(self) -> None:
         if not isinstance(self.sersic_ladder, tuple):  # a list from YAML, a string "0.5,2,4"
@@ -614,4 +653,12 @@ def _validate(c: Config) -> None:
     need(0 <= c.close_pair_faint_ratio < 1, "close_pair_faint_ratio must be in [0, 1)")
     need(c.neighbour_min_chi2 >= 0, "neighbour_min_chi2 must be >= 0")
     need(c.neighbour_iterations >= 1, "neighbour_iterations must be >= 1")
+    need(c.max_reduced_chi2 > 1, f"max_reduced_chi2 must be > 1, got {c.max_reduced_chi2}")
+    need(c.max_residual_fraction > 0,
+         f"max_residual_fraction must be > 0, got {c.max_residual_fraction}")  # fmt: skip
+    need(c.saturation is None or (isinstance(c.saturation, (int, float))
+                                  and not isinstance(c.saturation, bool)
+                                  and math.isfinite(c.saturation) and c.saturation > 0),
+         f"saturation must be None or a positive number, got {c.saturation!r}")  # fmt: skip
+    need(c.saturation_grow >= 0, f"saturation_grow must be >= 0, got {c.saturation_grow}")
     need(c.min_snr >= 0, "min_snr must be >= 0")

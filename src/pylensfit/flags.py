@@ -14,7 +14,8 @@ __all__ = ["FLAGS", "describe", "flag_value"]
 #: name -> (bit value, description)
 FLAGS: dict[str, tuple[int, str]] = {
     "STAR": (1, "most likely model radius is 0: a point source"),
-    "FIT_FAILED": (2, "likelihood not finite anywhere on the grid"),
+    "FIT_FAILED": (2, "likelihood not finite on the whole grid (NaN, or a range beyond "
+                   "float32's: a stamp of absurd values), or no finite shape from it"),
     "BAD_PIXELS": (4, "non-finite pixels in the stamp"),
     "BAD_NOISE": (8, "noise sigma not finite and positive"),
     "NO_PEAK": (16, "no positive cross-correlation peak near the catalogue position"),
@@ -27,6 +28,16 @@ FLAGS: dict[str, tuple[int, str]] = {
                 "detections are noise"),
     "BAD_POSITION": (2048, "the input catalogue's position is not finite (NaN or inf): the "
                      "row is kept, with NaN positions, and not measured"),
+    "DEFECT": (4096, "the best model does not fit the stamp (a residual of reduced "
+               "chi-square above Config.max_reduced_chi2 and above "
+               "Config.max_residual_fraction of the model's power, or no finite "
+               "amplitude): most such objects are image defects (a saturated star, a bleed "
+               "trail, a satellite, a hot pixel); its model is subtracted neither from its "
+               "neighbours nor from the sky"),
+    "SATURATED": (8192, "the stamp holds pixels at or above the saturation level "
+                  "(Config.saturation, else the image's SATURATE card) or within "
+                  "Config.saturation_grow px of one: they are masked (MASKED is set too) "
+                  "and the object is not fitted"),
 }
 
 #: flags that make a row unusable for shear

@@ -1010,21 +1010,25 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     else:
         lnlr = lnlr[:, 0]
     peak = lnle.max(axis=1)
-    failed = ~np.isfinite(peak) | ~np.isfinite(lnle).all(axis=1)
-    flags[failed & ~bad] |= _flags.flag_value("FIT_FAILED")
-    dead = bad | failed
-    lnL = (lnle - peak[:, None]).astype(np.float32)
-    lnL[dead] = np.nan
-    lnL_bulge = lnL_star = None
-    if n_b > 1:  # per bulge fraction, for a population prior over them (mix_bulge_fractions)
-        lnL_bulge = np.moveaxis(lnleb - peak[:, None, None], 2, 1).astype(np.float32)
-        lnL_bulge[dead] = np.nan
-        lnL_star = np.where(dead, np.nan, lnlr[:, n_r] + np.log(w_star) - peak)
-    lnL_r = (lnlr - peak[:, None]).astype(np.float32)
-    lnL_r[dead] = np.nan
-    if lnlr_grp is not None:
-        lnlr_grp = (lnlr_grp - peak[:, None, None]).astype(np.float32)
-        lnlr_grp[dead] = np.nan
+    # a stamp of absurd values (a pixel at 1e30) gives ln L a range beyond float32's: -inf
+    # cells in the returned rows, which no posterior can use; failed like a NaN row
+    with np.errstate(over="ignore", invalid="ignore"):
+        lnL = (lnle - peak[:, None]).astype(np.float32)
+        failed = (~np.isfinite(peak) | ~np.isfinite(lnle).all(axis=1)
+                  | ~np.isfinite(lnL).all(axis=1))  # fmt: skip
+        flags[failed & ~bad] |= _flags.flag_value("FIT_FAILED")
+        dead = bad | failed
+        lnL[dead] = np.nan
+        lnL_bulge = lnL_star = None
+        if n_b > 1:  # per bulge fraction, for a population prior over them
+            lnL_bulge = np.moveaxis(lnleb - peak[:, None, None], 2, 1).astype(np.float32)
+            lnL_bulge[dead] = np.nan
+            lnL_star = np.where(dead, np.nan, lnlr[:, n_r] + np.log(w_star) - peak)
+        lnL_r = (lnlr - peak[:, None]).astype(np.float32)
+        lnL_r[dead] = np.nan
+        if lnlr_grp is not None:
+            lnlr_grp = (lnlr_grp - peak[:, None, None]).astype(np.float32)
+            lnlr_grp[dead] = np.nan
 
     ir_best = lnlr.argmax(axis=1)
     radii = np.append(bank.radii, 0.0)

@@ -2,15 +2,19 @@
 
 :func:`measure` walks the whole path for each input image:
 
-1. read the image, its weight (inverse variance) and mask maps and its WCS;
+1. read the image, its weight (inverse variance) and mask maps and its WCS, and mask
+   the saturated (``Config.saturation`` or the ``SATURATE`` card) and non-finite pixels;
 2. measure the background and its rms and detect the objects with ``sep``
    (:mod:`pylensfit.detection`), or take the positions of an input catalogue;
 3. select stars on the stellar locus (peak S/N above ``star_min_peak_snr``), stack them
    into a PSF (:func:`pylensfit.psf.stack_psf`) and co-add it with the PSFs of the
    separate star-field images;
 4. cut a postage stamp about every object and flag those that cannot be fitted (edge,
-   masked or NaN pixels, close pairs: :mod:`pylensfit.stamps`);
-5. compute every object's ``ln L(e)`` grid (:func:`pylensfit.fit_stamps`).
+   masked, saturated or NaN pixels, close pairs: :mod:`pylensfit.stamps`);
+5. compute every object's ``ln L(e)`` grid (:func:`pylensfit.fit_stamps`), again with
+   the neighbours' models and the sky's change taken out; an object whose model does not
+   fit its stamp (a defect) is flagged ``DEFECT`` and left out of the others' stamps and
+   the sky.
 
 The images are independent and run in parallel: in a local process pool (``jobs``, one
 BLAS and numba thread per worker) or on a dask.distributed cluster (``scheduler``).
@@ -251,6 +255,61 @@ def _noise_at(img: _Image, x, y, bkg, rms_map) -> np.ndarray:
     return np.full(np.shape(x), float(bkg.global_rms))
 
 
+def _mask_saturated(img: _Image, cfg: Config) -> np.ndarray:
+    """Mask what no galaxy model fits, before the background, the detection and the fit.
+
+    The pixels at or above the saturation level (``cfg.saturation``, else the image's
+    ``SATURATE`` card: :func:`~pylensfit.detection.saturation_level`) and the non-finite
+    ones are added to ``img.bad`` (in place), each grown by ``cfg.saturation_grow`` px.
+
+    Parameters
+    ----------
+    img : _Image
+        The image; its ``bad`` map is updated.
+    cfg : Config
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean ``(ny, nx)``: the saturated pixels, grown (the ``SATURATED`` flag's map).
+
+    Raises
+    ------
+    InputError
+        If no pixel is left unmasked.
+    """
+    from .detection import grow_mask, saturation_level, saturation_mask
+
+    level = saturation_level(img.header, cfg.saturation)
+    sat = saturation_mask(img.data, level, cfg.saturation_grow)
+    img.bad |= sat | grow_mask(~np.isfinite(img.data), cfg.saturation_grow)
+    if img.bad.all():
+        why = "" if level is None else f" or at or above the saturation level {level:g}"
+        raise InputError(f"{img.path}: every pixel is masked, has zero weight, is not "
+                         f"finite or lies within {cfg.saturation_grow} px of such{why}")
+    if sat.any():
+        log.info("%s: %d pixels at or above the saturation level %g (grown by %d px) "
+                 "masked", img.path, int(sat.sum()), level, cfg.saturation_grow)  # fmt: skip
+    return sat
+
+
+def _box_any(mask: np.ndarray, x: np.ndarray, y: np.ndarray, size: int) -> np.ndarray:
+    """Whether the ``size x size`` stamp about each ``(x, y)`` (as
+    :func:`~pylensfit.stamps.cut_stamps` cuts it; clipped to the image) holds a pixel of
+    ``mask``: a summed-area table, O(1) per object."""
+    from .stamps import patch_origins
+
+    if x.size == 0 or not mask.any():
+        return np.zeros(x.size, dtype=bool)
+    ny, nx = mask.shape
+    sat = np.zeros((ny + 1, nx + 1), dtype=np.int64)
+    sat[1:, 1:] = np.cumsum(np.cumsum(mask, axis=0, dtype=np.int64), axis=1)
+    ix0, iy0 = patch_origins(x, y, size)
+    x0, y0 = np.clip(ix0, 0, nx), np.clip(iy0, 0, ny)
+    x1, y1 = np.clip(ix0 + size, 0, nx), np.clip(iy0 + size, 0, ny)
+    return sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0] > 0
+
+
 def _psf_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_col):
     from .detection import select_stars
 
@@ -276,6 +335,7 @@ def _starfield_task(task: dict[str, Any]) -> PSFResult:
     _single_thread(task.get("single_thread", False))
     cfg = Config.from_dict(task["config"])
     img = _read_image(task["path"], task.get("weight"), task.get("mask"))
+    _mask_saturated(img, cfg)
     sub, det, _ = _detect(img, cfg, None)
     if len(det) == 0:
         raise InputError(f"{img.path}: no object detected in the star field")
@@ -305,6 +365,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     cfg = Config.from_dict(task["config"])
     path = task["path"]
     img = _read_image(path, task.get("weight"), task.get("mask"))
+    saturated = _mask_saturated(img, cfg)
     positions = _read_positions(task["catalogue"], path) if task.get("catalogue") else None
     sub, det, bkg = _detect(img, cfg, positions)
     t_detect = time.perf_counter()
@@ -340,6 +401,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     noise = np.asarray(det["noise_sigma"], dtype=float)
     stamps, cx, cy, sflags = cut_stamps(sub, x, y, cfg.stamp_size, bad=img.bad)
     flags |= sflags
+    flags[_box_any(saturated, x, y, cfg.stamp_size)] |= _flags.flag_value("SATURATED")
     # the stamp tiers (Config.max_stamp_size): an object whose larger stamp lies in the
     # image with no bad pixel is fitted on it, fit_stamps choosing its tier; the flags,
     # close pairs and everything else stay those of the base stamp
@@ -417,6 +479,9 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     if todo.size:
         fits_ = fit(todo)
         store(fits_, todo)
+    # a model that does not fit its stamp (a defect: a saturated star, a bleed trail, a
+    # hot pixel) is flagged DEFECT and kept out of the others' stamps and of the sky
+    defect = np.zeros(todo.size, dtype=bool)
     redo = np.zeros(0, dtype=np.int64)
     back = bkg.back
     if todo.size and (cfg.subtract_neighbours and todo.size > 1 or cfg.model_background):
@@ -430,11 +495,24 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
                                       box=cfg.background_box).back  # fmt: skip
             return back - bkg.back
 
-        redo = subtract_neighbours(sub.shape, x, y, xf, yf, noise, todo, fits_, psf.image,
-                                   cfg, fit, store, sky=sky if cfg.model_background else None)
+        redo, defect = subtract_neighbours(
+            sub.shape, x, y, xf, yf, noise, todo, fits_, psf.image, cfg, fit, store,
+            sky=sky if cfg.model_background else None, data=bstamps)  # fmt: skip
+    elif todo.size:  # no refit: the first fits are judged as they are
+        others, _, own, _ = _neighbour_light(sub.shape, x, y, xf, yf, todo, fits_,
+                                             psf.image, cfg, own_too=True)  # fmt: skip
+        defect = _implausible_models(bstamps, todo, noise, fits_, cfg, others, own)
+    if defect.any():
+        flags[todo[defect]] |= _flags.flag_value("DEFECT")
+        log.info("%s: %d object(s) whose best model does not fit the stamp flagged DEFECT "
+                 "(Config.max_reduced_chi2, max_residual_fraction)", path,
+                 int(defect.sum()))  # fmt: skip
     t_fit = time.perf_counter()
     ra, dec = _sky(img.header, xf, yf)
     measured = np.isfinite(lnL).all(axis=1)
+    # a fit that left no finite ln L row says so in its flags (STAR alone would not)
+    flags[~measured & ((flags & ~_flags.flag_value("STAR")) == 0)] |= _flags.flag_value(
+        "FIT_FAILED")
     fitclass = np.where(measured, np.where(is_star, FITCLASS["star"], FITCLASS["galaxy"]),
                         FITCLASS["not_measured"])  # fmt: skip
     rows = {
@@ -503,7 +581,7 @@ _MODEL_KEYS = ("flux", "x", "y", "is_star", "r_best", "lnL", "bulge_best", "flag
 
 
 def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Config, refit,
-                        store, *, sky=None) -> np.ndarray:  # fmt: skip
+                        store, *, sky=None, data=None):  # fmt: skip
     """Fit galaxies again with their neighbours' best-fit models taken out of the stamps.
 
     ``cfg.neighbour_iterations`` rounds: each renders every fitted object's current model
@@ -548,18 +626,41 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
     sky : callable, optional
         ``sky(field) -> (ny, nx)``: the change of the background when it is measured on
         the image less ``field``, the rendered models of all fitted objects.
+    data : numpy.ndarray, optional
+        ``(n, N, N)`` every object's stamp as the fits saw it (``N =
+        cfg.largest_stamp``): with it, every round first judges the current models
+        (:func:`_implausible_models`). The objects whose models do not fit their stamps
+        (a defect: a saturated star, a bleed trail, a hot pixel) are suspects: their
+        models are rendered neither into the others' stamps nor into ``field``, and they
+        are fitted again with the others' light taken out; a suspect whose new fit
+        describes its stamp is cleared (a first fit spoiled by a bright neighbour), the
+        others are ``DEFECT``. After the last round the suspects' last fits are judged
+        once more.
 
     Returns
     -------
-    numpy.ndarray
+    done : numpy.ndarray
         Indices of the objects whose neighbours' light was taken out (a subset of those
         fitted again when ``sky`` is given).
+    defect : numpy.ndarray
+        Boolean, one per ``fitted``: the objects whose best model does not fit their
+        stamp (none without ``data``).
     """
     cur = {k: np.array(getattr(first, k)) for k in _MODEL_KEYS}
     cur["egrid"] = first.egrid
     ok = first.flags == 0
     done = np.zeros(0, dtype=np.int64)
     dsky = None
+    suspect = np.zeros(fitted.size, dtype=bool)
+
+    def light():  # every fitted model, the suspects' into their own stamps only
+        return _neighbour_light(shape, x, y, xf, yf, fitted, SimpleNamespace(**cur), psf, cfg,
+                                exclude=suspect, own_too=True)  # fmt: skip
+
+    def judge(others, own, aside):  # with every model's light, the suspects' too
+        return _implausible_models(data, fitted, noise, SimpleNamespace(**cur), cfg,
+                                   others if aside is None else others + aside, own,
+                                   dsky)  # fmt: skip
 
     def _chi2(light):  # the light taken out of each fitted stamp, in units of its noise
         # (the window each object was fitted on: the base stamp or a larger tier)
@@ -570,16 +671,23 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
             out[i] = np.sum(light[fitted[i], a : a + int(s), a : a + int(s)] ** 2, axis=(1, 2))
         return out / noise[fitted] ** 2
 
+    refitted = np.zeros(fitted.size, dtype=bool)  # in the last round
     for _ in range(int(cfg.neighbour_iterations)):
-        f = SimpleNamespace(**cur)
-        others, field = _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg)
+        others, field, own, aside = light()
+        if data is not None:
+            now = judge(others, own, aside)
+            if (now != suspect).any():
+                suspect = now
+                others, field, own, aside = light()
         if not cfg.subtract_neighbours:
             others[:] = 0.0
         if sky is not None:
             dsky = cut_stamps(sky(field), x, y, cfg.largest_stamp)[0]
         near = _chi2(others) > cfg.neighbour_min_chi2
         less = others if dsky is None else others + dsky
-        sel = np.flatnonzero(ok & (near if dsky is None else _chi2(less) > cfg.neighbour_min_chi2))
+        go = near if dsky is None else _chi2(less) > cfg.neighbour_min_chi2
+        sel = np.flatnonzero(ok & (go | suspect))
+        refitted[:] = False
         if sel.size == 0:
             break
         idx = fitted[sel]
@@ -587,8 +695,12 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
         store(f2, idx)
         for k in _MODEL_KEYS:
             cur[k][sel] = getattr(f2, k)
+        refitted[sel] = True
         done = np.union1d(done, fitted[ok & near])
-    return done
+    if data is not None and (suspect & refitted).any():  # the suspects' last fits
+        others, _, own, aside = light()
+        suspect = judge(others, own, aside)
+    return done, suspect
 
 
 def _likelihood_mean_e(lnL: np.ndarray, egrid: np.ndarray, block: int = 512) -> np.ndarray:
@@ -604,7 +716,90 @@ def _likelihood_mean_e(lnL: np.ndarray, egrid: np.ndarray, block: int = 512) -> 
     return out
 
 
-def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: int = 256):
+def _rendered(f) -> np.ndarray:
+    """Which fits ``f`` have a model to render: a finite, positive flux at a finite
+    position."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(f.flux) & (f.flux > 0) & np.isfinite(f.x) & np.isfinite(f.y)
+
+
+def _implausible_models(data, fitted, noise, f, cfg: Config, others, own,
+                        dsky=None) -> np.ndarray:  # fmt: skip
+    """The fitted objects whose best model does not fit their stamp (``DEFECT``).
+
+    On the base stamp (``cfg.stamp_size`` px square about the object, where the
+    close-pair test left no other detection) the residual ``r`` is the stamp less the
+    object's own rendered model and its neighbours'. An object is implausible where the
+    residual is both significant, a reduced chi-square ``chi2 = sum(r^2) / (sigma^2
+    N^2)`` above ``cfg.max_reduced_chi2``, and a large part of the model's own power,
+    ``sum(r^2 - sigma^2) / sum(m^2)`` above ``cfg.max_residual_fraction`` (``m`` the
+    model on the stamp). A galaxy or a star that the models describe leaves the noise
+    and a small mismatch of the profile; a saturated star, a bleed trail or a hot pixel
+    (flat-topped, or sharper than the PSF) leaves a residual of thousands of noise
+    variances per pixel, 0.13 to 20 times the model's power. So is a fit with no finite
+    positive amplitude and no other flag than ``STAR``.
+
+    A defect's model spreads into its neighbours' stamps and raises their residuals, so
+    an object is implausible only if its stamp less its own model alone is beyond the
+    limits too: a neighbour spoiled by the defect's model alone is not.
+
+    Parameters
+    ----------
+    data : numpy.ndarray
+        ``(n, N, N)`` every object's stamp (background subtracted, data units), cut as
+        :func:`~pylensfit.stamps.cut_stamps` cuts them (``N >= cfg.stamp_size``).
+    fitted : numpy.ndarray
+        ``(m,)`` indices of the fitted objects, in the order of ``f``.
+    noise : numpy.ndarray
+        ``(n,)`` noise sigma per pixel (data units).
+    f : StampFits or namespace
+        The current fits of the objects ``fitted`` (``flux, x, y, flags``).
+    cfg : Config
+    others, own : numpy.ndarray
+        ``(n, N, N)`` :func:`_neighbour_light`'s light of the other objects and each
+        object's own model (``own_too=True``), data units.
+    dsky : numpy.ndarray, optional
+        ``(n, N, N)`` the change of the sky taken out of the stamps too.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(m,)`` boolean, the implausible objects.
+    """
+    n, big = cfg.stamp_size, data.shape[1]
+    w = slice(big // 2 - n // 2, big // 2 - n // 2 + n)  # the base stamp in the larger
+
+    def cut(a, idx):
+        return a[idx][:, w, w]
+
+    rendered = _rendered(f)
+    var = noise[fitted] ** 2
+    mine = cut(own, fitted)
+    resid = cut(data, fitted) - mine
+    if dsky is not None:
+        resid -= cut(dsky, fitted)
+    with np.errstate(over="ignore", invalid="ignore"):
+        power = np.sum(mine * mine, axis=(1, 2)) / var  # the model's, in noise variances
+    out = rendered & _poor_fit(resid, var, power, cfg)  # its own model alone
+    i = np.flatnonzero(out)  # the few: with the neighbours' light taken out too
+    out[i] = _poor_fit(resid[i] - cut(others, fitted[i]), var[i], power[i], cfg)
+    star = _flags.flag_value("STAR")
+    return out | ~rendered & ((np.asarray(f.flags) & ~star) == 0)
+
+
+def _poor_fit(resid: np.ndarray, var: np.ndarray, power: np.ndarray, cfg: Config) -> np.ndarray:
+    """Where residuals ``(m, N, N)`` (data units; noise variance ``var`` per stamp) are
+    significant (reduced chi-square above ``cfg.max_reduced_chi2``) and more than
+    ``cfg.max_residual_fraction`` of the model's ``power`` (in noise variances)."""
+    npix = resid.shape[1] * resid.shape[2]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        chi2 = np.sum(resid * resid, axis=(1, 2)) / var
+        frac = (chi2 - npix) / power
+        return ~(chi2 <= cfg.max_reduced_chi2 * npix) & ~(frac <= cfg.max_residual_fraction)
+
+
+def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: int = 256,
+                     exclude=None, own_too: bool = False):  # fmt: skip
     """The light of every other fitted object in each object's stamp.
 
     Each object of ``fitted`` (fits ``f``, in the same order) is rendered
@@ -616,15 +811,21 @@ def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: in
     the canvases are added into an image of the field (and at least twice the largest
     stamp tier). Returns ``(n, N, N)``, ``N = cfg.largest_stamp``: that image cut about
     every object's position as :func:`~pylensfit.stamps.cut_stamps` cuts the stamps,
-    less the object's own model; and the image of the field.
+    less the object's own model; and the image of the field. The objects of
+    ``exclude`` (boolean, one per ``fitted``: suspected defects) are left out of the
+    field, so of every stamp but their own. With ``own_too``, two more: each object's
+    own model (``(n, N, N)``, zero where none; the excluded objects' too) and the light
+    of the excluded objects in each stamp, less its own (``(n, N, N)``, or ``None``
+    where none is excluded).
     """
     from .models import render_models
     from .stamps import add_patches, patch_origins
 
     n_stamp = cfg.largest_stamp  # the stamps of the tiers (Config.max_stamp_size)
     big = max(4 * cfg.stamp_size, 2 * n_stamp)
-    good = np.isfinite(f.flux) & (f.flux > 0) & np.isfinite(f.x) & np.isfinite(f.y)
+    good = _rendered(f)
     obj = fitted[good]
+    into = np.ones(obj.size, dtype=bool) if exclude is None else ~np.asarray(exclude)[good]
     r = np.where(f.is_star[good], 0.0, np.nan_to_num(f.r_best[good]))
     e = _likelihood_mean_e(f.lnL[good], f.egrid)
     e1 = np.where(f.is_star[good], 0.0, e[:, 0])
@@ -632,6 +833,7 @@ def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: in
     bf = np.nan_to_num(f.bulge_best[good], nan=cfg.bulge_fraction)
     flux = f.flux[good]
     field = np.zeros(shape)
+    aside = np.zeros(shape) if own_too and not into.all() else None  # the excluded's
     own = np.zeros((x.size, n_stamp, n_stamp))
     bx0, by0 = patch_origins(x[obj], y[obj], big)
     lo = big // 2 - n_stamp // 2
@@ -640,10 +842,22 @@ def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: in
         pat = render_models(big, psf, xf[obj[sl]] - bx0[sl], yf[obj[sl]] - by0[sl], e1[sl],
                             e2[sl], r[sl], flux[sl], model=cfg.model, bulge_fraction=bf[sl],
                             bulge_size_ratio=cfg.bulge_size_ratio)  # fmt: skip
-        add_patches(field, pat, bx0[sl], by0[sl])
+        k = into[sl]
+        add_patches(field, pat[k], bx0[sl][k], by0[sl][k])
+        if aside is not None:
+            add_patches(aside, pat[~k], bx0[sl][~k], by0[sl][~k])
         own[obj[sl]] = pat[:, lo : lo + n_stamp, lo : lo + n_stamp]
     stamps, _, _, _ = cut_stamps(field, x, y, n_stamp)
-    return stamps - own, field
+    if into.all():
+        stamps -= own
+    else:  # the excluded objects' own light is in no stamp
+        stamps[obj[into]] -= own[obj[into]]
+    if not own_too:
+        return stamps, field
+    if aside is not None:
+        aside = cut_stamps(aside, x, y, n_stamp)[0]
+        aside[obj[~into]] -= own[obj[~into]]
+    return stamps, field, own, aside
 
 
 _PSF_KEYS = ("n_used", "n_rejected", "fwhm", "e1", "e2")
@@ -1279,6 +1493,14 @@ def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
         lnL = np.where(usable[:, None], mix_bulge_fractions(lnL_bulge, lnL_star,
                                                             bulge_weights), np.nan)  # fmt: skip
     sh = _shapes(lnL, egrid, prior, sensitivity=cfg.sensitivity, refine=cfg.output_refine)
+    # a usable row without a finite shape is a failed fit, never a row of flags 0
+    no_shape = usable & ~(np.isfinite(np.asarray(sh["e1"])) & np.isfinite(np.asarray(sh["e2"])))
+    if no_shape.any():
+        f1 = np.array(cat["flags"])
+        f1[no_shape] |= _flags.flag_value("FIT_FAILED")
+        cat["flags"] = f1
+        gal &= ~no_shape
+        usable &= ~no_shape
     for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
         cat[c] = np.where(usable, np.asarray(sh[c]), np.nan)
     cat["weight"] = np.where(gal, 1.0, 0.0)
