@@ -37,7 +37,7 @@ import numpy as np
 
 from pylensfit.grid import ellipticity_grid
 from pylensfit.prior import Prior, estimate_prior
-from pylensfit.shear import _all_sums, _sensitivity_from_sums, apply_shear
+from pylensfit.shear import _all_sums, apply_shear, sensitivity_from_sums
 
 TRUE_PARAMS = {"B": 0.19, "C": 0.58, "D": 2.4}
 METHODS = ("exact", "paper", "none")
@@ -83,7 +83,7 @@ def block_sums(es, noise, s, g1, g2, egrid, prior, refine):
         S, _ = _all_sums(lnL, egrid, prior, refine, None, None)
         out[b, 0] = (S[:, 1:3] / S[:, :1]).sum(axis=0)
         for i, meth in enumerate(("exact", "paper")):
-            s1, s2 = _sensitivity_from_sums(S, meth)
+            s1, s2 = sensitivity_from_sums(S, meth)
             out[b, 1 + i] = [s1.sum(), s2.sum()]
         out[b, 3] = S.shape[0]
     return out

@@ -206,12 +206,12 @@ def test_a_whole_stamp_size_and_a_positive_number_of_jobs(tmp_path, capsys):
 def test_a_nan_position_is_kept_and_flagged(tmp_path, capsys):
     """An input catalogue's row without a finite position: the run goes on, the row is
     kept (NaN position) and flagged BAD_POSITION, the others are measured."""
-    from pylensfit.simulate import FieldSpec, _psf, simulate_field, write_field
+    from pylensfit.simulate import FieldSpec, field_psf, simulate_field, write_field
 
     spec = FieldSpec(size=192, model="exponential", star_fraction=0.0, snr_range=(40, 80))
     img, w, truth = simulate_field(spec, seed=5)
     write_field(tmp_path / "f.fits", img, w, spec, truth=truth)
-    psf = _psf(spec).drawImage(nx=48, ny=48, scale=1.0, use_true_center=False).array
+    psf = field_psf(spec).drawImage(nx=48, ny=48, scale=1.0, use_true_center=False).array
     fits.PrimaryHDU(psf).writeto(tmp_path / "psf.fits")
     incat = Table({"x": np.array(truth["x"], float), "y": np.array(truth["y"], float)})
     incat["x"][1] = np.nan

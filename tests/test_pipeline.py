@@ -346,9 +346,9 @@ def test_edge_objects_are_flagged(reference):
 
 def _true_psf(n=48, **kw):
     """The simulated fields' PSF (``FieldSpec``'s Moffat) as the pipeline uses one."""
-    from pylensfit.simulate import _psf
+    from pylensfit.simulate import field_psf
 
-    img = _psf(FieldSpec(**kw)).drawImage(nx=n, ny=n, scale=1.0, use_true_center=False).array
+    img = field_psf(FieldSpec(**kw)).drawImage(nx=n, ny=n, scale=1.0, use_true_center=False).array
     return img.astype(np.float64)
 
 

@@ -11,11 +11,11 @@ from pylensfit.shear import (
     FLAG_BAD_LIKELIHOOD,
     ShearEstimate,
     _all_sums,
-    _sensitivity_from_sums,
     apply_shear,
     estimate_shear,
     posterior_moments,
     refine_lnL,
+    sensitivity_from_sums,
     shapes,
     shear_sensitivity,
 )
@@ -425,7 +425,7 @@ def test_shear_bias_exact_vs_paper_vs_none():
         lnL = gaussian_lnL(np.column_stack([e1 + noise.real, e2 + noise.imag]), s)
         S, _ = _all_sums(lnL, EGRID, prior, refine, None, None)
         e = S[:, 1:3] / S[:, :1]
-        sens = [np.column_stack(_sensitivity_from_sums(S, m)) for m in ("exact", "paper")]
+        sens = [np.column_stack(sensitivity_from_sums(S, m)) for m in ("exact", "paper")]
         sens.append(np.ones_like(e))
         if refine == DEFAULT_REFINE and g2 == 0 and g1 > 0:
             # the public path gives the same numbers (checked on a subset)

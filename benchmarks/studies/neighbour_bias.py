@@ -50,7 +50,7 @@ from pylensfit.precision import (
     shape_controls,
 )
 from pylensfit.prior import Prior, SizePrior
-from pylensfit.simulate import _galaxy, draw_shapes
+from pylensfit.simulate import draw_shapes, galaxy_profile
 from pylensfit.stamps import cut_stamps
 
 #: Half-light radius over disc scale length of the galaxy drawn here (bulge fraction 0.5,
@@ -79,12 +79,12 @@ def scene(rng, a, psf, prior, with_neighbours: bool, canvas: int):
             t = np.log(snr[k] / SNR_RANGE[0]) / np.log(SNR_RANGE[1] / SNR_RANGE[0])
             flux[k] = a.flux_range[0] * (a.flux_range[1] / a.flux_range[0]) ** t
             continue
-        ref = _draw(galsim.Convolve(_galaxy("bulge+disc", rd[k]), psf), 64)
+        ref = _draw(galsim.Convolve(galaxy_profile("bulge+disc", rd[k]), psf), 64)
         flux[k] = snr[k] / math.sqrt(float(np.sum(ref.astype(float) ** 2)))
     out = np.zeros((4, canvas, canvas))
     for i, (g, rot) in enumerate([(a.g, False), (a.g, True), (-a.g, False), (-a.g, True)]):
         for k in range(shown):
-            gal = _galaxy("bulge+disc", rd[k]).shear(g1=e[k, 0], g2=e[k, 1])
+            gal = galaxy_profile("bulge+disc", rd[k]).shear(g1=e[k, 0], g2=e[k, 1])
             if rot:
                 gal = gal.rotate(90 * galsim.degrees)
             out[i] += flux[k] * _draw(galsim.Convolve(gal.shear(g1=g, g2=g), psf), canvas,

@@ -117,11 +117,11 @@ def _measure(task) -> str:
 
 
 def _true_psf_image(psf: int, n: int) -> np.ndarray:
-    """The rendering's own PSF (`simulate._psf`) with the pixel, centred as a stacked one."""
+    """The rendering's own PSF (`simulate.field_psf`) with the pixel, centred as a stacked one."""
     from pylensfit.precision import _draw
-    from pylensfit.simulate import _psf
+    from pylensfit.simulate import field_psf
 
-    img = _draw(_psf(_spec(psf, n, 40.0, (15.0, 150.0), 0.0, False)), n).astype(float)
+    img = _draw(field_psf(_spec(psf, n, 40.0, (15.0, 150.0), 0.0, False)), n).astype(float)
     return img / img.sum()
 
 

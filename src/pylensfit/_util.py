@@ -1,14 +1,37 @@
-"""Small numerical helpers shared by the PSF and likelihood stages."""
+"""Small helpers shared by the modules of the package.
+
+Array checks (:func:`per_object`, :func:`check_egrid`, :func:`check_lnL`), the
+``rfft2`` frequency grid and a Fourier-series peak finder shared by the PSF and
+likelihood stages (:func:`rfft_frequencies`, :func:`newton_peak`), and the reading and
+writing of the package's JSON files (:func:`read_json`, :func:`jsonable`,
+:func:`json_kind`, :func:`other_file_hint`).
+"""
 
 from __future__ import annotations
 
+import json
+import math
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 
-from .models import rfft_frequencies
+__all__ = [
+    "check_egrid",
+    "check_lnL",
+    "json_kind",
+    "jsonable",
+    "newton_peak",
+    "other_file_hint",
+    "per_object",
+    "read_json",
+    "rfft_frequencies",
+]
 
-__all__ = ["newton_peak", "per_object"]
 
-
+# ----------------------------------------------------------------------------------------
+# Array checks
+# ----------------------------------------------------------------------------------------
 def per_object(value, n: int, name: str) -> np.ndarray:
     """A scalar or ``(n,)`` array as a fresh float ``(n,)`` array; wrong shapes raise."""
     arr = np.asarray(value, dtype=float)
@@ -17,6 +40,91 @@ def per_object(value, n: int, name: str) -> np.ndarray:
     if arr.shape != (n,):
         raise ValueError(f"{name} must be a scalar or have shape ({n},), got {arr.shape}")
     return arr.copy()
+
+
+def check_egrid(egrid: np.ndarray) -> np.ndarray:
+    """An ellipticity grid as a float ``(n_e, 2)`` array, checked.
+
+    Parameters
+    ----------
+    egrid : array_like
+        Grid points ``(e1, e2)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``egrid`` as float (not copied when it already is).
+
+    Raises
+    ------
+    ValueError
+        If the shape is not ``(n_e, 2)`` with ``n_e >= 2``, a value is not finite, or a
+        point lies on or outside ``|e| = 1``.
+    """
+    egrid = np.asarray(egrid, dtype=float)
+    if egrid.ndim != 2 or egrid.shape[1] != 2 or egrid.shape[0] < 2:
+        raise ValueError(f"ellipticity grid must have shape (n_e, 2), got {egrid.shape}")
+    if not np.all(np.isfinite(egrid)):
+        raise ValueError("ellipticity grid contains non-finite values")
+    if np.any(np.hypot(egrid[:, 0], egrid[:, 1]) >= 1.0):
+        raise ValueError("ellipticity grid points must lie inside |e| < 1")
+    return egrid
+
+
+def check_lnL(lnL: np.ndarray, egrid: np.ndarray) -> np.ndarray:
+    """Likelihood rows ``lnL (n_gal, n_e)`` on the grid ``egrid``, checked.
+
+    Parameters
+    ----------
+    lnL : array_like
+        ``ln L`` of each galaxy at each grid point.
+    egrid : numpy.ndarray
+        The ``(n_e, 2)`` grid (as returned by :func:`check_egrid`).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``lnL``, cast to float if it is not of a floating type.
+
+    Raises
+    ------
+    ValueError
+        If ``lnL`` is not 2-D or its columns do not match the grid's points.
+    """
+    lnL = np.asarray(lnL)
+    if lnL.ndim != 2:
+        raise ValueError(f"lnL must be a 2-D array (n_gal, n_e), got {lnL.ndim} dimension(s)")
+    if lnL.shape[1] != egrid.shape[0]:
+        raise ValueError(
+            f"lnL has {lnL.shape[1]} columns but the ellipticity grid has {egrid.shape[0]} "
+            "points: each row must be ln L on that grid"
+        )
+    if not np.issubdtype(lnL.dtype, np.floating):
+        lnL = lnL.astype(float)
+    return lnL
+
+
+# ----------------------------------------------------------------------------------------
+# Fourier grids
+# ----------------------------------------------------------------------------------------
+def rfft_frequencies(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Angular frequencies and Hermitian weights of ``numpy.fft.rfft2`` on ``n x n``.
+
+    Returns
+    -------
+    kx, ky, w : numpy.ndarray
+        Arrays of shape ``(n, n // 2 + 1)``: ``kx``, ``ky`` in radians per pixel and the
+        weight ``w`` (1 or 2) with which each half-plane frequency stands for the full
+        plane in a sum of an even function of ``k``.
+    """
+    kx1 = 2 * np.pi * np.fft.rfftfreq(n)
+    ky1 = 2 * np.pi * np.fft.fftfreq(n)
+    kx, ky = np.meshgrid(kx1, ky1, indexing="xy")
+    w = np.full(kx.shape, 2.0)
+    w[:, 0] = 1.0
+    if n % 2 == 0:
+        w[:, -1] = 1.0
+    return kx, ky, w
 
 
 def newton_peak(D: np.ndarray, R: np.ndarray, X: np.ndarray, Y: np.ndarray, n_steps: int = 6):
@@ -53,3 +161,114 @@ def newton_peak(D: np.ndarray, R: np.ndarray, X: np.ndarray, Y: np.ndarray, n_st
         X = np.where(ok, X + sx, X)
         Y = np.where(ok, Y + sy, Y)
     return X, Y, good
+
+
+# ----------------------------------------------------------------------------------------
+# JSON files
+# ----------------------------------------------------------------------------------------
+def json_kind(obj: Any) -> str:
+    """The JSON name of ``obj``'s type (``"list"``, ``"number"``, ...).
+
+    Parameters
+    ----------
+    obj : object
+        A value decoded from JSON.
+
+    Returns
+    -------
+    str
+        ``"list"``, ``"string"``, ``"null"``, ``"number"`` or ``"boolean"``; the Python
+        type's name for anything else.
+    """
+    if isinstance(obj, list):
+        return "list"
+    if isinstance(obj, str):
+        return "string"
+    if obj is None:
+        return "null"
+    if isinstance(obj, (bool, int, float)):
+        return "number" if not isinstance(obj, bool) else "boolean"
+    return type(obj).__name__
+
+
+def other_file_hint(d: dict, kinds: dict[str, str]) -> str:
+    """What a JSON object holds, for an error message about a file of the wrong kind.
+
+    Parameters
+    ----------
+    d : dict
+        The decoded JSON object.
+    kinds : dict
+        Entry name -> the kind of file that holds it (``{"priors": "priors"}``).
+
+    Returns
+    -------
+    str
+        ``"; it holds 'priors': a priors file?"`` where ``d`` holds the entry of one of
+        ``kinds``; else the first entries it holds, or ``"; it is empty"``.
+    """
+    for key, kind in kinds.items():
+        if key in d:
+            return f"; it holds {key!r}: a {kind} file?"
+    keys = ", ".join(repr(str(k)) for k in list(d)[:4]) + (", ..." if len(d) > 4 else "")
+    return f"; it holds {keys}" if d else "; it is empty"
+
+
+def read_json(path: str | Path) -> Any:
+    """The content of the JSON file ``path``.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file.
+
+    Returns
+    -------
+    object
+        The decoded content.
+
+    Raises
+    ------
+    ValueError
+        One line naming the file: it cannot be read, or it is not JSON.
+    """
+    try:
+        text = Path(path).read_text()
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not JSON (not a text file)") from None
+    except OSError as err:
+        raise ValueError(f"{path}: cannot read ({err.strerror or err})") from None
+    if not text.strip():
+        raise ValueError(f"{path}: not JSON (empty file)")
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not JSON ({err.msg} at line {err.lineno} column "
+                         f"{err.colno})") from None  # fmt: skip
+
+
+def jsonable(obj: Any) -> Any:
+    """``obj`` with numpy arrays and scalars made Python lists and numbers, for JSON.
+
+    Parameters
+    ----------
+    obj : object
+        Nested dicts, lists and tuples of numbers, strings and numpy values.
+
+    Returns
+    -------
+    object
+        The same structure with string keys, lists for tuples and arrays, and ``None``
+        for non-finite floats (JSON has no infinity or NaN).
+    """
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None  # JSON has no infinity
+    return obj

@@ -53,17 +53,15 @@ from typing import Any
 import numpy as np
 from astropy.table import Table
 
-from ._util import per_object
+from ._util import json_kind, jsonable, other_file_hint, per_object, read_json
 from .config import Config
 from .flags import FLAGS
+from .likelihood import e_annuli, fit_stamps, reweight_lnL_r
+from .models import model_bank
 from .prior import (
-    _MIN_FLUX_RANGE_SAMPLE,
+    MIN_FLUX_RANGE_SAMPLE,
     Prior,
     SizePrior,
-    _json_kind,
-    _jsonable,
-    _other_file_hint,
-    _read_json,
     estimate_bulge_weights,
     estimate_flux_range,
     estimate_flux_slope,
@@ -72,6 +70,7 @@ from .prior import (
     estimate_size_prior,
     mix_bulge_fractions,
 )
+from .shear import shapes
 
 __all__ = [
     "MIN_GALAXIES",
@@ -92,7 +91,7 @@ log = logging.getLogger(__name__)
 #: fewest usable galaxies for an estimated ellipticity, bulge-fraction or size prior
 MIN_GALAXIES = 50
 #: fewest usable galaxies (per group) for the flux prior's estimated limits
-MIN_FLUX_RANGE_GALAXIES = _MIN_FLUX_RANGE_SAMPLE
+MIN_FLUX_RANGE_GALAXIES = MIN_FLUX_RANGE_SAMPLE
 #: the position prior's width is never estimated below this (pixels)
 MIN_POSITION_SIGMA = 0.01
 
@@ -179,14 +178,14 @@ class Priors:
             "flux_range": None if self.flux_range is None else [float(v) for v in self.flux_range],
             "position_sigma": self.position_sigma,
             "n_galaxies": int(self.n_galaxies),
-            "info": _jsonable(self.info),
+            "info": jsonable(self.info),
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "priors") -> Priors:
         """The object of :meth:`to_dict`; ``ValueError`` naming ``source`` if malformed."""
         if not isinstance(d, dict) or "ellipticity" not in d:
-            detail = (f"a JSON {_json_kind(d)}" if not isinstance(d, dict)
+            detail = (f"a JSON {json_kind(d)}" if not isinstance(d, dict)
                       else "no 'ellipticity' entry")  # fmt: skip
             raise ValueError(f"{source}: not a priors file ({detail})")
         try:
@@ -218,10 +217,10 @@ class Priors:
     def load(cls, path: str | Path) -> Priors:
         """Read a file written by :meth:`save`; ``ValueError`` naming the file if it is
         not one."""
-        d = _read_json(path)
+        d = read_json(path)
         if not isinstance(d, dict) or "priors" not in d:
-            detail = (f"a JSON {_json_kind(d)}" if not isinstance(d, dict) else
-                      "no 'priors' entry" + _other_file_hint(
+            detail = (f"a JSON {json_kind(d)}" if not isinstance(d, dict) else
+                      "no 'priors' entry" + other_file_hint(
                           d, {"B": "prior", "size_prior": "size prior"}))  # fmt: skip
             raise ValueError(f"{path}: not a priors file ({detail})")
         return cls.from_dict(d["priors"], source=str(path))
@@ -475,9 +474,6 @@ def run_recipe(
     list of Priors
         One per group (sharing the ellipticity prior and bulge weights).
     """
-    from .likelihood import e_annuli, reweight_lnL_r
-    from .models import model_bank
-
     cfg = config
     names = list(group_names) if group_names is not None else [str(k) for k in range(n_groups)]
     info: dict[str, Any] = {}
@@ -676,8 +672,6 @@ def calibrate(
     CalibrationWarning
         For each prior that the sample is too small to estimate (its default is used).
     """
-    from .likelihood import fit_stamps
-
     cfg = config if config is not None else Config()
     stamps = _as_stamps(stamps)
     cx, cy = _stamp_centres(stamps, centres)
@@ -685,9 +679,6 @@ def calibrate(
     def fit_pass(cfgs, sps, keep, label):
         groups = None
         if keep:
-            from .likelihood import e_annuli
-            from .models import model_bank
-
             groups = e_annuli(model_bank(cfgs[0]).egrid)
         fits = fit_stamps(stamps, psf, noise_sigma, config=cfgs[0], centres=(cx, cy),
                           size_prior=sps[0], lnL_r_groups=groups)  # fmt: skip
@@ -743,9 +734,6 @@ def measure_stamps(
         :func:`~pylensfit.estimate_shear`'s fixed point). ``meta``: ``egrid``, ``prior``
         (the ellipticity prior), ``priors``, ``refine``, ``sensitivity``.
     """
-    from .likelihood import fit_stamps
-    from .shear import shapes
-
     cfg = config if config is not None else Config()
     stamps = _as_stamps(stamps)
     if isinstance(priors, (str, Path)):

@@ -28,6 +28,8 @@ import os
 import tempfile
 from pathlib import Path
 
+from astropy.table import Table
+
 __all__ = ["COLUMNS", "FITCLASS", "atomic_write", "column_table"]
 
 #: name -> (unit, description) of every column of the output catalogue.
@@ -94,8 +96,6 @@ FITCLASS = {"galaxy": 0, "star": 1, "not_measured": -1}
 
 def column_table():
     """The documentation of :data:`COLUMNS` as an astropy Table (name, unit, description)."""
-    from astropy.table import Table
-
     return Table(
         rows=[(k, u, d) for k, (u, d) in COLUMNS.items()], names=("name", "unit", "description")
     )

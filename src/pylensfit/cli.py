@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import logging
 import sys
 import tempfile
@@ -26,6 +27,12 @@ from pathlib import Path
 from typing import NoReturn
 
 import numpy as np
+from astropy.table import vstack
+
+from .config import PRESETS, Config
+from .pipeline import InputError, measure, read_catalogue
+from .prior import Prior, estimate_prior
+from .shear import shapes, shear_table
 
 __all__ = ["main"]
 
@@ -33,14 +40,10 @@ log = logging.getLogger("pylensfit")
 
 
 def _config(args: argparse.Namespace):
-    from .config import Config
-
     return Config.from_yaml(args.config) if getattr(args, "config", None) else Config()
 
 
 def _measure(args: argparse.Namespace) -> int:
-    from .pipeline import measure
-
     cat = measure(
         args.images, stars=args.stars, weights=args.weights, masks=args.masks,
         catalogues=args.catalogues, star_column=args.star_column, config=_config(args),
@@ -68,10 +71,6 @@ def _read_catalogues(paths: list[str], need: tuple[str, ...] = ("flags", "fitcla
     """The catalogues of ``paths`` stacked; ``InputError`` naming the file that lacks a
     column of ``need`` (numeric) or ``bin_column`` (``--bin-by``), or whose ellipticity
     grid differs from the first's."""
-    from astropy.table import vstack
-
-    from .pipeline import InputError, read_catalogue
-
     cats = [read_catalogue(p) for p in paths]
     egrid = cats[0].meta["egrid"]
     for p, c in zip(paths, cats, strict=True):
@@ -102,8 +101,6 @@ def _check_bin_column(cat, column: str, path: str) -> None:
     """``ValueError`` naming ``--bin-by`` and ``path`` if ``cat`` cannot be binned by
     ``column``."""
     if column not in cat.colnames:
-        import difflib
-
         close = difflib.get_close_matches(column, cat.colnames, n=3)
         hint = f"; closest: {', '.join(close)}" if close else ""
         raise ValueError(f"--bin-by: {path} has no column {column!r}{hint}")
@@ -123,8 +120,6 @@ def _usable_galaxies(cat) -> np.ndarray:
 
 
 def _prior(args: argparse.Namespace) -> int:
-    from .prior import estimate_prior
-
     cat = _read_catalogues(args.catalogs)
     gal = _usable_galaxies(cat)
     if not gal.any():
@@ -139,9 +134,6 @@ def _prior(args: argparse.Namespace) -> int:
 
 
 def _shear(args: argparse.Namespace) -> int:
-    from .prior import Prior
-    from .shear import shapes, shear_table
-
     per_image = () if args.no_per_image else ("image",)
     cat = _read_catalogues(args.catalogs, need=("flags", "fitclass", *per_image),
                            bin_column=args.bin_column)  # fmt: skip
@@ -172,13 +164,20 @@ def _shear(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from .validation import main as simulate_main
+    from .validation import main as simulate_main  # start-up cost: only for this command
 
     return simulate_main([a for a in args.args if a != "--"])
 
 
 def _precision(args: argparse.Namespace) -> int:
-    from .precision import population_prior, population_size_prior, precision, spec_with
+    # start-up cost: the simulation modules load only for this command
+    from .precision import (
+        default_config,
+        population_prior,
+        population_size_prior,
+        precision,
+        spec_with,
+    )
 
     spec = spec_with(ngal=args.ngal or 200_000, seed=args.seed, psfs=args.psf, g=args.g,
                      ncal=args.ncal, block_size=args.block_size,
@@ -187,15 +186,11 @@ def _precision(args: argparse.Namespace) -> int:
     prior = population_prior(spec) if args.true_prior else None
     size_prior = None
     if args.true_size_prior:
-        from .config import Config
-
         stamp = (_config(args) if args.config else Config()).stamp_size
         size_prior = [population_size_prior(spec, k, stamp_size=stamp)
                       for k in range(len(spec.psfs))]  # fmt: skip
     cfg = _config(args) if args.config else None
     if args.e_refine > 1:  # the adaptive e-grid refinement on top of either configuration
-        from .precision import default_config
-
         cfg = (cfg or default_config(spec)).replace(e_refine=args.e_refine)
     res = precision(spec, config=cfg, jobs=args.jobs,
                     scheduler=args.scheduler, report=report, prior=prior,
@@ -214,7 +209,7 @@ def _precision(args: argparse.Namespace) -> int:
 
 
 def _convergence(args: argparse.Namespace) -> int:
-    from .convergence import convergence
+    from .convergence import convergence  # start-up cost: only for this command
 
     cfg = _config(args) if args.config else None
     tab = convergence(args.out, ngal=args.ngal or 1000, seed=args.seed, config=cfg,
@@ -230,7 +225,7 @@ def _convergence(args: argparse.Namespace) -> int:
 
 
 def _validate(args: argparse.Namespace) -> int:
-    from .validation import validate
+    from .validation import validate  # start-up cost: only for this command
 
     if args.precision:
         return _precision(args)
@@ -239,7 +234,7 @@ def _validate(args: argparse.Namespace) -> int:
     cfg = _config(args) if args.config else None
     bins = {k: args.bins for k in ("mag", "snr", "size")} if args.bins > 0 else {}
     if args.quick:
-        from .validation import quick_validation
+        from .validation import quick_validation  # start-up cost: only for this command
 
         out_dir = args.out or "quick_validation"
         out = quick_validation(out_dir, jobs=args.jobs, seed=args.seed, progress=not args.quiet,
@@ -269,8 +264,6 @@ def _validate(args: argparse.Namespace) -> int:
 
 
 def _dump_config(args: argparse.Namespace) -> int:
-    from .config import Config
-
     cfg = Config.preset(args.preset)
     if args.output:
         cfg.to_yaml(args.output)
@@ -284,10 +277,7 @@ def _dump_config(args: argparse.Namespace) -> int:
 
 def _demo(args: argparse.Namespace) -> int:
     """Simulate a small field with GalSim, measure it, estimate the prior and the shear."""
-    from .config import Config
-    from .pipeline import measure
-    from .shear import shear_table
-    from .simulate import FieldSpec, simulate_field, write_field
+    from .simulate import FieldSpec, simulate_field, write_field  # start-up cost: only the demo
 
     g1, g2 = args.g1, args.g2
     cfg = Config()
@@ -372,8 +362,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .config import PRESETS
-
     p = _Parser(prog="pylensfit", description=__doc__,
                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging")

@@ -44,13 +44,14 @@ from pathlib import Path
 
 import numpy as np
 from astropy.table import Table
+from tqdm.auto import tqdm
 
 from .config import Config
 from .flags import BAD, flag_value
 from .likelihood import fit_stamps
 from .prior import Prior
 from .shear import shapes, shear_sensitivity
-from .simulate import draw_shapes
+from .simulate import draw_shapes, galaxy_profile
 
 __all__ = [
     "DEFAULT_DES",
@@ -198,9 +199,7 @@ def render_sample(
     -------
     ConvergenceSample
     """
-    import galsim
-
-    from .simulate import _galaxy
+    import galsim  # galsim: heavy import, only for rendering
 
     ngal = int(ngal)
     if ngal < 1:
@@ -227,7 +226,7 @@ def render_sample(
     psf_image = gpsf.drawImage(nx=n, ny=n, scale=1.0, offset=(0.5, 0.5)).array.astype(float)
     stamps = np.empty((ngal, big, big))
     for i in range(ngal):  # GalSim renders one object at a time
-        gal = _galaxy(model, r[i]).shear(g1=e[i, 0], g2=e[i, 1])
+        gal = galaxy_profile(model, r[i]).shear(g1=e[i, 0], g2=e[i, 1])
         stamps[i] = (
             galsim.Convolve(gal, gpsf)
             .drawImage(nx=big, ny=big, scale=1.0, offset=(0.5 + dxy[i, 0], 0.5 + dxy[i, 1]))
@@ -371,8 +370,6 @@ def convergence_table(
     astropy.table.Table
         Described in :func:`convergence`.
     """
-    from tqdm.auto import tqdm
-
     base = config if config is not None else Config.paper(
         model=sample.model, stamp_size=sample.stamp_size
     )  # fmt: skip
@@ -607,8 +604,8 @@ def plot_convergence(table: Table, path: str | Path) -> None:
     dashed, with standard errors. Bottom row: the paired changes against the finest
     value (sensitivity unscaled), with their errors.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # heavy import: only for plots
+    from matplotlib.figure import Figure  # matplotlib: heavy import, only for plots
 
     names = [p for p in PARAMETERS if np.any(table["parameter"] == p)]
     fig = Figure(figsize=(3.6 * len(names), 6.4))

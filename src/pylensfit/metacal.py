@@ -49,6 +49,11 @@ from functools import lru_cache
 import numpy as np
 from astropy.table import Table
 
+from .config import Config
+from .likelihood import fit_stamps
+from .prior import mix_bulge_fractions, usable_rows
+from .shear import posterior_moments, shear_sensitivity
+
 __all__ = ["METACAL_TYPES", "MetacalImages", "metacal_images", "metacal_shapes", "metacal_shear",
            "response"]
 
@@ -317,11 +322,6 @@ def metacal_shapes(
         the response if the galaxy were one of the models) and ``flag`` (0 when all six
         fits are usable; else the values are NaN).
     """
-    from .config import Config
-    from .likelihood import fit_stamps
-    from .prior import mix_bulge_fractions, usable_rows
-    from .shear import posterior_moments, shear_sensitivity
-
     if not np.all(np.asarray(noise_sigma) > 0):
         raise ValueError(f"metacal_shapes needs noise_sigma > 0, got {noise_sigma}")
     st = np.asarray(stamps, dtype=np.float32)

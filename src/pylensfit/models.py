@@ -42,8 +42,14 @@ from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
+from scipy.optimize import brentq
+from scipy.special import gamma, gammainc, gammaincinv
 
+from ._kernels_nb import wrapped_wings
+from ._util import rfft_frequencies  # re-exported: part of this module's API
+from .config import Config
 from .grid import ellipticity_grid
+from .psf import psf_transform
 
 __all__ = [
     "DEVAUC_TRUNCATION",
@@ -83,8 +89,8 @@ def _sersic_trunc(n: float) -> float:
 def _sersic_spline(n: float, trunc: float):
     """Spline of the transform of a Sersic profile of unit half-light radius (GalSim's
     Hankel transform, ``trunc`` half-light radii, 0: untruncated), uniform in ln(1 + q)."""
-    import galsim
-    from scipy.interpolate import CubicSpline
+    import galsim  # galsim: heavy import, only to tabulate a profile's transform
+    from scipy.interpolate import CubicSpline  # scipy.interpolate: start-up cost, with galsim
 
     if n == 4.0:
         prof = galsim.DeVaucouleurs(half_light_radius=1.0, trunc=trunc)
@@ -239,26 +245,6 @@ def fourier_profile(
     raise ValueError(f"unknown model {model!r}; choose one of {MODEL_TYPES}")
 
 
-def rfft_frequencies(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Angular frequencies and Hermitian weights of ``numpy.fft.rfft2`` on ``n x n``.
-
-    Returns
-    -------
-    kx, ky, w : numpy.ndarray
-        Arrays of shape ``(n, n // 2 + 1)``: ``kx``, ``ky`` in radians per pixel and the
-        weight ``w`` (1 or 2) with which each half-plane frequency stands for the full
-        plane in a sum of an even function of ``k``.
-    """
-    kx1 = 2 * np.pi * np.fft.rfftfreq(n)
-    ky1 = 2 * np.pi * np.fft.fftfreq(n)
-    kx, ky = np.meshgrid(kx1, ky1, indexing="xy")
-    w = np.full(kx.shape, 2.0)
-    w[:, 0] = 1.0
-    if n % 2 == 0:
-        w[:, -1] = 1.0
-    return kx, ky, w
-
-
 def in_disc(kx, ky, k_max: float) -> np.ndarray:
     """``|k| <= k_max`` (with a relative tolerance of 1e-9 for the lattice points on it)."""
     return kx * kx + ky * ky <= k_max * k_max * (1 + 1e-9)
@@ -330,8 +316,6 @@ def render_models(
     numpy.ndarray
         ``(m, n, n)`` float64 images indexed ``[k, y, x]``.
     """
-    from .psf import psf_transform
-
     x, y, e1, e2, r, flux = (np.atleast_1d(np.asarray(v, dtype=float)) for v in
                              (x, y, e1, e2, r, flux))  # fmt: skip
     m = x.size
@@ -432,9 +416,6 @@ def _sersic_b(n: float, trunc: float) -> float:
     Chosen so that the truncated profile's half-light radius is 1, as GalSim's ``trunc``
     with ``flux_untruncated=False``.
     """
-    from scipy.optimize import brentq
-    from scipy.special import gammainc, gammaincinv
-
     if trunc <= 0:
         return float(gammaincinv(2.0 * n, 0.5))
     lo, hi = (5.0, 10.0) if n == 4.0 else (1e-6, 60.0)
@@ -444,8 +425,6 @@ def _sersic_b(n: float, trunc: float) -> float:
 
 def _enclosed(x, n: float, h: float):
     """Flux fraction within ``x`` (units of ``r``) of the Sersic component ``(n, h)``."""
-    from scipy.special import gammainc
-
     if n == 1.0:
         y = np.asarray(x) * (DISC_HLR / h)
         return 1.0 - (1.0 + y) * np.exp(-y)
@@ -461,8 +440,6 @@ def _enclosed(x, n: float, h: float):
 def run_half_light_radius(run: Run) -> float:
     """Half-light radius per unit ``r`` of a run's profile (:class:`Run`), by root finding
     on its components' enclosed-flux curves."""
-    from scipy.optimize import brentq
-
     (na, ha), (nb, hb) = run.components
     f = float(run.fraction)
     if f == 0.0:
@@ -522,8 +499,6 @@ def wrap_correction(
         (``(len(rows), ...)`` with ``rows``), in the column order of :class:`ModelBank`
         (without the point source).
     """
-    from ._kernels_nb import wrapped_wings
-
     code = MODEL_TYPES.index(model)  # 0 exponential, 1 de Vaucouleurs, 2 bulge + disc
     *_, b, norm, t, _ = _wing_args(4.0, 1.0)  # the de Vaucouleurs profile's
     eg = np.asarray(egrid, float)
@@ -578,8 +553,6 @@ def _wing_args(n_s: float, h: float) -> tuple:
     """:func:`wrapped_wings`' profile arguments for the Sersic component ``(n_s, h)``
     (``fracs`` to ``inv_n``): the exponential disc (code 0) or one Sersic component
     (code 3), untruncated ones cut where the flux beyond is below 1e-10."""
-    from scipy.special import gamma, gammainc, gammaincinv
-
     if n_s == 1.0:
         if h != DISC_HLR:
             raise ValueError(f"an exponential component must be the disc, got size {h}")
@@ -603,8 +576,6 @@ def half_light_radius(
     ``"bulge+disc"`` the radius enclosing half the light of the sum, found by root finding
     on the two enclosed-flux curves.
     """
-    from scipy.optimize import brentq
-
     if model == "devaucouleurs":
         return 1.0
     if model == "exponential":
@@ -743,8 +714,6 @@ def model_bank(config=None) -> ModelBank:
     config : pylensfit.Config, optional
         Grid and model settings; the paper's defaults if omitted.
     """
-    from .config import Config
-
     cfg = config if config is not None else Config()
     return _cached_bank(
         cfg.stamp_size,

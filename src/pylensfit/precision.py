@@ -86,11 +86,23 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from astropy.table import Table
+from astropy.table import Table, vstack
 
 from .calibration import MIN_FLUX_RANGE_GALAXIES, CalibrationSample, run_recipe
 from .config import Config
+from .likelihood import e_annuli, fit_stamps
+from .models import DEVAUC_TRUNCATION, model_bank
+from .pipeline import _pool, _run, _single_thread
 from .prior import Prior, SizePrior, mix_bulge_fractions
+from .shear import (
+    DEFAULT_STENCIL,
+    kernel_columns,
+    moments_from_sums,
+    refined_grid,
+    sensitivity_from_sums,
+    sheared_prior_columns,
+    sums_with,
+)
 from .simulate import draw_shapes
 
 __all__ = [
@@ -251,7 +263,7 @@ class PrecisionSpec:
 # Rendering
 # ----------------------------------------------------------------------------------------
 def _galsim_psf(p: dict):
-    import galsim
+    import galsim  # galsim: heavy import, only for rendering
 
     if p["kind"] == "moffat":
         psf = galsim.Moffat(beta=p["beta"], fwhm=p["fwhm"])
@@ -274,7 +286,7 @@ def _draw(obj, n: int, offset=(0.0, 0.0)) -> np.ndarray:
 
 def _psf_image(p: dict, n: int) -> tuple[np.ndarray, float]:
     """The PSF image on the stamp grid and its half-light radius (pixels)."""
-    import galsim
+    import galsim  # galsim: heavy import, only for rendering
 
     psf = _galsim_psf(p)
     img = _draw(psf, n)
@@ -285,9 +297,9 @@ def _psf_image(p: dict, n: int) -> tuple[np.ndarray, float]:
 def _profile(morph: str, r: float, bulge_frac: float, sersic_n: float, n_knots: int,
              knot_frac: float, knot_seed: int):  # fmt: skip
     """Round unit-flux galaxy of half-light radius ``r`` (pixels)."""
-    import galsim
+    import galsim  # galsim: heavy import, only for rendering
 
-    from .models import DEVAUC_TRUNCATION as T
+    T = DEVAUC_TRUNCATION
 
     if morph == "exponential":
         return galsim.Exponential(half_light_radius=r)
@@ -429,7 +441,7 @@ def render_block(
     truth : astropy.table.Table
         The galaxies' parameters (:func:`_population`).
     """
-    import galsim
+    import galsim  # galsim: heavy import, only for rendering
 
     p = spec.psfs[psf_index]
     n_stamp = int(stamp_size)
@@ -468,7 +480,7 @@ def reference_norm(spec: PrecisionSpec, psf_index: int, stamp_size: int = 32) ->
     (``sqrt`` of the product of ``spec.size_ratio_range`` times the PSF's half-light
     radius) under PSF ``psf_index``: a flux ``F`` has the reference S/N ``F *
     reference_norm / noise_sigma`` (see :class:`PrecisionSpec`, ``snr_range``)."""
-    import galsim
+    import galsim  # galsim: heavy import, only for rendering
 
     p = spec.psfs[psf_index]
     _, psf_hlr = _psf_image(p, int(stamp_size))
@@ -565,27 +577,17 @@ def reduce_likelihoods(
         ``g_nominal``) and their derivatives ``d<e_i>/dg_j`` there (``J11, J12, J21,
         J22``).
     """
-    from .shear import (
-        DEFAULT_STENCIL,
-        _kernel_columns,
-        _moments_from_sums,
-        _refiner,
-        _sensitivity_from_sums,
-        _sheared_prior_columns,
-        _sums_with,
-    )
-
     stencil = DEFAULT_STENCIL if stencil is None else int(stencil)
-    grid = egrid if refine == 1 else _refiner(egrid, refine, stencil).fine
-    K0 = _kernel_columns(prior, grid)
-    P, d1, d2 = _sheared_prior_columns(prior, grid, np.asarray(g_nominal, float))
+    grid = refined_grid(egrid, refine, stencil)
+    K0 = kernel_columns(prior, grid)
+    P, d1, d2 = sheared_prior_columns(prior, grid, np.asarray(g_nominal, float))
     e1, e2 = grid[:, 0], grid[:, 1]
     K1 = np.column_stack([P, e1 * P, e2 * P, d1, e1 * d1, e2 * d1, d2, e1 * d2, e2 * d2])
-    S = _sums_with(lnL, egrid, np.hstack([K0, K1]), refine, None, stencil)
+    S = sums_with(lnL, egrid, np.hstack([K0, K1]), refine, None, stencil)
     S0, S1 = S[:, :14], S[:, 14:]
-    mom = _moments_from_sums(S0)
-    sx = _sensitivity_from_sums(S0, "exact")
-    sp = _sensitivity_from_sums(S0, "paper")
+    mom = moments_from_sums(S0)
+    sx = sensitivity_from_sums(S0, "exact")
+    sp = sensitivity_from_sums(S0, "paper")
     s0 = S1[:, 0]
     f1, f2 = S1[:, 1] / s0, S1[:, 2] / s0
     return np.column_stack([
@@ -656,9 +658,6 @@ def _usable(fits, min_snr: float = 0.0) -> np.ndarray:
 
 def _block_task(task: dict[str, Any]) -> dict[str, Any]:
     """Render, fit and reduce one block (runs in a worker)."""
-    from .likelihood import fit_stamps
-    from .pipeline import _single_thread
-
     _single_thread(task.get("single_thread", False))
     spec: PrecisionSpec = task["spec"]
     cfg: Config = task["config"]
@@ -671,8 +670,6 @@ def _block_task(task: dict[str, Any]) -> dict[str, Any]:
     n, nr = stamps.shape[:2]
     groups = None
     if task.get("keep_lnL_r") == "annuli":  # L(r) per |e|, for any prior of |e| later
-        from .likelihood import e_annuli
-        from .models import model_bank
 
         groups = e_annuli(model_bank(cfg).egrid)
     fits = fit_stamps(stamps.reshape(n * nr, *stamps.shape[2:]), psf, spec.noise_sigma,
@@ -1081,10 +1078,6 @@ def precision(
         estimated, with their errors, and the population's), the largest
         fixed-point Newton step ``fp_step`` and ``galaxies`` (per-galaxy truth).
     """
-    from astropy.table import vstack
-
-    from .pipeline import _pool, _run
-
     spec = spec if spec is not None else PrecisionSpec()
     cfg = config if config is not None else default_config(spec)
     bulge_prior = cfg.bulge_prior
@@ -1362,10 +1355,10 @@ def write_report(res: Table, path: str | Path) -> None:
     path : str or pathlib.Path
         The Markdown file; ``<stem>_<breakdown>.png`` and ``<stem>.ecsv`` go beside it.
     """
-    import matplotlib
+    import matplotlib  # matplotlib: heavy import, only for the figures
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # matplotlib: heavy import, only for the figures
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -33,8 +33,11 @@ from typing import Any
 
 import numpy as np
 from scipy import optimize
+from scipy.special import logsumexp
 
+from ._util import check_egrid, check_lnL, json_kind, jsonable, other_file_hint, read_json
 from .grid import ellipticity_grid, grid_step
+from .models import half_light_radius, run_half_light_radius
 
 __all__ = [
     "PRIOR_BOUNDS",
@@ -53,6 +56,7 @@ __all__ = [
     "fit_functional_prior",
     "marginal_log_likelihood",
     "prior_is_valid",
+    "MIN_FLUX_RANGE_SAMPLE",
 ]
 
 log = logging.getLogger(__name__)
@@ -364,7 +368,7 @@ class Prior:
             "step": self.step,
             "method": self.method,
             "history": self.history,
-            "info": _jsonable(self.info),
+            "info": jsonable(self.info),
         }
         std = ellipticity_grid(self.step)
         if std.shape != self.egrid.shape or not np.allclose(std, self.egrid, atol=1e-12):
@@ -384,7 +388,7 @@ class Prior:
         ValueError
             One line naming the file: unreadable, not JSON, or not a prior.
         """
-        return cls.from_dict(_read_json(path), source=str(path))
+        return cls.from_dict(read_json(path), source=str(path))
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "prior dict") -> Prior:
@@ -406,17 +410,17 @@ class Prior:
         what = f"{source}: not an ellipticity prior"
         need = "a prior holds B, C, D and step"
         if not isinstance(d, dict):
-            raise ValueError(f"{what} (a JSON {_json_kind(d)}; {need})")
+            raise ValueError(f"{what} (a JSON {json_kind(d)}; {need})")
         missing = [k for k in ("B", "C", "D") if k not in d]
         if "step" not in d and "egrid" not in d:
             missing.append("step")
         if missing:
-            hint = _other_file_hint(d, {"priors": "priors", "size_prior": "size prior"})
+            hint = other_file_hint(d, {"priors": "priors", "size_prior": "size prior"})
             raise ValueError(f"{what} (no entry {', '.join(map(repr, missing))}; {need}{hint})")
         try:
             egrid = np.asarray(d["egrid"], dtype=float) if "egrid" in d else None
             if egrid is not None:
-                egrid = _check_egrid(egrid)
+                egrid = check_egrid(egrid)
             return cls(
                 B=d["B"],
                 C=d["C"],
@@ -437,94 +441,9 @@ class Prior:
         )
 
 
-def _json_kind(obj: Any) -> str:
-    """The JSON name of ``obj``'s type (``"list"``, ``"number"``, ...)."""
-    if isinstance(obj, list):
-        return "list"
-    if isinstance(obj, str):
-        return "string"
-    if obj is None:
-        return "null"
-    if isinstance(obj, (bool, int, float)):
-        return "number" if not isinstance(obj, bool) else "boolean"
-    return type(obj).__name__
-
-
-def _other_file_hint(d: dict, kinds: dict[str, str]) -> str:
-    """``"; it holds 'priors': a priors file?"`` where ``d`` holds the entry of another
-    kind of file (``kinds``: entry -> kind), else the entries it holds."""
-    for key, kind in kinds.items():
-        if key in d:
-            return f"; it holds {key!r}: a {kind} file?"
-    keys = ", ".join(repr(str(k)) for k in list(d)[:4]) + (", ..." if len(d) > 4 else "")
-    return f"; it holds {keys}" if d else "; it is empty"
-
-
-def _read_json(path: str | Path) -> Any:
-    """The content of the JSON file ``path``.
-
-    Raises
-    ------
-    ValueError
-        One line naming the file: it cannot be read, or it is not JSON.
-    """
-    try:
-        text = Path(path).read_text()
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not JSON (not a text file)") from None
-    except OSError as err:
-        raise ValueError(f"{path}: cannot read ({err.strerror or err})") from None
-    if not text.strip():
-        raise ValueError(f"{path}: not JSON (empty file)")
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not JSON ({err.msg} at line {err.lineno} column "
-                         f"{err.colno})") from None  # fmt: skip
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None  # JSON has no infinity
-    return obj
-
-
 # ----------------------------------------------------------------------------------------
 # Input checking
 # ----------------------------------------------------------------------------------------
-def _check_egrid(egrid: np.ndarray) -> np.ndarray:
-    egrid = np.asarray(egrid, dtype=float)
-    if egrid.ndim != 2 or egrid.shape[1] != 2 or egrid.shape[0] < 2:
-        raise ValueError(f"ellipticity grid must have shape (n_e, 2), got {egrid.shape}")
-    if not np.all(np.isfinite(egrid)):
-        raise ValueError("ellipticity grid contains non-finite values")
-    if np.any(np.hypot(egrid[:, 0], egrid[:, 1]) >= 1.0):
-        raise ValueError("ellipticity grid points must lie inside |e| < 1")
-    return egrid
-
-
-def _check_lnL(lnL: np.ndarray, egrid: np.ndarray) -> np.ndarray:
-    lnL = np.asarray(lnL)
-    if lnL.ndim != 2:
-        raise ValueError(f"lnL must be a 2-D array (n_gal, n_e), got {lnL.ndim} dimension(s)")
-    if lnL.shape[1] != egrid.shape[0]:
-        raise ValueError(
-            f"lnL has {lnL.shape[1]} columns but the ellipticity grid has {egrid.shape[0]} "
-            "points: each row must be ln L on that grid"
-        )
-    if not np.issubdtype(lnL.dtype, np.floating):
-        lnL = lnL.astype(float)
-    return lnL
-
-
 def usable_rows(lnL: np.ndarray) -> np.ndarray:
     """Rows of ``lnL`` that can be used: no NaN, no ``+inf``, at least one finite value.
 
@@ -546,8 +465,8 @@ def _likelihood_matrix(lnL: np.ndarray) -> np.ndarray:
 
 
 def _prepare(lnL, egrid, weights):
-    egrid = _check_egrid(egrid)
-    lnL = _check_lnL(lnL, egrid)
+    egrid = check_egrid(egrid)
+    lnL = check_lnL(lnL, egrid)
     if lnL.shape[0] == 0:
         raise ValueError("empty sample: lnL has no rows (no galaxies)")
     ok = usable_rows(lnL)
@@ -705,7 +624,7 @@ def fit_functional_prior(
         With ``method="cross-entropy"`` and ``info["cross_entropy"]`` the minimum of ``H``
         for ``p_out`` normalised to unit sum.
     """
-    egrid = _check_egrid(egrid)
+    egrid = check_egrid(egrid)
     p = np.asarray(p_out, dtype=float)
     if p.shape != (egrid.shape[0],):
         raise ValueError(f"p_out must have shape ({egrid.shape[0]},), got {p.shape}")
@@ -933,7 +852,6 @@ def mix_bulge_fractions(
     w = np.full(n_b, 1.0 / n_b) if weights is None else np.asarray(weights, dtype=float)
     if w.shape != (n_b,) or np.any(w < 0) or not w.sum() > 0:
         raise ValueError(f"weights must be {n_b} non-negative numbers, not {weights!r}")
-    from scipy.special import logsumexp
 
     b = (w / w.sum())[None, :, None]
     ls = np.asarray(lnL_star, dtype=float)
@@ -1160,8 +1078,8 @@ def estimate_prior_binned(
     -------
     BinnedPrior
     """
-    egrid = _check_egrid(egrid)
-    lnL = _check_lnL(lnL, egrid)
+    egrid = check_egrid(egrid)
+    lnL = check_lnL(lnL, egrid)
     values = np.asarray(values, dtype=float)
     if values.shape != (lnL.shape[0],):
         raise ValueError(f"values must have shape ({lnL.shape[0]},), got {values.shape}")
@@ -1209,8 +1127,6 @@ def estimate_prior_binned(
 # ----------------------------------------------------------------------------------------
 def _node_sizes(bank, config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per size node of an e cell: ``r``, its quadrature weight and half-light radius."""
-    from .models import half_light_radius, run_half_light_radius
-
     n_b = bank.n_r // bank.n_sizes
     runs = config.bulge_runs
     if len(runs) != n_b:
@@ -1351,12 +1267,12 @@ class SizePrior:
         """
         what = f"{source}: not a size prior"
         if not isinstance(d, dict):
-            raise ValueError(f"{what} (a JSON {_json_kind(d)}; a size prior holds ln_h and "
+            raise ValueError(f"{what} (a JSON {json_kind(d)}; a size prior holds ln_h and "
                              "density)")  # fmt: skip
         missing = [k for k in ("ln_h", "density") if k not in d]
         if missing:
             raise ValueError(f"{what} (no entry {', '.join(map(repr, missing))}; a size prior "
-                             f"holds ln_h and density{_other_file_hint(d, {})})")  # fmt: skip
+                             f"holds ln_h and density{other_file_hint(d, {})})")  # fmt: skip
         try:
             ln_h = np.asarray(d["ln_h"], dtype=float)
             dens = np.asarray(d["density"], dtype=float)
@@ -1390,10 +1306,10 @@ class SizePrior:
         ValueError
             One line naming the file: unreadable, not JSON, or not a size prior.
         """
-        d = _read_json(path)
+        d = read_json(path)
         if not isinstance(d, dict) or "size_prior" not in d:
-            detail = (f"a JSON {_json_kind(d)}" if not isinstance(d, dict) else
-                      "no 'size_prior' entry" + _other_file_hint(
+            detail = (f"a JSON {json_kind(d)}" if not isinstance(d, dict) else
+                      "no 'size_prior' entry" + other_file_hint(
                           d, {"priors": "priors", "B": "prior"}))  # fmt: skip
             raise ValueError(f"{path}: not a size prior file ({detail})")
         return cls.from_dict(d["size_prior"], source=str(path))
@@ -1802,7 +1718,7 @@ def _flux_range_loglike(f: np.ndarray, s: np.ndarray, lo: float, hi: float, beta
 
 
 #: fewest usable fluxes from which :func:`estimate_flux_range` estimates a range
-_MIN_FLUX_RANGE_SAMPLE = 50
+MIN_FLUX_RANGE_SAMPLE = 50
 
 
 def estimate_flux_range(
@@ -1864,7 +1780,7 @@ def estimate_flux_range(
         raise ValueError(f"flux and flux_err differ in shape: {f.shape} against {s.shape}")
     ok = np.isfinite(f) & np.isfinite(s) & (s > 0) & (f > 0)
     f, s = f[ok], s[ok]
-    if f.size < _MIN_FLUX_RANGE_SAMPLE:
+    if f.size < MIN_FLUX_RANGE_SAMPLE:
         raise ValueError(f"{f.size} usable fluxes: too few to estimate the flux range")
     nodes = np.polynomial.legendre.leggauss(48)
     fmin, fmax = float(f.min()), float(f.max())

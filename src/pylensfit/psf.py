@@ -13,9 +13,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from astropy.io import fits
+from astropy.table import Table
 
-from ._util import newton_peak, per_object
-from .models import rfft_frequencies
+from ._util import newton_peak, per_object, rfft_frequencies
+from .catalogue import atomic_write
 
 __all__ = [
     "REASONS",
@@ -23,6 +25,7 @@ __all__ = [
     "PSFResult",
     "centre_on_stamp",
     "combine_psfs",
+    "psf_diagnostics",
     "psf_from_image",
     "psf_transform",
     "read_psf",
@@ -202,8 +205,6 @@ class PSFResult:
 
     def stars(self):
         """The per-star diagnostics as an :class:`astropy.table.Table`."""
-        from astropy.table import Table
-
         cols = {name: getattr(self, name) for name in _STAR_COLUMNS}
         cols["reason"] = np.asarray(self.reason, dtype=str)
         return Table(cols)
@@ -215,10 +216,6 @@ class PSFResult:
         ``FWHM``, ``SIGMA``, ``E1``, ``E2``, ``PIXNOISE`` (NaN values are left out) and
         ``SOURCE``; the ``STARS`` binary table holds the per-star diagnostics.
         """
-        from astropy.io import fits
-
-        from .catalogue import atomic_write
-
         prim = fits.PrimaryHDU(np.asarray(self.image, dtype=np.float64))
         hdr = prim.header
         hdr["N_USED"] = (self.n_used, "stars in the stack")
@@ -240,9 +237,6 @@ class PSFResult:
     @classmethod
     def read(cls, path: str | Path) -> PSFResult:
         """Read a file written by :meth:`write`."""
-        from astropy.io import fits
-        from astropy.table import Table
-
         with fits.open(path) as hdul:
             image = np.array(hdul[0].data, dtype=np.float64)
             hdr = hdul[0].header
@@ -300,7 +294,7 @@ def psf_from_image(image, source: str = "") -> PSFResult:
     return PSFResult(image=img, x_cat=empty, y_cat=empty, x=empty, y=empty, flux=empty,
                      snr=empty, correlation=empty, chi2=empty, used=np.zeros(0, bool),
                      reason=np.zeros(0, dtype=str), source=source,
-                     **_diagnostics(img))  # fmt: skip
+                     **psf_diagnostics(img))  # fmt: skip
 
 
 def read_psf(path: str | Path) -> PSFResult:
@@ -315,8 +309,6 @@ def read_psf(path: str | Path) -> PSFResult:
     PSFError
         If the file cannot be read or holds no usable 2-D image (the message names it).
     """
-    from astropy.io import fits
-
     path = Path(path)
     try:
         with fits.open(path) as hdul:
@@ -390,7 +382,7 @@ def _gaussian_image(size: int, sigma: float) -> np.ndarray:
 
 def _adaptive_moments(image: np.ndarray) -> tuple[float, float, float]:
     """``(sigma, e1, e2)`` from GalSim's adaptive moments; NaN if they fail."""
-    import galsim
+    import galsim  # galsim: heavy import, only for the adaptive moments
 
     c = image.shape[0] // 2
     try:
@@ -407,7 +399,7 @@ def _adaptive_moments(image: np.ndarray) -> tuple[float, float, float]:
 
 def _effective_fwhm(image: np.ndarray, oversample: int = 8) -> float:
     """``2 sqrt(A / pi)``, ``A`` the area above half maximum of the band-limited image."""
-    from scipy.signal import resample
+    from scipy.signal import resample  # scipy.signal: start-up cost (~0.5 s), only for the FWHM
 
     n = image.shape[0]
     fine = resample(resample(image, n * oversample, axis=0), n * oversample, axis=1)
@@ -418,7 +410,22 @@ def _effective_fwhm(image: np.ndarray, oversample: int = 8) -> float:
     return float(2.0 * np.sqrt(area / np.pi))
 
 
-def _diagnostics(image: np.ndarray) -> dict:
+def psf_diagnostics(image: np.ndarray) -> dict[str, float]:
+    """Size and shape of a PSF image, as :class:`PSFResult` records them.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        Square PSF image (pixel response included), centred on element
+        ``[n//2, n//2]``.
+
+    Returns
+    -------
+    dict
+        ``fwhm``: ``2 sqrt(A / pi)`` with ``A`` the area above half maximum of the
+        band-limited image (pixels); ``sigma``, ``e1``, ``e2``: GalSim's adaptive
+        moments (size in pixels; ellipticity ``(a - b) / (a + b)``), NaN if they fail.
+    """
     sigma, e1, e2 = _adaptive_moments(image)
     return {"fwhm": _effective_fwhm(image), "sigma": sigma, "e1": e1, "e2": e2}
 
@@ -752,7 +759,7 @@ def stack_psf(
         source=source,
         meta=meta,
         **out,
-        **_diagnostics(psf),
+        **psf_diagnostics(psf),
     )
 
 
@@ -807,5 +814,5 @@ def combine_psfs(results, weights=None) -> PSFResult:
         source="+".join(r.source for r in results),
         meta={"weights": w.tolist()},
         **cols,
-        **_diagnostics(psf),
+        **psf_diagnostics(psf),
     )

@@ -34,9 +34,10 @@ import numpy as np
 from astropy.table import Table
 
 from ._kernels_nb import launch_guard
+from ._util import check_egrid, check_lnL
 from .flags import flag_value
 from .grid import grid_step
-from .prior import BinnedPrior, Prior, _check_egrid, _check_lnL, usable_rows
+from .prior import BinnedPrior, Prior, usable_rows
 
 __all__ = [
     "FLAG_BAD_LIKELIHOOD",
@@ -46,12 +47,18 @@ __all__ = [
     "ShearEstimate",
     "apply_shear",
     "estimate_shear",
+    "kernel_columns",
+    "moments_from_sums",
     "posterior_moments",
     "refine_lnL",
+    "refined_grid",
+    "sensitivity_from_sums",
     "shapes",
     "shear_fixed_point",
     "shear_sensitivity",
     "shear_table",
+    "sheared_prior_columns",
+    "sums_with",
 ]
 
 #: Flag bit: the likelihood row is unusable (all ``-inf``, or contains NaN / ``+inf``);
@@ -239,6 +246,28 @@ def _refiner(egrid: np.ndarray, refine: int, stencil: int = DEFAULT_STENCIL) -> 
     return _refiner_cached(eg.tobytes(), eg.shape[0], int(refine), int(stencil))
 
 
+def refined_grid(egrid: np.ndarray, refine: int, stencil: int = DEFAULT_STENCIL) -> np.ndarray:
+    """The integration grid of a refinement: the fine cell centres inside ``|e| < 1``.
+
+    Parameters
+    ----------
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` grid of cell centres on a square lattice of side ``de``.
+    refine : int
+        The fine grid has cells of side ``de / refine``; 1: ``egrid`` itself.
+    stencil : int
+        Lattice points per axis of the interpolant (as :func:`refine_lnL`).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n_f, 2)`` fine cell centres, the grid of the columns of :func:`kernel_columns`
+        and :func:`sheared_prior_columns` for :func:`sums_with` (``egrid`` itself when
+        ``refine == 1``).
+    """
+    return egrid if refine == 1 else _refiner(egrid, refine, stencil).fine
+
+
 def _build_refiner(egrid: np.ndarray, refine: int, stencil: int = DEFAULT_STENCIL) -> _Refiner:
     step = grid_step(egrid)
     coords = np.unique(np.round(egrid.ravel() / step - 0.5, 6))
@@ -374,8 +403,8 @@ def refine_lnL(
     fine_grid : numpy.ndarray
         ``(n_f, 2)`` fine cell centres inside ``|e| < 1``.
     """
-    egrid = _check_egrid(egrid)
-    lnL = _check_lnL(lnL, egrid)
+    egrid = check_egrid(egrid)
+    lnL = check_lnL(lnL, egrid)
     if int(refine) != refine or refine < 1:
         raise ValueError(f"refine must be a positive integer, got {refine}")
     x = _relative_lnL(lnL)
@@ -472,12 +501,25 @@ def _fine_sums_kernel(X, cap, m, j0, w, row_y, row_lo, row_hi, K, out):  # pragm
 # ----------------------------------------------------------------------------------------
 # The posterior sums
 # ----------------------------------------------------------------------------------------
-def _kernel_columns(prior: Prior, grid: np.ndarray) -> np.ndarray:
+def kernel_columns(prior: Prior, grid: np.ndarray) -> np.ndarray:
     """The ``(n_e, 14)`` matrix whose product with ``L`` gives every posterior sum.
 
     Columns: ``P, P e1, P e2, P e1^2, P e2^2, P e1 e2, dPg1, e1 dPg1, dPg2, e2 dPg2,
     P_1, e1 P_1, P_2, e2 P_2`` with ``P_k = dP/de_k`` and ``dPg_k`` the derivative of the
     sheared population density (see :func:`shear_sensitivity`).
+
+    Parameters
+    ----------
+    prior : Prior
+        The ellipticity prior ``P``.
+    grid : numpy.ndarray
+        ``(n_e, 2)`` integration grid (:func:`refined_grid`).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n_e, 14)`` columns, the ``K`` of :func:`sums_with`, whose sums
+        :func:`moments_from_sums` and :func:`sensitivity_from_sums` read.
     """
     e1, e2 = grid[:, 0], grid[:, 1]
     P = prior.pdf(e1, e2)
@@ -504,11 +546,23 @@ def _posterior_sums(
     lattice, then a compiled kernel (parallel over galaxies) interpolates, exponentiates
     and accumulates, without storing the fine grids.
     """
-    grid = egrid if refine == 1 else _refiner(egrid, refine).fine
-    return _sums_with(lnL, egrid, _kernel_columns(prior, grid), refine, block_size)
+    grid = refined_grid(egrid, refine)
+    return sums_with(lnL, egrid, kernel_columns(prior, grid), refine, block_size)
 
 
-def _moments_from_sums(S: np.ndarray) -> dict[str, np.ndarray]:
+def moments_from_sums(S: np.ndarray) -> dict[str, np.ndarray]:
+    """Posterior means and covariances of ``e`` from the sums of :func:`kernel_columns`.
+
+    Parameters
+    ----------
+    S : numpy.ndarray
+        ``(n_gal, 14)`` sums ``sum L K`` (:func:`sums_with` of :func:`kernel_columns`).
+
+    Returns
+    -------
+    dict of numpy.ndarray
+        ``e1, e2`` (posterior means), ``e1_var, e2_var`` (floored at 0) and ``e12_cov``.
+    """
     s0 = S[:, 0]
     m1 = S[:, 1] / s0
     m2 = S[:, 2] / s0
@@ -521,7 +575,22 @@ def _moments_from_sums(S: np.ndarray) -> dict[str, np.ndarray]:
     }
 
 
-def _sensitivity_from_sums(S: np.ndarray, method: str) -> tuple[np.ndarray, np.ndarray]:
+def sensitivity_from_sums(S: np.ndarray, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """Shear sensitivities of each galaxy from the sums of :func:`kernel_columns`.
+
+    Parameters
+    ----------
+    S : numpy.ndarray
+        ``(n_gal, 14)`` sums ``sum L K`` (:func:`sums_with` of :func:`kernel_columns`).
+    method : {"exact", "paper"}
+        ``"paper"``: the paper's sensitivity (docs: method, eq-partial); anything else:
+        the exact response (see :func:`shear_sensitivity`).
+
+    Returns
+    -------
+    s1, s2 : numpy.ndarray
+        ``(n_gal,)`` sensitivities of ``e1`` and ``e2``.
+    """
     s0 = S[:, 0]
     m1 = S[:, 1] / s0
     m2 = S[:, 2] / s0
@@ -537,8 +606,8 @@ def _sensitivity_from_sums(S: np.ndarray, method: str) -> tuple[np.ndarray, np.n
 
 
 def _check_inputs(lnL, egrid, prior, sensitivity="exact", refine=1):
-    egrid = _check_egrid(egrid)
-    lnL = _check_lnL(lnL, egrid)
+    egrid = check_egrid(egrid)
+    lnL = check_lnL(lnL, egrid)
     if not isinstance(prior, (Prior, BinnedPrior)):
         raise TypeError(f"prior must be a pylensfit Prior, got {type(prior).__name__}")
     if sensitivity not in _SENS_METHODS:
@@ -607,7 +676,7 @@ def posterior_moments(
     """
     lnL, egrid = _check_inputs(lnL, egrid, prior, refine=refine)
     S, _ = _all_sums(lnL, egrid, prior, int(refine), block_size, None)
-    return _moments_from_sums(S)
+    return moments_from_sums(S)
 
 
 def shear_sensitivity(
@@ -656,7 +725,7 @@ def shear_sensitivity(
     """
     lnL, egrid = _check_inputs(lnL, egrid, prior, method, refine)
     S, _ = _all_sums(lnL, egrid, prior, int(refine), block_size, None)
-    return _sensitivity_from_sums(S, method)
+    return sensitivity_from_sums(S, method)
 
 
 def shapes(
@@ -713,8 +782,8 @@ def shapes(
     """
     lnL, egrid = _check_inputs(lnL, egrid, prior, sensitivity, refine)
     S, ok = _all_sums(lnL, egrid, prior, int(refine), block_size, values)
-    mom = _moments_from_sums(S)
-    s1, s2 = _sensitivity_from_sums(S, sensitivity)
+    mom = moments_from_sums(S)
+    s1, s2 = sensitivity_from_sums(S, sensitivity)
     flags = np.where(ok, 0, FLAG_BAD_LIKELIHOOD).astype(np.int32)
     t = Table()
     for k in ("e1", "e2", "e1_var", "e2_var", "e12_cov"):
@@ -956,12 +1025,31 @@ def shear_table(
     return Table(rows=rows, names=("group", "n", "g1", "g1_err", "g2", "g2_err"))
 
 
-def _sheared_prior_columns(prior: Prior, grid: np.ndarray, g: np.ndarray, h: float = 1e-3):
+def sheared_prior_columns(
+    prior: Prior, grid: np.ndarray, g: np.ndarray, h: float = 1e-3
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``P_g`` on ``grid`` and its derivatives ``dP_g/dg_j`` (central differences).
 
     ``P_g(e) = P(e_s) |de_s/de|^2`` with ``e_s = (e - g)/(1 - g* e)``: the density of the
     population ``P`` after the reduced shear ``g`` (paper section 2.1); at ``g = 0`` its
     derivative is the exact sensitivity's ``dP_g/dg`` (docs: method, eq-sensitivity-exact).
+
+    Parameters
+    ----------
+    prior : Prior
+        The unsheared population density ``P``.
+    grid : numpy.ndarray
+        ``(n_e, 2)`` integration grid (:func:`refined_grid`).
+    g : numpy.ndarray
+        ``(g1, g2)``, the reduced shear.
+    h : float
+        Step of the central differences in ``g``.
+
+    Returns
+    -------
+    P_g, dP_g1, dP_g2 : numpy.ndarray
+        ``(n_e,)`` each: the sheared density and its derivatives with respect to
+        ``g1`` and ``g2``.
     """
     e = grid[:, 0] + 1j * grid[:, 1]
 
@@ -1020,13 +1108,13 @@ def shear_fixed_point(
         raise ValueError("empty sample: no usable likelihood row to estimate shear")
     lnL = lnL[ok]
     refine = int(refine)
-    grid = egrid if refine == 1 else _refiner(egrid, refine).fine
+    grid = refined_grid(egrid, refine)
     g = np.zeros(2)
     for _ in range(n_iter):
-        P, d1, d2 = _sheared_prior_columns(prior, grid, g)
+        P, d1, d2 = sheared_prior_columns(prior, grid, g)
         e1, e2 = grid[:, 0], grid[:, 1]
         K = np.column_stack([P, e1 * P, e2 * P, d1, e1 * d1, e2 * d1, d2, e1 * d2, e2 * d2])
-        S = _sums_with(lnL, egrid, K, refine, block_size)
+        S = sums_with(lnL, egrid, K, refine, block_size)
         s0 = S[:, 0]
         m1, m2 = S[:, 1] / s0, S[:, 2] / s0
         # d<e_i>/dg_j = sum (e_i - <e_i>) L dP_g/dg_j / sum P_g L
@@ -1041,8 +1129,42 @@ def shear_fixed_point(
     return ShearEstimate(g1=float(g[0]), g2=float(g[1]), g1_err=err[0], g2_err=err[1], n=n)
 
 
-def _sums_with(lnL, egrid, K, refine, block_size, stencil: int = DEFAULT_STENCIL):
-    """``sum_f L_f K_f`` per row, on the grid (``refine = 1``) or the refined grid."""
+def sums_with(
+    lnL: np.ndarray,
+    egrid: np.ndarray,
+    K: np.ndarray,
+    refine: int,
+    block_size: int | None,
+    stencil: int = DEFAULT_STENCIL,
+) -> np.ndarray:
+    """``sum_f L_f K_f`` per row, on the grid (``refine = 1``) or the refined grid.
+
+    ``L = exp(lnL - max)`` per row (floored as :func:`refine_lnL`), interpolated onto
+    the refined grid when ``refine > 1`` (one BLAS product per block onto the padded
+    lattice, then a compiled kernel, parallel over galaxies, that interpolates,
+    exponentiates and accumulates without storing the fine grids).
+
+    Parameters
+    ----------
+    lnL : numpy.ndarray
+        ``(n_gal, n_e)`` log-likelihood on ``egrid`` (usable rows only).
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` grid of cell centres.
+    K : numpy.ndarray
+        ``(n_f, k)`` columns on the integration grid (:func:`refined_grid`), e.g.
+        :func:`kernel_columns`.
+    refine : int
+        Integration grid refinement factor (1: integrate on ``egrid`` itself).
+    block_size : int, optional
+        Galaxies per block (default: about 4 million grid elements per block).
+    stencil : int
+        Lattice points per axis of the interpolant (as :func:`refine_lnL`).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n_gal, k)`` sums.
+    """
     n = lnL.shape[0]
     S = np.empty((n, K.shape[1]))
     if refine == 1:

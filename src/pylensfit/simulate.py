@@ -18,9 +18,24 @@ from astropy.table import Table
 from astropy.wcs import WCS
 
 from .catalogue import atomic_write
+from .models import DEVAUC_TRUNCATION
 from .prior import Prior
+from .shear import apply_shear
 
-__all__ = ["FieldSpec", "draw_population", "draw_shapes", "simulate_field", "write_field"]
+__all__ = [
+    "MIXED_KINDS",
+    "FieldSpec",
+    "add_object",
+    "add_sky_and_noise",
+    "draw_population",
+    "draw_shapes",
+    "field_psf",
+    "galaxy_profile",
+    "lensed_shapes",
+    "simulate_field",
+    "truth_table",
+    "write_field",
+]
 
 
 @dataclass(frozen=True)
@@ -57,8 +72,20 @@ class FieldSpec:
     extra: dict = field(default_factory=dict)
 
 
-def _psf(spec: FieldSpec):
-    import galsim
+def field_psf(spec: FieldSpec):
+    """The PSF of a simulated field: a sheared Moffat profile (no pixel response).
+
+    Parameters
+    ----------
+    spec : FieldSpec
+        Its ``psf_beta``, ``psf_fwhm`` (pixels), ``psf_e1`` and ``psf_e2``.
+
+    Returns
+    -------
+    galsim.GSObject
+        The profile, to convolve with and to draw with GalSim's pixel.
+    """
+    import galsim  # galsim: heavy import, only for rendering
 
     return galsim.Moffat(beta=spec.psf_beta, fwhm=spec.psf_fwhm).shear(
         g1=spec.psf_e1, g2=spec.psf_e2
@@ -69,13 +96,37 @@ def _psf(spec: FieldSpec):
 MIXED_KINDS = ("exponential", "devaucouleurs", "bulge+disc")
 
 
-def _galaxy(model: str, r: float, index: int = 0):
-    import galsim
+def galaxy_profile(model: str, r: float, index: int = 0):
+    """The round, unit-flux GalSim profile of a simulated galaxy of size ``r``.
+
+    Parameters
+    ----------
+    model : {"exponential", "devaucouleurs", "bulge+disc", "mixed"}
+        The profile (:attr:`FieldSpec.model`); ``"mixed"`` takes the kinds of
+        :data:`MIXED_KINDS` in turn by ``index``.
+    r : float
+        Size in pixels, as the model bank's (:mod:`pylensfit.models`): the exponential's
+        scale length, the de Vaucouleurs half-light radius (truncated at
+        :data:`~pylensfit.models.DEVAUC_TRUNCATION` of them), the bulge+disc's disc
+        scale length (bulge half-light radius ``0.6 r``, half the flux each).
+    index : int
+        The object's index, for ``model="mixed"``.
+
+    Returns
+    -------
+    galsim.GSObject
+        The profile, before any shear and the PSF.
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``model``.
+    """
+    import galsim  # galsim: heavy import, only for rendering
 
     if model == "mixed":
         model = MIXED_KINDS[index % len(MIXED_KINDS)]
-
-    from .models import DEVAUC_TRUNCATION as T
+    T = DEVAUC_TRUNCATION
 
     if model == "exponential":
         return galsim.Exponential(scale_radius=r)
@@ -122,13 +173,27 @@ def draw_shapes(prior: Prior, n: int, rng: np.random.Generator, e_max: float) ->
     return e
 
 
-def _lensed_shapes(spec: FieldSpec, e_int: np.ndarray, is_star: np.ndarray):
+def lensed_shapes(
+    spec: FieldSpec, e_int: np.ndarray, is_star: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Intrinsic shapes (flipped for a 90-degree twin) and their sheared values (complex).
 
-    Stars get ``e_obs = 0``.
-    """
-    from .shear import apply_shear
+    Parameters
+    ----------
+    spec : FieldSpec
+        The shear ``g1, g2`` and whether the field is the rotated twin (``rotate``).
+    e_int : numpy.ndarray
+        ``(n, 2)`` intrinsic ellipticities as drawn.
+    is_star : numpy.ndarray
+        ``(n,)`` star flags: stars get ``e_obs = 0``.
 
+    Returns
+    -------
+    e_int : numpy.ndarray
+        ``(n, 2)`` intrinsic ellipticities, negated for a rotated twin.
+    e_obs : numpy.ndarray
+        ``(n,)`` complex sheared ellipticities ``e1 + i e2``.
+    """
     if spec.rotate:
         e_int = -e_int  # a 90-degree rotation of an ellipse flips e
     e1, e2 = apply_shear(e_int[:, 0], e_int[:, 1], spec.g1, spec.g2)
@@ -137,9 +202,24 @@ def _lensed_shapes(spec: FieldSpec, e_int: np.ndarray, is_star: np.ndarray):
     return e_int, e_obs
 
 
-def _add_object(image, obj, flux: float, x: float, y: float, size: int = 64) -> None:
-    """Draw ``obj`` with ``flux`` centred at 0-based ``(x, y)`` and add it to ``image``."""
-    import galsim
+def add_object(image, obj, flux: float, x: float, y: float, size: int = 64) -> None:
+    """Draw ``obj`` with ``flux`` centred at 0-based ``(x, y)`` and add it to ``image``.
+
+    Parameters
+    ----------
+    image : galsim.Image
+        The field, bounds ``1..n`` (numpy ``(x, y)`` is GalSim's ``(x + 1, y + 1)``);
+        changed in place.
+    obj : galsim.GSObject
+        The object, PSF included.
+    flux : float
+        Its total flux.
+    x, y : float
+        Its centre in 0-based pixel coordinates.
+    size : int
+        Side of the stamp it is drawn on; what falls outside ``image`` is dropped.
+    """
+    import galsim  # galsim: heavy import, only for rendering
 
     stamp = obj.withFlux(flux).drawImage(
         nx=size, ny=size, scale=1.0, center=galsim.PositionD(x + 1.0, y + 1.0)
@@ -149,8 +229,30 @@ def _add_object(image, obj, flux: float, x: float, y: float, size: int = 64) -> 
         image[b] += stamp[b]
 
 
-def _add_sky_and_noise(image, spec: FieldSpec, seed: int, noise_seed: int | None):
-    """The rendered image plus sky and Gaussian noise (float32), and its weight map."""
+def add_sky_and_noise(
+    image, spec: FieldSpec, seed: int, noise_seed: int | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The rendered image plus sky and Gaussian noise (float32), and its weight map.
+
+    Parameters
+    ----------
+    image : galsim.Image
+        The noise-free field.
+    spec : FieldSpec
+        Its ``sky``, ``noise_sigma`` and ``noise_sign`` (-1: the noise negated, the
+        field's noise twin).
+    seed : int
+        The field's seed: the noise's when ``noise_seed`` is ``None``.
+    noise_seed : int, optional
+        Seed of the noise.
+
+    Returns
+    -------
+    image : numpy.ndarray
+        The field with sky and noise, float32.
+    weight : numpy.ndarray
+        Inverse-variance map ``1 / noise_sigma^2``, float32.
+    """
     arr = image.array.astype(np.float64)
     noise_rng = np.random.default_rng([seed, 1] if noise_seed is None else noise_seed)
     noise = noise_rng.normal(scale=spec.noise_sigma, size=arr.shape)
@@ -159,8 +261,32 @@ def _add_sky_and_noise(image, spec: FieldSpec, seed: int, noise_seed: int | None
     return arr.astype(np.float32), weight
 
 
-def _truth_table(x, y, is_star, flux, r, e_int, e_obs, snr) -> Table:
-    """The truth columns shared by every simulated field (stars have e = 0, r = 0)."""
+def truth_table(x, y, is_star, flux, r, e_int, e_obs, snr) -> Table:
+    """The truth columns shared by every simulated field (stars have e = 0, r = 0).
+
+    Parameters
+    ----------
+    x, y : numpy.ndarray
+        0-based pixel positions.
+    is_star : numpy.ndarray
+        Star flags.
+    flux : numpy.ndarray
+        Total fluxes.
+    r : numpy.ndarray
+        Sizes (pixels).
+    e_int : numpy.ndarray
+        ``(n, 2)`` intrinsic ellipticities.
+    e_obs : numpy.ndarray
+        ``(n,)`` complex sheared ellipticities.
+    snr : numpy.ndarray
+        Matched-filter S/N of each galaxy.
+
+    Returns
+    -------
+    astropy.table.Table
+        Columns ``x, y, is_star, flux, r, e1_int, e2_int, e1, e2, snr`` (``snr`` NaN
+        for stars), as :func:`simulate_field`'s truth.
+    """
     truth = Table()
     truth["x"] = x
     truth["y"] = y
@@ -202,15 +328,15 @@ def simulate_field(
         length or half-light radius, px), ``e1_int, e2_int`` (intrinsic), ``e1, e2``
         (sheared), ``snr`` (matched-filter S/N of the noise-free object before lensing).
     """
-    import galsim
+    import galsim  # galsim: heavy import, only for rendering
 
     rng = np.random.default_rng(seed)
     n = int(spec.size)
     x, y, is_star, r, snr, star_snr, e_int = draw_population(spec, rng)
     n_obj = x.size
-    e_int, e_obs = _lensed_shapes(spec, e_int, is_star)
+    e_int, e_obs = lensed_shapes(spec, e_int, is_star)
 
-    psf = _psf(spec)
+    psf = field_psf(spec)
     image = galsim.ImageF(n, n, scale=1.0)  # bounds 1..n: numpy (x, y) is galsim (x+1, y+1)
     flux = np.empty(n_obj)
     unit_psf = psf.drawImage(nx=64, ny=64, scale=1.0).array
@@ -220,17 +346,18 @@ def simulate_field(
             obj = psf
             flux[i] = star_snr[i] * spec.noise_sigma / psf_peak  # peak S/N as drawn
         else:
-            gal = _galaxy(spec.model, r[i], i).shear(g1=e_int[i, 0], g2=e_int[i, 1])
+            gal = galaxy_profile(spec.model, r[i], i).shear(g1=e_int[i, 0], g2=e_int[i, 1])
             obj = galsim.Convolve(gal.shear(g1=spec.g1, g2=spec.g2), psf)
             # the flux from the S/N of the unlensed, unrotated galaxy: lensing keeps the
             # flux, and a rotated twin gets the same flux as its original
             e0 = -e_int[i] if spec.rotate else e_int[i]
-            ref = galsim.Convolve(_galaxy(spec.model, r[i], i).shear(g1=e0[0], g2=e0[1]), psf)
+            ref = galsim.Convolve(galaxy_profile(spec.model, r[i], i).shear(g1=e0[0], g2=e0[1]),
+                                  psf)  # fmt: skip
             arr = ref.drawImage(nx=64, ny=64, scale=1.0).array
             flux[i] = snr[i] * spec.noise_sigma / np.sqrt((arr**2).sum())
-        _add_object(image, obj, flux[i], x[i], y[i])
-    image, weight = _add_sky_and_noise(image, spec, seed, noise_seed)
-    truth = _truth_table(x, y, is_star, flux, r, e_int, e_obs, snr)
+        add_object(image, obj, flux[i], x[i], y[i])
+    image, weight = add_sky_and_noise(image, spec, seed, noise_seed)
+    truth = truth_table(x, y, is_star, flux, r, e_int, e_obs, snr)
     truth.meta.update(
         {"g1": spec.g1, "g2": spec.g2, "model": spec.model, "noise": spec.noise_sigma,
          "psf_fwhm": spec.psf_fwhm, "psf_e1": spec.psf_e1, "psf_e2": spec.psf_e2,

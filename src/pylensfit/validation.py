@@ -23,10 +23,12 @@ Conventions are those of :mod:`pylensfit.simulate`: sizes in pixels, numpy ``(x,
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import math
 import os
+import time
 from collections.abc import Sequence
 from dataclasses import asdict
 from functools import lru_cache
@@ -35,19 +37,31 @@ from typing import Any
 
 import numpy as np
 from astropy.table import Table, vstack
+from scipy.optimize import brentq
+from scipy.spatial import cKDTree
 
+from . import pipeline
 from .config import Config
-from .prior import Prior
-from .shear import ShearEstimate
+from .models import DEVAUC_TRUNCATION
+from .pipeline import _run
+from .prior import (
+    Prior,
+    estimate_prior,
+    estimate_prior_and_bulge,
+    estimate_prior_binned,
+    mix_bulge_fractions,
+)
+from .psf import psf_diagnostics, psf_from_image
+from .shear import ShearEstimate, estimate_shear, shapes, shear_fixed_point
 from .simulate import (
     FieldSpec,
-    _add_object,
-    _add_sky_and_noise,
-    _lensed_shapes,
-    _psf,
-    _truth_table,
+    add_object,
+    add_sky_and_noise,
     draw_population,
+    field_psf,
+    lensed_shapes,
     simulate_field,
+    truth_table,
     write_field,
 )
 
@@ -118,10 +132,9 @@ def _step2_galaxy(
     kind: str, r: float, n: float, bulge_frac: float, knot_frac: float, n_knots: int, knot_seed: int
 ):
     """Round (before the intrinsic shear) unit-flux STEP2-like galaxy of half-light radius r."""
-    import galsim
+    import galsim  # galsim: heavy import, only for rendering
 
-    from .models import DEVAUC_TRUNCATION as T
-
+    T = DEVAUC_TRUNCATION
     if kind == "sersic":
         trunc = T * r if n > 2.0 else 0.0
         return galsim.Sersic(n=n, half_light_radius=r, trunc=trunc)
@@ -174,7 +187,7 @@ def render_step2_field(
         ``sersic_n``, ``bulge_frac``, ``n_knots``; ``r`` is the half-light radius.
         ``e1_int, e2_int`` are the (rotated, for a twin) intrinsic shears of the profile.
     """
-    import galsim
+    import galsim  # galsim: heavy import, only for rendering
 
     rng = np.random.default_rng(seed)
     n = int(spec.size)
@@ -186,9 +199,9 @@ def render_step2_field(
     knot_frac = rng.uniform(0.2, 0.5, n_obj)
     n_knots = rng.integers(10, 60, n_obj)
     knot_seed = rng.integers(1, 2**31 - 1, n_obj)
-    e_int, e_obs = _lensed_shapes(spec, e_int, is_star)
+    e_int, e_obs = lensed_shapes(spec, e_int, is_star)
 
-    psf = _psf(spec)
+    psf = field_psf(spec)
     image = galsim.ImageF(n, n, scale=1.0)  # bounds 1..n: numpy (x, y) is galsim (x+1, y+1)
     flux = np.empty(n_obj)
     psf_peak = psf.drawImage(nx=_STAMP, ny=_STAMP, scale=1.0).array.max()
@@ -218,9 +231,9 @@ def render_step2_field(
             if spec.rotate:
                 gal = gal.rotate(90 * galsim.degrees)
             obj = galsim.Convolve(gal.shear(g1=spec.g1, g2=spec.g2), psf)
-        _add_object(image, obj, flux[i], x[i], y[i], _STAMP)
-    arr, weight = _add_sky_and_noise(image, spec, seed, noise_seed)
-    truth = _truth_table(x, y, is_star, flux, r, e_int, e_obs, snr)
+        add_object(image, obj, flux[i], x[i], y[i], _STAMP)
+    arr, weight = add_sky_and_noise(image, spec, seed, noise_seed)
+    truth = truth_table(x, y, is_star, flux, r, e_int, e_obs, snr)
     truth["kind"] = np.where(is_star, "star", kinds)
     truth["sersic_n"] = np.where(is_star | (kinds != "sersic"), np.nan, sersic_n)
     truth["bulge_frac"] = np.where(is_star | (kinds == "sersic"), np.nan, bulge_frac)
@@ -445,7 +458,6 @@ def simulate_step(
                     "noise_seed": s_noise,
                 }
             )
-    from .pipeline import _run
 
     counts = {}
     for t, res in _run(_render_task, tasks, jobs, None, "fields", progress):
@@ -527,8 +539,6 @@ def main(argv: list[str] | None = None) -> int:
     int
         Exit status.
     """
-    import argparse
-
     p = argparse.ArgumentParser(
         prog="pylensfit simulate", description="simulate a STEP1/STEP2-like validation set"
     )
@@ -882,8 +892,6 @@ def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, job
     written after the catalogue. With ``psf`` (a :class:`~pylensfit.psf.PSFResult`) the
     fields are measured with it instead of the star field's PSF.
     """
-    from . import pipeline
-
     cat_path, side = mdir / f"{name}.fits", mdir / f"{name}.json"
     ident = _ident(fields, star, cfg, priors, psf)
     if not remeasure and cat_path.exists() and side.exists():
@@ -918,8 +926,6 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
     ``morphology`` (the index in :data:`STEP2_KINDS` of a STEP2 galaxy's kind; NaN
     otherwise), ``mag``, ``snr`` (``model_SNratio``) and ``lnL``.
     """
-    from scipy.spatial import cKDTree
-
     lnL = np.asarray(cat["lnL"])
     use = ((np.asarray(cat["flags"]) == 0) & (np.asarray(cat["fitclass"]) == 0)
            & np.isfinite(lnL).all(axis=1))  # fmt: skip
@@ -1025,8 +1031,6 @@ def _shear_estimates(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str,
                      refine: int, truth_control: bool = False) -> Table:  # fmt: skip
     """One shear estimate per image (``pairs=False``) or per image + twin pair, with the
     truth's shape noise taken out (:func:`truth_control_variate`) if ``truth_control``."""
-    from .shear import estimate_shear, shear_fixed_point
-
     images = np.asarray(gal["image"]).astype(str)
     lnL = np.asarray(gal["lnL"])
     rows = []
@@ -1155,8 +1159,7 @@ def c_scatter(c: np.ndarray, c_err: np.ndarray, cl: float = 0.95) -> dict[str, f
     ``1 - cl`` quantile: larger spreads would give so small a ``chi2`` less often than
     ``1 - cl``; 0 when even ``sigma = 0`` does).
     """
-    from scipy.optimize import brentq
-    from scipy.stats import chi2 as chi2_dist
+    from scipy.stats import chi2 as chi2_dist  # scipy.stats: start-up cost (~0.4 s), only here
 
     c, e = np.asarray(c, dtype=float), np.asarray(c_err, dtype=float)
     ok = np.isfinite(c) & np.isfinite(e) & (e > 0)
@@ -1255,8 +1258,6 @@ _BIN_NAMES = ("kind", "bin", "lo", "hi", "center", "psf", "n_gal", "n_used", "n_
 def _bins_table(kind, edges, pg, sg, e_s_of, psfs, fields, pairs, estimator, egrid, cfg,
                 min_count) -> list[tuple]:  # fmt: skip
     """Rows of ``meta["bins"]`` for one binned quantity (see :func:`validate`)."""
-    from .prior import estimate_prior_binned
-
     vp, vs = np.asarray(pg[kind], float), np.asarray(sg["_bin_" + kind], float)
     okp = np.isfinite(vp)
     bp = estimate_prior_binned(np.asarray(pg["lnL"])[okp], egrid, vp[okp], edges,
@@ -1488,10 +1489,6 @@ def validate(
         ``psf_check``, ``prior_check``, ``diagnosis`` and ``measured`` (the catalogue
         paths and whether each was reused), ``psf_source`` (``"stars"`` or ``"true"``).
     """
-    from .prior import estimate_prior, estimate_prior_and_bulge, mix_bulge_fractions
-    from .psf import psf_from_image
-    from .shear import shapes
-
     if estimator not in ("key2", "fixed-point"):
         raise ValueError(f"estimator must be 'key2' or 'fixed-point', got {estimator!r}")
     man = read_manifest(directory)
@@ -1699,7 +1696,7 @@ def true_psf_image(p: dict, n: int) -> np.ndarray:
         ``(n, n)`` image of unit sum centred on element ``[n//2, n//2]`` (the centre
         convention of :class:`pylensfit.psf.PSFResult`).
     """
-    import galsim
+    import galsim  # galsim: heavy import, only for rendering
 
     obj = galsim.Moffat(beta=p["beta"], fwhm=p["fwhm"]).shear(g1=p["e1"], g2=p["e2"])
     img = obj.drawImage(nx=n, ny=n, scale=1.0, use_true_center=False).array
@@ -1710,12 +1707,10 @@ def _true_psf_diagnostics(p: dict, n: int = 48) -> dict:
     """FWHM and adaptive-moment shape of the input PSF rendered with its pixel response.
 
     Measured exactly as the pipeline measures its stacked PSF
-    (:func:`pylensfit.psf._diagnostics`), so that the two columns of the report compare
+    (:func:`pylensfit.psf.psf_diagnostics`), so that the two columns of the report compare
     like with like (the pixel widens a 3 px Moffat's FWHM by ~3% and dilutes its e).
     """
-    from .psf import _diagnostics
-
-    return _diagnostics(true_psf_image(p, n))
+    return psf_diagnostics(true_psf_image(p, n))
 
 
 # -- report --------------------------------------------------------------------------------
@@ -1891,10 +1886,10 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
     list of pathlib.Path
         The files written (the report first).
     """
-    import matplotlib
+    import matplotlib  # matplotlib: heavy import, only for the figures
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # matplotlib: heavy import, only for the figures
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -2073,8 +2068,6 @@ def quick_validation(
         ``{"step1": table, "step2": table}`` from :func:`validate`, each with
         ``meta["timing"]`` (seconds: ``simulate``, ``validate``).
     """
-    import time
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     n = {**QUICK_NGAL, **(ngal or {})}
