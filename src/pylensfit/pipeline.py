@@ -963,6 +963,28 @@ def _read_part(path: Path) -> dict[str, Any]:
 # ----------------------------------------------------------------------------------------
 # Running tasks: in-process, local process pool, or dask.distributed
 # ----------------------------------------------------------------------------------------
+def _exit_with_parent(parent: int) -> None:
+    """A pool worker's initializer: the worker ends within a second of the process that
+    started it (a run killed by a signal runs no clean-up and would leave its workers
+    computing, and holding their memory, for as long as their tasks last)."""
+    import threading  # only in the workers
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="pylensfit-parent-watch").start()
+
+
+def _executor(jobs: int) -> ProcessPoolExecutor:
+    """``jobs`` spawned worker processes that end with this one."""
+    import multiprocessing as mp  # only for a pool
+
+    return ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                               initializer=_exit_with_parent, initargs=(os.getpid(),))
+
+
 @contextmanager
 def _pool(jobs: int, scheduler: str | None = None) -> Iterator[ProcessPoolExecutor | None]:
     """One pool of ``jobs`` local worker processes for several :func:`_run` calls.
@@ -975,9 +997,7 @@ def _pool(jobs: int, scheduler: str | None = None) -> Iterator[ProcessPoolExecut
     if scheduler or jobs <= 1:
         yield None
         return
-    import multiprocessing as mp
-
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
+    with _executor(jobs) as ex:
         yield ex
 
 
@@ -1019,10 +1039,7 @@ def _run(fn, tasks: Sequence[dict], jobs: int, scheduler: str | None, desc: str,
                 yield t, fn(t)
                 bar.update()
         else:
-            import multiprocessing as mp
-
-            with ProcessPoolExecutor(max_workers=min(jobs, len(tasks)),
-                                     mp_context=mp.get_context("spawn")) as ex:  # fmt: skip
+            with _executor(min(jobs, len(tasks))) as ex:
                 futs = {ex.submit(fn, {**t, "single_thread": True}): t for t in tasks}
                 for f in as_completed(futs):
                     yield futs.pop(f), f.result()
