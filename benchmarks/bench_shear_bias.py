@@ -11,7 +11,7 @@ one with ``--true-prior``.
 
 Two designs cancel most of the shape noise:
 
-- ``twins`` (default, as in DESIGN.md): 90-degree twins ``e_s`` and ``-e_s``, each with its
+- ``twins`` (default, as in STEP2): 90-degree twins ``e_s`` and ``-e_s``, each with its
   own noise. ``m`` is known to ~4e-4 with 200,000 galaxies; ``c`` keeps the noise of the
   zero-shear mean (~3e-4 at 200,000).
 - ``ring4``: each ``e_s`` also rotated by 45 and 135 degrees (``i e_s``, ``-e_s``,
