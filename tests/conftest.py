@@ -51,3 +51,36 @@ def psfs():
 @pytest.fixture
 def rng():
     return np.random.default_rng(20081208)
+
+
+def check_catalogue_invariants(cat) -> None:
+    """A row's flags, fitclass, weight and shape agree: ``flags == 0`` means a measured
+    object (fitclass 0 or 1) with a finite shape if a galaxy; only such galaxies have
+    weight > 0; an object not measured (fitclass -1) says why in its flags."""
+    flags = np.asarray(cat["flags"])
+    fitclass = np.asarray(cat["fitclass"])
+    weight = np.asarray(cat["weight"], dtype=float)
+    e1, e2 = (np.asarray(cat[c], dtype=float) for c in ("e1", "e2"))
+    clean = flags == 0
+    assert np.isin(fitclass[clean], (0, 1)).all(), "flags 0 but not measured"
+    galaxy = clean & (fitclass == 0)
+    assert (np.isfinite(e1[galaxy]) & np.isfinite(e2[galaxy])).all(), "flags 0, no shape"
+    assert np.isfinite(weight).all() and (weight >= 0).all()
+    assert not ((weight > 0) & ~galaxy).any(), "weight > 0 for a flagged row or a star"
+    assert (flags[fitclass == -1] != 0).all(), "not measured, yet no flag"
+
+
+@pytest.fixture(autouse=True)
+def _every_written_catalogue_is_consistent(monkeypatch):
+    """Every catalogue that ``measure`` writes in any test holds the invariants of
+    :func:`check_catalogue_invariants` (tables that tests build by hand are theirs)."""
+    from pylensfit import pipeline
+
+    write = pipeline.write_catalogue
+
+    def checked(cat, path, **kw):
+        if {"flags", "fitclass", "weight", "e1", "e2"} <= set(cat.colnames):
+            check_catalogue_invariants(cat)
+        return write(cat, path, **kw)
+
+    monkeypatch.setattr(pipeline, "write_catalogue", checked)

@@ -10,6 +10,7 @@ import pytest
 from astropy.io import fits
 from scipy.spatial import cKDTree
 
+from conftest import check_catalogue_invariants
 from pylensfit import Config, Prior, fit_stamps
 from pylensfit.config import ConfigError
 from pylensfit.detection import grow_mask, saturation_level, saturation_mask
@@ -22,23 +23,6 @@ PRIOR = Prior()
 SPEC = FieldSpec(size=512, star_fraction=0.0, psf_e1=0.0, psf_e2=0.0)
 FAR = 3 * CFG.stamp_size  # px: no galaxy farther than this from a defect may change
 DEFECT, SATURATED, MASKED = (flag_value(k) for k in ("DEFECT", "SATURATED", "MASKED"))
-
-
-def check_catalogue_invariants(cat) -> None:
-    """A row's flags, fitclass, weight and shape agree: ``flags == 0`` means a measured
-    object (fitclass 0 or 1) with a finite shape if a galaxy; only such galaxies have
-    weight > 0; an object not measured (fitclass -1) says why in its flags."""
-    flags = np.asarray(cat["flags"])
-    fitclass = np.asarray(cat["fitclass"])
-    weight = np.asarray(cat["weight"], dtype=float)
-    e1, e2 = (np.asarray(cat[c], dtype=float) for c in ("e1", "e2"))
-    clean = flags == 0
-    assert np.isin(fitclass[clean], (0, 1)).all(), "flags 0 but not measured"
-    galaxy = clean & (fitclass == 0)
-    assert (np.isfinite(e1[galaxy]) & np.isfinite(e2[galaxy])).all(), "flags 0, no shape"
-    assert np.isfinite(weight).all() and (weight >= 0).all()
-    assert not ((weight > 0) & ~galaxy).any(), "weight > 0 for a flagged row or a star"
-    assert (flags[fitclass == -1] != 0).all(), "not measured, yet no flag"
 
 
 def _psf() -> np.ndarray:
