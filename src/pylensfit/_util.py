@@ -272,3 +272,35 @@ def jsonable(obj: Any) -> Any:
     if isinstance(obj, float) and not math.isfinite(obj):
         return None  # JSON has no infinity
     return obj
+
+
+def read_json_entry(path: str | Path, key: str, what: str, others: dict[str, str]) -> Any:
+    """The entry ``key`` of the JSON object in the file ``path``.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file.
+    key : str
+        The entry that a file of this kind holds (``"priors"``).
+    what : str
+        The kind of file, for the message (``"priors"``).
+    others : dict
+        Entry name -> the kind of file that holds it, to say which file it may be instead.
+
+    Returns
+    -------
+    object
+        ``content[key]``.
+
+    Raises
+    ------
+    ValueError
+        One line naming the file: unreadable, not JSON, or without the entry.
+    """
+    d = read_json(path)
+    if not isinstance(d, dict) or key not in d:
+        detail = (f"a JSON {json_kind(d)}" if not isinstance(d, dict)
+                  else f"no {key!r} entry" + other_file_hint(d, others))  # fmt: skip
+        raise ValueError(f"{path}: not a {what} file ({detail})")
+    return d[key]

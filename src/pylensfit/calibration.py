@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 from astropy.table import Table
 
-from ._util import json_kind, jsonable, other_file_hint, per_object, read_json
+from ._util import json_kind, jsonable, per_object, read_json_entry
 from .config import Config
 from .flags import FLAGS
 from .likelihood import e_annuli, fit_stamps, reweight_lnL_r
@@ -217,13 +217,8 @@ class Priors:
     def load(cls, path: str | Path) -> Priors:
         """Read a file written by :meth:`save`; ``ValueError`` naming the file if it is
         not one."""
-        d = read_json(path)
-        if not isinstance(d, dict) or "priors" not in d:
-            detail = (f"a JSON {json_kind(d)}" if not isinstance(d, dict) else
-                      "no 'priors' entry" + other_file_hint(
-                          d, {"B": "prior", "size_prior": "size prior"}))  # fmt: skip
-            raise ValueError(f"{path}: not a priors file ({detail})")
-        return cls.from_dict(d["priors"], source=str(path))
+        d = read_json_entry(path, "priors", "priors", {"B": "prior", "size_prior": "size prior"})
+        return cls.from_dict(d, source=str(path))
 
     def __repr__(self) -> str:
         parts = [f"ellipticity={self.ellipticity!r}"]

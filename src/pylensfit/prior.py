@@ -35,7 +35,15 @@ import numpy as np
 from scipy import optimize
 from scipy.special import logsumexp
 
-from ._util import check_egrid, check_lnL, json_kind, jsonable, other_file_hint, read_json
+from ._util import (
+    check_egrid,
+    check_lnL,
+    json_kind,
+    jsonable,
+    other_file_hint,
+    read_json,
+    read_json_entry,
+)
 from .grid import ellipticity_grid, grid_step
 from .models import half_light_radius, run_half_light_radius
 
@@ -1306,13 +1314,8 @@ class SizePrior:
         ValueError
             One line naming the file: unreadable, not JSON, or not a size prior.
         """
-        d = read_json(path)
-        if not isinstance(d, dict) or "size_prior" not in d:
-            detail = (f"a JSON {json_kind(d)}" if not isinstance(d, dict) else
-                      "no 'size_prior' entry" + other_file_hint(
-                          d, {"priors": "priors", "B": "prior"}))  # fmt: skip
-            raise ValueError(f"{path}: not a size prior file ({detail})")
-        return cls.from_dict(d["size_prior"], source=str(path))
+        d = read_json_entry(path, "size_prior", "size prior", {"priors": "priors", "B": "prior"})
+        return cls.from_dict(d, source=str(path))
 
     def node_weights(self, bank, config) -> tuple[np.ndarray, float]:
         """Weights of the model bank's sizes and of the point source in the sum over r.
