@@ -64,26 +64,35 @@ COLUMNS: dict[str, tuple[str, str]] = {
                    "Config.stamp_size, or for a large galaxy a larger tier up to "
                    "Config.max_stamp_size; 0 if not fitted"),
     "e1": ("", "posterior mean ellipticity <e1> (docs: method, eq-posterior), "
-               "e = (a-b)/(a+b)"),
-    "e2": ("", "posterior mean ellipticity <e2>"),
-    "e1_var": ("", "posterior variance of e1"),
-    "e2_var": ("", "posterior variance of e2"),
-    "e12_cov": ("", "posterior covariance of e1 and e2"),
+               "e = (a-b)/(a+b), in the sky frame (W, N) of TreeCorr: e1 > 0 east-west, "
+               "e2 > 0 along NW-SE; the pixel frame for an image without a WCS"),
+    "e2": ("", "posterior mean ellipticity <e2>, sky frame as e1"),
+    "e1_var": ("", "posterior variance of e1 (sky frame)"),
+    "e2_var": ("", "posterior variance of e2 (sky frame)"),
+    "e12_cov": ("", "posterior covariance of e1 and e2 (sky frame)"),
     "sens1": ("", "shear sensitivity d<e1>/dg1 (exact by default: docs: method, "
-                  "eq-sensitivity-exact)"),
-    "sens2": ("", "shear sensitivity d<e2>/dg2"),
+                  "eq-sensitivity-exact), sky frame"),
+    "sens2": ("", "shear sensitivity d<e2>/dg2, sky frame"),
+    "e1_pix": ("", "<e1> in the image's pixel frame (x, y), as the LNL grids"),
+    "e2_pix": ("", "<e2> in the image's pixel frame"),
+    "sky_angle": ("deg", "rotation from the (flipped) pixel axes to the sky axes (W, N) "
+                  "at the object, from the WCS's local Jacobian (0 without a WCS)"),
+    "sky_flip": ("", "the WCS is a mirror image at the object (e2 changes sign first)"),
+    "wcs_g1": ("", "the WCS's local distortion as a reduced shear g1 (flipped pixel frame)"),
+    "wcs_g2": ("", "the WCS's local distortion g2"),
     "weight": ("", "1 for a galaxy usable for shear, 0 otherwise (the shear estimator "
                "of Kitching et al. 2008, eq-key2, is unweighted)"),
     "fitclass": ("", "0 galaxy measured, 1 star (most likely r = 0), -1 not measured "
                  "(see flags)"),
     "is_star": ("", "most likely model size is 0 (a point source)"),
-    "e1_best": ("", "e1 of the single most likely model (grid cell)"),
-    "e2_best": ("", "e2 of the single most likely model (grid cell)"),
+    "e1_best": ("", "e1 of the single most likely model (grid cell), pixel frame"),
+    "e2_best": ("", "e2 of the single most likely model (grid cell), pixel frame"),
     "psf_star": ("", "selected on the stellar locus as a PSF star of its image"),
     "refit_neighbours": ("", "measured in a second fit, with the neighbours' best-fit models "
                          "subtracted from its stamp (Config.subtract_neighbours)"),
-    "PSF_e1": ("", "ellipticity e1 of the PSF used for this object"),
-    "PSF_e2": ("", "ellipticity e2 of the PSF used for this object"),
+    "PSF_e1": ("", "ellipticity e1 of the PSF used for this object (adaptive moments), "
+                   "in the frame of e1"),
+    "PSF_e2": ("", "ellipticity e2 of the PSF used for this object, frame of e1"),
     "flags": ("", "bit mask of reasons, see pylensfit.flags.FLAGS (0: measured, usable)"),
     "lnL_star": ("", "bulge fraction marginalised: the point source's ln L on the scale of "
                  "the LNLB planes (each fraction's ln L(e), HDU LNLB), which lnL mixes with "

@@ -67,6 +67,15 @@ from .psf import (
     stack_psf,
 )
 from .shear import shapes as _shapes
+from .skyframe import (
+    SkyFrame,
+    covariance_to_sky,
+    local_frame,
+    pixel_frame,
+    sensitivity_to_sky,
+    to_sky,
+    wcs_from_header,
+)
 from .stamps import cut_stamps
 
 __all__ = ["InputError", "measure", "read_catalogue", "write_catalogue"]
@@ -508,7 +517,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
                  "(Config.max_reduced_chi2, max_residual_fraction)", path,
                  int(defect.sum()))  # fmt: skip
     t_fit = time.perf_counter()
-    ra, dec = _sky(img.header, xf, yf)
+    ra, dec, frame = _sky(img.header, xf, yf)
     measured = np.isfinite(lnL).all(axis=1)
     # a fit that left no finite ln L row says so in its flags (STAR alone would not)
     flags[~measured & ((flags & ~_flags.flag_value("STAR")) == 0)] |= _flags.flag_value(
@@ -535,6 +544,8 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         "psf_star": own_stars,
         "PSF_e1": np.full(n, psf.e1 if psf is not None else np.nan),
         "PSF_e2": np.full(n, psf.e2 if psf is not None else np.nan),
+        "sky_angle": frame.angle, "sky_flip": frame.flip,
+        "wcs_g1": frame.g1, "wcs_g2": frame.g2,
         "flags": flags,
     }  # fmt: skip
     if lnL_bulge is not None:
@@ -871,20 +882,14 @@ def _psf_summary(psf: PSFResult) -> dict[str, Any]:
 
 
 def _sky(header: fits.Header, x: np.ndarray, y: np.ndarray):
-    import warnings
-
-    from astropy.wcs import WCS, FITSFixedWarning
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FITSFixedWarning)
-        try:
-            w = WCS(header, naxis=2)
-        except Exception:
-            w = None
-    if w is None or not w.has_celestial or x.size == 0:
-        return np.full(x.size, np.nan), np.full(x.size, np.nan)
+    """RA, Dec (deg, NaN without a WCS) and the sky frame (:mod:`pylensfit.skyframe`)
+    at pixel positions ``x, y``."""
+    w = wcs_from_header(header)
+    if w is None or x.size == 0:
+        return np.full(x.size, np.nan), np.full(x.size, np.nan), pixel_frame(x.size)
     ra, dec = w.all_pix2world(x, y, 0)
-    return np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
+    return (np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64),
+            local_frame(w, x, y))  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------
@@ -1520,6 +1525,7 @@ def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
         usable &= ~no_shape
     for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
         cat[c] = np.where(usable, np.asarray(sh[c]), np.nan)
+    _to_sky_frame(cat)
     cat["weight"] = np.where(gal, 1.0, 0.0)
     cat["lnL"] = lnL
     if lnL_bulge is not None:
@@ -1562,6 +1568,33 @@ def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
     return cat
 
 
+def catalogue_frame(cat: Table) -> SkyFrame:
+    """The sky frame of each row of a :func:`measure` catalogue (its ``sky_angle``,
+    ``sky_flip``, ``wcs_g1``, ``wcs_g2`` columns; the pixel frame where it has none)."""
+    if "sky_angle" not in cat.colnames:
+        return pixel_frame(len(cat))
+    ang = np.asarray(cat["sky_angle"], dtype=float)
+    return SkyFrame(angle=ang, flip=np.asarray(cat["sky_flip"], dtype=bool),
+                    g1=np.asarray(cat["wcs_g1"], dtype=float),
+                    g2=np.asarray(cat["wcs_g2"], dtype=float),
+                    has_wcs=np.isfinite(np.asarray(cat["ALPHA_J2000"], dtype=float)))  # fmt: skip
+
+
+def _to_sky_frame(cat: Table) -> None:
+    """``e1, e2`` (and their covariance, the sensitivities and the PSF's ellipticity)
+    from the pixel frame to the sky frame, the pixel values kept as ``e1_pix, e2_pix``."""
+    frame = catalogue_frame(cat)
+    e1, e2 = np.asarray(cat["e1"], dtype=float), np.asarray(cat["e2"], dtype=float)
+    cat["e1_pix"], cat["e2_pix"] = e1, e2
+    cat["e1"], cat["e2"] = to_sky(e1, e2, frame)
+    v = covariance_to_sky(cat["e1_var"], cat["e2_var"], cat["e12_cov"], frame)
+    cat["e1_var"], cat["e2_var"], cat["e12_cov"] = v
+    cat["sens1"], cat["sens2"] = sensitivity_to_sky(cat["sens1"], cat["sens2"], frame)
+    cat["PSF_e1"], cat["PSF_e2"] = to_sky(cat["PSF_e1"], cat["PSF_e2"], frame)
+    cat.meta["frame"] = ("sky" if frame.has_wcs.all() and frame.n else
+                         "pixel" if not frame.has_wcs.any() else "mixed")  # fmt: skip
+
+
 # ----------------------------------------------------------------------------------------
 # Catalogue files
 # ----------------------------------------------------------------------------------------
@@ -1602,6 +1635,8 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
     if cfg is not None:
         hdr["SENSTVTY"] = (cfg.sensitivity, "shear sensitivity formula")
         hdr["MODEL"] = (cfg.model, "galaxy model")
+    frame = cat.meta.get("frame", "pixel")
+    hdr["EFRAME"] = (frame, "frame of e1,e2: sky (W,N; TreeCorr), pixel or mixed")
     hdr["FLAGS"] = ("; ".join(f"{v}={k}" for k, (v, _) in _flags.FLAGS.items())[:68])
     tab = fits.table_to_hdu(plain)
     tab.name = "CATALOG"
@@ -1693,6 +1728,7 @@ def read_catalogue(path: str | os.PathLike) -> Table:
                 cat.meta["bulge_weights"] = None if w is None else np.array(w.split(","), float)
             hdu = "PRIMARY"
             hdr = h[0].header
+            cat.meta["frame"] = str(hdr.get("EFRAME", "pixel"))
             if "PRIOR_B" in hdr:
                 cat.meta["prior"] = Prior(
                     B=hdr["PRIOR_B"], C=hdr["PRIOR_C"], D=hdr["PRIOR_D"],

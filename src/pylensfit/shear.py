@@ -38,6 +38,7 @@ from ._util import check_egrid, check_lnL
 from .flags import flag_value
 from .grid import grid_step
 from .prior import BinnedPrior, Prior, usable_rows
+from .skyframe import SkyFrame, shear_to_pixel, spin2_matrix, to_sky
 
 __all__ = [
     "FLAG_BAD_LIKELIHOOD",
@@ -59,6 +60,7 @@ __all__ = [
     "shear_table",
     "sheared_prior_columns",
     "sums_with",
+    "table_frame",
 ]
 
 #: Flag bit: the likelihood row is unusable (all ``-inf``, or contains NaN / ``+inf``);
@@ -836,6 +838,7 @@ def estimate_shear(
     sens2_col: str = "sens2",
     flags_col: str = "flags",
     weight_col: str = "weight",
+    weighted: bool = False,
 ) -> ShearEstimate:
     """Shear of a sample of galaxies.
 
@@ -854,9 +857,17 @@ def estimate_shear(
     ``g_i = sum_a <e_i>_a / sum_a d<e_i>_a/dg_i``, with the error of paper section 4.1,
     ``sigma / sqrt(N)`` in the form ``std_a(<e_i>_a) sqrt(N) / sum_a d<e_i>_a/dg_i``.
     Rows with a nonzero flag (when the table has ``flags_col``), a zero weight (when it
-    has ``weight_col``) or non-finite values are skipped. No weighted variant is
-    offered: a per-galaxy weight that depends on the data (as inverse-variance weights
-    do) correlates with the shear response and biases ``g`` unless its own response is included.
+    has ``weight_col``) or non-finite values are skipped.
+
+    A catalogue of :func:`pylensfit.measure` gives its shapes in the sky frame
+    (:mod:`pylensfit.skyframe`); the fixed point then works image by image in each
+    image's pixel frame (its ``lnL`` grids') and returns the sky-frame shear, and
+    ``"key2"`` uses the sky-frame ``e1, e2, sens1, sens2`` as they are.
+
+    With ``weighted=True`` each galaxy counts with its ``weight_col`` value (the
+    catalogue's inverse-variance weight, :func:`pylensfit.weights.lensfit_weights`):
+    ``sum_a w_a (<e>_a(P_g) - g) = 0`` for the fixed point, ``sum w e / sum w sens``
+    for ``"key2"``.
 
     Parameters
     ----------
@@ -870,6 +881,8 @@ def estimate_shear(
         (default: the table's ``meta``).
     e1_col, e2_col, sens1_col, sens2_col, flags_col, weight_col : str
         Column names.
+    weighted : bool
+        Weight each galaxy by its ``weight_col`` (default: every usable galaxy equally).
 
     Returns
     -------
@@ -902,7 +915,13 @@ def estimate_shear(
             raise ValueError("empty sample: no usable (unflagged, weighted) row to estimate "
                              "shear")  # fmt: skip
         ref = int(refine if refine is not None else meta.get("refine", DEFAULT_REFINE))
-        return shear_fixed_point(lnL[use], np.asarray(egrid, dtype=float), prior, refine=ref)
+        w = _weights(shapes_table, weight_col, weighted)
+        frame, groups = table_frame(shapes_table)
+        return shear_fixed_point(
+            lnL[use], np.asarray(egrid, dtype=float), prior, refine=ref,
+            weights=None if w is None else w[use],
+            frame=None if frame is None else _rows_frame(frame, use),
+            groups=None if groups is None else groups[use])  # fmt: skip
     for c in (e1_col, e2_col, sens1_col, sens2_col):
         if c not in shapes_table.colnames:
             raise ValueError(f"the table has no column {c!r}")
@@ -915,11 +934,24 @@ def estimate_shear(
         use &= np.asarray(shapes_table[flags_col]) == 0
     if weight_col in shapes_table.colnames:
         use &= np.asarray(shapes_table[weight_col], dtype=float) > 0
+    w = _weights(shapes_table, weight_col, weighted)
+    if w is not None:
+        use &= np.isfinite(w) & (w > 0)
     n = int(np.count_nonzero(use))
     if n == 0:
         raise ValueError("empty sample: no usable (unflagged, finite) row to estimate shear")
     out = []
     for e, s, name in ((e1[use], s1[use], "sens1"), (e2[use], s2[use], "sens2")):
+        if w is not None:
+            wu = w[use]
+            ssum = float(np.sum(wu * s))
+            if not ssum > 0:
+                raise ValueError(f"the weighted sum of the sensitivities ({name}) is not "
+                                 f"positive: {ssum}")  # fmt: skip
+            g = float(np.sum(wu * e)) / ssum
+            err = float(np.sqrt(np.sum(wu**2 * (e - g * s) ** 2))) / ssum if n > 1 else math.nan
+            out.append((g, err))
+            continue
         ssum = float(np.sum(s))
         if not ssum > 0:
             raise ValueError(f"the sum of the sensitivities ({name}) is not positive: {ssum}")
@@ -927,6 +959,36 @@ def estimate_shear(
         err = float(np.std(e, ddof=1)) * math.sqrt(n) / ssum if n > 1 else math.nan
         out.append((g, err))
     return ShearEstimate(g1=out[0][0], g2=out[1][0], g1_err=out[0][1], g2_err=out[1][1], n=n)
+
+
+def _weights(table: Table, col: str, weighted: bool) -> np.ndarray | None:
+    if not weighted:
+        return None
+    if col not in table.colnames:
+        raise ValueError(f"weighted=True needs the table's {col!r} column")
+    return np.asarray(table[col], dtype=float)
+
+
+def table_frame(table: Table) -> tuple[SkyFrame | None, np.ndarray | None]:
+    """The sky frame of each row of a catalogue and the rows' images (``image_index``),
+    or ``(None, None)`` for a table in the pixel frame (no frame columns, or the pixel
+    frame everywhere)."""
+    need = ("sky_angle", "sky_flip", "wcs_g1", "wcs_g2", "image_index")
+    if not all(c in table.colnames for c in need):
+        return None, None
+    fr = SkyFrame(angle=np.nan_to_num(np.asarray(table["sky_angle"], dtype=float)),
+                  flip=np.asarray(table["sky_flip"], dtype=bool),
+                  g1=np.nan_to_num(np.asarray(table["wcs_g1"], dtype=float)),
+                  g2=np.nan_to_num(np.asarray(table["wcs_g2"], dtype=float)),
+                  has_wcs=np.ones(len(table), bool))  # fmt: skip
+    if fr.is_identity():
+        return None, None
+    return fr, np.asarray(table["image_index"])
+
+
+def _rows_frame(frame: SkyFrame, sel: np.ndarray) -> SkyFrame:
+    return SkyFrame(angle=frame.angle[sel], flip=frame.flip[sel], g1=frame.g1[sel],
+                    g2=frame.g2[sel], has_wcs=frame.has_wcs[sel])  # fmt: skip
 
 
 def shear_table(
@@ -939,6 +1001,7 @@ def shear_table(
     prior: Prior | None = None,
     egrid: np.ndarray | None = None,
     refine: int | None = None,
+    weighted: bool = False,
 ) -> Table:
     """Shear of every group of a catalogue, with errors (:func:`estimate_shear` per group).
 
@@ -961,6 +1024,8 @@ def shear_table(
         e2, sens1, sens2``.
     prior, egrid, refine
         For ``"fixed-point"`` (default: the table's ``meta``).
+    weighted : bool
+        Weight the galaxies by the ``weight`` column (:func:`estimate_shear`).
 
     Returns
     -------
@@ -1012,13 +1077,19 @@ def shear_table(
             usable = np.asarray(shapes_table["flags"]) == 0
         if "weight" in shapes_table.colnames:
             usable &= np.asarray(shapes_table["weight"], dtype=float) > 0
+        w = _weights(shapes_table, "weight", weighted)
+        frame, groups = table_frame(shapes_table)
     rows = []
     for name, sel in keys:
         try:
             if estimator == "fixed-point":
-                g = shear_fixed_point(lnL[sel & usable], egrid, prior, refine=refine)
+                u = sel & usable
+                g = shear_fixed_point(
+                    lnL[u], egrid, prior, refine=refine, weights=None if w is None else w[u],
+                    frame=None if frame is None else _rows_frame(frame, u),
+                    groups=None if groups is None else groups[u])  # fmt: skip
             else:
-                g = estimate_shear(shapes_table[sel], estimator="key2")
+                g = estimate_shear(shapes_table[sel], estimator="key2", weighted=weighted)
             rows.append((name, g.n, g.g1, g.g1_err, g.g2, g.g2_err))
         except ValueError:
             rows.append((name, 0, np.nan, np.nan, np.nan, np.nan))
@@ -1065,6 +1136,42 @@ def sheared_prior_columns(
     return dens(gc), d1, d2
 
 
+def _fixed_point_terms(lnL, egrid, prior, grid, g, refine, block_size, w):
+    """Posterior means ``(n, 2)`` under the prior sheared by ``g`` and the weighted sum
+    of their Jacobians ``d<e_i>/dg_j`` (``(2, 2)``)."""
+    P, d1, d2 = sheared_prior_columns(prior, grid, g)
+    e1, e2 = grid[:, 0], grid[:, 1]
+    K = np.column_stack([P, e1 * P, e2 * P, d1, e1 * d1, e2 * d1, d2, e1 * d2, e2 * d2])
+    S = sums_with(lnL, egrid, K, refine, block_size)
+    s0 = S[:, 0]
+    m1, m2 = S[:, 1] / s0, S[:, 2] / s0
+    # d<e_i>/dg_j = sum (e_i - <e_i>) L dP_g/dg_j / sum P_g L
+    terms = ((S[:, 4] - m1 * S[:, 3]) / s0, (S[:, 7] - m1 * S[:, 6]) / s0,
+             (S[:, 5] - m2 * S[:, 3]) / s0, (S[:, 8] - m2 * S[:, 6]) / s0)  # fmt: skip
+    if w is None:
+        jac = np.array([[np.sum(terms[0]), np.sum(terms[1])],
+                        [np.sum(terms[2]), np.sum(terms[3])]])  # fmt: skip
+    else:
+        jac = np.array([[w @ terms[0], w @ terms[1]], [w @ terms[2], w @ terms[3]]])
+    return np.column_stack([m1, m2]), jac
+
+
+def _group_frames(frame, groups: np.ndarray):
+    """One :class:`~pylensfit.skyframe.SkyFrame` per group (its rows' median rotation and
+    mean distortion; the flip of its first row), and the group index of each row."""
+    keys, inv = np.unique(np.asarray(groups), return_inverse=True)
+    k = keys.size
+    ang, g1, g2 = np.zeros(k), np.zeros(k), np.zeros(k)
+    flip = np.zeros(k, dtype=bool)
+    for i in range(k):  # one entry per image, not per galaxy
+        sel = inv == i
+        ang[i] = np.median(np.asarray(frame.angle)[sel])
+        flip[i] = bool(np.asarray(frame.flip)[sel][0])
+        g1[i] = np.mean(np.asarray(frame.g1)[sel])
+        g2[i] = np.mean(np.asarray(frame.g2)[sel])
+    return SkyFrame(angle=ang, flip=flip, g1=g1, g2=g2, has_wcs=np.ones(k, bool)), inv
+
+
 def shear_fixed_point(
     lnL: np.ndarray,
     egrid: np.ndarray,
@@ -1073,6 +1180,9 @@ def shear_fixed_point(
     refine: int = DEFAULT_REFINE,
     n_iter: int = 4,
     block_size: int | None = None,
+    weights: np.ndarray | None = None,
+    frame=None,
+    groups: np.ndarray | None = None,
 ) -> ShearEstimate:
     """Shear of a sample as the fixed point ``sum_a <e>_a(P_g) = N g`` (all orders in g).
 
@@ -1089,44 +1199,89 @@ def shear_fixed_point(
     step is eq-key2 with the data part of the sensitivity replaced by its expectation,
     1).
 
+    With ``weights`` ``w_a`` it solves ``sum_a w_a (<e>_a(P_g) - g) = 0``. With a sky
+    ``frame`` per row and the ``groups`` (images) that share a pixel frame, ``g`` is the
+    sky-frame shear: each group's prior is sheared by ``g`` taken to its pixel frame
+    (:func:`pylensfit.skyframe.shear_to_pixel`) and its posterior means are taken to the
+    sky frame (:func:`pylensfit.skyframe.to_sky`) before they are summed.
+
     Parameters
     ----------
     lnL, egrid, prior, refine, block_size
         As in :func:`shapes` (rows that are unusable are skipped).
     n_iter : int
         Newton steps (3 reach 1e-7 in g).
+    weights : numpy.ndarray, optional
+        ``(n_gal,)`` per-galaxy weights (rows of weight 0 are skipped; default 1).
+    frame : pylensfit.skyframe.SkyFrame, optional
+        The sky frame of each row (default: the pixel frame).
+    groups : numpy.ndarray, optional
+        ``(n_gal,)`` labels of the rows that share a pixel frame (e.g. the catalogue's
+        ``image_index``); needed with ``frame``.
 
     Returns
     -------
     ShearEstimate
-        ``g1, g2`` and their errors, ``std_a(<e_i>_a) sqrt(N) / |sum_a d<e_i>/dg_i - N|``.
+        ``g1, g2`` and their errors, ``std_a(<e_i>_a) sqrt(N) / |sum_a d<e_i>/dg_i - N|``
+        (weighted: ``sqrt(sum_a w_a^2 (<e_i>_a - g_i)^2) / |sum_a w_a (d<e_i>/dg_i - 1)|``).
     """
     lnL, egrid = _check_inputs(lnL, egrid, prior, refine=refine)
     ok = usable_rows(lnL)
+    w = None
+    if weights is not None:
+        w = np.asarray(weights, dtype=float)
+        if w.shape != (lnL.shape[0],):
+            raise ValueError(f"weights must have shape ({lnL.shape[0]},), got {w.shape}")
+        ok &= np.isfinite(w) & (w > 0)
     n = int(ok.sum())
     if n == 0:
         raise ValueError("empty sample: no usable likelihood row to estimate shear")
     lnL = lnL[ok]
+    w = None if w is None else w[ok]
     refine = int(refine)
     grid = refined_grid(egrid, refine)
+    if frame is not None and frame.is_identity():
+        frame = None
+    if frame is not None:
+        if groups is None:
+            raise ValueError("a sky frame needs the groups (images) that share a pixel frame")
+        gf, inv = _group_frames(frame, np.asarray(groups)[ok])
+        M = spin2_matrix(gf)
+    wsum = float(n if w is None else w.sum())
     g = np.zeros(2)
     for _ in range(n_iter):
-        P, d1, d2 = sheared_prior_columns(prior, grid, g)
-        e1, e2 = grid[:, 0], grid[:, 1]
-        K = np.column_stack([P, e1 * P, e2 * P, d1, e1 * d1, e2 * d1, d2, e1 * d2, e2 * d2])
-        S = sums_with(lnL, egrid, K, refine, block_size)
-        s0 = S[:, 0]
-        m1, m2 = S[:, 1] / s0, S[:, 2] / s0
-        # d<e_i>/dg_j = sum (e_i - <e_i>) L dP_g/dg_j / sum P_g L
-        jac = np.array([
-            [np.sum((S[:, 4] - m1 * S[:, 3]) / s0), np.sum((S[:, 7] - m1 * S[:, 6]) / s0)],
-            [np.sum((S[:, 5] - m2 * S[:, 3]) / s0), np.sum((S[:, 8] - m2 * S[:, 6]) / s0)],
-        ]) - n * np.eye(2)  # fmt: skip
-        f = np.array([m1.sum(), m2.sum()]) - n * g
+        if frame is None:
+            m, jac = _fixed_point_terms(lnL, egrid, prior, grid, g, refine, block_size, w)
+        else:
+            m, jac = np.empty((n, 2)), np.zeros((2, 2))
+            gp1, gp2 = shear_to_pixel(np.full(gf.n, g[0]), np.full(gf.n, g[1]), gf)
+            for k in range(gf.n):  # one prior per image (pixel frame)
+                sel = inv == k
+                if not sel.any():
+                    continue
+                mk, jk = _fixed_point_terms(lnL[sel], egrid, prior, grid,
+                                            np.array([gp1[k], gp2[k]]), refine, block_size,
+                                            None if w is None else w[sel])  # fmt: skip
+                fk = _select_frame(gf, k, int(sel.sum()))
+                m[sel, 0], m[sel, 1] = to_sky(mk[:, 0], mk[:, 1], fk)
+                jac += M[k] @ jk @ M[k].T
+        jac = jac - wsum * np.eye(2)
+        f = (np.array([m[:, 0].sum(), m[:, 1].sum()]) if w is None else w @ m) - wsum * g
         g = g - np.linalg.solve(jac, f)
-    err = [float(np.std(m, ddof=1)) * math.sqrt(n) / abs(jac[i, i]) if n > 1 else math.nan
-           for i, m in enumerate((m1, m2))]  # fmt: skip
+    if w is None:
+        err = [float(np.std(m[:, i], ddof=1)) * math.sqrt(n) / abs(jac[i, i]) if n > 1
+               else math.nan for i in range(2)]  # fmt: skip
+    else:
+        err = [float(np.sqrt(np.sum(w**2 * (m[:, i] - g[i]) ** 2))) / abs(jac[i, i]) if n > 1
+               else math.nan for i in range(2)]  # fmt: skip
     return ShearEstimate(g1=float(g[0]), g2=float(g[1]), g1_err=err[0], g2_err=err[1], n=n)
+
+
+def _select_frame(frame, k: int, n: int):
+    """Group ``k`` of a per-group frame, repeated for its ``n`` rows."""
+    return SkyFrame(angle=np.full(n, frame.angle[k]), flip=np.full(n, frame.flip[k]),
+                    g1=np.full(n, frame.g1[k]), g2=np.full(n, frame.g2[k]),
+                    has_wcs=np.ones(n, bool))  # fmt: skip
 
 
 def sums_with(
