@@ -70,7 +70,9 @@ from .prior import (
     estimate_size_prior,
     mix_bulge_fractions,
 )
+from .psf import psf_diagnostics
 from .shear import shapes
+from .weights import inverse_variance_weights
 
 __all__ = [
     "MIN_GALAXIES",
@@ -750,7 +752,10 @@ def measure_stamps(
     t = Table()
     for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
         t[c] = np.asarray(sh[c], dtype=float)
-    t["weight"] = np.where(usable, 1.0, 0.0)
+    psf_sigma = psf_diagnostics(np.asarray(psf, dtype=float))["sigma"]
+    t["weight"] = inverse_variance_weights(t["e1"], t["e2"], t["sens1"], t["sens2"], fits.flux,
+                                           per_object(noise_sigma, len(t), "noise_sigma"),
+                                           fits.r_best, psf_sigma, usable)  # fmt: skip
     t["flags"] = flags
     for c in ("snr", "flux", "r_best", "x", "y", "e1_best", "e2_best"):
         t[c] = np.asarray(getattr(fits, c), dtype=float)

@@ -80,8 +80,10 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "sky_flip": ("", "the WCS is a mirror image at the object (e2 changes sign first)"),
     "wcs_g1": ("", "the WCS's local distortion as a reduced shear g1 (flipped pixel frame)"),
     "wcs_g2": ("", "the WCS's local distortion g2"),
-    "weight": ("", "1 for a galaxy usable for shear, 0 otherwise (the shear estimator "
-               "of Kitching et al. 2008, eq-key2, is unweighted)"),
+    "weight": ("", "inverse-variance weight 1/(sigma_pop^2 + sigma_e^2) of a galaxy usable "
+               "for shear (Miller et al. 2013's form, sigma_e^2 the median measurement "
+               "variance of galaxies of its round S/N and size: pylensfit.weights), 0 for "
+               "every other row"),
     "fitclass": ("", "0 galaxy measured, 1 star (most likely r = 0), -1 not measured "
                  "(see flags)"),
     "is_star": ("", "most likely model size is 0 (a point source)"),

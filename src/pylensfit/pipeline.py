@@ -77,6 +77,7 @@ from .skyframe import (
     wcs_from_header,
 )
 from .stamps import cut_stamps
+from .weights import inverse_variance_weights
 
 __all__ = ["InputError", "measure", "read_catalogue", "write_catalogue"]
 
@@ -1526,7 +1527,12 @@ def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
     for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
         cat[c] = np.where(usable, np.asarray(sh[c]), np.nan)
     _to_sky_frame(cat)
-    cat["weight"] = np.where(gal, 1.0, 0.0)
+    psf_sigma = np.concatenate([np.full(len(r["rows"]["x"]), np.nan if r["psf"] is None
+                                        else r["psf"].get("sigma", np.nan))
+                                for r in results]) if results else np.zeros(0)  # fmt: skip
+    cat["weight"] = inverse_variance_weights(cat["e1"], cat["e2"], cat["sens1"], cat["sens2"],
+                                             cat["model_flux"], cat["noise_sigma"],
+                                             cat["scalelength"], psf_sigma, gal)  # fmt: skip
     cat["lnL"] = lnL
     if lnL_bulge is not None:
         cat["lnL_bulge"] = lnL_bulge
