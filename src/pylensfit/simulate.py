@@ -6,6 +6,17 @@ on integers (``x`` indexes columns); the ellipticity ``e = (a - b) / (a + b)`` i
 GalSim's reduced-shear ``g`` of the profile, and a shear ``g`` maps an intrinsic
 ellipticity ``e_s`` to ``(e_s + g) / (1 + g* e_s)`` exactly (GalSim composes the two
 shears).
+
+Sky frame (as TreeCorr's for RA/Dec catalogues): the local axes ``(W, N)``, north up and
+west to the right; a shear is positive real when elongated east-west and positive
+imaginary along NW-SE. Pixel offsets map to it as ``(dW, dN) = s Rot(theta) F (dx, dy)``
+with ``Rot(theta) = [[cos, -sin], [sin, cos]]``, ``F = diag(1, -1)`` for a flipped field
+(else the identity) and ``s`` the pixel scale; the FITS ``CD`` matrix, which gives
+``(dRA cos(dec), dDec) = (-dW, dN)``, is ``s diag(-1, 1) Rot(theta) F``. With
+``theta = 0`` and no flip the pixel frame is the sky frame. An ellipticity (or shear)
+maps as ``e_sky = e_pix exp(2i theta)``, or ``conj(e_pix) exp(2i theta)`` when flipped
+(:func:`pixel_to_sky_shear`, :func:`sky_to_pixel_shear`). The PSF is a property of the
+image: its parameters are in the pixel frame.
 """
 
 from __future__ import annotations
@@ -24,18 +35,39 @@ from .shear import apply_shear
 
 __all__ = [
     "MIXED_KINDS",
+    "PSF_VARIATIONS",
     "FieldSpec",
+    "PSFMap",
     "add_object",
+    "add_psf_and_sky_truth",
     "add_sky_and_noise",
     "draw_population",
     "draw_shapes",
+    "field_meta",
     "field_psf",
     "galaxy_profile",
     "lensed_shapes",
+    "local_psfs",
+    "normalised_position",
+    "pixel_shear",
+    "pixel_to_sky_shear",
+    "psf_at",
+    "psf_map",
+    "psf_observed_moments",
     "simulate_field",
+    "sky_to_pixel_shear",
+    "star_peaks",
+    "to_pixel_frame",
     "truth_table",
     "write_field",
 ]
+
+
+#: The PSF variations of :attr:`FieldSpec.psf_variation`, as ``(fwhm_gradient,
+#: e_quadratic)`` of :class:`PSFMap`: ``"none"`` one PSF over the field, ``"survey"``
+#: gradients of a survey's size (FWHM +-10 % corner to corner, |e| up to 0.08 in the
+#: corners about the centre's).
+PSF_VARIATIONS: dict[str, tuple[float, float]] = {"none": (0.0, 0.0), "survey": (0.1, 0.04)}
 
 
 @dataclass(frozen=True)
@@ -46,6 +78,12 @@ class FieldSpec:
     are the exception the pipeline flags, not the rule), a fraction ``star_fraction`` of
     them stars. ``noise_sign = -1`` adds the noise field of the same noise seed negated:
     the field's noise twin, whose first-order noise response cancels the original's.
+
+    ``g1, g2`` are the shear in the sky frame (module docstring), which the WCS's
+    ``wcs_rotation_deg`` (degrees, ``theta``) and ``wcs_flip`` relate to the pixel frame.
+    ``psf_fwhm, psf_beta, psf_e1, psf_e2`` are the PSF at the field's centre (pixel
+    frame), ``psf_variation`` (a key of :data:`PSF_VARIATIONS`) how it varies over the
+    field (:func:`psf_map`).
     """
 
     size: int = 1024
@@ -69,27 +107,329 @@ class FieldSpec:
     max_e: float = 0.99  # a cut below ~0.95 takes the truth out of the functional form
     pixel_scale_arcsec: float = 0.2
     noise_sign: float = 1.0
+    psf_variation: str = "none"
+    wcs_rotation_deg: float = 0.0
+    wcs_flip: bool = False
     extra: dict = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        if self.psf_variation not in PSF_VARIATIONS:
+            raise ValueError(
+                f"psf_variation must be one of {sorted(PSF_VARIATIONS)}, "
+                f"not {self.psf_variation!r}"
+            )
 
-def field_psf(spec: FieldSpec):
-    """The PSF of a simulated field: a sheared Moffat profile (no pixel response).
+
+@dataclass(frozen=True)
+class PSFMap:
+    """A Moffat PSF whose FWHM and ellipticity vary smoothly over a field.
+
+    In the normalised coordinates ``u, v`` of :func:`normalised_position` (``[-1, 1]``
+    over the field, 0 at its centre)::
+
+        fwhm(u, v) = fwhm * (1 + fwhm_gradient * (u + v) / 2)
+        e1 + i e2 = (e1 + i e2)_centre + e_quadratic * (u + i v)**2
+
+    ``e1, e2`` being GalSim's shear ``g`` of the profile in the pixel frame. With both
+    coefficients zero the map is one PSF (:attr:`constant`).
+
+    Attributes
+    ----------
+    fwhm : float
+        FWHM at the centre (pixels).
+    beta : float
+        Moffat index, the same everywhere.
+    e1, e2 : float
+        Ellipticity at the centre.
+    fwhm_gradient : float
+        Fractional change of the FWHM per unit of ``(u + v) / 2``.
+    e_quadratic : float
+        Amplitude of the spin-2 term ``(u + i v)^2``: ``|e - e_centre|`` is
+        ``e_quadratic`` on the edges' midpoints and twice that in the corners.
+    """
+
+    fwhm: float = 3.0
+    beta: float = 3.5
+    e1: float = 0.0
+    e2: float = 0.0
+    fwhm_gradient: float = 0.0
+    e_quadratic: float = 0.0
+
+    @property
+    def constant(self) -> bool:
+        """Whether the PSF is the same everywhere."""
+        return self.fwhm_gradient == 0.0 and self.e_quadratic == 0.0
+
+    def at(self, u, v) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The FWHM (pixels) and ellipticity ``e1, e2`` at normalised ``(u, v)``.
+
+        Parameters
+        ----------
+        u, v : float or numpy.ndarray
+            Normalised positions (broadcast together).
+
+        Returns
+        -------
+        fwhm, e1, e2 : numpy.ndarray
+            The Moffat parameters there, of the shape of ``u + v``.
+        """
+        u, v = np.broadcast_arrays(np.asarray(u, dtype=float), np.asarray(v, dtype=float))
+        fwhm = self.fwhm * (1.0 + self.fwhm_gradient * (u + v) / 2.0)
+        e = (self.e1 + 1j * self.e2) + self.e_quadratic * (u + 1j * v) ** 2
+        return fwhm, e.real, e.imag
+
+    def profile(self, u: float = 0.0, v: float = 0.0):
+        """The GalSim Moffat profile at normalised ``(u, v)`` (no pixel response)."""
+        if self.constant or (u == 0.0 and v == 0.0):
+            return _moffat(self.beta, self.fwhm, self.e1, self.e2)
+        fwhm, e1, e2 = self.at(u, v)
+        return _moffat(self.beta, float(fwhm), float(e1), float(e2))
+
+
+def _moffat(beta: float, fwhm: float, e1: float, e2: float):
+    import galsim  # galsim: heavy import, only for rendering
+
+    return galsim.Moffat(beta=beta, fwhm=fwhm).shear(g1=e1, g2=e2)
+
+
+def psf_map(spec: FieldSpec) -> PSFMap:
+    """The PSF map of a field: its centre's PSF and :data:`PSF_VARIATIONS` of its kind.
 
     Parameters
     ----------
     spec : FieldSpec
-        Its ``psf_beta``, ``psf_fwhm`` (pixels), ``psf_e1`` and ``psf_e2``.
+        Its ``psf_fwhm`` (pixels), ``psf_beta``, ``psf_e1, psf_e2`` and ``psf_variation``.
+
+    Returns
+    -------
+    PSFMap
+        The map.
+    """
+    grad, quad = PSF_VARIATIONS[spec.psf_variation]
+    return PSFMap(fwhm=spec.psf_fwhm, beta=spec.psf_beta, e1=spec.psf_e1, e2=spec.psf_e2,
+                  fwhm_gradient=grad, e_quadratic=quad)  # fmt: skip
+
+
+def normalised_position(spec: FieldSpec, x, y) -> tuple[np.ndarray, np.ndarray]:
+    """``u = (x - c) / (size / 2)``, ``v = (y - c) / (size / 2)``, ``c = (size - 1) / 2``.
+
+    Parameters
+    ----------
+    spec : FieldSpec
+        The field (its ``size``, pixels).
+    x, y : float or numpy.ndarray
+        0-based pixel positions.
+
+    Returns
+    -------
+    u, v : numpy.ndarray
+        Normalised positions, in ``[-1, 1]`` over the field.
+    """
+    c = (spec.size - 1) / 2.0
+    half = spec.size / 2.0
+    return (np.asarray(x, dtype=float) - c) / half, (np.asarray(y, dtype=float) - c) / half
+
+
+def psf_at(spec: FieldSpec, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The PSF's Moffat FWHM (pixels) and ellipticity (pixel frame) at pixel ``(x, y)``.
+
+    Parameters
+    ----------
+    spec : FieldSpec
+        The field.
+    x, y : float or numpy.ndarray
+        0-based pixel positions (broadcast together).
+
+    Returns
+    -------
+    fwhm, e1, e2 : numpy.ndarray
+        The map's parameters there (:class:`PSFMap`); ``beta`` is ``spec.psf_beta``.
+    """
+    return psf_map(spec).at(*normalised_position(spec, x, y))
+
+
+def field_psf(spec: FieldSpec, x: float | None = None, y: float | None = None):
+    """The PSF of a simulated field at pixel ``(x, y)``: a sheared Moffat (no pixel).
+
+    Parameters
+    ----------
+    spec : FieldSpec
+        Its ``psf_beta``, ``psf_fwhm`` (pixels), ``psf_e1``, ``psf_e2`` and
+        ``psf_variation``.
+    x, y : float, optional
+        0-based pixel position; default the field's centre, where the PSF is
+        ``spec``'s own.
 
     Returns
     -------
     galsim.GSObject
         The profile, to convolve with and to draw with GalSim's pixel.
     """
+    m = psf_map(spec)
+    if x is None and y is None:
+        return m.profile()
+    u, v = normalised_position(spec, spec.size / 2 - 0.5 if x is None else x,
+                               spec.size / 2 - 0.5 if y is None else y)  # fmt: skip
+    return m.profile(float(u), float(v))
+
+
+def local_psfs(spec: FieldSpec, x: np.ndarray, y: np.ndarray) -> list:
+    """The PSF profile at each position: one shared object when the map is constant.
+
+    Parameters
+    ----------
+    spec : FieldSpec
+        The field.
+    x, y : numpy.ndarray
+        0-based pixel positions.
+
+    Returns
+    -------
+    list of galsim.GSObject
+        One profile per position (:func:`field_psf` there).
+    """
+    m = psf_map(spec)
+    if m.constant:
+        return [m.profile()] * len(x)
+    fwhm, e1, e2 = psf_at(spec, x, y)
+    return [_moffat(m.beta, float(f), float(a), float(b))
+            for f, a, b in zip(fwhm, e1, e2, strict=True)]  # fmt: skip
+
+
+def _hsm_psf(psf, stamp: int) -> tuple[float, float, float]:
+    """HSM ``g1, g2, sigma`` of ``psf`` drawn with the pixel on a ``stamp``-square image."""
     import galsim  # galsim: heavy import, only for rendering
 
-    return galsim.Moffat(beta=spec.psf_beta, fwhm=spec.psf_fwhm).shear(
-        g1=spec.psf_e1, g2=spec.psf_e2
+    mom = galsim.hsm.FindAdaptiveMom(psf.drawImage(nx=stamp, ny=stamp, scale=1.0))
+    return mom.observed_shape.g1, mom.observed_shape.g2, mom.moments_sigma
+
+
+def psf_observed_moments(
+    spec: FieldSpec, x, y, *, nodes: int = 7, stamp: int = 33
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """GalSim adaptive moments of the pixel-convolved PSF at each position.
+
+    The PSF is drawn with GalSim's pixel, centred on a pixel of a ``stamp``-square
+    image, and measured by ``galsim.hsm.FindAdaptiveMom``; the shape of a PSF drawn off
+    the pixel centre differs by < 1e-4 for FWHM >= 2.7 px. A constant map is measured
+    once; a varying one on a ``nodes x nodes`` grid over the field, interpolated by a
+    bicubic spline (within a few 1e-6 of measuring at each position for the ``"survey"``
+    map, for 20-40 ms per field).
+
+    Parameters
+    ----------
+    spec : FieldSpec
+        The field.
+    x, y : numpy.ndarray
+        0-based pixel positions.
+    nodes : int
+        Grid points per axis (at least 4).
+    stamp : int
+        Side of the drawn PSF (pixels; odd: centred on a pixel).
+
+    Returns
+    -------
+    e1, e2 : numpy.ndarray
+        ``observed_shape`` ``g1, g2`` (pixel frame).
+    sigma : numpy.ndarray
+        ``moments_sigma`` (pixels).
+    """
+    from scipy.interpolate import RectBivariateSpline
+
+    x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+    m = psf_map(spec)
+    if m.constant:
+        vals = _hsm_psf(m.profile(), stamp)
+        return tuple(np.full(x.shape, v) for v in vals)
+    u, v = normalised_position(spec, x, y)
+    gu = np.linspace(min(-1.0, u.min(initial=0)), max(1.0, u.max(initial=0)), nodes)
+    gv = np.linspace(min(-1.0, v.min(initial=0)), max(1.0, v.max(initial=0)), nodes)
+    grid = np.array([[_hsm_psf(m.profile(a, b), stamp) for b in gv] for a in gu])
+    return tuple(
+        RectBivariateSpline(gu, gv, grid[:, :, k], kx=3, ky=3).ev(u, v).reshape(x.shape)
+        for k in range(3)
     )
+
+
+def _sky_matrix(rotation_deg: float, flip: bool) -> np.ndarray:
+    """``Rot(theta) F``: pixel offsets to sky-frame ``(dW, dN)`` offsets, per pixel scale."""
+    t = np.deg2rad(rotation_deg)
+    rot = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    return rot @ np.diag([1.0, -1.0 if flip else 1.0])
+
+
+def pixel_to_sky_shear(g1, g2, rotation_deg: float, flip: bool):
+    """A pixel-frame ellipticity or shear in the sky frame (module docstring).
+
+    ``g_sky = g_pix exp(2i theta)``, or ``conj(g_pix) exp(2i theta)`` when flipped.
+
+    Parameters
+    ----------
+    g1, g2 : float or numpy.ndarray
+        Pixel-frame components.
+    rotation_deg : float
+        ``theta`` of the WCS (degrees; :attr:`FieldSpec.wcs_rotation_deg`).
+    flip : bool
+        Whether the WCS is flipped (:attr:`FieldSpec.wcs_flip`).
+
+    Returns
+    -------
+    g1, g2 : numpy.ndarray
+        Sky-frame components.
+    """
+    g1, g2 = np.asarray(g1, dtype=float), np.asarray(g2, dtype=float)
+    if flip:
+        g2 = -g2
+    t = 2.0 * np.deg2rad(rotation_deg)
+    c, s = np.cos(t), np.sin(t)
+    return c * g1 - s * g2, s * g1 + c * g2
+
+
+def sky_to_pixel_shear(g1, g2, rotation_deg: float, flip: bool):
+    """A sky-frame ellipticity or shear in the pixel frame: :func:`pixel_to_sky_shear`'s inverse.
+
+    ``g_pix = g_sky exp(-2i theta)``, or ``conj(g_sky exp(-2i theta))`` when flipped.
+
+    Parameters
+    ----------
+    g1, g2 : float or numpy.ndarray
+        Sky-frame components.
+    rotation_deg : float
+        ``theta`` of the WCS (degrees).
+    flip : bool
+        Whether the WCS is flipped.
+
+    Returns
+    -------
+    g1, g2 : numpy.ndarray
+        Pixel-frame components.
+    """
+    g1, g2 = np.asarray(g1, dtype=float), np.asarray(g2, dtype=float)
+    t = -2.0 * np.deg2rad(rotation_deg)
+    c, s = np.cos(t), np.sin(t)
+    p1, p2 = c * g1 - s * g2, s * g1 + c * g2
+    return (p1, -p2) if flip else (p1, p2)
+
+
+def to_pixel_frame(obj, spec: FieldSpec):
+    """A profile defined in the sky frame, drawn in ``spec``'s pixel frame.
+
+    Parameters
+    ----------
+    obj : galsim.GSObject
+        The profile in sky-frame axes ``(W, N)`` (in pixels).
+    spec : FieldSpec
+        The field's ``wcs_rotation_deg`` and ``wcs_flip``.
+
+    Returns
+    -------
+    galsim.GSObject
+        ``obj`` transformed by ``(Rot(theta) F)^-1`` (``obj`` itself for the plain WCS).
+    """
+    if spec.wcs_rotation_deg == 0.0 and not spec.wcs_flip:
+        return obj
+    j = np.linalg.inv(_sky_matrix(spec.wcs_rotation_deg, spec.wcs_flip))
+    return obj.transform(j[0, 0], j[0, 1], j[1, 0], j[1, 1])
 
 
 #: the kinds of ``FieldSpec(model="mixed")``, taken in turn object by object
@@ -178,28 +518,42 @@ def lensed_shapes(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Intrinsic shapes (flipped for a 90-degree twin) and their sheared values (complex).
 
+    The shapes are drawn in the sky frame, the shear ``spec.g1, g2`` is the sky frame's;
+    both are returned in the pixel frame (:func:`sky_to_pixel_shear`), where the
+    lensing relation keeps its form.
+
     Parameters
     ----------
     spec : FieldSpec
-        The shear ``g1, g2`` and whether the field is the rotated twin (``rotate``).
+        The shear ``g1, g2``, whether the field is the rotated twin (``rotate``), and
+        its WCS (``wcs_rotation_deg``, ``wcs_flip``).
     e_int : numpy.ndarray
-        ``(n, 2)`` intrinsic ellipticities as drawn.
+        ``(n, 2)`` intrinsic ellipticities as drawn (sky frame).
     is_star : numpy.ndarray
         ``(n,)`` star flags: stars get ``e_obs = 0``.
 
     Returns
     -------
     e_int : numpy.ndarray
-        ``(n, 2)`` intrinsic ellipticities, negated for a rotated twin.
+        ``(n, 2)`` intrinsic ellipticities, negated for a rotated twin (pixel frame).
     e_obs : numpy.ndarray
-        ``(n,)`` complex sheared ellipticities ``e1 + i e2``.
+        ``(n,)`` complex sheared ellipticities ``e1 + i e2`` (pixel frame).
     """
     if spec.rotate:
         e_int = -e_int  # a 90-degree rotation of an ellipse flips e
-    e1, e2 = apply_shear(e_int[:, 0], e_int[:, 1], spec.g1, spec.g2)
+    rot, flip = spec.wcs_rotation_deg, spec.wcs_flip
+    if rot != 0.0 or flip:
+        e_int = np.column_stack(sky_to_pixel_shear(e_int[:, 0], e_int[:, 1], rot, flip))
+    e1, e2 = apply_shear(e_int[:, 0], e_int[:, 1], *pixel_shear(spec))
     e_obs = e1 + 1j * e2
     e_obs[is_star] = 0.0
     return e_int, e_obs
+
+
+def pixel_shear(spec: FieldSpec) -> tuple[float, float]:
+    """The field's shear ``spec.g1, g2`` (sky frame) in its pixel frame."""
+    g1, g2 = sky_to_pixel_shear(spec.g1, spec.g2, spec.wcs_rotation_deg, spec.wcs_flip)
+    return float(g1), float(g2)
 
 
 def add_object(image, obj, flux: float, x: float, y: float, size: int = 64) -> None:
@@ -301,10 +655,95 @@ def truth_table(x, y, is_star, flux, r, e_int, e_obs, snr) -> Table:
     return truth
 
 
+def add_psf_and_sky_truth(truth: Table, spec: FieldSpec) -> Table:
+    """Add the local PSF's and the sky frame's columns to a field's truth table.
+
+    Parameters
+    ----------
+    truth : astropy.table.Table
+        A truth table (:func:`truth_table`), changed in place.
+    spec : FieldSpec
+        The field.
+
+    Returns
+    -------
+    astropy.table.Table
+        ``truth`` with ``psf_fwhm`` (pixels), ``psf_e1, psf_e2`` (the map's parameters
+        at each object, :func:`psf_at`), ``psf_e1_obs, psf_e2_obs, psf_sigma_obs``
+        (adaptive moments of the pixel-convolved PSF there,
+        :func:`psf_observed_moments`; sigma in pixels), ``e1_sky, e2_sky`` and
+        ``e1_int_sky, e2_int_sky`` (the sheared and intrinsic shapes in the sky frame).
+    """
+    x, y = np.asarray(truth["x"], float), np.asarray(truth["y"], float)
+    truth["psf_fwhm"], truth["psf_e1"], truth["psf_e2"] = psf_at(spec, x, y)
+    obs = psf_observed_moments(spec, x, y)
+    truth["psf_e1_obs"], truth["psf_e2_obs"], truth["psf_sigma_obs"] = obs
+    rot, flip = spec.wcs_rotation_deg, spec.wcs_flip
+    truth["e1_sky"], truth["e2_sky"] = pixel_to_sky_shear(truth["e1"], truth["e2"], rot, flip)
+    truth["e1_int_sky"], truth["e2_int_sky"] = pixel_to_sky_shear(
+        truth["e1_int"], truth["e2_int"], rot, flip
+    )
+    return truth
+
+
+def field_meta(spec: FieldSpec, model: str, seed: int) -> dict:
+    """The truth meta of a simulated field: shear (sky frame), model, PSF, seed, WCS.
+
+    Keys of at most 8 characters (FITS header cards of the ``TRUTH`` extension):
+    ``psf_var`` is ``spec.psf_variation``, ``wcs_rot`` the WCS rotation (degrees),
+    ``wcs_flip`` its flip.
+    """
+    return {
+        "g1": spec.g1,
+        "g2": spec.g2,
+        "model": model,
+        "noise": spec.noise_sigma,
+        "psf_fwhm": spec.psf_fwhm,
+        "psf_e1": spec.psf_e1,
+        "psf_e2": spec.psf_e2,
+        "seed": seed,
+        "psf_var": spec.psf_variation,
+        "wcs_rot": spec.wcs_rotation_deg,
+        "wcs_flip": spec.wcs_flip,
+    }
+
+
+def star_peaks(psfs: list, is_star: np.ndarray, stamp: int = 64) -> np.ndarray:
+    """Peak of each star's unit-flux PSF drawn centred on a ``stamp``-square image.
+
+    Parameters
+    ----------
+    psfs : list of galsim.GSObject
+        The PSF at each object (:func:`local_psfs`); a shared object is drawn once.
+    is_star : numpy.ndarray
+        Star flags: only stars are drawn.
+    stamp : int
+        Side of the drawing (pixels).
+
+    Returns
+    -------
+    numpy.ndarray
+        The peaks, NaN for galaxies.
+    """
+    cache: dict[int, float] = {}
+    out = np.full(len(psfs), np.nan)
+    for i in np.flatnonzero(is_star):
+        key = id(psfs[i])
+        if key not in cache:
+            cache[key] = psfs[i].drawImage(nx=stamp, ny=stamp, scale=1.0).array.max()
+        out[i] = cache[key]
+    return out
+
+
 def simulate_field(
     spec: FieldSpec, *, seed: int, noise_seed: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, Table]:
     """Render a field of sheared galaxies and stars with GalSim.
+
+    Every object is drawn with the PSF at its own position (:func:`local_psfs`). The
+    intrinsic shapes are drawn, and the shear ``spec.g1, g2`` given, in the sky frame,
+    and rendered in the pixel frame of the field's WCS: a seed gives the same galaxies
+    on the sky (at the same pixel positions) whatever the WCS.
 
     Parameters
     ----------
@@ -326,7 +765,9 @@ def simulate_field(
     truth : astropy.table.Table
         One row per object: ``x, y`` (0-based pixels), ``is_star``, ``flux``, ``r`` (scale
         length or half-light radius, px), ``e1_int, e2_int`` (intrinsic), ``e1, e2``
-        (sheared), ``snr`` (matched-filter S/N of the noise-free object before lensing).
+        (sheared), both in the pixel frame, ``snr`` (matched-filter S/N of the
+        noise-free object before lensing, with its local PSF), and the columns of
+        :func:`add_psf_and_sky_truth` (local PSF, sky-frame shapes).
     """
     import galsim  # galsim: heavy import, only for rendering
 
@@ -335,19 +776,21 @@ def simulate_field(
     x, y, is_star, r, snr, star_snr, e_int = draw_population(spec, rng)
     n_obj = x.size
     e_int, e_obs = lensed_shapes(spec, e_int, is_star)
+    g1, g2 = pixel_shear(spec)
 
-    psf = field_psf(spec)
+    psfs = local_psfs(spec, x, y)
+    peaks = star_peaks(psfs, is_star)
     image = galsim.ImageF(n, n, scale=1.0)  # bounds 1..n: numpy (x, y) is galsim (x+1, y+1)
     flux = np.empty(n_obj)
-    unit_psf = psf.drawImage(nx=64, ny=64, scale=1.0).array
-    psf_peak = unit_psf.max()
     for i in range(n_obj):  # rendering is GalSim's, one object at a time
+        psf = psfs[i]
         if is_star[i]:
             obj = psf
-            flux[i] = star_snr[i] * spec.noise_sigma / psf_peak  # peak S/N as drawn
+            flux[i] = star_snr[i] * spec.noise_sigma / peaks[i]  # peak S/N as drawn
         else:
+            # round profiles: the pixel-frame shears render the sky frame's galaxy
             gal = galaxy_profile(spec.model, r[i], i).shear(g1=e_int[i, 0], g2=e_int[i, 1])
-            obj = galsim.Convolve(gal.shear(g1=spec.g1, g2=spec.g2), psf)
+            obj = galsim.Convolve(gal.shear(g1=g1, g2=g2), psf)
             # the flux from the S/N of the unlensed, unrotated galaxy: lensing keeps the
             # flux, and a rotated twin gets the same flux as its original
             e0 = -e_int[i] if spec.rotate else e_int[i]
@@ -357,22 +800,22 @@ def simulate_field(
             flux[i] = snr[i] * spec.noise_sigma / np.sqrt((arr**2).sum())
         add_object(image, obj, flux[i], x[i], y[i])
     image, weight = add_sky_and_noise(image, spec, seed, noise_seed)
-    truth = truth_table(x, y, is_star, flux, r, e_int, e_obs, snr)
-    truth.meta.update(
-        {"g1": spec.g1, "g2": spec.g2, "model": spec.model, "noise": spec.noise_sigma,
-         "psf_fwhm": spec.psf_fwhm, "psf_e1": spec.psf_e1, "psf_e2": spec.psf_e2,
-         "seed": seed}
-    )  # fmt: skip
+    truth = add_psf_and_sky_truth(truth_table(x, y, is_star, flux, r, e_int, e_obs, snr), spec)
+    truth.meta.update(field_meta(spec, spec.model, seed))
     return image, weight, truth
 
 
 def _wcs(spec: FieldSpec, ra0: float, dec0: float) -> WCS:
+    """The field's TAN WCS: ``CD = s diag(-1, 1) Rot(theta) F`` (module docstring)."""
     w = WCS(naxis=2)
     w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
     w.wcs.crval = [ra0, dec0]
     w.wcs.crpix = [spec.size / 2 + 0.5, spec.size / 2 + 0.5]
     s = spec.pixel_scale_arcsec / 3600.0
-    w.wcs.cd = [[-s, 0.0], [0.0, s]]
+    if spec.wcs_rotation_deg == 0.0 and not spec.wcs_flip:
+        w.wcs.cd = [[-s, 0.0], [0.0, s]]
+    else:
+        w.wcs.cd = s * np.diag([-1.0, 1.0]) @ _sky_matrix(spec.wcs_rotation_deg, spec.wcs_flip)
     return w
 
 
@@ -389,11 +832,16 @@ def write_field(
     """Write a simulated field as FITS: the image (with a TAN WCS) and a ``WEIGHT`` HDU.
 
     The truth table, if given, goes to a ``TRUTH`` extension, which the pipeline ignores.
+    The header's ``SIMG1, SIMG2`` are the sky-frame shear, ``SIMROT`` (degrees) and
+    ``SIMFLIP`` the WCS's rotation and flip, ``SIMPSFV`` the PSF variation.
     """
     hdr = _wcs(spec, ra0, dec0).to_header()
     hdr["GAIN"] = (0.0, "no Poisson noise: background-limited simulation")
-    hdr["SIMG1"] = (spec.g1, "input reduced shear g1")
-    hdr["SIMG2"] = (spec.g2, "input reduced shear g2")
+    hdr["SIMG1"] = (spec.g1, "input reduced shear g1 (sky frame: W, N)")
+    hdr["SIMG2"] = (spec.g2, "input reduced shear g2 (sky frame: W, N)")
+    hdr["SIMROT"] = (spec.wcs_rotation_deg, "[deg] WCS rotation theta, pixel to sky")
+    hdr["SIMFLIP"] = (bool(spec.wcs_flip), "WCS flipped: dy -> -dy before the rotation")
+    hdr["SIMPSFV"] = (spec.psf_variation, "PSF variation over the field")
     hdus = [fits.PrimaryHDU(image, header=hdr)]
     if weight is not None:
         hdus.append(fits.ImageHDU(weight, name="WEIGHT"))

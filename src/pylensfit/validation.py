@@ -16,6 +16,11 @@ prior is estimated, as in the paper, and a star-only field per PSF from which th
 modelled. Every field carries its truth table in a ``TRUTH`` extension (columns as in
 :func:`pylensfit.simulate.simulate_field`); ``manifest.json`` lists the fields.
 
+Either set can have its PSFs vary over the fields (``psf_variation="survey"``: FWHM
++-10 % and ``|e|`` up to 0.08 corner to corner about each PSF's centre values, the star
+fields following the same map) and a rotated or flipped WCS (``wcs_rotation_deg``,
+``wcs_flip``), the shears being the sky frame's (:mod:`pylensfit.simulate`).
+
 Conventions are those of :mod:`pylensfit.simulate`: sizes in pixels, numpy ``(x, y)``
 0-based is GalSim ``(x + 1, y + 1)``, ``e = (a - b) / (a + b)`` and a shear ``g`` maps
 ``e_s`` to ``(e_s + g) / (1 + g* e_s)``.
@@ -54,13 +59,19 @@ from .prior import (
 from .psf import psf_diagnostics, psf_from_image
 from .shear import ShearEstimate, estimate_shear, shapes, shear_fixed_point
 from .simulate import (
+    PSF_VARIATIONS,
     FieldSpec,
     add_object,
+    add_psf_and_sky_truth,
     add_sky_and_noise,
     draw_population,
-    field_psf,
+    field_meta,
     lensed_shapes,
+    local_psfs,
+    pixel_shear,
     simulate_field,
+    star_peaks,
+    to_pixel_frame,
     truth_table,
     write_field,
 )
@@ -160,10 +171,13 @@ def render_step2_field(
 ) -> tuple[np.ndarray, np.ndarray, Table]:
     """Render a STEP2-like field: complex morphologies, sheared, with stars and noise.
 
-    The lattice, stars, fluxes, intrinsic ellipticities and noise follow
-    :func:`pylensfit.simulate.simulate_field`; the galaxies are a mix of Sersic profiles
-    (index 0.5-4), bulge + disc, and discs with star-forming knots
+    The lattice, stars, fluxes, intrinsic ellipticities, local PSFs, frames and noise
+    follow :func:`pylensfit.simulate.simulate_field`; the galaxies are a mix of Sersic
+    profiles (index 0.5-4), bulge + disc, and discs with star-forming knots
     (``galsim.RandomKnots``). ``spec.size_range`` is the range of half-light radii (px).
+    Each galaxy is built in the sky frame and drawn in the pixel frame of the WCS
+    (:func:`pylensfit.simulate.to_pixel_frame`), knots included: a seed gives the same
+    galaxies on the sky whatever ``spec.wcs_rotation_deg`` and ``spec.wcs_flip``.
 
     Parameters
     ----------
@@ -199,16 +213,20 @@ def render_step2_field(
     knot_frac = rng.uniform(0.2, 0.5, n_obj)
     n_knots = rng.integers(10, 60, n_obj)
     knot_seed = rng.integers(1, 2**31 - 1, n_obj)
-    e_int, e_obs = lensed_shapes(spec, e_int, is_star)
+    e_int, e_obs = lensed_shapes(spec, e_int, is_star)  # pixel frame
+    g1, g2 = pixel_shear(spec)
+    # a sky-frame rotation by 90 degrees is one by -90 in a flipped pixel frame
+    twin_angle = (-90 if spec.wcs_flip else 90) * galsim.degrees
 
-    psf = field_psf(spec)
+    psfs = local_psfs(spec, x, y)
+    peaks = star_peaks(psfs, is_star, _STAMP)
     image = galsim.ImageF(n, n, scale=1.0)  # bounds 1..n: numpy (x, y) is galsim (x+1, y+1)
     flux = np.empty(n_obj)
-    psf_peak = psf.drawImage(nx=_STAMP, ny=_STAMP, scale=1.0).array.max()
     for i in range(n_obj):
+        psf = psfs[i]
         if is_star[i]:
             obj = psf
-            flux[i] = star_snr[i] * spec.noise_sigma / psf_peak
+            flux[i] = star_snr[i] * spec.noise_sigma / peaks[i]
         else:
             gal = _step2_galaxy(
                 str(kinds[i]),
@@ -219,6 +237,7 @@ def render_step2_field(
                 int(n_knots[i]),
                 int(knot_seed[i]),
             )
+            gal = to_pixel_frame(gal, spec)  # the knots' pattern: shears are pixel-frame
             # the flux from the S/N of the unlensed, unrotated galaxy (as step1's): lensing
             # keeps the flux, and a rotated twin gets the same flux as its original. (The
             # S/N of the lensed galaxy made the flux follow the shear, galaxies sheared
@@ -229,28 +248,16 @@ def render_step2_field(
             arr = galsim.Convolve(gal, psf).drawImage(nx=_STAMP, ny=_STAMP, scale=1.0).array
             flux[i] = snr[i] * spec.noise_sigma / np.sqrt((arr**2).sum())
             if spec.rotate:
-                gal = gal.rotate(90 * galsim.degrees)
-            obj = galsim.Convolve(gal.shear(g1=spec.g1, g2=spec.g2), psf)
+                gal = gal.rotate(twin_angle)
+            obj = galsim.Convolve(gal.shear(g1=g1, g2=g2), psf)
         add_object(image, obj, flux[i], x[i], y[i], _STAMP)
     arr, weight = add_sky_and_noise(image, spec, seed, noise_seed)
-    truth = truth_table(x, y, is_star, flux, r, e_int, e_obs, snr)
+    truth = add_psf_and_sky_truth(truth_table(x, y, is_star, flux, r, e_int, e_obs, snr), spec)
     truth["kind"] = np.where(is_star, "star", kinds)
     truth["sersic_n"] = np.where(is_star | (kinds != "sersic"), np.nan, sersic_n)
     truth["bulge_frac"] = np.where(is_star | (kinds == "sersic"), np.nan, bulge_frac)
     truth["n_knots"] = np.where(~is_star & (kinds == "knots"), n_knots, 0)
-    truth.meta.update(
-        {
-            "g1": spec.g1,
-            "g2": spec.g2,
-            "model": "step2",
-            "noise": spec.noise_sigma,
-            "psf_fwhm": spec.psf_fwhm,
-            "psf_e1": spec.psf_e1,
-            "psf_e2": spec.psf_e2,
-            "seed": seed,
-            "rotate": spec.rotate,
-        }
-    )
+    truth.meta.update({**field_meta(spec, "step2", seed), "rotate": spec.rotate})
     return arr, weight, truth
 
 
@@ -290,6 +297,9 @@ def simulate_step(
     prior_ngal: int | None = None,
     twins: bool | None = None,
     noise_twins: bool = False,
+    psf_variation: str = "none",
+    wcs_rotation_deg: float = 0.0,
+    wcs_flip: bool = False,
     jobs: int = 1,
     progress: bool = False,
 ) -> Path:
@@ -354,6 +364,16 @@ def simulate_step(
         by a set whose independent noise leaves them at ~5e-4. ``ngal`` counts the
         renderings, so the set holds half as many distinct galaxies. Off by default
         (a set from a given seed is the same as before the option existed).
+    psf_variation : {"none", "survey"}
+        How each PSF of ``psfs`` varies over the fields, about its parameters at the
+        centre (:data:`pylensfit.simulate.PSF_VARIATIONS`, :func:`pylensfit.simulate.psf_at`).
+        The star fields follow the same map on the same geometry, so a varying PSF needs
+        the star and zero-shear fields of the shear fields' size.
+    wcs_rotation_deg : float
+        Rotation ``theta`` (degrees) of every field's WCS, pixel to sky frame
+        (:mod:`pylensfit.simulate`); the shears and intrinsic shapes are the sky frame's.
+    wcs_flip : bool
+        Flip every field's WCS (``dy -> -dy`` before the rotation).
     jobs : int
         Fields rendered in parallel by this many processes (the pipeline's runner); the
         set is the same for any ``jobs``: every field's seeds are drawn first, in order.
@@ -389,6 +409,15 @@ def simulate_step(
     star_size = int(star_field_size) if star_field_size else size
     prior_size = (_field_size(prior_ngal, len(psfs), spacing, star_fraction)
                   if prior_ngal else size)  # fmt: skip
+    if psf_variation not in PSF_VARIATIONS:
+        raise ValueError(f"psf_variation must be one of {sorted(PSF_VARIATIONS)}, "
+                         f"not {psf_variation!r}")  # fmt: skip
+    if psf_variation != "none" and (star_size != size or prior_size != size):
+        raise ValueError(
+            "a varying PSF needs the star and zero-shear fields of the shear fields' size "
+            f"({size} px), so that they follow the same PSF map; got star fields of "
+            f"{star_size} px and zero-shear fields of {prior_size} px"
+        )
     pixel = _PIXEL[kind]
     common = dict(
         size=size,
@@ -399,6 +428,9 @@ def simulate_step(
         star_fraction=star_fraction,
         pixel_scale_arcsec=pixel,
         model="bulge+disc",
+        psf_variation=psf_variation,
+        wcs_rotation_deg=float(wcs_rotation_deg),
+        wcs_flip=bool(wcs_flip),
     )
 
     def seeds() -> tuple[int, int]:
@@ -478,6 +510,9 @@ def simulate_step(
         "prior_field_size": prior_size,
         "prior_ngal": prior_ngal,
         "psfs": [dict(p) for p in psfs],
+        "psf_variation": psf_variation,
+        "wcs_rotation_deg": float(wcs_rotation_deg),
+        "wcs_flip": bool(wcs_flip),
         "shears": [list(s) for s in shears],
         "fieldspec": {k: v for k, v in asdict(FieldSpec(**common)).items() if k not in ("extra",)},
         "star_fields": star_files,
@@ -525,7 +560,11 @@ def read_manifest(directory: str | Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S] [--noise SIGMA]``.
+    """``pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S] [--noise SIGMA] ...``.
+
+    Among the options, ``--psf-variation {none,survey}``, ``--wcs-rotation DEG`` and
+    ``--wcs-flip`` (:func:`simulate_step`'s ``psf_variation``, ``wcs_rotation_deg``,
+    ``wcs_flip``).
 
     Standalone entry point (``python -m pylensfit.validation ...``), for the CLI to wire in.
 
@@ -560,6 +599,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="a noise twin of every shear field (the same noise negated): the "
                         "noise's first-order effect cancels in validate, resolving c per "
                         "PSF to ~1e-4; --ngal counts the renderings")
+    p.add_argument("--psf-variation", choices=sorted(PSF_VARIATIONS), default="none",
+                   help="PSF variation over every field, star fields included (survey: "
+                        "FWHM +-10%% and |e| up to 0.08 corner to corner)")
+    p.add_argument("--wcs-rotation", type=float, default=0.0, metavar="DEG",
+                   help="rotation of every field's WCS, pixel to sky (degrees); the "
+                        "shears are the sky frame's")
+    p.add_argument("--wcs-flip", action="store_true",
+                   help="flip every field's WCS (dy -> -dy before the rotation)")
     a = p.parse_args(argv)
     d = simulate_step(
         a.kind,
@@ -572,6 +619,9 @@ def main(argv: list[str] | None = None) -> int:
         star_field_size=a.star_field_size,
         twins=a.twins,
         noise_twins=a.noise_twins,
+        psf_variation=a.psf_variation,
+        wcs_rotation_deg=a.wcs_rotation,
+        wcs_flip=a.wcs_flip,
         jobs=a.jobs,
         progress=not a.quiet,
     )
