@@ -392,3 +392,6 @@ def test_piff_model(field, catalogue, probe, tmp_path):
     np.testing.assert_array_equal(again.draw(probe["x"][:3], probe["y"][:3]), imgs[:3])
     assert read_psf_model(path, size=24).digest != model.digest
     assert read_psf_model(path, size=24).draw(500.0, 500.0).shape == (24, 24)
+    (tmp_path / "junk.piff").write_text("not a Piff file")
+    with pytest.raises(PSFError, match="junk.piff: not a readable Piff file"):
+        read_psf_model(tmp_path / "junk.piff")

@@ -512,16 +512,17 @@ def _iterate(S: _Stars, cand: np.ndarray, order: int, uv, opts) -> _Fit:
     nan = np.full(m, np.nan)
     flux, snr, corr, chi2 = nan.copy(), nan.copy(), nan.copy(), nan.copy()
     why = np.full(m, "", dtype=object)
+    c = cand
+    Sc = _subset(S, c)
     for _ in range(opts["n_iter"]):
         if not used.any():
             break
         w = np.where(used, 1.0 / var_unit, 0.0)
         coefs, cov = _solve(A[used], w[used], unit[used].reshape(int(used.sum()), -1))
         ref, var_ref = _references(A, w, unit, used, coefs, cov)
-        c = cand
-        Xc, Yc, st, f, s, r, x2 = _check(_subset(S, c), ref[c], var_ref[c], X[c], Y[c], opts)
+        Xc, Yc, st, f, s, r, x2 = _check(Sc, ref[c], var_ref[c], X[c], Y[c], opts)
         X[c], Y[c], flux[c], snr[c], corr[c], chi2[c] = Xc, Yc, f, s, r, x2
-        why[c] = _verdict(_subset(S, c), Xc, Yc, f, r, x2, opts)
+        why[c] = _verdict(Sc, Xc, Yc, f, r, x2, opts)
         fa = np.where(f > 0, f, 1.0)
         unit[c] = np.where((f > 0)[:, None, None], st / fa[:, None, None], unit[c])
         var_unit[c] = np.where(f > 0, (S.sig[c] / fa) ** 2, var_unit[c])
@@ -553,7 +554,8 @@ def _fit_with_order(S, cand, order, uv, opts, what: str) -> _Fit:
     """:func:`_iterate`, lowering the order (with a warning) while too few stars survive."""
     per_coef = opts["min_stars_per_coefficient"]
     want = order
-    order = _affordable_order(int(cand.sum()), order, per_coef)
+    n_used = int(cand.sum())
+    order = _affordable_order(n_used, order, per_coef)
     while True:
         fit = _iterate(S, cand, order, uv, opts)
         n_used = int(fit.used.sum())
@@ -562,9 +564,9 @@ def _fit_with_order(S, cand, order, uv, opts, what: str) -> _Fit:
             break
         order = lower
     if order < want:
-        log.warning("%s: %d usable stars for a PSF of order %d (%d coefficients; at least "
-                    "%g stars per coefficient): order lowered to %d", what, int(cand.sum()),
-                    want, n_terms(want), per_coef, order)  # fmt: skip
+        log.warning("%s: %d usable stars (%d candidates) for a PSF of order %d (%d "
+                    "coefficients, at least %g stars each): order lowered to %d", what,
+                    n_used, int(cand.sum()), want, n_terms(want), per_coef, order)  # fmt: skip
     return fit
 
 
@@ -661,6 +663,24 @@ class PolynomialPSF(PSFModel):
         Padding in pixels of the Fourier re-centring.
     source : str
         Label of where the stars came from.
+
+    Attributes
+    ----------
+    diagnostics : dict
+        For a model from :meth:`fit`: ``order`` (used), ``order_requested``,
+        ``n_terms``, ``n_stars`` (candidates), ``n_used``, ``n_rejected``, ``rejected``
+        (count per reason), ``chi2_median`` (used stars), ``options``; and the held-out
+        check, over the held-out stars that the final fit uses (so that contaminants of
+        the list do not count; for a model that rejects many good stars this hides its
+        worst misfits): ``n_heldout``, ``heldout_n``, ``heldout_mean_de1/2`` and
+        ``heldout_rms_de1/2`` (star minus model ellipticity), ``heldout_noise_de`` (the
+        rms expected from the stars' noise alone, ``k_e / snr`` per star with ``k_e``
+        from a Monte Carlo of the moments of the model plus noise;
+        ``moment_noise_k_e``), ``heldout_excess_de1/2`` (``sqrt(rms^2 - noise^2)``, 0
+        if negative: the model's error), ``heldout_chi2_de`` (mean squared residual in
+        units of the expected noise, about 1 for a model as good as the noise can
+        tell), and the same for the relative size ``sigma_star / sigma_model - 1``
+        (``heldout_*_dsigma``). The noise of the held-out model itself is not counted.
     """
 
     def __init__(self, coefs, order: int, bounds, *, cov=None, stars: Table | None = None,
@@ -931,7 +951,10 @@ class PolynomialPSF(PSFModel):
                 raise PSFError(f"{path}: not a PolynomialPSF file (no PSFMODEL = {_POLY_KIND!r})")
             coefs = np.array(hdul[0].data, dtype=np.float64)
             cov = np.array(hdul["COVAR"].data, dtype=np.float64) if "COVAR" in hdul else None
-            stars = Table(hdul["STARS"].data) if "STARS" in hdul else None
+            stars = None
+            if "STARS" in hdul:
+                data = hdul["STARS"].data
+                stars = Table({c: np.array(data[c]) for c in data.names})
             bounds = tuple(float(hdr[k]) for k in ("XMIN", "XMAX", "YMIN", "YMAX"))
             diags = json.loads(hdr.get("DIAGS", "{}"))
             kw = {
@@ -941,7 +964,6 @@ class PolynomialPSF(PSFModel):
             }
             order = int(hdr["ORDER"])
         if stars is not None:
-            stars = Table({c: np.asarray(stars[c]) for c in stars.colnames})
             stars["reason"] = np.array([str(r).strip() for r in stars["reason"]], dtype=str)
             for c in ("used", "heldout"):
                 stars[c] = np.asarray(stars[c], dtype=bool)
@@ -1082,6 +1104,14 @@ class PiffPSF(PSFModel):
     ------
     PiffNotInstalledError
         If piff is not installed.
+    PSFError
+        If Piff cannot read the file.
+
+    Notes
+    -----
+    Piff draws one position at a time (about 0.4 ms each for a ``PixelGrid`` model).
+    Models that interpolate on properties other than the position (e.g. a colour) are
+    not supported.
     """
 
     def __init__(self, path: str | Path, *, size: int = 32, chipnum: int | None = None,
@@ -1089,8 +1119,12 @@ class PiffPSF(PSFModel):
                  centre_xy: tuple[float, float] | None = None):  # fmt: skip
         piff = _import_piff()
         self.path = Path(path)
-        self._bytes = self.path.read_bytes()
-        self.piff = piff.read(str(self.path))
+        try:
+            self._bytes = self.path.read_bytes()
+            self.piff = piff.read(str(self.path))
+        except (OSError, ValueError, KeyError, TypeError, IndexError) as err:
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            raise PSFError(f"{self.path}: not a readable Piff file ({first})") from None
         self.size, self.chipnum, self.origin = int(size), chipnum, float(origin)
         self.centroid_sigma, self.margin = float(centroid_sigma), int(margin)
         if self.size < 4:
@@ -1098,7 +1132,10 @@ class PiffPSF(PSFModel):
         sx, sy = self._star_positions()
         self.centre_xy = centre_xy
         if centre_xy is None and sx.size:
-            self.centre_xy = (0.5 * (sx.min() + sx.max()), 0.5 * (sy.min() + sy.max()))
+            self.centre_xy = (
+                float(0.5 * (sx.min() + sx.max())),
+                float(0.5 * (sy.min() + sy.max())),
+            )
         self.diagnostics = {"kind": "piff", "path": str(self.path), "n_stars": int(sx.size),
                             "piff_version": str(getattr(self.piff, "piff_version", "")),
                             "piff_class": type(self.piff).__name__}  # fmt: skip
