@@ -722,8 +722,9 @@ def measure_stamps(
     -------
     astropy.table.Table
         One row per stamp: ``e1, e2`` (posterior means), ``e1_var, e2_var, e12_cov``,
-        ``sens1, sens2`` (the shear responses, dimensionless), ``weight`` (1 for a
-        galaxy to use, 0 otherwise), ``flags`` (:data:`pylensfit.flags.FLAGS`; usable
+        ``sens1, sens2`` (the shear responses, dimensionless), ``weight`` (the
+        inverse-variance weight of a galaxy to use, :mod:`pylensfit.weights`; 0
+        otherwise), ``flags`` (:data:`pylensfit.flags.FLAGS`; usable
         rows have ``flags == 0`` and ``weight > 0``), ``snr`` (the best model's
         matched-filter S/N), ``flux`` (data units), ``r_best`` (pixels), ``x, y`` (fitted
         centre, stamp pixels), ``e1_best, e2_best``, ``bulge_best``, ``stamp`` (the side

@@ -297,6 +297,16 @@ class Config:
         0.9, "stars whose normalised cross-correlation with the stack is below this are rejected"
     )
     psf_min_stars: int = _f(3, "fewest usable stars for a PSF from one source")
+    psf_model: str = _f(
+        "constant", "'constant': one stacked PSF per image; 'polynomial': every PSF pixel a "
+        "polynomial in (x, y) fitted to the stars (lensfit's survey PSF; "
+        "pylensfit.psfmodel.PolynomialPSF), each galaxy fitted with the PSF of its cell"
+    )
+    psf_order: int = _f(3, "total degree of the polynomial PSF (lowered for few stars)")
+    psf_cells: int = _f(
+        8, "polynomial PSF: the image is cut into psf_cells x psf_cells cells, each fitted "
+        "with the PSF at its centre"
+    )
     # --- postage stamps (paper section 2.3) ---
     close_pair_min_snr: float = _f(
         5.0, "detections below this aperture S/N do not make a galaxy a close pair"
@@ -649,6 +659,10 @@ def _validate(c: Config) -> None:
     need(c.star_min_peak_snr > 0, "star_min_peak_snr must be > 0")
     need(0 < c.psf_min_correlation < 1, "psf_min_correlation must be in (0, 1)")
     need(c.psf_min_stars >= 1, "psf_min_stars must be >= 1")
+    need(c.psf_model in ("constant", "polynomial"),
+         f"psf_model must be 'constant' or 'polynomial', got {c.psf_model!r}")
+    need(0 <= c.psf_order <= 6, f"psf_order must be in 0..6, got {c.psf_order}")
+    need(c.psf_cells >= 1, f"psf_cells must be >= 1, got {c.psf_cells}")
     need(c.close_pair_min_snr >= 0, "close_pair_min_snr must be >= 0")
     need(0 <= c.close_pair_faint_ratio < 1, "close_pair_faint_ratio must be in [0, 1)")
     need(c.neighbour_min_chi2 >= 0, "neighbour_min_chi2 must be >= 0")

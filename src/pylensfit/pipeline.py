@@ -66,6 +66,7 @@ from .psf import (
     read_psf,
     stack_psf,
 )
+from .psfmodel import PolynomialPSF, PSFModel
 from .shear import shapes as _shapes
 from .skyframe import (
     SkyFrame,
@@ -340,7 +341,51 @@ def _psf_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_
     return res, stars
 
 
-def _starfield_task(task: dict[str, Any]) -> PSFResult:
+def _poly_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_col):
+    """The image's stars' polynomial PSF model (:class:`PolynomialPSF`) and the star mask."""
+    from .detection import select_stars
+
+    stars = select_stars(det, min_peak_snr=cfg.star_min_peak_snr, column=star_col)
+    if stars.sum() < cfg.psf_min_stars:
+        raise PSFError(f"{img.path}: {int(stars.sum())} star(s) pass the selection "
+                       f"(peak S/N > {cfg.star_min_peak_snr:g}), fewer than "
+                       f"psf_min_stars = {cfg.psf_min_stars}")  # fmt: skip
+    ny, nx = sub.shape
+    try:
+        model = PolynomialPSF.fit(
+            sub, np.asarray(det["x"])[stars], np.asarray(det["y"])[stars],
+            noise_sigma=np.asarray(det["noise_sigma"])[stars],
+            weight=None if img.weight is None else img.weight, order=cfg.psf_order,
+            size=cfg.stamp_size, bounds=(0.0, nx - 1.0, 0.0, ny - 1.0),
+            min_correlation=cfg.psf_min_correlation, source=img.path)  # fmt: skip
+    except ValueError as err:  # too few stars for any order
+        raise PSFError(f"{img.path}: {err}") from None
+    if model.diagnostics.get("n_used", 0) < cfg.psf_min_stars:
+        raise PSFError(f"{img.path}: only {model.diagnostics.get('n_used', 0)} star(s) "
+                       f"survive the PSF fit, fewer than psf_min_stars = "
+                       f"{cfg.psf_min_stars}")  # fmt: skip
+    return model, stars
+
+
+def _cell_psfs(model: PSFModel, shape: tuple[int, int], cells: int):
+    """The PSF at the centre of each of ``cells x cells`` cells of an image: images
+    ``(cells^2, N, N)``, their ellipticity ``(2, cells^2)`` and the cell of a position."""
+    ny, nx = shape
+    cx = (np.arange(cells) + 0.5) * nx / cells - 0.5
+    cy = (np.arange(cells) + 0.5) * ny / cells - 0.5
+    X, Y = np.meshgrid(cx, cy)
+    images = model.draw(X.ravel(), Y.ravel())
+    e1, e2, _ = model.shape_at(X.ravel(), Y.ravel())
+
+    def cell_of(x, y):
+        i = np.clip(np.floor((np.nan_to_num(x) + 0.5) * cells / nx), 0, cells - 1)
+        j = np.clip(np.floor((np.nan_to_num(y) + 0.5) * cells / ny), 0, cells - 1)
+        return (j * cells + i).astype(np.int64)
+
+    return images, np.vstack([e1, e2]), cell_of
+
+
+def _starfield_task(task: dict[str, Any]) -> PSFResult | PSFModel:
     """The PSF of a separate star-field image."""
     _single_thread(task.get("single_thread", False))
     cfg = Config.from_dict(task["config"])
@@ -350,6 +395,8 @@ def _starfield_task(task: dict[str, Any]) -> PSFResult:
     if len(det) == 0:
         raise InputError(f"{img.path}: no object detected in the star field")
     try:
+        if cfg.psf_model == "polynomial":
+            return _poly_from_stars(sub, img, det, cfg, None)[0]
         return _psf_from_stars(sub, img, det, cfg, None)[0]
     except PSFError as err:
         raise InputError(f"{img.path}: no usable star for the PSF ({err})") from None
@@ -395,6 +442,20 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         except PSFError as err:
             psf_note = str(err)
             log.info("%s", err)
+    field_model = None  # a PSF varying over the image (Config.psf_model = "polynomial")
+    if cfg.psf_model == "polynomial" and task.get("psf") is None:
+        psfs = list(task.get("star_psfs", []))
+        if n:
+            try:
+                own_model, own_stars = _poly_from_stars(sub, img, det, cfg,
+                                                        task.get("star_column"))  # fmt: skip
+                psfs.append(own_model)
+            except PSFError as err:
+                psf_note = str(err)
+                log.info("%s", err)
+        if psfs:  # the model of the most stars (the image's own or a star field's)
+            field_model = max(psfs, key=lambda m: m.diagnostics.get("n_used", 0))
+            psfs = [field_model.centre]
     if psfs:
         psf = combine_psfs(psfs) if len(psfs) > 1 else psfs[0]
     else:
@@ -404,7 +465,13 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
             log.error("%s: no usable star for the PSF in the image or the star fields (%s); "
                       "its %d objects are flagged PSF_FAILED", path, psf_note, n)  # fmt: skip
     if psf is not None and task.get("psf_dir"):
-        psf.write(Path(task["psf_dir"]) / f"{Path(path).stem}.psf.fits", overwrite=True)
+        (field_model or psf).write(Path(task["psf_dir"]) / f"{Path(path).stem}.psf.fits",
+                                   overwrite=True)  # fmt: skip
+    cell_images = cell_e = None
+    cell = np.zeros(n, dtype=np.int64)
+    if field_model is not None:
+        cell_images, cell_e, cell_of = _cell_psfs(field_model, sub.shape, cfg.psf_cells)
+        cell = cell_of(np.asarray(det["x"], dtype=float), np.asarray(det["y"], dtype=float))
     t_psf = time.perf_counter()
     x = np.asarray(det["x"], dtype=float)
     y = np.asarray(det["y"], dtype=float)
@@ -465,7 +532,18 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
 
     def fit(idx, less=None):
         """Fit the stamps of objects ``idx``, less ``less`` (``(len(idx), n_big, n_big)``:
-        the neighbours' light and the sky's change, about each object)."""
+        the neighbours' light and the sky's change, about each object), each with the
+        PSF of its cell."""
+        if cell_images is None:
+            return fit_with(idx, less, psf.image)
+        parts = []
+        for c in np.unique(cell[idx]):  # one fit per cell of the PSF model
+            sel = np.flatnonzero(cell[idx] == c)
+            parts.append((sel, fit_with(idx[sel], None if less is None else less[sel],
+                                        cell_images[c])))  # fmt: skip
+        return parts[0][1] if len(parts) == 1 else _merge_fits(parts, idx.size)
+
+    def fit_with(idx, less, psf_image):
         parts = []
         for sel, st, c in ((~use_big[idx], stamps, base_cfg), (use_big[idx], bstamps, cfg)):
             if not sel.any():
@@ -477,7 +555,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
                 data = data - (lj if st.shape[1] == n_big else
                                lj[:, o : o + cfg.stamp_size, o : o + cfg.stamp_size])  # fmt: skip
             parts.append((np.flatnonzero(sel), fit_stamps(
-                data, psf.image, noise[j], config=c, centres=(fcx[j], fcy[j]),
+                data, psf_image, noise[j], config=c, centres=(fcx[j], fcy[j]),
                 size_prior=size_prior, lnL_r_groups=rings,
                 size_marginal_prior=task.get("size_marginal_prior"))))  # fmt: skip
         return parts[0][1] if len(parts) == 1 else _merge_fits(parts, idx.size)
@@ -543,8 +621,10 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         "fitclass": fitclass.astype(np.int16),
         "is_star": is_star,
         "psf_star": own_stars,
-        "PSF_e1": np.full(n, psf.e1 if psf is not None else np.nan),
-        "PSF_e2": np.full(n, psf.e2 if psf is not None else np.nan),
+        "PSF_e1": (cell_e[0][cell] if cell_e is not None else
+                   np.full(n, psf.e1 if psf is not None else np.nan)),
+        "PSF_e2": (cell_e[1][cell] if cell_e is not None else
+                   np.full(n, psf.e2 if psf is not None else np.nan)),
         "sky_angle": frame.angle, "sky_flip": frame.flip,
         "wcs_g1": frame.g1, "wcs_g2": frame.g2,
         "flags": flags,
@@ -872,7 +952,7 @@ def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: in
     return stamps, field, own, aside
 
 
-_PSF_KEYS = ("n_used", "n_rejected", "fwhm", "e1", "e2")
+_PSF_KEYS = ("n_used", "n_rejected", "fwhm", "sigma", "e1", "e2")
 
 
 def _psf_summary(psf: PSFResult) -> dict[str, Any]:
@@ -1642,7 +1722,7 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
         hdr["SENSTVTY"] = (cfg.sensitivity, "shear sensitivity formula")
         hdr["MODEL"] = (cfg.model, "galaxy model")
     frame = cat.meta.get("frame", "pixel")
-    hdr["EFRAME"] = (frame, "frame of e1,e2: sky (W,N; TreeCorr), pixel or mixed")
+    hdr["EFRAME"] = (frame, "frame of e1,e2: sky (W,N), pixel, mixed")
     hdr["FLAGS"] = ("; ".join(f"{v}={k}" for k, (v, _) in _flags.FLAGS.items())[:68])
     tab = fits.table_to_hdu(plain)
     tab.name = "CATALOG"

@@ -154,7 +154,7 @@ def class_weights(e1, e2, sens1, sens2, snr0, size_ratio, usable, **classes) -> 
     w = np.zeros(usable.size)
     idx = np.flatnonzero(ok)
     if idx.size < 3:
-        w[idx] = 1.0
+        w[usable] = 1.0
         return w
     e1, e2, s1, s2, snr0, ratio = (v[idx] for v in vals)
     cls = shape_classes(snr0, ratio, **classes)
@@ -163,7 +163,11 @@ def class_weights(e1, e2, sens1, sens2, snr0, size_ratio, usable, **classes) -> 
         m, m2 = _leave_one_out(e, cls)
         var = var + 0.5 * (m2 - m * m)
     sens = 0.5 * (_leave_one_out(s1, cls)[0] + _leave_one_out(s2, cls)[0])
-    w[idx] = np.where((var > 0) & (sens > 0), sens / np.where(var > 0, var, 1.0), 0.0)
+    good = (var > 0) & (sens > 0)
+    w[idx] = np.where(good, sens / np.where(good, var, 1.0), np.nan)
+    # a usable galaxy that cannot be classed (no flux or size) gets the median weight
+    fill = np.nanmedian(w[idx]) if good.any() else 1.0
+    w[usable & ~(w > 0)] = fill
     return w
 
 
@@ -209,6 +213,7 @@ def inverse_variance_weights(e1, e2, sens1, sens2, flux, noise_sigma, size, psf_
     usable = np.asarray(usable, dtype=bool)
     size = np.asarray(size, dtype=float)
     psf_sigma = np.asarray(psf_sigma, dtype=float) * np.ones(usable.size)
+    psf_sigma = np.where(np.isfinite(psf_sigma) & (psf_sigma > 0), psf_sigma, 1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         snr0 = round_snr(flux, noise_sigma, size, psf_sigma)
         ratio = size / psf_sigma
