@@ -321,7 +321,8 @@ def _box_any(mask: np.ndarray, x: np.ndarray, y: np.ndarray, size: int) -> np.nd
     return sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0] > 0
 
 
-def _psf_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_col):
+def _psf_stars(img: _Image, det: Table, cfg: Config, star_col) -> np.ndarray:
+    """The detections selected as PSF stars; ``PSFError`` if fewer than psf_min_stars."""
     from .detection import select_stars
 
     stars = select_stars(det, min_peak_snr=cfg.star_min_peak_snr, column=star_col)
@@ -329,6 +330,11 @@ def _psf_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_
         raise PSFError(f"{img.path}: {int(stars.sum())} star(s) pass the selection "
                        f"(peak S/N > {cfg.star_min_peak_snr:g}), fewer than "
                        f"psf_min_stars = {cfg.psf_min_stars}")  # fmt: skip
+    return stars
+
+
+def _psf_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_col):
+    stars = _psf_stars(img, det, cfg, star_col)
     res = stack_psf(
         sub, np.asarray(det["x"])[stars], np.asarray(det["y"])[stars],
         noise_sigma=np.asarray(det["noise_sigma"])[stars],
@@ -343,13 +349,7 @@ def _psf_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_
 
 def _poly_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_col):
     """The image's stars' polynomial PSF model (:class:`PolynomialPSF`) and the star mask."""
-    from .detection import select_stars
-
-    stars = select_stars(det, min_peak_snr=cfg.star_min_peak_snr, column=star_col)
-    if stars.sum() < cfg.psf_min_stars:
-        raise PSFError(f"{img.path}: {int(stars.sum())} star(s) pass the selection "
-                       f"(peak S/N > {cfg.star_min_peak_snr:g}), fewer than "
-                       f"psf_min_stars = {cfg.psf_min_stars}")  # fmt: skip
+    stars = _psf_stars(img, det, cfg, star_col)
     ny, nx = sub.shape
     try:
         model = PolynomialPSF.fit(

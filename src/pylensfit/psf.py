@@ -24,6 +24,7 @@ __all__ = [
     "PSFError",
     "PSFResult",
     "centre_on_stamp",
+    "check_star_inputs",
     "combine_psfs",
     "psf_diagnostics",
     "psf_from_image",
@@ -457,6 +458,26 @@ def _cutouts(image, weight, x, y, big):
     return stamps, idx, ix, iy, reason
 
 
+def check_star_inputs(image, x, y, weight, size: int):
+    """An image, star positions and weight map as float arrays, checked (``ValueError``:
+    an image not 2-D, positions of unequal length, a weight map of another shape, a
+    PSF side under 4)."""
+    image = np.asarray(image, dtype=float)
+    if image.ndim != 2:
+        raise ValueError(f"image must be 2-D, got shape {image.shape}")
+    x = np.atleast_1d(np.asarray(x, dtype=float))
+    y = np.atleast_1d(np.asarray(y, dtype=float))
+    if x.ndim != 1 or x.shape != y.shape:
+        raise ValueError(f"x and y must be 1-D of equal length, got {x.shape} and {y.shape}")
+    if weight is not None:
+        weight = np.asarray(weight, dtype=float)
+        if weight.shape != image.shape:
+            raise ValueError(f"weight shape {weight.shape} differs from image {image.shape}")
+    if size < 4:
+        raise ValueError(f"size must be at least 4, got {size}")
+    return image, x, y, weight
+
+
 def stack_psf(
     image: np.ndarray,
     x,
@@ -576,19 +597,7 @@ def stack_psf(
     ValueError
         For inconsistent arguments.
     """
-    image = np.asarray(image, dtype=float)
-    if image.ndim != 2:
-        raise ValueError(f"image must be 2-D, got shape {image.shape}")
-    x = np.atleast_1d(np.asarray(x, dtype=float))
-    y = np.atleast_1d(np.asarray(y, dtype=float))
-    if x.ndim != 1 or x.shape != y.shape:
-        raise ValueError(f"x and y must be 1-D of equal length, got {x.shape} and {y.shape}")
-    if weight is not None:
-        weight = np.asarray(weight, dtype=float)
-        if weight.shape != image.shape:
-            raise ValueError(f"weight shape {weight.shape} differs from image {image.shape}")
-    if size < 4:
-        raise ValueError(f"size must be at least 4, got {size}")
+    image, x, y, weight = check_star_inputs(image, x, y, weight, size)
     if weighting not in ("inverse_variance", "median"):
         raise ValueError(f"weighting must be 'inverse_variance' or 'median', got {weighting!r}")
     if not (centroid_sigma > 0 and max_shift > 0 and margin >= 0 and n_iter >= 0):

@@ -48,6 +48,7 @@ from .psf import (
     _gaussian_peak,
     _pad_to,
     _shift,
+    check_star_inputs,
     psf_diagnostics,
     read_psf,
 )
@@ -971,19 +972,7 @@ class PolynomialPSF(PSFModel):
 
 
 def _check_inputs(image, x, y, weight, size, order, holdout, n_iter):
-    image = np.asarray(image, dtype=float)
-    if image.ndim != 2:
-        raise ValueError(f"image must be 2-D, got shape {image.shape}")
-    x = np.atleast_1d(np.asarray(x, dtype=float))
-    y = np.atleast_1d(np.asarray(y, dtype=float))
-    if x.ndim != 1 or x.shape != y.shape:
-        raise ValueError(f"x and y must be 1-D of equal length, got {x.shape} and {y.shape}")
-    if weight is not None:
-        weight = np.asarray(weight, dtype=float)
-        if weight.shape != image.shape:
-            raise ValueError(f"weight shape {weight.shape} differs from image {image.shape}")
-    if size < 4:
-        raise ValueError(f"size must be at least 4, got {size}")
+    image, x, y, weight = check_star_inputs(image, x, y, weight, size)
     if not (int(order) == order and order >= 0):
         raise ValueError(f"order must be a non-negative integer, got {order!r}")
     if not 0.0 <= holdout < 1.0:
