@@ -69,12 +69,14 @@ from .simulate import (
     lensed_shapes,
     local_psfs,
     pixel_shear,
+    pixel_to_sky_shear,
     simulate_field,
     star_peaks,
     to_pixel_frame,
     truth_table,
     write_field,
 )
+from .skyframe import SkyFrame, sensitivity_to_sky
 
 __all__ = [
     "STEP1_PSFS",
@@ -89,6 +91,7 @@ __all__ = [
     "QUICK_NGAL",
     "QUICK_PRIOR_NGAL",
     "fit_m_c",
+    "psf_leakage",
     "true_psf_image",
     "truth_control_variate",
     "quality_factor",
@@ -865,15 +868,26 @@ def _truth_cached(path: str, mtime_ns: int, size: int) -> Table:
     return Table.read(path, hdu="TRUTH")
 
 
+def _sky_columns(t: Table, a: str, b: str) -> tuple[str, str]:
+    """The sky-frame columns ``a_sky, b_sky`` of a truth table, or the pixel-frame ``a, b``
+    of a table without them (simulated with the plain WCS only, where the pixel frame
+    is the sky frame)."""
+    if f"{a}_sky" in t.colnames and f"{b}_sky" in t.colnames:
+        return f"{a}_sky", f"{b}_sky"
+    return a, b
+
+
 def _truth_terms(fields: dict[str, dict], names: list[str]) -> np.ndarray:
     """``(n_truth, 2)``: ``sum over the images names of (e_true - g)`` per truth object of a
-    group's images (which share their truth rows); NaN for stars."""
+    group's images (which share their truth rows); NaN for stars. ``e_true`` and ``g``
+    in the sky frame (the truth's ``e1_sky, e2_sky``; the manifest's shears)."""
     out = None
     for name in names:
         f = fields[name]
         t = _truth(f["path"])
-        d = np.column_stack([np.asarray(t["e1"], float) - f["g1"],
-                             np.asarray(t["e2"], float) - f["g2"]])  # fmt: skip
+        c1, c2 = _sky_columns(t, "e1", "e2")
+        d = np.column_stack([np.asarray(t[c1], float) - f["g1"],
+                             np.asarray(t[c2], float) - f["g2"]])  # fmt: skip
         d[np.asarray(t["is_star"], bool)] = np.nan
         out = d if out is None else out + d
     return out
@@ -965,16 +979,22 @@ def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, job
     return pipeline.read_catalogue(cat_path), False
 
 
-def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) -> Table:
+def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float,
+              sky: tuple[float, bool] = (0.0, False)) -> Table:  # fmt: skip
     """The usable galaxies of a catalogue, matched to the truth of their images.
 
     Every detection is matched to the nearest truth object within ``_MATCH_RADIUS``
     pixels of its fitted centre (one detection per truth object: the nearest). Returns
     the rows with ``flags == 0``, ``fitclass == 0`` (galaxy) and a finite ``ln L`` grid,
-    with ``psf``, ``truth_index`` (-1: unmatched), ``truth_star``, ``e1_int, e2_int``,
-    ``size`` (truth ``r`` / PSF FWHM; NaN when unmatched or matched to a star),
-    ``morphology`` (the index in :data:`STEP2_KINDS` of a STEP2 galaxy's kind; NaN
-    otherwise), ``mag``, ``snr`` (``model_SNratio``) and ``lnL``.
+    with ``psf``, ``truth_index`` (-1: unmatched), ``truth_star``, ``e1_int, e2_int``
+    (sky frame), ``size`` (truth ``r`` over the FWHM of the PSF at the galaxy, the
+    truth's ``psf_fwhm``, or ``psf_fwhm`` (pixels) for a truth without it; NaN when
+    unmatched or matched to a star), ``morphology`` (the index in :data:`STEP2_KINDS`
+    of a STEP2 galaxy's kind; NaN otherwise), ``mag``, ``snr`` (``model_SNratio``),
+    ``psf_e1_true, psf_e2_true`` (the truth's adaptive-moment PSF ellipticity at the
+    galaxy, ``psf_e1_obs, psf_e2_obs``, taken to the sky frame by ``sky``, the set's
+    WCS rotation in degrees and flip; NaN when unmatched or without them),
+    ``psf_e1_model, psf_e2_model`` (the catalogue's ``PSF_e1, PSF_e2``) and ``lnL``.
     """
     lnL = np.asarray(cat["lnL"])
     use = ((np.asarray(cat["flags"]) == 0) & (np.asarray(cat["fitclass"]) == 0)
@@ -984,8 +1004,8 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
     images = np.asarray(g["image"]).astype(str)
     tidx = np.full(n, -1, dtype=np.int64)
     tstar = np.zeros(n, dtype=bool)
-    r, e1, e2 = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-    morph = np.full(n, np.nan)
+    cols = ("r", "fwhm", "e1", "e2", "morph", "pe1", "pe2")
+    v = {c: np.full(n, np.nan) for c in cols}
     for name in np.unique(images):
         truth = _truth(fields[name]["path"])
         sel = np.flatnonzero(images == name)
@@ -999,28 +1019,64 @@ def _galaxies(cat: Table, fields: dict[str, dict], psf: int, psf_fwhm: float) ->
         rows, jj = sel[keep], j[keep]
         tidx[rows] = jj
         tstar[rows] = np.asarray(truth["is_star"])[jj]
-        r[rows] = np.asarray(truth["r"])[jj]
-        e1[rows] = np.asarray(truth["e1_int"])[jj]
-        e2[rows] = np.asarray(truth["e2_int"])[jj]
+        v["r"][rows] = np.asarray(truth["r"])[jj]
+        v["fwhm"][rows] = (np.asarray(truth["psf_fwhm"], float)[jj]
+                           if "psf_fwhm" in truth.colnames else psf_fwhm)  # fmt: skip
+        for k, c in zip(("e1", "e2"), _sky_columns(truth, "e1_int", "e2_int"), strict=True):
+            v[k][rows] = np.asarray(truth[c])[jj]
+        if "psf_e1_obs" in truth.colnames and "psf_e2_obs" in truth.colnames:
+            v["pe1"][rows], v["pe2"][rows] = pixel_to_sky_shear(
+                np.asarray(truth["psf_e1_obs"], float)[jj],
+                np.asarray(truth["psf_e2_obs"], float)[jj], *sky)
         if "kind" in truth.colnames:
             names, inv = np.unique(np.asarray(truth["kind"]).astype(str)[jj], return_inverse=True)
             code = np.array([STEP2_KINDS.index(k) if k in STEP2_KINDS else np.nan for k in names])
-            morph[rows] = code[inv]
+            v["morph"][rows] = code[inv]
     out = Table()
     out["psf"] = np.full(n, psf, dtype=np.int64)
     out["image"] = images
     out["truth_index"] = tidx
     out["truth_star"] = tstar
-    out["e1_int"], out["e2_int"] = e1, e2
-    out["size"] = np.where(tstar, np.nan, r / psf_fwhm)
-    out["morphology"] = np.where(tstar, np.nan, morph)
+    out["e1_int"], out["e2_int"] = v["e1"], v["e2"]
+    out["size"] = np.where(tstar, np.nan, v["r"] / v["fwhm"])
+    out["morphology"] = np.where(tstar, np.nan, v["morph"])
     out["mag"] = np.asarray(g["mag"], dtype=float)
     out["snr"] = np.asarray(g["model_SNratio"], dtype=float)
+    out["psf_e1_true"] = np.where(tstar, np.nan, v["pe1"])
+    out["psf_e2_true"] = np.where(tstar, np.nan, v["pe2"])
+    for i in (1, 2):
+        out[f"psf_e{i}_model"] = (np.asarray(g[f"PSF_e{i}"], dtype=float)
+                                  if f"PSF_e{i}" in g.colnames else np.full(n, np.nan))  # fmt: skip
     out["lnL"] = np.asarray(g["lnL"], dtype=np.float32)
     if "lnL_bulge" in g.colnames:  # each bulge fraction's L(e), for their prior
         out["lnL_bulge"] = np.asarray(g["lnL_bulge"], dtype=np.float32)
         out["lnL_star"] = np.asarray(g["lnL_star"], dtype=float)
     return out
+
+
+def _check_frame(cat: Table, sky: tuple[float, bool], name: str) -> None:
+    """Raise ``ValueError`` when a catalogue's sky frame (its ``sky_angle``, ``sky_flip``
+    columns, from the images' WCS) is not the set's (``sky``: the manifest's WCS
+    rotation in degrees and its flip), to 0.1 degree: the comparison with the truth
+    takes the shapes to the sky frame with the manifest's."""
+    if "sky_angle" not in cat.colnames or "sky_flip" not in cat.colnames or not len(cat):
+        return
+    ang = np.asarray(cat["sky_angle"], dtype=float)
+    ok = np.isfinite(ang)
+    if "flags" in cat.colnames:  # the measured rows (a position: the WCS's frame)
+        ok &= np.asarray(cat["flags"]) == 0
+    if "ALPHA_J2000" in cat.colnames:
+        ok &= np.isfinite(np.asarray(cat["ALPHA_J2000"], dtype=float))
+    if not ok.any():
+        return
+    # spin-2 quantities see the angle modulo 180 degrees
+    dev = (ang[ok] - sky[0] + 90.0) % 180.0 - 90.0
+    flip = np.asarray(cat["sky_flip"], dtype=bool)[ok]
+    if np.max(np.abs(dev)) > 0.1 or np.any(flip != bool(sky[1])):
+        raise ValueError(
+            f"{name}: the catalogue's sky frame (rotation {np.median(ang[ok]):.3f} deg, "
+            f"flipped {bool(np.median(flip))}) is not the manifest's ({sky[0]:g} deg, "
+            f"flipped {bool(sky[1])}): the images' WCS disagrees with the set")
 
 
 def _groups(gal: Table, fields: dict[str, dict]) -> tuple[np.ndarray, np.ndarray]:
@@ -1073,14 +1129,55 @@ def _group_members(gid: np.ndarray) -> np.ndarray:
     return order.reshape(-1, k)
 
 
+def _set_frame(man: dict) -> tuple[float, bool]:
+    """The set's WCS rotation (degrees) and flip, from its manifest (plain by default)."""
+    return float(man.get("wcs_rotation_deg") or 0.0), bool(man.get("wcs_flip", False))
+
+
+def _frame_of(n: int, sky: tuple[float, bool]) -> SkyFrame | None:
+    """The sky frame of ``n`` rows of a set's images (all share the WCS rotation and
+    flip ``sky``), or None for the plain WCS, whose pixel frame is the sky frame."""
+    rot, flip = float(sky[0]), bool(sky[1])
+    if rot == 0.0 and not flip:
+        return None
+    return SkyFrame(angle=np.full(n, rot), flip=np.full(n, flip), g1=np.zeros(n),
+                    g2=np.zeros(n), has_wcs=np.ones(n, bool))  # fmt: skip
+
+
+def _to_sky(e: np.ndarray, s: np.ndarray, sky: tuple[float, bool]) -> tuple[np.ndarray, ...]:
+    """Pixel-frame ``(n, 2)`` ellipticities and sensitivities in the set's sky frame, as
+    the truth's ``e1_sky, e2_sky`` (:func:`pylensfit.simulate.pixel_to_sky_shear`; the
+    sensitivities as :func:`pylensfit.skyframe.sensitivity_to_sky`)."""
+    fr = _frame_of(e.shape[0], sky)
+    if fr is None:
+        return e, s
+    e1, e2 = pixel_to_sky_shear(e[:, 0], e[:, 1], *sky)
+    s1, s2 = sensitivity_to_sky(s[:, 0], s[:, 1], fr)
+    return np.column_stack([e1, e2]), np.column_stack([s1, s2])
+
+
+def _fixed_point(lnL: np.ndarray, egrid: np.ndarray, prior: Prior, refine: int,
+                 sky: tuple[float, bool]) -> ShearEstimate:  # fmt: skip
+    """:func:`pylensfit.shear_fixed_point` giving the sky-frame shear of a set's images
+    (one pixel frame, that of the WCS rotation and flip ``sky``)."""
+    fr = _frame_of(lnL.shape[0], sky)
+    if fr is None:
+        return shear_fixed_point(lnL, egrid, prior, refine=refine)
+    return shear_fixed_point(lnL, egrid, prior, refine=refine, frame=fr,
+                             groups=np.zeros(lnL.shape[0], dtype=np.int64))  # fmt: skip
+
+
 _EST_NAMES = ("psf", "file", "g1_true", "g2_true", "g1", "g1_err", "g2", "g2_err", "n", "n_pair")
 
 
 def _shear_estimates(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str, dict], *,
                      pairs: bool, estimator: str, prior: Prior, egrid: np.ndarray,
-                     refine: int, truth_control: bool = False) -> Table:  # fmt: skip
+                     refine: int, truth_control: bool = False,
+                     sky: tuple[float, bool] = (0.0, False)) -> Table:  # fmt: skip
     """One shear estimate per image (``pairs=False``) or per image + twin pair, with the
-    truth's shape noise taken out (:func:`truth_control_variate`) if ``truth_control``."""
+    truth's shape noise taken out (:func:`truth_control_variate`) if ``truth_control``.
+    ``e, s`` and the estimates are in the sky frame of the set (``sky``: its WCS
+    rotation, degrees, and flip)."""
     images = np.asarray(gal["image"]).astype(str)
     lnL = np.asarray(gal["lnL"])
     rows = []
@@ -1091,7 +1188,7 @@ def _shear_estimates(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str,
             sel = images == name
             try:
                 if estimator == "fixed-point":
-                    est = shear_fixed_point(lnL[sel], egrid, prior, refine=refine)
+                    est = _fixed_point(lnL[sel], egrid, prior, refine, sky)
                 else:
                     t = Table({"e1": e[sel, 0], "e2": e[sel, 1], "sens1": s[sel, 0],
                                "sens2": s[sel, 1]})  # fmt: skip
@@ -1132,7 +1229,7 @@ def _shear_estimates(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str,
                 est = group_shear(e_u, s_u)
                 res = (est.g1, est.g1_err, est.g2, est.g2_err)
                 if estimator == "fixed-point":  # the group together; error from the sums
-                    fp = shear_fixed_point(lnL[in_group], egrid, prior, refine=refine)
+                    fp = _fixed_point(lnL[in_group], egrid, prior, refine, sky)
                     res = (fp.g1, est.g1_err, fp.g2, est.g2_err)
                 if truth_control and len(rows_k):
                     names = sorted({str(images[r]) for r in rows_k[0]})
@@ -1235,6 +1332,162 @@ def c_scatter(c: np.ndarray, c_err: np.ndarray, cl: float = 0.95) -> dict[str, f
             "sigma_upper": root(float(chi2_dist.ppf(1.0 - cl, dof)))}  # fmt: skip
 
 
+def _leakage_bins(e, s, x, w, n_bins: int) -> list[tuple]:
+    """``(lo, hi, x_b, g_b, err_b, n_b)`` per bin of ``x`` (see :func:`psf_leakage`)."""
+    u = np.unique(x)
+    if u.size <= n_bins:  # one bin per value (a PSF constant over each image)
+        idx, edges = np.searchsorted(u, x), np.column_stack([u, u])
+    else:
+        e_ = np.unique(np.quantile(x, np.linspace(0.0, 1.0, n_bins + 1)))
+        idx, edges = bin_index(x, e_), np.column_stack([e_[:-1], e_[1:]])
+    out = []
+    for b in range(edges.shape[0]):
+        sel = idx == b
+        nb = int(sel.sum())
+        sw = float(np.sum(w[sel] * s[sel]))
+        if nb < 2 or not sw > 0:
+            continue
+        g = float(np.sum(w[sel] * e[sel])) / sw
+        xb = float(np.sum(w[sel] * s[sel] * x[sel])) / sw
+        var = nb / (nb - 1) * float(np.sum(w[sel] ** 2 * (e[sel] - g * s[sel]) ** 2))
+        out.append((float(edges[b, 0]), float(edges[b, 1]), xb, g, math.sqrt(var) / sw, nb))
+    return out
+
+
+def _line_fit(x: np.ndarray, y: np.ndarray, err: np.ndarray,
+              min_spread: float) -> tuple[float, ...]:  # fmt: skip
+    """Weighted least squares ``y = c + a x``: ``(a, a_err, c, c_err, chi2, dof)``; ``a``
+    NaN and ``c`` the weighted mean when ``x`` spans less than ``min_spread``."""
+    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(err) & (err > 0)
+    x, y, w = x[ok], y[ok], 1.0 / err[ok] ** 2
+    if x.size == 0:
+        return (math.nan,) * 4 + (math.nan, 0)
+    if x.size < 2 or not float(np.ptp(x)) >= min_spread:
+        c = float(np.sum(w * y) / np.sum(w))
+        return (math.nan, math.nan, c, float(1.0 / math.sqrt(np.sum(w))),
+                float(np.sum(w * (y - c) ** 2)), int(x.size - 1))  # fmt: skip
+    A = np.column_stack([np.ones_like(x), x])
+    cov = np.linalg.inv(A.T @ (A * w[:, None]))
+    c, a = cov @ (A.T @ (w * y))
+    chi2 = float(np.sum(w * (y - c - a * x) ** 2))
+    return (float(a), float(math.sqrt(cov[1, 1])), float(c), float(math.sqrt(cov[0, 0])), chi2,
+            int(x.size - 2))  # fmt: skip
+
+
+def psf_leakage(e1, e2, sens1, sens2, psf_e1, psf_e2, *, n_bins: int = 8, weights=None,
+                min_spread: float = 1e-4) -> dict[str, Any]:  # fmt: skip
+    """PSF leakage: the mean shear against the PSF's ellipticity, ``g_i = c_i + alpha_i e_psf,i``.
+
+    For each component ``i`` the galaxies are binned by the ellipticity of the PSF at
+    their position, ``e_psf,i`` (``n_bins`` bins of equal counts, or one bin per
+    distinct value when there are no more than ``n_bins``, as for a PSF constant over
+    each image). A bin's shear is the mean shear over mean sensitivity (docs: method,
+    eq-key2), ``g_b = sum w e_i / sum w s_i``, with the error from the scatter of its
+    galaxies, ``sqrt(n_b / (n_b - 1) sum w^2 (e_i - g_b s_i)^2) / sum w s_i``, at the
+    sensitivity-weighted mean PSF ellipticity ``x_b = sum w s_i e_psf,i / sum w s_i``
+    (for ``e_i = s_i (c_i + alpha_i e_psf,i)`` plus noise, ``g_b = c_i + alpha_i x_b``
+    exactly). ``c_i, alpha_i`` are the weighted least-squares fit of ``g_b`` on ``x_b``
+    (weights ``1 / err_b^2``), with the errors of its covariance.
+
+    Parameters
+    ----------
+    e1, e2 : array_like
+        ``(n,)`` ellipticities, or their residuals ``e - s g`` from a known shear ``g``,
+        in the frame of ``psf_e1, psf_e2`` (dimensionless).
+    sens1, sens2 : array_like
+        ``(n,)`` shear sensitivities ``d<e_i>/dg_i``.
+    psf_e1, psf_e2 : array_like
+        ``(n,)`` the PSF's ellipticity at each galaxy (dimensionless).
+    n_bins : int
+        Bins per component.
+    weights : array_like, optional
+        ``(n,)`` per-galaxy weights (default 1, e.g. the catalogue's inverse-variance
+        ``weight``); rows with a weight of 0 or any non-finite value are skipped.
+    min_spread : float
+        Least range of the bins' PSF ellipticities ``x_b`` for ``alpha`` to be fitted
+        (dimensionless); below it only ``c`` is (a PSF constant over the sample, to
+        rounding or to the ~1e-7 that the WCS's local frame moves it by).
+
+    Returns
+    -------
+    dict
+        ``alpha1, alpha1_err, c1, c1_err`` and the same for component 2
+        (dimensionless; ``alpha`` NaN where the bins' PSF ellipticities span less than
+        ``min_spread``, ``c`` then the sample's mean shear), ``chi2_1, dof_1, chi2_2,
+        dof_2`` of the fits, ``n1, n2`` (galaxies used) and ``bins``, a table with one
+        row per component and bin: ``component``, ``bin``, ``lo, hi`` (the bin's range of
+        ``e_psf``), ``psf_e`` (``x_b``), ``g``, ``g_err``, ``n``.
+    """
+    e = [np.asarray(a, dtype=float).ravel() for a in (e1, e2)]
+    s = [np.asarray(a, dtype=float).ravel() for a in (sens1, sens2)]
+    x = [np.asarray(a, dtype=float).ravel() for a in (psf_e1, psf_e2)]
+    n = e[0].size
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=float).ravel()
+    if any(a.size != n for a in (*e, *s, *x, w)):
+        raise ValueError("e1, e2, sens1, sens2, psf_e1, psf_e2 and weights must have one "
+                         "value per galaxy")  # fmt: skip
+    if int(n_bins) < 1:
+        raise ValueError(f"n_bins must be at least 1, got {n_bins}")
+    out: dict[str, Any] = {}
+    rows = []
+    for i in (0, 1):
+        ok = (np.isfinite(e[i]) & np.isfinite(s[i]) & np.isfinite(x[i]) & np.isfinite(w)
+              & (w > 0))  # fmt: skip
+        b = _leakage_bins(e[i][ok], s[i][ok], x[i][ok], w[ok], int(n_bins))
+        arr = np.array([r[2:5] for r in b], dtype=float).reshape(-1, 3)
+        a, ae, c, ce, chi2, dof = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], min_spread)
+        k = i + 1
+        out.update({f"alpha{k}": a, f"alpha{k}_err": ae, f"c{k}": c, f"c{k}_err": ce,
+                    f"chi2_{k}": chi2, f"dof_{k}": dof, f"n{k}": int(ok.sum())})  # fmt: skip
+        rows += [(k, j, *r) for j, r in enumerate(b)]
+    out["bins"] = Table(rows=rows, names=("component", "bin", "lo", "hi", "psf_e", "g", "g_err",
+                                          "n"),
+                        dtype=(int, int, float, float, float, float, float, int))  # fmt: skip
+    return out
+
+
+_LEAK_NAMES = ("psf", "source", "alpha1", "alpha1_err", "alpha2", "alpha2_err", "c1", "c1_err",
+               "c2", "c2_err", "n")  # fmt: skip
+
+
+def _leakage_table(gal: Table, e: np.ndarray, s: np.ndarray, fields: dict[str, dict],
+                   psfs: list[int], pairs: bool, n_bins: int = 8) -> Table:  # fmt: skip
+    """:func:`psf_leakage` per PSF and for all PSFs together (``psf == "all"``), with the
+    truth's PSF (``source == "truth"``: its ellipticity at each galaxy) and with the
+    catalogue's model PSF (``"model"``).
+
+    The galaxies matched to the truth enter with their residuals from their image's
+    shear, ``e - s g`` (``e, s``: the ``(n, 2)`` sky-frame shapes and sensitivities of
+    ``gal``'s rows; ``g`` the manifest's), so that images of different shears combine;
+    for a set with twins, the members of each group are summed (their shape noise
+    cancels) at the members' mean PSF ellipticity, and the galaxies outside the groups
+    are left out. ``n`` counts the galaxies (or groups) used.
+    """
+    names, inv = np.unique(np.asarray(gal["image"]).astype(str), return_inverse=True)
+    g = np.array([[fields[m]["g1"], fields[m]["g2"]] for m in names], float).reshape(-1, 2)
+    r = e - s * g[inv]
+    matched = (np.asarray(gal["truth_index"]) >= 0) & ~np.asarray(gal["truth_star"], bool)
+    if pairs:
+        mem = _group_members(_groups(gal, fields)[0])
+        mem = mem[matched[mem].all(axis=1)]
+    else:
+        mem = np.flatnonzero(matched)[:, None]
+    R, S = r[mem].sum(axis=1), s[mem].sum(axis=1)
+    psf_of = np.asarray(gal["psf"])[mem[:, 0]]
+    rows = []
+    for source, col in (("truth", "true"), ("model", "model")):
+        P = np.column_stack([np.asarray(gal[f"psf_e{i}_{col}"], float)[mem].mean(axis=1)
+                             for i in (1, 2)])  # fmt: skip
+        for k in [*psfs, "all"]:
+            sel = np.ones(len(R), bool) if k == "all" else psf_of == k
+            res = psf_leakage(R[sel, 0], R[sel, 1], S[sel, 0], S[sel, 1], P[sel, 0], P[sel, 1],
+                              n_bins=n_bins)  # fmt: skip
+            rows.append((str(k), source, *(res[q] for q in _LEAK_NAMES[2:-1]),
+                         min(res["n1"], res["n2"])))  # fmt: skip
+    return Table(rows=rows, names=_LEAK_NAMES,
+                 dtype=(str, str, *[float] * 8, int))  # fmt: skip
+
+
 def _summary(per: Table) -> dict[str, float]:
     """``<m>`` over PSFs and components, its errors, ``sigma_c``, its statistical floor and
     the spread of ``c`` beyond the errors (:func:`c_scatter`)."""
@@ -1306,7 +1559,7 @@ _BIN_NAMES = ("kind", "bin", "lo", "hi", "center", "psf", "n_gal", "n_used", "n_
 
 
 def _bins_table(kind, edges, pg, sg, e_s_of, psfs, fields, pairs, estimator, egrid, cfg,
-                min_count) -> list[tuple]:  # fmt: skip
+                min_count, sky=(0.0, False)) -> list[tuple]:  # fmt: skip
     """Rows of ``meta["bins"]`` for one binned quantity (see :func:`validate`)."""
     vp, vs = np.asarray(pg[kind], float), np.asarray(sg["_bin_" + kind], float)
     okp = np.isfinite(vp)
@@ -1320,8 +1573,8 @@ def _bins_table(kind, edges, pg, sg, e_s_of, psfs, fields, pairs, estimator, egr
         sub = sg[sel]
         e, s = e_s_of(sub, prior_b)
         est = _shear_estimates(sub, e, s, fields, pairs=pairs, estimator=estimator,
-                               prior=prior_b, egrid=egrid,
-                               refine=cfg.output_refine)  # fmt: skip
+                               prior=prior_b, egrid=egrid, refine=cfg.output_refine,
+                               sky=sky)  # fmt: skip
         mc, _ = _mc_rows(est, psfs)
         center = float(np.median(vs[sel])) if sel.any() else 0.5 * (edges[b] + edges[b + 1])
         for row in mc:
@@ -1445,6 +1698,10 @@ def validate(
        prior per bin estimated from the prior-field galaxies of that bin
        (:func:`pylensfit.prior.estimate_prior_binned`; a bin with fewer than
        ``bin_min_count`` of them uses the global prior, as noted in the table).
+    7. **PSF leakage**: ``alpha`` of ``g = c + alpha e_psf`` (:func:`psf_leakage`) per
+       PSF and over all PSFs, on the galaxies matched to the truth (their residuals
+       from the input shear; twin groups summed), with the truth's PSF ellipticity at
+       each galaxy and with the catalogue's model PSF.
 
     The binned quantities are those a lensing analysis would use:
 
@@ -1537,11 +1794,21 @@ def validate(
         components; for ``all``, over PSFs and components as ``<m>``), ``mean_c,
         mean_c_err``), ``bin_edges``,
         ``psf_check``, ``prior_check``, ``diagnosis`` and ``measured`` (the catalogue
-        paths and whether each was reused), ``psf_source`` (``"stars"`` or ``"true"``).
+        paths and whether each was reused), ``psf_source`` (``"stars"`` or ``"true"``),
+        ``leakage`` (the PSF leakage ``alpha`` of :func:`psf_leakage` per PSF and ``all``,
+        with the true and with the model PSF: columns ``psf, source, alpha1, alpha1_err,
+        alpha2, alpha2_err, c1, c1_err, c2, c2_err, n``).
+
+        Shapes, shears and the truth are compared in the sky frame of the set's WCS
+        (its manifest's ``wcs_rotation_deg`` and ``wcs_flip``): the shapes from the
+        ``lnL`` grids are taken to it with the truth's ``e1_sky, e2_sky``
+        (:func:`pylensfit.simulate.pixel_to_sky_shear`), the fixed point solves for the
+        sky-frame shear, and the manifest's shears are the sky frame's.
     """
     if estimator not in ("key2", "fixed-point"):
         raise ValueError(f"estimator must be 'key2' or 'fixed-point', got {estimator!r}")
     man = read_manifest(directory)
+    sky = _set_frame(man)
     bins = dict(DEFAULT_BINS if bins is None else bins)
     if bins and man.get("fieldspec", {}).get("model") == "step2":
         bins.setdefault("morphology", _MORPHOLOGY_EDGES)
@@ -1572,11 +1839,12 @@ def validate(
             pr = priors_of.get(k) if role == "shear" else None
             cat, reused = _measured(name, sel, stars[k], cfg, mdir, jobs=jobs, progress=progress,
                                     remeasure=remeasure, priors=pr, psf=given)  # fmt: skip
+            _check_frame(cat, sky, name)
             if role == "prior":
                 priors_of[k] = cat.meta["priors"]
             measured[name] = {"path": str(mdir / f"{name}.fits"), "reused": reused}
             egrid = cat.meta["egrid"]
-            lst.append(_galaxies(cat, fields, k, fwhm))
+            lst.append(_galaxies(cat, fields, k, fwhm, sky))
             if role == "shear" and "psfs" in cat.meta:
                 p = cat.meta["psfs"]
                 pt = man["psfs"][k]
@@ -1604,12 +1872,14 @@ def validate(
         if len(t) == 0:
             return np.zeros((0, 2)), np.zeros((0, 2))
         sh = shapes(np.asarray(t["lnL"]), egrid, p, sensitivity=cfg.sensitivity, refine=refine)
-        return (np.column_stack([sh["e1"], sh["e2"]]), np.column_stack([sh["sens1"], sh["sens2"]]))
+        # the lnL grids are the pixel frame's; the truth and the shears the sky frame's
+        return _to_sky(np.column_stack([sh["e1"], sh["e2"]]),
+                       np.column_stack([sh["sens1"], sh["sens2"]]), sky)
 
     e, s = e_s_of(sg, prior)
     psfs = sorted(by_psf)
     kw = dict(estimator=estimator, prior=prior, egrid=egrid, refine=refine,
-              truth_control=truth_control)  # fmt: skip
+              truth_control=truth_control, sky=sky)  # fmt: skip
     img = _shear_estimates(sg, e, s, fields, pairs=False, **kw)
     pairs = any(f["twin"] or f.get("noise_twin") for f in man["fields"])
     mc, fit_rows = _mc_rows(img, psfs)
@@ -1635,6 +1905,7 @@ def validate(
     out.meta["measured"] = measured
     out.meta["psf_source"] = "true" if true_psf else "stars"
     out.meta["truth_control"] = bool(truth_control)
+    out.meta["leakage"] = _leakage_table(sg, e, s, fields, psfs, pairs)
     # bins (paper Table 2): a group's value is the mean of its members'
     gid = _groups(sg, fields)[0] if pairs else np.full(len(sg), -1)
     has = gid >= 0
@@ -1654,7 +1925,7 @@ def validate(
             continue
         bin_edges[kind] = edges
         bin_rows += _bins_table(kind, edges, pg, sg, e_s_of, psfs, fields, pairs, estimator,
-                                egrid, cfg, bin_min_count)  # fmt: skip
+                                egrid, cfg, bin_min_count, sky)  # fmt: skip
     out.meta["bins"] = Table(rows=bin_rows, names=_BIN_NAMES) if bin_rows else Table()
     out.meta["bin_edges"] = bin_edges
     # diagnostics: the PSF models and the prior against the truth
@@ -1913,6 +2184,31 @@ def _group_words(man: dict) -> str:
             + "; every unmatched usable detection counted on its own)")
 
 
+def _leakage_lines(lk: Table | None) -> list[str]:
+    """The report's lines on the PSF leakage (``meta["leakage"]`` of :func:`validate`):
+    one per PSF source, with all PSFs together and each PSF whose ellipticity varies."""
+    if lk is None or not len(lk):
+        return []
+
+    def fit(r) -> str | None:
+        if not (np.isfinite(r["alpha1"]) and np.isfinite(r["alpha2"])):
+            return None
+        return (f"alpha1 = {r['alpha1']:+.4f} +- {r['alpha1_err']:.4f}, alpha2 = "
+                f"{r['alpha2']:+.4f} +- {r['alpha2_err']:.4f}")  # fmt: skip
+
+    words = {"truth": "the true PSF (its adaptive-moment e at each galaxy)",
+             "model": "the catalogue's model PSF (PSF_e1, PSF_e2)"}  # fmt: skip
+    out = [""]
+    for source, what in words.items():
+        t = lk[lk["source"] == source]
+        parts = [f"{'all PSFs' if r['psf'] == 'all' else 'PSF ' + r['psf']}: {fit(r)}"
+                 for r in t if fit(r) is not None]  # fmt: skip
+        out.append(f"- PSF leakage (g = c + alpha e_psf, sky frame) with {what}: "
+                   + ("; ".join(parts) if parts else "not measured (the PSF's ellipticity "
+                      "does not vary)") + ".")  # fmt: skip
+    return out
+
+
 def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
     """Write the Markdown report of :func:`validate` and its PNG figures beside it.
 
@@ -1981,6 +2277,7 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
              f"{meta.get('sigma_c_upper', math.nan):.1e} at 95 %), Q = {res['Q'][-1]:.0f}", "",
              *_MC_HEAD]  # fmt: skip
     lines += [_fmt_row(r) for r in res]
+    lines += _leakage_lines(meta.get("leakage"))
     lines += ["", f"![g_meas - g_true]({pngs['resid'].name})", "",
               "## Diagnosis", ""]  # fmt: skip
     names = {"m": "|<m>| <= 0.006 (within error)", "sigma_c": "sigma_c <= 2e-4", "Q": "Q >= 100"}
