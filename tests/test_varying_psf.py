@@ -62,3 +62,42 @@ def test_each_galaxy_is_fitted_with_the_psf_at_its_position(field):
     a_poly, s_poly = _leakage(t, c)
     assert a_const > 5 * s_const, (a_const, s_const)  # the uncorrected PSF shows through
     assert abs(a_poly) < 3 * s_poly and abs(a_poly) < 0.3 * abs(a_const), (a_poly, s_poly)
+
+
+def test_a_piff_model_fitted_to_the_same_stars(field, tmp_path):
+    """The same with a Piff model (PixelGrid, quadratic in the position) that Piff fits
+    to the field's stars, given to ``measure`` as its file."""
+    piff = pytest.importorskip("piff")
+    import galsim
+    from astropy.io import fits
+
+    path, truth = field
+    image = fits.getdata(path).astype(float) - SPEC.sky
+    full = galsim.ImageD(image, scale=1.0)  # GalSim's (1, 1) is numpy's [0, 0]
+    wt = galsim.ImageD(np.full(image.shape, 1.0 / SPEC.noise_sigma**2), scale=1.0)
+    stars = []
+    st = truth[np.asarray(truth["is_star"])]
+    for xi, yi in zip(np.asarray(st["x"]) + 1.0, np.asarray(st["y"]) + 1.0, strict=True):
+        ix, iy = int(round(xi)), int(round(yi))
+        b = galsim.BoundsI(ix - 12, ix + 12, iy - 12, iy + 12)
+        if not full.bounds.includes(b):
+            continue
+        data = piff.StarData(full[b].copy(), galsim.PositionD(xi, yi), weight=wt[b].copy(),
+                             properties={"chipnum": 0})  # fmt: skip
+        stars.append(piff.Star(data, None))
+    try:
+        interp = piff.BasisPolynomial(order=2, solver="cpp")
+    except (TypeError, ValueError):
+        interp = piff.BasisPolynomial(order=2)
+    model = piff.SimplePSF(piff.PixelGrid(scale=1.0, size=15), interp, max_iter=3)
+    model.set_context({0: galsim.PixelScale(1.0)}, None)
+    model.fit(stars)
+    model.write(str(tmp_path / "field.piff"))
+    cat = measure([path], psf=tmp_path / "field.piff", config=CFG, prior=Prior(),
+                  progress=False)  # fmt: skip
+    t, c = _matched(cat, truth)
+    assert len(t) > 250
+    d = np.concatenate([c["PSF_e1"] - t["psf_e1_obs"], c["PSF_e2"] - t["psf_e2_obs"]])
+    assert np.sqrt(np.mean(d**2)) < 0.006
+    a, s = _leakage(t, c)
+    assert abs(a) < 3 * s, (a, s)

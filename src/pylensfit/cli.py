@@ -399,7 +399,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--psf-dir", help="write each image's PSF and star diagnostics here")
     m.add_argument("--psf", nargs="+", help="the PSF instead of stacking stars: a FITS image "
                    "(pixel response included, centred on pixel [n//2, n//2]; a --psf-dir "
-                   "file will do) for every image, or one per image")  # fmt: skip
+                   "file will do) or a PSF model over the field (a Piff file, *.piff, with "
+                   "the piff extra; a polynomial model from --psf-dir), for every image or "
+                   "one per image")  # fmt: skip
     m.add_argument("--overwrite", action="store_true", help="replace an existing output")
     m.add_argument("--jobs", type=_jobs, default=1, help="local worker processes")
     m.add_argument("--scheduler", help="dask.distributed scheduler address")

@@ -63,10 +63,9 @@ from .psf import (
     centre_on_stamp,
     combine_psfs,
     psf_from_image,
-    read_psf,
     stack_psf,
 )
-from .psfmodel import PolynomialPSF, PSFModel
+from .psfmodel import ConstantPSF, PolynomialPSF, PSFModel, read_psf_model
 from .shear import shapes as _shapes
 from .skyframe import (
     SkyFrame,
@@ -442,8 +441,11 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         except PSFError as err:
             psf_note = str(err)
             log.info("%s", err)
-    field_model = None  # a PSF varying over the image (Config.psf_model = "polynomial")
-    if cfg.psf_model == "polynomial" and task.get("psf") is None:
+    field_model = None  # a PSF varying over the image (given, or Config.psf_model)
+    if isinstance(task.get("psf"), PSFModel):  # e.g. a Piff model
+        field_model = task["psf"]
+        psfs = [field_model.centre]
+    elif cfg.psf_model == "polynomial" and task.get("psf") is None:
         psfs = list(task.get("star_psfs", []))
         if n:
             try:
@@ -1287,7 +1289,7 @@ def measure(
     prior: Prior | str | os.PathLike | None = None,
     size_prior: SizePrior | str | os.PathLike | None = None,
     priors: Priors | str | os.PathLike | None = None,
-    psf: PSFResult | np.ndarray | str | os.PathLike | Sequence | None = None,
+    psf: PSFResult | PSFModel | np.ndarray | str | os.PathLike | Sequence | None = None,
     output: str | os.PathLike | None = None,
     psf_dir: str | os.PathLike | None = None,
     overwrite: bool = False,
@@ -1303,7 +1305,15 @@ def measure(
         FITS images (background need not be subtracted). A ``WEIGHT`` HDU (inverse
         variance) and a ``MASK`` HDU (non-zero = bad) in the same file are used if present.
     stars : list of str, optional
-        Separate star-field images; their PSFs are co-added with each image's own.
+        Separate star-field images; their PSFs are co-added with each image's own
+        (``Config.psf_model = "polynomial"``: the polynomial model of the most stars is
+        used).
+    psf : PSFResult, PSFModel, numpy.ndarray or str, or a list of them, optional
+        The PSF instead of stars: an image (pixel response included, centred on
+        ``[n//2, n//2]``) or its file, a :class:`~pylensfit.psfmodel.PSFModel` (a PSF
+        over the field, each galaxy fitted with it at the centre of its cell of
+        ``Config.psf_cells``) or a file :func:`~pylensfit.psfmodel.read_psf_model`
+        reads (a Piff model); one for every image or one per image.
     weights, masks : list of str, optional
         Weight and mask files, one per image (``None`` entries allowed).
     catalogues : list of str, optional
@@ -1544,18 +1554,22 @@ def _calibrate_images(tasks: list[dict], cfg: Config, prior: Prior | None,
                       size_priors=None if size_prior is None else [size_prior])[0]
 
 
-def _given_psfs(psf, images: list[str]) -> list[PSFResult] | None:
-    """``measure``'s ``psf=`` as one :class:`PSFResult` per image (``None``: not given)."""
+def _given_psfs(psf, images: list[str]) -> list[PSFResult | PSFModel] | None:
+    """``measure``'s ``psf=`` as one :class:`PSFResult` (a constant PSF) or
+    :class:`~pylensfit.psfmodel.PSFModel` (a PSF over the field, e.g. Piff's) per image
+    (``None``: not given)."""
     if psf is None:
         return None
-    single = isinstance(psf, (PSFResult, str, os.PathLike)) or (
+    single = isinstance(psf, (PSFResult, PSFModel, str, os.PathLike)) or (
         isinstance(psf, np.ndarray) and psf.ndim == 2)
     items = [psf] * len(images) if single else list(psf)
     if len(items) != len(images):
         raise InputError(f"psf: {len(items)} PSF(s) given for {len(images)} image(s)")
     out, cache = [], {}
     for item, img in zip(items, images, strict=True):
-        if isinstance(item, PSFResult):
+        if isinstance(item, ConstantPSF):
+            item = item.psf
+        if isinstance(item, (PSFResult, PSFModel)):
             out.append(item)
             continue
         key = str(item) if isinstance(item, (str, os.PathLike)) else id(item)
@@ -1564,10 +1578,11 @@ def _given_psfs(psf, images: list[str]) -> list[PSFResult] | None:
                 if isinstance(item, (str, os.PathLike)):
                     if not Path(item).exists():
                         raise InputError(f"{item}: PSF file not found")
-                    cache[key] = read_psf(item)
+                    model = read_psf_model(item)
+                    cache[key] = model.psf if isinstance(model, ConstantPSF) else model
                 else:
                     cache[key] = psf_from_image(item, source="psf=")
-            except PSFError as err:
+            except (PSFError, ImportError) as err:  # ImportError: piff not installed
                 raise InputError(f"the PSF for {img}: {err}") from None
         out.append(cache[key])
     return out
