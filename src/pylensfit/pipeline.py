@@ -566,6 +566,9 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         _store_fit(f, idx, x, y, fcx, fcy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
                    xf, yf, is_star)  # fmt: skip
 
+    # the PSF the neighbours are rendered with: each object's cell's, or the image's
+    render_psf = (cell_images, cell) if cell_images is not None else (
+        psf.image if psf is not None else None)
     if todo.size:
         fits_ = fit(todo)
         store(fits_, todo)
@@ -586,11 +589,11 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
             return back - bkg.back
 
         redo, defect = subtract_neighbours(
-            sub.shape, x, y, xf, yf, noise, todo, fits_, psf.image, cfg, fit, store,
+            sub.shape, x, y, xf, yf, noise, todo, fits_, render_psf, cfg, fit, store,
             sky=sky if cfg.model_background else None, data=bstamps)  # fmt: skip
     elif todo.size:  # no refit: the first fits are judged as they are
         others, _, own, _ = _neighbour_light(sub.shape, x, y, xf, yf, todo, fits_,
-                                             psf.image, cfg, own_too=True)  # fmt: skip
+                                             render_psf, cfg, own_too=True)  # fmt: skip
         defect = _implausible_models(bstamps, todo, noise, fits_, cfg, others, own)
     if defect.any():
         flags[todo[defect]] |= _flags.flag_value("DEFECT")
@@ -710,8 +713,9 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
         Indices of the objects fitted, in the order of ``first``.
     first : StampFits
         Their first fits.
-    psf : numpy.ndarray
-        PSF image.
+    psf : numpy.ndarray or tuple
+        PSF image, or ``(images, cell)``: ``(n_cells, N, N)`` PSF images and each
+        object's cell (``(n_objects,)``), every model rendered with its cell's PSF.
     cfg : Config
     refit : callable
         ``refit(idx, others)`` fits the stamps of objects ``idx`` less ``others``.
@@ -910,7 +914,8 @@ def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: in
     field, so of every stamp but their own. With ``own_too``, two more: each object's
     own model (``(n, N, N)``, zero where none; the excluded objects' too) and the light
     of the excluded objects in each stamp, less its own (``(n, N, N)``, or ``None``
-    where none is excluded).
+    where none is excluded). ``psf`` is the PSF image, or ``(images, cell)`` for a PSF
+    per cell of the image (:func:`subtract_neighbours`).
     """
     from .models import render_models
     from .stamps import add_patches, patch_origins
@@ -931,16 +936,23 @@ def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: in
     own = np.zeros((x.size, n_stamp, n_stamp))
     bx0, by0 = patch_origins(x[obj], y[obj], big)
     lo = big // 2 - n_stamp // 2
-    for s0 in range(0, obj.size, block):
-        sl = slice(s0, s0 + block)
-        pat = render_models(big, psf, xf[obj[sl]] - bx0[sl], yf[obj[sl]] - by0[sl], e1[sl],
-                            e2[sl], r[sl], flux[sl], model=cfg.model, bulge_fraction=bf[sl],
-                            bulge_size_ratio=cfg.bulge_size_ratio)  # fmt: skip
-        k = into[sl]
-        add_patches(field, pat[k], bx0[sl][k], by0[sl][k])
-        if aside is not None:
-            add_patches(aside, pat[~k], bx0[sl][~k], by0[sl][~k])
-        own[obj[sl]] = pat[:, lo : lo + n_stamp, lo : lo + n_stamp]
+    if isinstance(psf, tuple):  # a PSF per cell of the image: each model with its own
+        images, cell = psf
+        groups = [(images[c], np.flatnonzero(cell[obj] == c)) for c in np.unique(cell[obj])]
+    else:
+        groups = [(psf, np.arange(obj.size))]
+    for p_img, members in groups:
+        for s0 in range(0, members.size, block):
+            sl = members[s0 : s0 + block]
+            pat = render_models(big, p_img, xf[obj[sl]] - bx0[sl], yf[obj[sl]] - by0[sl],
+                                e1[sl], e2[sl], r[sl], flux[sl], model=cfg.model,
+                                bulge_fraction=bf[sl],
+                                bulge_size_ratio=cfg.bulge_size_ratio)  # fmt: skip
+            k = into[sl]
+            add_patches(field, pat[k], bx0[sl][k], by0[sl][k])
+            if aside is not None:
+                add_patches(aside, pat[~k], bx0[sl][~k], by0[sl][~k])
+            own[obj[sl]] = pat[:, lo : lo + n_stamp, lo : lo + n_stamp]
     stamps, _, _, _ = cut_stamps(field, x, y, n_stamp)
     if into.all():
         stamps -= own
