@@ -447,11 +447,14 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         psfs = [field_model.centre]
     elif cfg.psf_model == "polynomial" and task.get("psf") is None:
         psfs = list(task.get("star_psfs", []))
+        best = max([m.diagnostics.get("n_used", 0) for m in psfs], default=0)
         if n:
             try:
-                own_model, own_stars = _poly_from_stars(sub, img, det, cfg,
-                                                        task.get("star_column"))  # fmt: skip
-                psfs.append(own_model)
+                # the image's own stars only where they may beat the star fields' model
+                if int(_psf_stars(img, det, cfg, task.get("star_column")).sum()) > best:
+                    own_model, own_stars = _poly_from_stars(sub, img, det, cfg,
+                                                            task.get("star_column"))  # fmt: skip
+                    psfs.append(own_model)
             except PSFError as err:
                 psf_note = str(err)
                 log.info("%s", err)
