@@ -480,9 +480,13 @@ def _keep(cache: dict, key, value, size: int) -> None:
     cache[key] = value
 
 
-#: the last few PSFs' banks: a pipeline fits an image's galaxies with one PSF in
-#: several calls (blocks, neighbour subtraction), a precision block its renderings
+#: the last PSFs' banks: a pipeline fits an image's galaxies with one PSF in several
+#: calls (blocks, neighbour subtraction), or with one PSF per cell of a PSF over the
+#: field (Config.psf_cells^2 per stamp tier, so 8 x 8 cells and two tiers need 128); a
+#: precision block its renderings. An entry holds 4 floats per model (1.4 MB for
+#: Config()'s 44,557 models).
 _PSF_BANKS: dict = {}
+_PSF_BANKS_KEPT = 144
 
 
 def _psf_bank(psf: np.ndarray, config: Config, bank) -> _PSFBank:
@@ -494,7 +498,7 @@ def _psf_bank(psf: np.ndarray, config: Config, bank) -> _PSFBank:
     if hit is not None and hit[0] is bank:
         return hit[1]
     pb = _psf_bank_of(psf, config, bank)
-    _keep(_PSF_BANKS, key, (bank, pb), 16)
+    _keep(_PSF_BANKS, key, (bank, pb), _PSF_BANKS_KEPT)
     return pb
 
 
