@@ -250,6 +250,12 @@ def test_write_read_roundtrip(bright, tmp_path):
         res.write(path)
     bright[0].write(path, overwrite=True)
     assert PSFResult.read(path).n_used == 30
+    # a source as long as an ordinary file path (its card would be too long with a
+    # comment, a warning that pytest makes an error)
+    for n in (40, 55, 68, 120):
+        res.source = "/data/survey/" + "x" * n + ".fits"
+        res.write(path, overwrite=True)
+        assert PSFResult.read(path).source == res.source
 
 
 def test_stacked_psf_gives_the_same_likelihood_peak(bright):

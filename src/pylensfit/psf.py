@@ -230,7 +230,8 @@ class PSFResult:
         ):
             if np.isfinite(value):
                 hdr[key] = (float(value), comment)
-        hdr["SOURCE"] = (str(self.source), "origin of the stars")
+        src = str(self.source)  # a long path keeps its card's room (CONTINUE cards)
+        hdr["SOURCE"] = (src, "origin of the stars") if len(src) < 45 else src
         tab = fits.table_to_hdu(self.stars())
         tab.name = "STARS"
         atomic_write(fits.HDUList([prim, tab]), path, overwrite=overwrite)
