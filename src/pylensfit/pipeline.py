@@ -70,6 +70,7 @@ from .shear import shapes as _shapes
 from .skyframe import (
     SkyFrame,
     covariance_to_sky,
+    frame_of_table,
     local_frame,
     pixel_frame,
     sensitivity_to_sky,
@@ -1687,13 +1688,7 @@ def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
 def catalogue_frame(cat: Table) -> SkyFrame:
     """The sky frame of each row of a :func:`measure` catalogue (its ``sky_angle``,
     ``sky_flip``, ``wcs_g1``, ``wcs_g2`` columns; the pixel frame where it has none)."""
-    if "sky_angle" not in cat.colnames:
-        return pixel_frame(len(cat))
-    ang = np.asarray(cat["sky_angle"], dtype=float)
-    return SkyFrame(angle=ang, flip=np.asarray(cat["sky_flip"], dtype=bool),
-                    g1=np.asarray(cat["wcs_g1"], dtype=float),
-                    g2=np.asarray(cat["wcs_g2"], dtype=float),
-                    has_wcs=np.isfinite(np.asarray(cat["ALPHA_J2000"], dtype=float)))  # fmt: skip
+    return frame_of_table(cat)
 
 
 def _to_sky_frame(cat: Table) -> None:

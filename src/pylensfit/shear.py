@@ -38,7 +38,7 @@ from ._util import check_egrid, check_lnL
 from .flags import flag_value
 from .grid import grid_step
 from .prior import BinnedPrior, Prior, usable_rows
-from .skyframe import SkyFrame, shear_to_pixel, spin2_matrix, to_sky
+from .skyframe import SkyFrame, frame_of_table, shear_to_pixel, spin2_matrix, to_sky
 
 __all__ = [
     "FLAG_BAD_LIKELIHOOD",
@@ -976,11 +976,7 @@ def table_frame(table: Table) -> tuple[SkyFrame | None, np.ndarray | None]:
     need = ("sky_angle", "sky_flip", "wcs_g1", "wcs_g2", "image_index")
     if not all(c in table.colnames for c in need):
         return None, None
-    fr = SkyFrame(angle=np.nan_to_num(np.asarray(table["sky_angle"], dtype=float)),
-                  flip=np.asarray(table["sky_flip"], dtype=bool),
-                  g1=np.nan_to_num(np.asarray(table["wcs_g1"], dtype=float)),
-                  g2=np.nan_to_num(np.asarray(table["wcs_g2"], dtype=float)),
-                  has_wcs=np.ones(len(table), bool))  # fmt: skip
+    fr = frame_of_table(table)
     if fr.is_identity():
         return None, None
     return fr, np.asarray(table["image_index"])
@@ -1247,6 +1243,7 @@ def shear_fixed_point(
             raise ValueError("a sky frame needs the groups (images) that share a pixel frame")
         gf, inv = _group_frames(frame, np.asarray(groups)[ok])
         M = spin2_matrix(gf)
+        row_frame = _rows_frame(gf, inv)  # each row with its group's frame
     wsum = float(n if w is None else w.sum())
     g = np.zeros(2)
     for _ in range(n_iter):
@@ -1262,8 +1259,7 @@ def shear_fixed_point(
                 mk, jk = _fixed_point_terms(lnL[sel], egrid, prior, grid,
                                             np.array([gp1[k], gp2[k]]), refine, block_size,
                                             None if w is None else w[sel])  # fmt: skip
-                fk = _select_frame(gf, k, int(sel.sum()))
-                m[sel, 0], m[sel, 1] = to_sky(mk[:, 0], mk[:, 1], fk)
+                m[sel, 0], m[sel, 1] = to_sky(mk[:, 0], mk[:, 1], _rows_frame(row_frame, sel))
                 jac += M[k] @ jk @ M[k].T
         jac = jac - wsum * np.eye(2)
         f = (np.array([m[:, 0].sum(), m[:, 1].sum()]) if w is None else w @ m) - wsum * g
@@ -1275,13 +1271,6 @@ def shear_fixed_point(
         err = [float(np.sqrt(np.sum(w**2 * (m[:, i] - g[i]) ** 2))) / abs(jac[i, i]) if n > 1
                else math.nan for i in range(2)]  # fmt: skip
     return ShearEstimate(g1=float(g[0]), g2=float(g[1]), g1_err=err[0], g2_err=err[1], n=n)
-
-
-def _select_frame(frame, k: int, n: int):
-    """Group ``k`` of a per-group frame, repeated for its ``n`` rows."""
-    return SkyFrame(angle=np.full(n, frame.angle[k]), flip=np.full(n, frame.flip[k]),
-                    g1=np.full(n, frame.g1[k]), g2=np.full(n, frame.g2[k]),
-                    has_wcs=np.ones(n, bool))  # fmt: skip
 
 
 def sums_with(

@@ -35,6 +35,7 @@ __all__ = [
     "pixel_frame",
     "to_sky",
     "covariance_to_sky",
+    "frame_of_table",
     "sensitivity_to_sky",
     "shear_to_pixel",
     "wcs_from_header",
@@ -81,6 +82,18 @@ def pixel_frame(n: int) -> SkyFrame:
     z = np.zeros(n)
     return SkyFrame(angle=z, flip=np.zeros(n, bool), g1=z.copy(), g2=z.copy(),
                     has_wcs=np.zeros(n, bool))  # fmt: skip
+
+
+def frame_of_table(table) -> SkyFrame:
+    """The sky frame of each row of a catalogue, from its ``sky_angle``, ``sky_flip``,
+    ``wcs_g1``, ``wcs_g2`` columns (the pixel frame for a table without them)."""
+    if "sky_angle" not in table.colnames:
+        return pixel_frame(len(table))
+    col = lambda c: np.nan_to_num(np.asarray(table[c], dtype=float))  # noqa: E731
+    has = (np.isfinite(np.asarray(table["ALPHA_J2000"], dtype=float))
+           if "ALPHA_J2000" in table.colnames else np.ones(len(table), bool))  # fmt: skip
+    return SkyFrame(angle=col("sky_angle"), flip=np.asarray(table["sky_flip"], dtype=bool),
+                    g1=col("wcs_g1"), g2=col("wcs_g2"), has_wcs=has)
 
 
 def wcs_from_header(header):
