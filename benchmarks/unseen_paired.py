@@ -805,6 +805,51 @@ def m_c_regauss(e: np.ndarray, g: float, n_groups: int):
     return _jackknife(fn, len(e), n_groups)
 
 
+def kind_table(pop: Population, psfs, e_plf, s_plf, ok_plf, e_hsm, ok_hsm, g: float,
+               n_groups: int) -> list[dict]:
+    """m and c of both methods per galaxy kind, the mean over the PSFs ``psfs``.
+
+    Parameters
+    ----------
+    pop : Population
+        The main sample.
+    psfs : iterable of int
+        The PSFs measured.
+    e_plf, s_plf, ok_plf, e_hsm, ok_hsm : numpy.ndarray
+        The per-rendering columns (``(n, 4, 2)`` and ``(n, 4)``).
+    g : float
+        The shear.
+    n_groups : int
+        Jackknife groups per PSF and kind.
+
+    Returns
+    -------
+    list of dict
+        Rows as for :func:`print_table`, the ``psf`` field naming the kind.
+    """
+    out = []
+    for name in ("pylensfit", "REGAUSS"):
+        for ik, kname in enumerate(KINDS):
+            per = []
+            for ipsf in sorted(psfs):
+                sel = np.flatnonzero((pop.psf == ipsf) & (pop.kind == ik))
+                if name == "pylensfit":
+                    keep = np.all(ok_plf[sel], axis=1)
+                    v, err = m_c_ratio(e_plf[sel][keep], s_plf[sel][keep], g, n_groups)
+                else:
+                    keep = np.all(ok_hsm[sel], axis=1)
+                    v, err = m_c_regauss(e_hsm[sel][keep], g, n_groups)
+                r = {"method": name, "psf": kname, "n": int(keep.sum())}
+                for q, x, dx in zip(("m1", "m2", "c1", "c2"), v, err, strict=True):
+                    r[q], r[f"{q}_err"] = float(x), float(dx)
+                per.append(r)
+            if per:
+                row = _mean_row(name, per)
+                row["psf"] = kname
+                out.append(row)
+    return out
+
+
 # ----------------------------------------------------------------------------------------
 # The run
 # ----------------------------------------------------------------------------------------
@@ -863,13 +908,25 @@ def main(argv=None) -> int:
     ap.add_argument("--chunk", type=int, default=500,
                     help="main-sample galaxies rendered and measured at a time (per PSF)")
     ap.add_argument("--task", type=int, default=25, help="galaxies per worker task")
+    ap.add_argument("--psfs", default=None,
+                    help="comma-separated PSF indices to run (default: all; the population "
+                         "is the same, so runs of different PSFs combine)")
     ap.add_argument("--out", default=None, help="write the table (ECSV) here")
+    ap.add_argument("--columns", default=None,
+                    help="write the per-rendering columns and the population (NPZ) here")
     a = ap.parse_args(argv)  # fmt: skip
     if a.estimator == "plf" and a.method != "api":
         ap.error("--estimator plf needs --method api (the table's lnL and meta)")
     if min(a.chunk, a.task, a.jobs, a.block) < 1:
         ap.error("--chunk, --task, --jobs and --block must be positive")
     ncal = min(a.ngal, 20000) if a.ncal is None else a.ncal
+    try:
+        run_psfs = (range(len(PSFS)) if a.psfs is None
+                    else sorted({int(x) for x in a.psfs.split(",")}))  # fmt: skip
+    except ValueError:
+        ap.error(f"--psfs: not a comma-separated list of integers: {a.psfs!r}")
+    if any(not 0 <= i < len(PSFS) for i in run_psfs):
+        ap.error(f"--psfs: indices must be in 0..{len(PSFS) - 1}")
     shared = not a.independent_noise
     keep_lnL = a.estimator == "plf"
 
@@ -899,7 +956,7 @@ def main(argv=None) -> int:
     with _pool(a.jobs) as rpool, _pool(a.jobs) as hpool:
         _start(rpool, a.jobs)
         _start(hpool, a.jobs)
-        for ipsf in range(len(PSFS)):
+        for ipsf in run_psfs:
             sel = np.flatnonzero(pop.psf == ipsf)
             csel = np.flatnonzero(cal.psf == ipsf)
             if len(sel) == 0:
@@ -962,6 +1019,7 @@ def main(argv=None) -> int:
     table_rows = []
     for name in rows:
         table_rows += rows[name] + [_mean_row(name, rows[name])]
+    kind_rows = kind_table(pop, done, e_plf, s_plf, ok_plf, e_hsm, ok_hsm, a.g, a.groups)
 
     n_main = a.ngal * n_r
     n_all = n_main + ncal
@@ -989,6 +1047,8 @@ def main(argv=None) -> int:
     print(f"{'renderings usable':22s} {ok_plf.mean():14.3f} {ok_hsm.mean():14.3f}")
     print()
     print_table(table_rows)
+    print("\nby kind (paired selection; the mean over the PSFs run):")
+    print_table(kind_rows)
     print(f"\ntotal {time.perf_counter() - t_start:.1f} s; pylensfit {plf.__version__}")
 
     if a.out:
@@ -1004,6 +1064,12 @@ def main(argv=None) -> int:
                       t_render=t_render, argv=sys.argv[1:])  # fmt: skip
         t.write(a.out, format="ascii.ecsv", overwrite=True)
         print(f"wrote {a.out}")
+    if a.columns:
+        np.savez_compressed(a.columns, e_plf=e_plf, s_plf=s_plf, ok_plf=ok_plf, e_hsm=e_hsm,
+                            ok_hsm=ok_hsm, psfs_run=np.array(sorted(done)), g=a.g,
+                            **{f"pop_{k}": getattr(pop, k)
+                               for k in pop.__dataclass_fields__})  # fmt: skip
+        print(f"wrote {a.columns}")
     return 0
 
 
