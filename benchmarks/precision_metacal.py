@@ -46,9 +46,9 @@ def _block(task: dict) -> dict:
     """Render, fit and metacalibrate one block (runs in a worker)."""
     from pylensfit.likelihood import fit_stamps
     from pylensfit.metacal import metacal_shapes
-    from pylensfit.pipeline import _single_thread
+    from pylensfit.runner import single_thread
 
-    _single_thread(task.get("single_thread", False))
+    single_thread(task.get("single_thread", False))
     spec, cfg, prior, bw = task["spec"], task["config"], task["prior"], task["bulge_weights"]
     stamps, psf, truth = P.render_block(spec, task["psf"], task["block"],
                                         stamp_size=cfg.largest_stamp,

@@ -43,7 +43,7 @@ def _cmdline(pid: int) -> str:
 
 _SCRIPT = """
 import time
-from pylensfit.pipeline import _pool, _run
+from pylensfit.runner import run_tasks, worker_pool
 
 def task(t):
     time.sleep(120)
@@ -52,11 +52,11 @@ def task(t):
 if __name__ == "__main__":
     tasks = [{"i": i} for i in range(4)]
     if SHARED:  # the pool that several passes share (measure, the precision mode)
-        with _pool(2) as pool:
-            for _ in _run(task, tasks, 2, None, "t", False, pool=pool):
+        with worker_pool(2) as pool:
+            for _ in run_tasks(task, tasks, 2, None, "t", False, pool=pool):
                 pass
     else:  # one call's own pool
-        for _ in _run(task, tasks, 2, None, "t", False):
+        for _ in run_tasks(task, tasks, 2, None, "t", False):
             pass
 """
 
@@ -64,7 +64,7 @@ if __name__ == "__main__":
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc")
 @pytest.mark.parametrize("shared", [False, True])
 def test_pool_workers_end_with_a_killed_run(tmp_path, shared):
-    """SIGKILL to a process running tasks on the pipeline's pool: its workers, busy with
+    """SIGKILL to a process running tasks on the runner's pool: its workers, busy with
     long tasks, end within a few seconds instead of running on as orphans."""
     script = tmp_path / "run.py"
     script.write_text(_SCRIPT.replace("SHARED", str(shared)))

@@ -12,7 +12,7 @@ import galsim
 import numpy as np
 import pytest
 
-from pylensfit.psf import REASONS, PSFError, PSFResult, _gaussian_peak, _pad_to, stack_psf
+from pylensfit.psf import REASONS, PSFError, PSFResult, gaussian_peak, pad_to, stack_psf
 from pylensfit.psfmodel import (
     ConstantPSF,
     PiffNotInstalledError,
@@ -102,9 +102,9 @@ def gaussian_centre(images, sigma=2.0):
 
     images = np.atleast_3d(images).reshape(-1, *np.shape(images)[-2:])
     big = images.shape[-1] + 9
-    D = np.fft.rfft2(_pad_to(images, big)) * _phase(big)[None]
+    D = np.fft.rfft2(pad_to(images, big)) * _phase(big)[None]
     z = np.zeros(len(images))
-    X, Y, ok = _gaussian_peak(D, sigma, z, z, 2.0)
+    X, Y, ok = gaussian_peak(D, sigma, z, z, 2.0)
     assert ok.all()
     return X, Y
 

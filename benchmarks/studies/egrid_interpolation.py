@@ -67,9 +67,9 @@ def _sublattice(grid: np.ndarray, inner: np.ndarray, width: int) -> np.ndarray:
 
 
 def _task(t: dict) -> dict:
-    from pylensfit.pipeline import _single_thread
+    from pylensfit.runner import single_thread
 
-    _single_thread(True)
+    single_thread(True)
     spec, cfg, b, edge = t["spec"], t["config"], t["block"], t["edge"]
     k = b % len(spec.psfs)
     sp = P.population_size_prior(spec, k, stamp_size=cfg.largest_stamp)

@@ -63,9 +63,9 @@ def _sublattice(grid: np.ndarray, step: float):
 
 
 def _task(t: dict) -> dict:
-    from pylensfit.pipeline import _single_thread
+    from pylensfit.runner import single_thread
 
-    _single_thread(True)
+    single_thread(True)
     spec, cfg, b = t["spec"], t["config"], t["block"]
     k = b % len(spec.psfs)
     size_prior = P.population_size_prior(spec, k, stamp_size=cfg.largest_stamp)

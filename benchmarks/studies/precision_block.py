@@ -62,9 +62,9 @@ def main() -> None:
 def _fit_cost(spec, cfg, psfs, repeat: int) -> None:
     """CPU seconds of ``fit_stamps`` on one block, unbounded and bounded flux prior."""
     from pylensfit.likelihood import fit_stamps
-    from pylensfit.pipeline import _single_thread
+    from pylensfit.runner import single_thread
 
-    _single_thread(True)
+    single_thread(True)
     for psf in psfs:
         stamps, img, _ = P.render_block(spec, psf, psf + 4, stamp_size=cfg.largest_stamp)
         st = stamps.reshape(-1, *stamps.shape[2:])

@@ -21,6 +21,7 @@ from contextlib import AbstractContextManager, nullcontext
 import numba
 import numpy as np
 from numba import njit, prange
+from scipy.special import log_ndtr
 
 _LN2PI = math.log(2.0 * math.pi)
 
@@ -66,8 +67,6 @@ def _one_launch_at_a_time(kernel: Callable) -> Callable:
 
 def _phi_table(t0: float, t1: float, step: float):
     """Knots of ``ln Phi(t)``, ``lambda = phi / Phi`` and ``d lambda / dt`` for Hermite."""
-    from scipy.special import log_ndtr
-
     t = np.arange(t0, t1 + 2 * step, step)
     g = log_ndtr(t)
     lam = np.exp(-0.5 * t * t - 0.5 * _LN2PI - g)

@@ -21,10 +21,13 @@ values are validated once, when the object is made.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
+
+import yaml
 
 __all__ = ["PRESETS", "Config", "ConfigError"]
 
@@ -440,7 +443,7 @@ class Config:
         then with ``bulge_size_ratio2 > 0`` the fractions above 0 again with that size,
         then the Sersic ladder's (one run, the fixed ``bulge_fraction``, unless the
         fractions are marginalised)."""
-        from .models import bank_runs
+        from .models import bank_runs  # models imports Config: a cycle at module level
 
         return bank_runs(self.model, float(self.bulge_fraction), float(self.bulge_size_ratio),
                          int(self.n_bulge_fractions), float(self.bulge_size_ratio2),
@@ -485,8 +488,6 @@ class Config:
         known = {f.name: f for f in fields(cls)}
         unknown = sorted(set(values) - set(known), key=str)
         if unknown:
-            import difflib
-
             # one line: the keys (at most three named) and the closest known ones (the
             # three closest to a single key, the closest to each of two or three)
             shown = unknown[:3]
@@ -521,8 +522,6 @@ class Config:
     @classmethod
     def from_yaml(cls, path: str | Path, **overrides: Any) -> Config:
         """Read a YAML file of ``key: value`` pairs; keyword overrides win."""
-        import yaml
-
         path = Path(path)
         try:
             text = path.read_text()
@@ -541,8 +540,6 @@ class Config:
 
     def to_yaml(self, path: str | Path) -> None:
         """Write the parameters as YAML."""
-        import yaml
-
         Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
 
 

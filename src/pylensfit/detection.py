@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import sep
 from astropy.table import Table
+from scipy.ndimage import binary_dilation
 from scipy.spatial import cKDTree
 
 from .flags import flag_value
@@ -928,8 +929,6 @@ def grow_mask(mask, grow: int) -> np.ndarray:
     g = int(grow)
     if g <= 0 or not m.any():
         return m.copy()
-    from scipy.ndimage import binary_dilation
-
     return binary_dilation(m, structure=np.ones((2 * g + 1, 2 * g + 1), dtype=bool))
 
 

@@ -40,19 +40,27 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 from dataclasses import dataclass, field, fields, replace
 from functools import lru_cache
 from pathlib import Path
 
+import numba
 import numpy as np
+from astropy.io import fits
+from astropy.table import Table
+from threadpoolctl import ThreadpoolController
 
 from . import flags as _flags
+from ._kernels_nb import amplitude_table, laplace_grid, laplace_grid_tab
 from ._util import newton_peak, per_object
+from .catalogue import atomic_write
 from .config import Config
 from .grid import ellipticity_grid
 from .models import fourier_profile, half_light_radius, in_disc, model_bank, rfft_frequencies
 from .prior import Prior
 from .psf import psf_transform
+from .shear import refine_lnL
 
 __all__ = ["StampFits", "fit_stamps"]
 
@@ -71,10 +79,6 @@ def _fork_safe_threading() -> None:
     A layer chosen with ``NUMBA_THREADING_LAYER`` or ``numba.config`` is kept, and so is
     one that already runs (numba starts its layer at the first parallel kernel).
     """
-    import os
-
-    import numba
-
     if (numba.config.THREADING_LAYER == "default"
             and not os.environ.get("NUMBA_THREADING_LAYER")
             and not os.environ.get("NUMBA_THREADING_LAYER_PRIORITY")):  # fmt: skip
@@ -182,8 +186,6 @@ class StampFits:
 
     def to_table(self):
         """An :class:`astropy.table.Table` with one row per stamp, ``lnL`` a 2-D column."""
-        from astropy.table import Table
-
         t = Table({name: getattr(self, name) for name in self._COLUMNS})
         if self.stamp is not None:
             t["stamp"] = self.stamp
@@ -199,10 +201,6 @@ class StampFits:
 
     def write(self, path: str | Path, *, overwrite: bool = False) -> None:
         """Write as FITS: the table in HDU 1, the ellipticity grid in HDU 2 (atomic)."""
-        from astropy.io import fits
-
-        from .catalogue import atomic_write
-
         tab = fits.table_to_hdu(self.to_table())
         tab.name = "FITS"
         eg = fits.ImageHDU(self.egrid, name="EGRID")
@@ -211,9 +209,6 @@ class StampFits:
     @classmethod
     def read(cls, path: str | Path) -> StampFits:
         """Read a file written by :meth:`write`."""
-        from astropy.io import fits
-        from astropy.table import Table
-
         with fits.open(path) as hdul:
             t = Table(hdul["FITS"].data)
             fracs = hdul["FITS"].header.get("BULGEFR")
@@ -655,8 +650,6 @@ def fit_stamps(
 
 @lru_cache(maxsize=1)
 def _blas_controller():
-    from threadpoolctl import ThreadpoolController
-
     return ThreadpoolController()
 
 
@@ -699,7 +692,7 @@ def _fit_stamps(stamps, psf, noise_sigma, config, centres, size_prior, size_marg
         parts.append((idx, _fit_window(stamps[idx], psf, sigma[idx], sub, cx[idx], cy[idx],
                                        size_prior, size_marginal_prior,
                                        lnL_r_groups)))  # fmt: skip
-    return _merge_fits(parts, n_gal)
+    return merge_fits(parts, n_gal)
 
 
 def _stamp_tiers(stamps, psf, sigma, cfg: Config, cx, cy, n_tiers: int) -> np.ndarray:
@@ -759,8 +752,24 @@ def _stamp_tiers(stamps, psf, sigma, cfg: Config, cx, cy, n_tiers: int) -> np.nd
     return np.clip(tier, 1, np.clip(2 * room // n0, 1, n_tiers))
 
 
-def _merge_fits(parts: list, n_gal: int) -> StampFits:
-    """One :class:`StampFits` from fits of disjoint subsets ``(index, fits)``."""
+def merge_fits(parts: list[tuple[np.ndarray, StampFits]], n_gal: int) -> StampFits:
+    """One :class:`StampFits` from fits of disjoint subsets of ``n_gal`` galaxies.
+
+    Parameters
+    ----------
+    parts : list of (numpy.ndarray, StampFits)
+        ``(index, fits)``: the galaxies' positions in the merged result (integer
+        indices or a boolean mask of length ``n_gal``) and their fits, all made with the
+        same ellipticity grid and model bank.
+    n_gal : int
+        Number of galaxies in the merged result; every one must be in exactly one part.
+
+    Returns
+    -------
+    StampFits
+        Per-galaxy arrays filled from the parts; the grid, bank and ``meta`` from the
+        first part, with ``meta["stamp_sizes"]`` the stamp sizes of the merged set.
+    """
     first = parts[0][1]
     out = {}
     for f in fields(StampFits):
@@ -877,8 +886,6 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     D = np.fft.rfft2(stamps) * np.exp(1j * (kx * c + ky * c))[None]
     xc, yc, no_peak = _centre(D, pb.P.reshape(kx.shape), cfg, x0, y0)
     flags[no_peak & ~bad] |= _flags.flag_value("NO_PEAK")
-    from ._kernels_nb import laplace_grid
-
     dtype = np.dtype(cfg.dtype)
     n_e, n_r = bank.n_e, bank.n_r
     fb = _folded_bank(cfg, bank)
@@ -1115,9 +1122,6 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
     Returns the fine grid, ``ln L(e)`` ``(n, n_f)`` and per fraction ``(n, n_f, n_b)``
     (NaN for unusable rows), on the scale of ``lnle``.
     """
-    from ._kernels_nb import amplitude_table, laplace_grid_tab
-    from .shear import refine_lnL
-
     k = int(cfg.e_refine)
     cfg_f = cfg.replace(e_step=cfg.output_e_step, e_refine=1)
     bank_f = model_bank(cfg_f)

@@ -28,14 +28,16 @@ row; the ``flags`` column says why an object was not measured.
 
 from __future__ import annotations
 
+import datetime
 import hashlib
 import json
 import logging
 import os
+import re
 import shutil
 import time
+import warnings
 from collections.abc import Iterable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,9 +51,20 @@ from astropy.table import Table, vstack
 from . import flags as _flags
 from ._version import __version__
 from .calibration import CalibrationSample, Priors, flag_low_snr, run_recipe, usable_galaxies
-from .catalogue import COLUMNS, FITCLASS, atomic_write
+from .catalogue import COLUMNS, FITCLASS, atomic_write, column_table
 from .config import Config
+from .detection import (
+    close_pairs,
+    detect,
+    grow_mask,
+    measure_background,
+    saturation_level,
+    saturation_mask,
+    select_stars,
+)
 from .grid import ellipticity_grid
+from .likelihood import e_annuli, fit_stamps, merge_fits
+from .models import model_bank, render_models
 from .prior import (
     Prior,
     SizePrior,
@@ -66,6 +79,8 @@ from .psf import (
     stack_psf,
 )
 from .psfmodel import ConstantPSF, PolynomialPSF, PSFModel, read_psf_model
+from .runner import run_tasks, single_thread, worker_pool
+from .shear import refine_lnL
 from .shear import shapes as _shapes
 from .skyframe import (
     SkyFrame,
@@ -77,7 +92,7 @@ from .skyframe import (
     to_sky,
     wcs_from_header,
 )
-from .stamps import cut_stamps
+from .stamps import add_patches, cut_stamps, patch_origins
 from .weights import inverse_variance_weights
 
 __all__ = ["InputError", "measure", "read_catalogue", "write_catalogue"]
@@ -215,8 +230,6 @@ _NOWHERE = -1e7
 def _detect(img: _Image, cfg: Config, positions: Table | None):
     """Background-subtracted image, the object table (detections or input positions) and
     the :class:`~pylensfit.detection.Background`."""
-    from .detection import detect, measure_background
-
     bkg = measure_background(img.data, mask=img.bad, weight=img.weight, box=cfg.background_box)
     det = detect(
         img.data, weight=img.weight, mask=img.bad, threshold=cfg.detect_threshold,
@@ -289,8 +302,6 @@ def _mask_saturated(img: _Image, cfg: Config) -> np.ndarray:
     InputError
         If no pixel is left unmasked.
     """
-    from .detection import grow_mask, saturation_level, saturation_mask
-
     level = saturation_level(img.header, cfg.saturation)
     sat = saturation_mask(img.data, level, cfg.saturation_grow)
     img.bad |= sat | grow_mask(~np.isfinite(img.data), cfg.saturation_grow)
@@ -308,8 +319,6 @@ def _box_any(mask: np.ndarray, x: np.ndarray, y: np.ndarray, size: int) -> np.nd
     """Whether the ``size x size`` stamp about each ``(x, y)`` (as
     :func:`~pylensfit.stamps.cut_stamps` cuts it; clipped to the image) holds a pixel of
     ``mask``: a summed-area table, O(1) per object."""
-    from .stamps import patch_origins
-
     if x.size == 0 or not mask.any():
         return np.zeros(x.size, dtype=bool)
     ny, nx = mask.shape
@@ -323,8 +332,6 @@ def _box_any(mask: np.ndarray, x: np.ndarray, y: np.ndarray, size: int) -> np.nd
 
 def _psf_stars(img: _Image, det: Table, cfg: Config, star_col) -> np.ndarray:
     """The detections selected as PSF stars; ``PSFError`` if fewer than psf_min_stars."""
-    from .detection import select_stars
-
     stars = select_stars(det, min_peak_snr=cfg.star_min_peak_snr, column=star_col)
     if stars.sum() < cfg.psf_min_stars:
         raise PSFError(f"{img.path}: {int(stars.sum())} star(s) pass the selection "
@@ -387,7 +394,7 @@ def _cell_psfs(model: PSFModel, shape: tuple[int, int], cells: int):
 
 def _starfield_task(task: dict[str, Any]) -> PSFResult | PSFModel:
     """The PSF of a separate star-field image."""
-    _single_thread(task.get("single_thread", False))
+    single_thread(task.get("single_thread", False))
     cfg = Config.from_dict(task["config"])
     img = _read_image(task["path"], task.get("weight"), task.get("mask"))
     _mask_saturated(img, cfg)
@@ -402,23 +409,10 @@ def _starfield_task(task: dict[str, Any]) -> PSFResult | PSFModel:
         raise InputError(f"{img.path}: no usable star for the PSF ({err})") from None
 
 
-def _single_thread(on: bool) -> None:
-    if not on:
-        return
-    import numba
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)
-    numba.set_num_threads(1)
-
-
 def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     """Measure one image: every detected object gets a row, measured or flagged."""
-    from .likelihood import _merge_fits, fit_stamps
-    from .models import model_bank
-
     t0 = time.perf_counter()
-    _single_thread(task.get("single_thread", False))
+    single_thread(task.get("single_thread", False))
     cfg = Config.from_dict(task["config"])
     path = task["path"]
     img = _read_image(path, task.get("weight"), task.get("mask"))
@@ -498,8 +492,6 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     o = n_big // 2 - cfg.stamp_size // 2  # the base stamp's origin in the larger one
     fcx, fcy = np.where(use_big, bcx, cx), np.where(use_big, bcy, cy)
     if n:
-        from .detection import close_pairs
-
         # a galaxy is a close pair if a significant detection lies inside its stamp; a
         # faint detection (often a noise peak) is one if anything does
         fr = cfg.close_pair_faint_ratio or None
@@ -520,8 +512,6 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     keep_r = bool(task.get("keep_lnL_r"))
     rings = None
     if task.get("keep_lnL_r") == "annuli":  # L(r) per ring of |e|, for any prior of |e|
-        from .likelihood import e_annuli
-
         rings = e_annuli(bank.egrid)
         lnL_r = np.full((n, int(rings.max()) + 1, bank.n_r + 1), np.nan, dtype=np.float32)
     else:
@@ -547,7 +537,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
             sel = np.flatnonzero(cell[idx] == c)
             parts.append((sel, fit_with(idx[sel], None if less is None else less[sel],
                                         cell_images[c])))  # fmt: skip
-        return parts[0][1] if len(parts) == 1 else _merge_fits(parts, idx.size)
+        return parts[0][1] if len(parts) == 1 else merge_fits(parts, idx.size)
 
     def fit_with(idx, less, psf_image):
         parts = []
@@ -564,7 +554,7 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
                 data, psf_image, noise[j], config=c, centres=(fcx[j], fcy[j]),
                 size_prior=size_prior, lnL_r_groups=rings,
                 size_marginal_prior=task.get("size_marginal_prior"))))  # fmt: skip
-        return parts[0][1] if len(parts) == 1 else _merge_fits(parts, idx.size)
+        return parts[0][1] if len(parts) == 1 else merge_fits(parts, idx.size)
 
     def store(f, idx):
         _store_fit(f, idx, x, y, fcx, fcy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
@@ -586,8 +576,6 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         def sky(field):
             """The change of the background measured on the image less ``field``."""
             nonlocal back
-            from .detection import measure_background
-
             back = measure_background(img.data - field, mask=img.bad, weight=img.weight,
                                       box=cfg.background_box).back  # fmt: skip
             return back - bkg.back
@@ -808,8 +796,6 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
 def _likelihood_mean_e(lnL: np.ndarray, egrid: np.ndarray, block: int = 512) -> np.ndarray:
     """``(n, 2)`` mean of each ``L(e)`` (flat prior) on the refined integration grid: the
     ellipticity of a neighbour's model, continuous where the most likely cell is not."""
-    from .shear import refine_lnL
-
     out = np.zeros((lnL.shape[0], 2))
     for s0 in range(0, lnL.shape[0], block):
         fine, grid = refine_lnL(lnL[s0 : s0 + block], egrid)
@@ -921,9 +907,6 @@ def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: in
     where none is excluded). ``psf`` is the PSF image, or ``(images, cell)`` for a PSF
     per cell of the image (:func:`subtract_neighbours`).
     """
-    from .models import render_models
-    from .stamps import add_patches, patch_origins
-
     n_stamp = cfg.largest_stamp  # the stamps of the tiers (Config.max_stamp_size)
     big = max(4 * cfg.stamp_size, 2 * n_stamp)
     good = _rendered(f)
@@ -1065,94 +1048,6 @@ def _read_part(path: Path) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------------------
-# Running tasks: in-process, local process pool, or dask.distributed
-# ----------------------------------------------------------------------------------------
-def _exit_with_parent(parent: int) -> None:
-    """A pool worker's initializer: the worker ends within a second of the process that
-    started it (a run killed by a signal runs no clean-up and would leave its workers
-    computing, and holding their memory, for as long as their tasks last)."""
-    import threading  # only in the workers
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(1.0)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True, name="pylensfit-parent-watch").start()
-
-
-def _executor(jobs: int) -> ProcessPoolExecutor:
-    """``jobs`` spawned worker processes that end with this one."""
-    import multiprocessing as mp  # only for a pool
-
-    return ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                               initializer=_exit_with_parent, initargs=(os.getpid(),))
-
-
-@contextmanager
-def _pool(jobs: int, scheduler: str | None = None) -> Iterator[ProcessPoolExecutor | None]:
-    """One pool of ``jobs`` local worker processes for several :func:`_run` calls.
-
-    Workers keep what they build between tasks (the model banks: 30-40 s per process
-    for the precision mode's bulge+disc banks on two stamp tiers), so a run of several
-    passes pays for it once per worker instead of once per pass. ``None`` (nothing to
-    share) with a scheduler or one job.
-    """
-    if scheduler or jobs <= 1:
-        yield None
-        return
-    with _executor(jobs) as ex:
-        yield ex
-
-
-def _run(fn, tasks: Sequence[dict], jobs: int, scheduler: str | None, desc: str,
-         progress: bool, pool: ProcessPoolExecutor | None = None,
-         ) -> Iterator[tuple[dict, Any]]:  # fmt: skip
-    """Yield ``(task, result)`` as tasks finish; exceptions propagate. With ``pool``
-    (:func:`_pool`) the tasks run on its workers."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=len(tasks), desc=desc, unit="image", disable=not progress or not tasks,
-               leave=False)  # fmt: skip
-    try:
-        if not tasks:
-            return
-        if scheduler:
-            from distributed import Client
-            from distributed import as_completed as dask_completed
-
-            with Client(scheduler) as client:
-                futs = {client.submit(fn, t, pure=False): t for t in tasks}
-                for f in dask_completed(futs):
-                    yield futs.pop(f), f.result()  # the cluster's copy freed with it
-                    bar.update()
-        elif pool is not None:
-            futs = {pool.submit(fn, {**t, "single_thread": True}): t for t in tasks}
-            try:
-                for f in as_completed(futs):
-                    # a finished future is dropped as its result is handed on: kept, every
-                    # result would be held twice until the call ends (the precision
-                    # mode's calibration keeps its blocks' likelihood grids)
-                    yield futs.pop(f), f.result()
-                    bar.update()
-            finally:  # a failed task: the rest of this call's tasks are not wanted
-                for f in futs:
-                    f.cancel()
-        elif jobs <= 1 or len(tasks) == 1:
-            for t in tasks:
-                yield t, fn(t)
-                bar.update()
-        else:
-            with _executor(min(jobs, len(tasks))) as ex:
-                futs = {ex.submit(fn, {**t, "single_thread": True}): t for t in tasks}
-                for f in as_completed(futs):
-                    yield futs.pop(f), f.result()
-                    bar.update()
-    finally:
-        bar.close()
-
-
-# ----------------------------------------------------------------------------------------
 # The public entry point
 # ----------------------------------------------------------------------------------------
 def _as_list(v, n: int, name: str) -> list:
@@ -1178,8 +1073,6 @@ def _image_shapes(path: str, what: str) -> dict[str, tuple[int, ...]]:
         astropy reads what is there with a warning, and would leave the rest out or fail
         when the image's task runs), or one without a 2-D image.
     """
-    import warnings
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # astropy's truncation warnings: reported below
         with _open(path, what) as hdul:
@@ -1261,8 +1154,6 @@ def _check_inputs(images: list[str], weights: list, masks: list, stars: list[str
 def _is_temporary(p: Path, name: str | None = None) -> bool:
     """Whether ``p`` is a temporary of :func:`pylensfit.catalogue.atomic_write` (of the
     file ``name``, else of any file): ``.<name>.<8 characters>.tmp``."""
-    import re
-
     stem = re.escape(name) if name is not None else r".+"
     return re.fullmatch(rf"\.{stem}\.[a-z0-9_]{{8}}\.tmp", p.name) is not None
 
@@ -1418,11 +1309,11 @@ def measure(
 
     # one set of workers for every pass; a run failing before it has written a part
     # leaves no empty <output>.parts/
-    with _pool(jobs, scheduler) as pool, _parts_dropped_if_unused(parts):
+    with worker_pool(jobs, scheduler) as pool, _parts_dropped_if_unused(parts):
         # star fields first: their PSFs go to every image
         star_psfs = []
         st_tasks = [{"path": p, "config": cfgd, "index": i} for i, p in enumerate(stars)]
-        for _, res in _run(_starfield_task, st_tasks, jobs, scheduler, "star fields",
+        for _, res in run_tasks(_starfield_task, st_tasks, jobs, scheduler, "star fields",
                             progress, pool):
             star_psfs.append(res)
         star_psfs.sort(key=lambda r: stars.index(r.source))
@@ -1459,7 +1350,7 @@ def measure(
                 if not pp.exists():
                     _write_part(pp, results[t["index"]])
         todo = _resumed([t for t in final if t["index"] not in results], parts, results)
-        for t, res in _run(_image_task, todo, jobs, scheduler, "images", progress, pool):
+        for t, res in run_tasks(_image_task, todo, jobs, scheduler, "images", progress, pool):
             if parts is not None:
                 _write_part(_part_path(parts, t), res)
             results[t["index"]] = res
@@ -1537,7 +1428,7 @@ def _calibrate_images(tasks: list[dict], cfg: Config, prior: Prior | None,
         if parts is not None and not keep:
             parts.mkdir(parents=True, exist_ok=True)
             todo = _resumed(run, parts, results)
-        for t, res in _run(_image_task, todo, jobs, scheduler, label, progress, pool):
+        for t, res in run_tasks(_image_task, todo, jobs, scheduler, label, progress, pool):
             if parts is not None and not keep:
                 _write_part(_part_path(parts, t), res)
             results[t["index"]] = res
@@ -1717,10 +1608,6 @@ def _card(header, key: str, value: str, comment: str) -> None:
 
 def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = False) -> None:
     """Write a catalogue from :func:`measure` as FITS (see :mod:`pylensfit.catalogue`)."""
-    import datetime
-
-    from .catalogue import column_table
-
     plain = cat.copy(copy_data=False)
     lnL = np.asarray(plain["lnL"], dtype=np.float32)
     plain.remove_column("lnL")

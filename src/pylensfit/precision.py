@@ -92,8 +92,8 @@ from .calibration import MIN_FLUX_RANGE_GALAXIES, CalibrationSample, run_recipe
 from .config import Config
 from .likelihood import e_annuli, fit_stamps
 from .models import DEVAUC_TRUNCATION, model_bank
-from .pipeline import _pool, _run, _single_thread
 from .prior import Prior, SizePrior, mix_bulge_fractions
+from .runner import run_tasks, single_thread, worker_pool
 from .shear import (
     DEFAULT_STENCIL,
     kernel_columns,
@@ -658,7 +658,7 @@ def _usable(fits, min_snr: float = 0.0) -> np.ndarray:
 
 def _block_task(task: dict[str, Any]) -> dict[str, Any]:
     """Render, fit and reduce one block (runs in a worker)."""
-    _single_thread(task.get("single_thread", False))
+    single_thread(task.get("single_thread", False))
     spec: PrecisionSpec = task["spec"]
     cfg: Config = task["config"]
     t0 = time.perf_counter()
@@ -1116,14 +1116,14 @@ def precision(
                   "keep_lnL_r": "annuli" if keep else False}
                  for b in range(ncb)]  # fmt: skip
         parts = []
-        for _, r in sorted(_run(_block_task, tasks, jobs, scheduler, label, progress, pool),
+        for _, r in sorted(run_tasks(_block_task, tasks, jobs, scheduler, label, progress, pool),
                            key=lambda tr: tr[0]["block"]):  # fmt: skip
             parts.append(r["sample"])
             render_s += r["render_s"]
             fit_s += r["fit_s"]
         return CalibrationSample.concatenate(parts)
 
-    with _pool(jobs, scheduler) as pool:  # one set of workers for every pass
+    with worker_pool(jobs, scheduler) as pool:  # one set of workers for every pass
         cal_priors = run_recipe(
             calibration_pass, cfg, npsf, prior=prior, size_priors=given_sp,
             bulge_weights=bulge_weights, flux_slope=flux_slope, flux_bounds=flux_bounds,
@@ -1155,7 +1155,7 @@ def precision(
                   "psf": b % npsf, "block": b, "calibration": False}
                  for b in range(nb)]  # fmt: skip
         parts: dict[int, dict] = {}
-        for t, r in _run(_block_task, tasks, jobs, scheduler, "precision", progress,
+        for t, r in run_tasks(_block_task, tasks, jobs, scheduler, "precision", progress,
                          pool):
             parts[t["block"]] = r
     res = [parts[b] for b in range(nb)]

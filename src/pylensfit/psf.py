@@ -326,7 +326,7 @@ def read_psf(path: str | Path) -> PSFResult:
     return psf_from_image(data, source=str(path))
 
 
-def _pad_to(images: np.ndarray, n: int) -> np.ndarray:
+def pad_to(images: np.ndarray, n: int) -> np.ndarray:
     """Zero-pad (or crop) a ``(m, s, s)`` stack to ``(m, n, n)`` keeping ``[s//2, s//2]``."""
     s = images.shape[-1]
     lo = n // 2 - s // 2
@@ -337,7 +337,7 @@ def _pad_to(images: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def _shift(F0: np.ndarray, X: np.ndarray, Y: np.ndarray, big: int, size: int) -> np.ndarray:
+def subpixel_shift(F0: np.ndarray, X: np.ndarray, Y: np.ndarray, big: int, size: int) -> np.ndarray:
     """Images ``s(x + X)`` from their ``rfft2`` on ``big x big``, cropped to ``size``.
 
     The exact Fourier (periodic sinc) shift: a star centred at ``big//2 + X`` lands on
@@ -350,19 +350,20 @@ def _shift(F0: np.ndarray, X: np.ndarray, Y: np.ndarray, big: int, size: int) ->
     return img[:, lo : lo + size, lo : lo + size]
 
 
-def _gaussian_ft(big: int, sigma: float) -> np.ndarray:
+def gaussian_ft(big: int, sigma: float) -> np.ndarray:
+    """``rfft2`` (on ``big x big``) of a round unit-flux Gaussian of ``sigma`` pixels."""
     kx, ky, _ = rfft_frequencies(big)
     return np.exp(-0.5 * (kx * kx + ky * ky) * sigma**2)
 
 
-def _gaussian_peak(D: np.ndarray, sigma: float, x0: np.ndarray, y0: np.ndarray, radius: float):
+def gaussian_peak(D: np.ndarray, sigma: float, x0: np.ndarray, y0: np.ndarray, radius: float):
     """Peak of the cross-correlation with a round Gaussian nearest ``(x0, y0)``.
 
     Integer maximum within ``radius`` of ``(x0, y0)`` (offsets from the frame centre),
     then Newton steps. Returns ``X, Y, ok`` (``ok`` false: no positive, curved peak).
     """
     big = D.shape[-2]
-    R = _gaussian_ft(big, sigma)
+    R = gaussian_ft(big, sigma)
     cc = np.fft.irfft2(D * R[None], s=(big, big))  # cc[i, iy, ix] = h(X=(ix, iy))
     off = (np.arange(big) + big // 2) % big - big // 2
     dx = off[None, None, :] - x0[:, None, None]
@@ -376,13 +377,14 @@ def _gaussian_peak(D: np.ndarray, sigma: float, x0: np.ndarray, y0: np.ndarray, 
     return X, Y, ok & (peak > 0)
 
 
-def _gaussian_image(size: int, sigma: float) -> np.ndarray:
+def gaussian_image(size: int, sigma: float) -> np.ndarray:
+    """A ``size x size`` round Gaussian of ``sigma`` pixels at ``[size//2, size//2]``, sum 1."""
     r = np.arange(size) - size // 2
     g = np.exp(-0.5 * (r[:, None] ** 2 + r[None, :] ** 2) / sigma**2)
     return g / g.sum()
 
 
-def _adaptive_moments(image: np.ndarray) -> tuple[float, float, float]:
+def adaptive_moments(image: np.ndarray) -> tuple[float, float, float]:
     """``(sigma, e1, e2)`` from GalSim's adaptive moments; NaN if they fail."""
     import galsim  # galsim: heavy import, only for the adaptive moments
 
@@ -428,11 +430,11 @@ def psf_diagnostics(image: np.ndarray) -> dict[str, float]:
         band-limited image (pixels); ``sigma``, ``e1``, ``e2``: GalSim's adaptive
         moments (size in pixels; ellipticity ``(a - b) / (a + b)``), NaN if they fail.
     """
-    sigma, e1, e2 = _adaptive_moments(image)
+    sigma, e1, e2 = adaptive_moments(image)
     return {"fwhm": _effective_fwhm(image), "sigma": sigma, "e1": e1, "e2": e2}
 
 
-def _cutouts(image, weight, x, y, big):
+def star_cutouts(image, weight, x, y, big):
     """``big x big`` cutouts about the nearest pixel of each position, and reasons."""
     ny, nx = image.shape
     n = x.size
@@ -608,7 +610,7 @@ def stack_psf(
     big = size + 2 * margin + 1
     npix = size * size
 
-    stamps, idx, ix, iy, reason = _cutouts(image, weight, x, y, big)
+    stamps, idx, ix, iy, reason = star_cutouts(image, weight, x, y, big)
     bad_sig = ~(np.isfinite(sigma_all) & (sigma_all > 0))
     reason[(reason == "") & bad_sig] = REASONS["noise"]
     keep = reason[idx] == ""
@@ -635,11 +637,11 @@ def stack_psf(
     D = F0 * phase[None]
     x0 = x[idx] - ix[idx]
     y0 = y[idx] - iy[idx]
-    X, Y, ok = _gaussian_peak(D, centroid_sigma, x0, y0, max(max_shift, 1.0))
+    X, Y, ok = gaussian_peak(D, centroid_sigma, x0, y0, max(max_shift, 1.0))
     reject(~ok, REASONS["peak"])
     reject(np.hypot(X - x0, Y - y0) > max_shift, REASONS["shift"])
-    stars = _shift(F0, X, Y, big, size)
-    G = _gaussian_image(size, centroid_sigma)
+    stars = subpixel_shift(F0, X, Y, big, size)
+    G = gaussian_image(size, centroid_sigma)
     amp = np.einsum("ijk,jk->i", stars, G) / np.sum(G * G)
     snr = amp * np.sqrt(np.sum(G * G)) / sig
     out["snr"][idx] = snr  # replaced by the PSF-matched S/N at each check
@@ -688,11 +690,11 @@ def stack_psf(
         refs = refs / tot[:, None, None]
         var_ref = var_ref / tot**2
         # re-centre each star on its cross-correlation with the reference
-        R = np.fft.rfft2(_pad_to(refs, big)) * phase[None]
+        R = np.fft.rfft2(pad_to(refs, big)) * phase[None]
         Xn, Yn, okn = newton_peak(D, R, X, Y)
         Xn = np.where(okn, Xn, X)
         Yn = np.where(okn, Yn, Y)
-        st = _shift(F0, Xn, Yn, big, size)
+        st = subpixel_shift(F0, Xn, Yn, big, size)
         sp = np.einsum("ijk,ijk->i", st, refs)
         pp = np.einsum("ijk,ijk->i", refs, refs)
         ss = np.einsum("ijk,ijk->i", st, st)
@@ -737,12 +739,12 @@ def stack_psf(
         num, wts = mean_parts(used)
         psf, var = num / wts.sum(), 1.0 / wts.sum()
     # put the Gaussian cross-correlation peak of the stack on [c, c]
-    Pbig = _pad_to(psf[None], big)
+    Pbig = pad_to(psf[None], big)
     Dp = np.fft.rfft2(Pbig) * phase[None]
-    sx, sy, okp = _gaussian_peak(Dp, centroid_sigma, np.zeros(1), np.zeros(1), 1.0)
+    sx, sy, okp = gaussian_peak(Dp, centroid_sigma, np.zeros(1), np.zeros(1), 1.0)
     if not okp[0]:
         sx, sy = np.zeros(1), np.zeros(1)
-    psf = _shift(np.fft.rfft2(Pbig), sx, sy, big, size)[0]
+    psf = subpixel_shift(np.fft.rfft2(Pbig), sx, sy, big, size)[0]
     total = psf.sum()
     if not total > 0:
         raise PSFError(f"{source}: the stack of {used.sum()} stars has non-positive flux")

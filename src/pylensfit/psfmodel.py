@@ -41,16 +41,16 @@ from .psf import (
     REASONS,
     PSFError,
     PSFResult,
-    _adaptive_moments,
-    _cutouts,
-    _gaussian_ft,
-    _gaussian_image,
-    _gaussian_peak,
-    _pad_to,
-    _shift,
+    adaptive_moments,
     check_star_inputs,
+    gaussian_ft,
+    gaussian_image,
+    gaussian_peak,
+    pad_to,
     psf_diagnostics,
     read_psf,
+    star_cutouts,
+    subpixel_shift,
 )
 
 __all__ = [
@@ -120,7 +120,7 @@ def _phase(big: int) -> np.ndarray:
 
 def _shift_ft(D: np.ndarray, X: np.ndarray, Y: np.ndarray, size: int) -> np.ndarray:
     """Images ``s(x + X)`` cropped to ``size``, from ``rfft2`` transforms referenced to the
-    centre of their odd ``big x big`` frame (as :func:`pylensfit.psf._shift`, with a
+    centre of their odd ``big x big`` frame (as :func:`pylensfit.psf.subpixel_shift`, with a
     separable phase ramp)."""
     big = D.shape[-2]
     kx, ky, _ = rfft_frequencies(big)
@@ -169,10 +169,10 @@ def _recentre(D: np.ndarray, size: int, centroid_sigma: float, search: float | N
     """
     zero = np.zeros(len(D))
     if search is None:
-        R = np.broadcast_to(_gaussian_ft(D.shape[-2], centroid_sigma), D.shape[1:])[None]
+        R = np.broadcast_to(gaussian_ft(D.shape[-2], centroid_sigma), D.shape[1:])[None]
         sx, sy, ok = newton_peak(D, R, zero, zero, n_steps=4)
     else:
-        sx, sy, ok = _gaussian_peak(D, centroid_sigma, zero, zero, search)
+        sx, sy, ok = gaussian_peak(D, centroid_sigma, zero, zero, search)
     sx, sy = np.where(ok, sx, 0.0), np.where(ok, sy, 0.0)
     out = _shift_ft(D, sx, sy, size)
     total = out.sum(axis=(1, 2))
@@ -183,7 +183,7 @@ def _recentre(D: np.ndarray, size: int, centroid_sigma: float, search: float | N
 
 def _moments_many(images: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """GalSim adaptive moments ``(sigma, e1, e2)`` of each of ``(n, s, s)`` images."""
-    res = np.array([_adaptive_moments(im) for im in images], dtype=float).reshape(-1, 3)
+    res = np.array([adaptive_moments(im) for im in images], dtype=float).reshape(-1, 3)
     return res[:, 0], res[:, 1], res[:, 2]
 
 
@@ -312,7 +312,11 @@ class ConstantPSF(PSFModel):
     def __init__(self, psf: PSFResult):
         self.psf = psf
         self.size = psf.size
-        self._image = np.asarray(psf.image, dtype=float) / float(np.sum(psf.image))
+        image = np.asarray(psf.image, dtype=float)
+        total = float(np.sum(image))
+        # a unit-sum image (every PSFResult) is drawn as it is: dividing by a sum that
+        # differs from 1 in the last bit would change every pixel by an ulp
+        self._image = image if abs(total - 1.0) <= 1e-12 else image / total
         self.diagnostics = {"kind": "constant", "order": 0, "n_stars": int(psf.used.size),
                             "n_used": psf.n_used, "n_rejected": psf.n_rejected,
                             "source": psf.source}  # fmt: skip
@@ -369,7 +373,7 @@ class _Stars:
 def _first_stage(image, weight, x, y, sigma_all, size, opts) -> _Stars:
     """Cutouts, Gaussian centring and S/N cut, as the first stage of ``stack_psf``."""
     big = size + 2 * opts["margin"] + 1
-    stamps, idx, ix, iy, reason = _cutouts(image, weight, x, y, big)
+    stamps, idx, ix, iy, reason = star_cutouts(image, weight, x, y, big)
     bad_sig = ~(np.isfinite(sigma_all) & (sigma_all > 0))
     reason[(reason == "") & bad_sig] = REASONS["noise"]
     keep = reason[idx] == ""
@@ -385,9 +389,9 @@ def _first_stage(image, weight, x, y, sigma_all, size, opts) -> _Stars:
     D = F0 * _phase(big)[None]
     x0, y0 = x[idx] - ix[idx], y[idx] - iy[idx]
     max_shift = opts["max_shift"]
-    X, Y, ok = _gaussian_peak(D, opts["centroid_sigma"], x0, y0, max(max_shift, 1.0))
-    stars = _shift(F0, X, Y, big, size)
-    G = _gaussian_image(size, opts["centroid_sigma"])
+    X, Y, ok = gaussian_peak(D, opts["centroid_sigma"], x0, y0, max(max_shift, 1.0))
+    stars = subpixel_shift(F0, X, Y, big, size)
+    G = gaussian_image(size, opts["centroid_sigma"])
     amp = np.einsum("ijk,jk->i", stars, G) / np.sum(G * G)
     snr_k = amp * np.sqrt(np.sum(G * G)) / sig
     snr = np.full(x.size, np.nan)
@@ -459,10 +463,10 @@ def _check(S: _Stars, ref, var_ref, X, Y, opts):
     tot = np.where(good, tot, 1.0)
     ref = ref / tot[:, None, None]
     var_ref = var_ref / tot**2
-    R = np.fft.rfft2(_pad_to(ref, big)) * _phase(big)[None]
+    R = np.fft.rfft2(pad_to(ref, big)) * _phase(big)[None]
     Xn, Yn, ok = newton_peak(S.D, R, X, Y)
     Xn, Yn = np.where(ok, Xn, X), np.where(ok, Yn, Y)
-    st = _shift(S.F0, Xn, Yn, big, size)
+    st = subpixel_shift(S.F0, Xn, Yn, big, size)
     sp = np.einsum("ijk,ijk->i", st, ref)
     pp = np.einsum("ijk,ijk->i", ref, ref)
     ss = np.einsum("ijk,ijk->i", st, st)
@@ -726,7 +730,7 @@ class PolynomialPSF(PSFModel):
         """``(p, big * (big//2 + 1))`` phase-referenced transforms of the padded planes."""
         if self._ft is None:
             big = self.size + 2 * self.margin + 1
-            F = np.fft.rfft2(_pad_to(self.coefs, big)) * _phase(big)[None]
+            F = np.fft.rfft2(pad_to(self.coefs, big)) * _phase(big)[None]
             self._ft = F.reshape(len(F), -1)
         return self._ft
 
@@ -1052,7 +1056,7 @@ def _fit_diagnostics(tab: Table, fit: _Fit, order_requested: int, opts: dict, so
 # ---------------------------------------------------------------------------------------
 def _import_piff():
     try:
-        import piff
+        import piff  # the optional [piff] extra
     except ImportError:
         raise PiffNotInstalledError(
             "reading a Piff PSF model needs piff: pip install pylensfit[piff]"

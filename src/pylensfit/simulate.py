@@ -27,6 +27,7 @@ import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 from astropy.wcs import WCS
+from scipy.interpolate import RectBivariateSpline
 
 from .catalogue import atomic_write
 from .models import DEVAUC_TRUNCATION
@@ -334,8 +335,6 @@ def psf_observed_moments(
     sigma : numpy.ndarray
         ``moments_sigma`` (pixels).
     """
-    from scipy.interpolate import RectBivariateSpline
-
     x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
     m = psf_map(spec)
     if m.constant:

@@ -28,6 +28,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from astropy.wcs import WCS, FITSFixedWarning
 
 __all__ = [
     "SkyFrame",
@@ -98,8 +99,6 @@ def frame_of_table(table) -> SkyFrame:
 
 def wcs_from_header(header):
     """The celestial WCS of a FITS header, or None (no WCS or an unreadable one)."""
-    from astropy.wcs import WCS, FITSFixedWarning
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FITSFixedWarning)
         try:

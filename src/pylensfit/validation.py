@@ -48,7 +48,6 @@ from scipy.spatial import cKDTree
 from . import pipeline
 from .config import Config
 from .models import DEVAUC_TRUNCATION
-from .pipeline import _run
 from .prior import (
     Prior,
     estimate_prior,
@@ -57,6 +56,7 @@ from .prior import (
     mix_bulge_fractions,
 )
 from .psf import psf_diagnostics, psf_from_image
+from .runner import run_tasks
 from .shear import ShearEstimate, estimate_shear, shapes, shear_fixed_point
 from .simulate import (
     PSF_VARIATIONS,
@@ -495,7 +495,7 @@ def simulate_step(
             )
 
     counts = {}
-    for t, res in _run(_render_task, tasks, jobs, None, "fields", progress):
+    for t, res in run_tasks(_render_task, tasks, jobs, None, "fields", progress):
         counts[Path(t["path"]).name] = res
     for f in star_files:
         f["n_star"] = counts[f["file"]][1]

@@ -1,0 +1,168 @@
+"""Running tasks: in this process, on a local pool of worker processes, or on a
+dask.distributed cluster.
+
+The pipeline (:func:`pylensfit.measure`) and the validation harness hand their work to
+:func:`run_tasks` as a list of tasks, each a picklable mapping that the task function
+takes as its only argument, and receive ``(task, result)`` pairs as the tasks finish.
+
+* ``jobs = 1`` (and no scheduler): the tasks run in this process, in order.
+* ``jobs > 1``: the tasks run on ``jobs`` *spawned* worker processes (not forked, so a
+  worker never inherits a parent's threads or locks). A worker ends within a second of
+  the process that started it, so a run killed by a signal leaves no orphans computing.
+  Every task a worker receives carries ``"single_thread": True``; the task function
+  passes it to :func:`single_thread`, so that ``jobs`` workers use ``jobs`` cores rather
+  than ``jobs`` times every core.
+* ``scheduler="tcp://host:port"``: the tasks are submitted to that dask.distributed
+  cluster (the ``[dask]`` extra).
+
+:func:`worker_pool` keeps one pool open for several :func:`run_tasks` calls, so that what
+the workers build once (the model banks) serves every pass of a calibration recipe.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
+from typing import Any
+
+import numba
+from threadpoolctl import threadpool_limits
+from tqdm import tqdm
+
+__all__ = ["run_tasks", "single_thread", "worker_pool"]
+
+
+def single_thread(on: bool) -> None:
+    """Limit this process to one thread (BLAS, OpenMP and numba) when ``on``.
+
+    Parameters
+    ----------
+    on : bool
+        The task's ``"single_thread"`` entry; ``False`` leaves the thread pools alone.
+    """
+    if not on:
+        return
+    threadpool_limits(1)
+    numba.set_num_threads(1)
+
+
+def _exit_with_parent(parent: int) -> None:
+    """A pool worker's initializer: the worker ends within a second of the process that
+    started it (a run killed by a signal runs no clean-up and would leave its workers
+    computing, and holding their memory, for as long as their tasks last)."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="pylensfit-parent-watch").start()
+
+
+def _executor(jobs: int) -> ProcessPoolExecutor:
+    """``jobs`` spawned worker processes that end with this one."""
+    return ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                               initializer=_exit_with_parent, initargs=(os.getpid(),))
+
+
+@contextmanager
+def worker_pool(jobs: int, scheduler: str | None = None,
+                ) -> Iterator[ProcessPoolExecutor | None]:  # fmt: skip
+    """One pool of ``jobs`` local worker processes for several :func:`run_tasks` calls.
+
+    Workers keep what they build between tasks (the model banks: 30-40 s per process
+    for bulge+disc banks on two stamp tiers), so a run of several passes pays for it
+    once per worker instead of once per pass.
+
+    Parameters
+    ----------
+    jobs : int
+        Number of worker processes.
+    scheduler : str, optional
+        A dask.distributed scheduler address; then there is no local pool.
+
+    Yields
+    ------
+    concurrent.futures.ProcessPoolExecutor or None
+        The pool; ``None`` (nothing to share) with a scheduler or one job.
+    """
+    if scheduler or jobs <= 1:
+        yield None
+        return
+    with _executor(jobs) as ex:
+        yield ex
+
+
+def run_tasks(fn: Callable[[Mapping[str, Any]], Any], tasks: Sequence[Mapping[str, Any]],
+              jobs: int = 1, scheduler: str | None = None, desc: str = "tasks",
+              progress: bool = False, pool: ProcessPoolExecutor | None = None,
+              ) -> Iterator[tuple[Mapping[str, Any], Any]]:  # fmt: skip
+    """Run ``fn`` on every task and yield ``(task, result)`` as the tasks finish.
+
+    Parameters
+    ----------
+    fn : callable
+        The task function, a module-level function (it is pickled by reference).
+    tasks : sequence of mapping
+        Its arguments, one per call.
+    jobs : int
+        Worker processes; 1 runs the tasks in this process, in order.
+    scheduler : str, optional
+        A dask.distributed scheduler address to submit the tasks to.
+    desc : str
+        The progress bar's label.
+    progress : bool
+        Show a tqdm progress bar.
+    pool : concurrent.futures.ProcessPoolExecutor, optional
+        A pool from :func:`worker_pool` to run the tasks on.
+
+    Yields
+    ------
+    tuple
+        ``(task, result)``; with workers, in the order the tasks finish. An exception
+        raised by a task propagates, and the call's remaining tasks are cancelled.
+    """
+    bar = tqdm(total=len(tasks), desc=desc, unit="image", disable=not progress or not tasks,
+               leave=False)  # fmt: skip
+    try:
+        if not tasks:
+            return
+        if scheduler:
+            # dask.distributed is the optional [dask] extra
+            from distributed import Client
+            from distributed import as_completed as dask_completed
+
+            with Client(scheduler) as client:
+                futs = {client.submit(fn, t, pure=False): t for t in tasks}
+                for f in dask_completed(futs):
+                    yield futs.pop(f), f.result()  # the cluster's copy freed with it
+                    bar.update()
+        elif pool is not None:
+            futs = {pool.submit(fn, {**t, "single_thread": True}): t for t in tasks}
+            try:
+                for f in as_completed(futs):
+                    # a finished future is dropped as its result is handed on: kept, every
+                    # result would be held twice until the call ends (a calibration pass
+                    # keeps its blocks' likelihood grids)
+                    yield futs.pop(f), f.result()
+                    bar.update()
+            finally:  # a failed task: the rest of this call's tasks are not wanted
+                for f in futs:
+                    f.cancel()
+        elif jobs <= 1 or len(tasks) == 1:
+            for t in tasks:
+                yield t, fn(t)
+                bar.update()
+        else:
+            with _executor(min(jobs, len(tasks))) as ex:
+                futs = {ex.submit(fn, {**t, "single_thread": True}): t for t in tasks}
+                for f in as_completed(futs):
+                    yield futs.pop(f), f.result()
+                    bar.update()
+    finally:
+        bar.close()
