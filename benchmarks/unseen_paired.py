@@ -996,7 +996,9 @@ def main(argv=None) -> int:
                 del cols
             done.add(ipsf)
     noise = "independent per rendering" if a.independent_noise else "shared by +g and -g"
-    print(f"rendered {a.ngal} x {n_r} + {ncal} calibration stamps ({STAMP}^2) in "
+    n_main = int(np.isin(pop.psf, sorted(done)).sum())
+    n_cal = int(np.isin(cal.psf, sorted(done)).sum())
+    print(f"rendered {n_main} x {n_r} + {n_cal} calibration stamps ({STAMP}^2) in "
           f"{t_render:.1f} s with {a.jobs} processes, {a.chunk} galaxies at a time; "
           f"seed {a.seed}, g = {a.g}, kinds {'/'.join(KINDS)} 40/30/30; noise {noise}")  # fmt: skip
 

@@ -502,22 +502,7 @@ def run_recipe(
     pos_sigma = None
 
     def ellipticity_priors(cal: CalibrationSample, prior0):
-        if len(cal) < MIN_GALAXIES:
-            if prior0 is None:
-                _fallback(info, "ellipticity", f"{len(cal)} usable galaxies (fewer than "
-                          f"{MIN_GALAXIES})")  # fmt: skip
-            return (prior0 if prior0 is not None else Prior(egrid=cal.egrid)), given_bw
-        if fit_bulge and prior0 is None:
-            return estimate_prior_and_bulge(cal.lnL_bulge, cal.lnL_star, cal.egrid,
-                                            method=cfg.prior_method)  # fmt: skip
-        if fit_bulge:
-            return prior0, estimate_bulge_weights(cal.lnL_bulge, cal.lnL_star, prior0)
-        if prior0 is None:
-            lnL = cal.lnL
-            if given_bw is not None and cal.lnL_bulge is not None:
-                lnL = mix_bulge_fractions(cal.lnL_bulge, cal.lnL_star, given_bw)
-            return estimate_prior(lnL, cal.egrid, method=cfg.prior_method), given_bw
-        return prior0, given_bw
+        return _ellipticity_priors(cal, prior0, given_bw, fit_bulge, cfg.prior_method, info)
 
     cal = fit_pass(cfgs, sps, fit_size, "calibration")
     n_used = len(cal)
@@ -532,21 +517,7 @@ def run_recipe(
                       f"{MIN_GALAXIES})")  # fmt: skip
     cfgs = [cfg] * n_groups
     if fit_bounds:
-        info["flux_range"] = []
-        for k in range(n_groups):
-            sel = cal.group == k
-            try:
-                fr = estimate_flux_range(cal.flux[sel], cal.flux_err[sel],
-                                         beta=cfg.amplitude_prior_power)  # fmt: skip
-            except ValueError as err:
-                _fallback(info, f"flux range ({names[k]})" if n_groups > 1 else "flux range",
-                          str(err))
-                info["flux_range"].append(None)
-                continue
-            ranges[k] = (fr["lo"], fr["hi"])
-            info["flux_range"].append({k2: fr[k2] for k2 in ("lo", "hi", "lo_err", "hi_err",
-                                                             "error_scale")})  # fmt: skip
-            cfgs[k] = cfg.replace(amplitude_prior_min=fr["lo"], amplitude_prior_max=fr["hi"])
+        cfgs, ranges = _flux_ranges(cal, cfg, names, info)
     if fit_pos:
         try:
             pos_sigma, a = estimate_position_sigma(cal.dx, cal.dy, cal.snr)
@@ -571,24 +542,7 @@ def run_recipe(
         if len(cal) < MIN_GALAXIES:
             _fallback(info, "size", f"{len(cal)} usable galaxies (fewer than {MIN_GALAXIES})")
         else:
-            # each galaxy's L(r) marginalised over e with the ellipticity prior just
-            # estimated: the first pass's L(r) per |e| reweighted
-            bank = model_bank(cfgs[0])
-            rings = e_annuli(bank.egrid)
-            lnL_r = np.concatenate([reweight_lnL_r(g, bank.egrid, rings, None, prior)
-                                    for g in cal.lnL_r_grouped])  # fmt: skip
-            cal.lnL_r_grouped = None
-            if size_prior_per_group and n_groups > 1:
-                for k in range(n_groups):
-                    sel = cal.group == k
-                    if sel.sum() < MIN_GALAXIES:
-                        _fallback(info, f"size ({names[k]})", f"{int(sel.sum())} usable "
-                                  f"galaxies (fewer than {MIN_GALAXIES})")  # fmt: skip
-                        continue
-                    sps[k] = estimate_size_prior(lnL_r[sel], bank, cfgs[k], bulge_weights=bw)
-            else:
-                sps = [estimate_size_prior(lnL_r, bank, cfgs[0], bulge_weights=bw)] * n_groups
-            del lnL_r
+            sps = _size_priors(cal, cfgs, sps, prior, bw, names, size_prior_per_group, info)
             cal = None
             cal = fit_pass(cfgs, sps, False, "calibration with the size prior")
             prior, bw = ellipticity_priors(cal, prior0)
@@ -603,6 +557,79 @@ def run_recipe(
                    position_sigma=pos_sigma, n_galaxies=n_used,
                    info={**info, "group": names[k]})
             for k in range(n_groups)]  # fmt: skip
+
+
+def _ellipticity_priors(cal: CalibrationSample, prior0: Prior | None,
+                        given_bw: np.ndarray | None, fit_bulge: bool, method: str,
+                        info: dict[str, Any]) -> tuple[Prior, np.ndarray | None]:  # fmt: skip
+    """The ellipticity prior and bulge weights from a pass: ``prior0`` kept where given,
+    the bulge weights estimated under it (``fit_bulge``) or ``given_bw``; a sample too
+    small for the estimate falls back to the default prior."""
+    if len(cal) < MIN_GALAXIES:
+        if prior0 is None:
+            _fallback(info, "ellipticity", f"{len(cal)} usable galaxies (fewer than "
+                      f"{MIN_GALAXIES})")  # fmt: skip
+        return (prior0 if prior0 is not None else Prior(egrid=cal.egrid)), given_bw
+    if fit_bulge and prior0 is None:
+        return estimate_prior_and_bulge(cal.lnL_bulge, cal.lnL_star, cal.egrid,
+                                        method=method)  # fmt: skip
+    if fit_bulge:
+        return prior0, estimate_bulge_weights(cal.lnL_bulge, cal.lnL_star, prior0)
+    if prior0 is None:
+        lnL = cal.lnL
+        if given_bw is not None and cal.lnL_bulge is not None:
+            lnL = mix_bulge_fractions(cal.lnL_bulge, cal.lnL_star, given_bw)
+        return estimate_prior(lnL, cal.egrid, method=method), given_bw
+    return prior0, given_bw
+
+
+def _flux_ranges(cal: CalibrationSample, cfg: Config, names: list[str],
+                 info: dict[str, Any]) -> tuple[list[Config], list]:  # fmt: skip
+    """Each group's flux prior limits (``info["flux_range"]``): the configurations with
+    them, and the ``(lo, hi)`` limits (None where the estimate failed)."""
+    n_groups = len(names)
+    cfgs, ranges = [cfg] * n_groups, [None] * n_groups
+    info["flux_range"] = []
+    for k in range(n_groups):
+        sel = cal.group == k
+        try:
+            fr = estimate_flux_range(cal.flux[sel], cal.flux_err[sel],
+                                     beta=cfg.amplitude_prior_power)  # fmt: skip
+        except ValueError as err:
+            _fallback(info, f"flux range ({names[k]})" if n_groups > 1 else "flux range",
+                      str(err))
+            info["flux_range"].append(None)
+            continue
+        ranges[k] = (fr["lo"], fr["hi"])
+        info["flux_range"].append({k2: fr[k2] for k2 in ("lo", "hi", "lo_err", "hi_err",
+                                                         "error_scale")})  # fmt: skip
+        cfgs[k] = cfg.replace(amplitude_prior_min=fr["lo"], amplitude_prior_max=fr["hi"])
+    return cfgs, ranges
+
+
+def _size_priors(cal: CalibrationSample, cfgs: list[Config], sps: list, prior: Prior,
+                 bw: np.ndarray | None, names: list[str], per_group: bool,
+                 info: dict[str, Any]) -> list:  # fmt: skip
+    """The size prior per group (or one for all) from a pass's ``L(r)`` per ring of
+    ``|e|``, each galaxy's ``L(r)`` marginalised over ``e`` with ``prior``; a group too
+    small keeps its entry of ``sps``. Frees ``cal.lnL_r_grouped``."""
+    n_groups = len(names)
+    sps = list(sps)
+    bank = model_bank(cfgs[0])
+    rings = e_annuli(bank.egrid)
+    lnL_r = np.concatenate([reweight_lnL_r(g, bank.egrid, rings, None, prior)
+                            for g in cal.lnL_r_grouped])  # fmt: skip
+    cal.lnL_r_grouped = None
+    if per_group and n_groups > 1:
+        for k in range(n_groups):
+            sel = cal.group == k
+            if sel.sum() < MIN_GALAXIES:
+                _fallback(info, f"size ({names[k]})", f"{int(sel.sum())} usable "
+                          f"galaxies (fewer than {MIN_GALAXIES})")  # fmt: skip
+                continue
+            sps[k] = estimate_size_prior(lnL_r[sel], bank, cfgs[k], bulge_weights=bw)
+        return sps
+    return [estimate_size_prior(lnL_r, bank, cfgs[0], bulge_weights=bw)] * n_groups
 
 
 # ----------------------------------------------------------------------------------------

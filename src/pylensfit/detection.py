@@ -365,12 +365,266 @@ def _half_radius(sub, x, y, rmax) -> np.ndarray:
 
 
 def _empty_table() -> Table:
+    """A catalogue with no rows and the columns, units and descriptions of :data:`_COLUMNS`."""
     t = Table()
     for name, dtype, unit, desc in _COLUMNS:
         t[name] = np.zeros(0, dtype=dtype)
         t[name].unit = unit or None
         t[name].description = desc
     return t
+
+
+def _detect_inputs(
+    image,
+    weight,
+    mask,
+    background: Background | None,
+    box: int,
+    filter_size: int,
+    mask_sources: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, Background]:
+    """Check and normalise :func:`detect`'s image, maps and background.
+
+    Returns the image as native float64, the bad-pixel map, the weight map (or None), the
+    map of non-finite pixels and the background (measured here when not given).
+    """
+    data = _as_image(image)
+    bad, w = _bad_pixels(data, mask, weight)
+    if not np.isfinite(data).any():
+        raise ValueError("image has no finite pixel: nothing to detect")
+    nonfinite = ~np.isfinite(data)
+    if background is None:
+        background = measure_background(
+            data,
+            mask=mask,
+            weight=weight,
+            box=box,
+            filter_size=filter_size,
+            mask_sources=mask_sources,
+        )
+    elif not isinstance(background, Background):
+        raise ValueError("background must be a Background from measure_background")
+    elif background.shape != data.shape:
+        raise ValueError(f"background shape {background.shape} differs from {data.shape}")
+    return data, bad, w, nonfinite, background
+
+
+def _stamp_and_aperture(
+    stamp_size: int, min_aperture: float, max_aperture: float | None
+) -> tuple[int, float]:
+    """The stamp side as an int (checked >= 2) and the aperture cap (default: the stamp)."""
+    n = int(stamp_size)
+    if n < 2:
+        raise ValueError(f"stamp_size must be >= 2, got {stamp_size}")
+    if max_aperture is None:
+        max_aperture = float(max(n, min_aperture))
+    return n, max_aperture
+
+
+def _detection_maps(
+    data: np.ndarray, bad: np.ndarray, w: np.ndarray | None, background: Background
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Background-subtracted image, noise sigma map, detection bad map and SEP's error map."""
+    sub = data - background.back
+    sub[bad] = 0.0
+    if w is not None:
+        with np.errstate(divide="ignore"):
+            sigma = np.where(bad, np.inf, 1.0 / np.sqrt(np.where(bad, 1.0, w)))
+    else:
+        sigma = np.array(background.rms, dtype=np.float64)
+    bad_det = bad | ~(sigma > 0) | ~np.isfinite(sigma)
+    err = np.where(bad_det, 1.0, sigma)  # masked pixels: SEP gives them infinite noise
+    return sub, sigma, bad_det, err
+
+
+def _detect_meta_table(
+    background: Background, threshold: float, zeropoint: float, n: int
+) -> Table:
+    """The empty catalogue with the global background, threshold, zeropoint and stamp in meta."""
+    t = _empty_table()
+    t.meta.update(
+        BKG=background.global_back,
+        BKGRMS=background.global_rms,
+        THRESH=float(threshold),
+        ZP=float(zeropoint),
+        STAMP=n,
+    )
+    return t
+
+
+def _run_extract(
+    sub: np.ndarray,
+    threshold: float,
+    err: np.ndarray,
+    bad_det: np.ndarray,
+    min_area: int,
+    deblend_nthresh: int,
+    deblend_cont: float,
+    filter_kernel: np.ndarray | None | str,
+) -> np.ndarray:
+    """Run SEP's extraction and deblending with :func:`detect`'s options."""
+    kw = dict(
+        minarea=int(min_area),
+        deblend_nthresh=int(deblend_nthresh),
+        deblend_cont=float(deblend_cont),
+    )
+    if not (isinstance(filter_kernel, str) and filter_kernel == "default"):
+        kw["filter_kernel"] = filter_kernel
+    return _extract(sub, float(threshold), err, bad_det, **kw)
+
+
+def _refine_positions(
+    sub: np.ndarray,
+    objs: np.ndarray,
+    bad_det: np.ndarray,
+    min_aperture: float,
+    max_aperture: float,
+    windowed: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions (barycentre, or windowed centroid where it is sound) and first ``r_half``."""
+    x = objs["x"].astype(np.float64)
+    y = objs["y"].astype(np.float64)
+    a = objs["a"].astype(np.float64)
+    # first half-light radius: normalised to the flux inside max(6a, min_aperture)
+    rmax0 = np.clip(np.nan_to_num(6.0 * a, nan=min_aperture), min_aperture, max_aperture)
+    r0 = _half_radius(sub, x, y, rmax0)
+    if windowed:
+        # the window's cost grows as its area: capped at 3 px, past which the position
+        # gains little (the likelihood fit re-centres every object anyway)
+        sig = np.clip(2.0 * r0 / 2.35, 0.5, 3.0)
+        xw, yw, wflag = sep.winpos(sub, x, y, sig, mask=bad_det)
+        ok = (wflag == 0) & np.isfinite(xw) & np.isfinite(yw)
+        # a window that runs off (towards a neighbour, typically) is not used
+        ok &= np.hypot(xw - x, yw - y) < np.maximum(1.0, 0.5 * r0)
+        ok &= (xw > objs["xmin"] - 0.5) & (xw < objs["xmax"] + 0.5)
+        ok &= (yw > objs["ymin"] - 0.5) & (yw < objs["ymax"] + 0.5)
+        x = np.where(ok, xw, x)
+        y = np.where(ok, yw, y)
+        r0 = _half_radius(sub, x, y, rmax0)
+    return x, y, r0
+
+
+def _aperture_photometry(
+    sub: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    r0: np.ndarray,
+    sigma: np.ndarray,
+    bad_det: np.ndarray,
+    sep_flag: np.ndarray,
+    aperture: float,
+    min_aperture: float,
+    max_aperture: float,
+    gain: float | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Circular-aperture flux, its error and ``r_half``; updates ``sep_flag`` in place.
+
+    Returns ``(aper_radius, flux, flux_err, r_half, sep_flag)``.
+    """
+    badf = bad_det.astype(np.float64)
+    rap = np.clip(aperture * r0, min_aperture, max_aperture)
+    # bad pixels are summed as 0 with no variance (SEP's own masking rescales by area)
+    flux, flux_err, aflag = sep.sum_circle(
+        sub, x, y, rap, err=np.where(bad_det, 0.0, sigma), gain=gain, subpix=5
+    )
+    nbad, _, _ = sep.sum_circle(badf, x, y, rap, subpix=0)
+    sep_flag |= aflag.astype(np.int32)
+    sep_flag |= np.where(nbad > 0, SEP_FLAGS["APER_HASMASKED"], 0).astype(np.int32)
+    r_half, _ = sep.flux_radius(sub, x, y, rap, 0.5, normflux=flux, subpix=5)
+    r_half = np.where((flux > 0) & np.isfinite(r_half) & (r_half > 0), r_half, np.nan)
+    return rap, flux, flux_err, r_half, sep_flag
+
+
+def _pixel_quantities(
+    objs: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    flux_err: np.ndarray,
+    sigma: np.ndarray,
+    bad_det: np.ndarray,
+    background: Background,
+    zeropoint: float,
+) -> dict[str, np.ndarray]:
+    """Background maps at the objects, peak, peak S/N, S/N and magnitude (table columns)."""
+    ny, nx = bad_det.shape
+    ix = np.clip(np.rint(x).astype(np.int64), 0, nx - 1)
+    iy = np.clip(np.rint(y).astype(np.int64), 0, ny - 1)
+    bkg_rms = background.rms[iy, ix]
+    bkg_level = background.back[iy, ix]
+    xp = np.clip(objs["xpeak"].astype(np.int64), 0, nx - 1)
+    yp = np.clip(objs["ypeak"].astype(np.int64), 0, ny - 1)
+    peak = objs["peak"].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        peak_snr = peak / np.where(bad_det[yp, xp], np.nan, sigma[yp, xp])
+        snr = flux / flux_err
+        mag = np.where(flux > 0, zeropoint - 2.5 * np.log10(np.where(flux > 0, flux, 1.0)), np.nan)
+    return dict(
+        snr=snr, mag=mag, peak=peak, peak_snr=peak_snr, background=bkg_level, bkg_rms=bkg_rms
+    )
+
+
+def _stamp_quantities(
+    x: np.ndarray,
+    y: np.ndarray,
+    flux_iso: np.ndarray,
+    bkg_rms: np.ndarray,
+    bad: np.ndarray,
+    nonfinite: np.ndarray,
+    bad_det: np.ndarray,
+    sigma: np.ndarray,
+    w: np.ndarray | None,
+    n: int,
+    faint_ratio: float | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-stamp pylensfit ``flags`` (EDGE, MASKED, BAD_PIXELS, CLOSE_PAIR) and noise sigma."""
+    ny, nx = bad.shape
+    flags = np.zeros(len(x), dtype=np.int64)
+    noise_sigma = bkg_rms.copy()
+    ix0 = np.rint(x).astype(np.int64)
+    iy0 = np.rint(y).astype(np.int64)
+    lo_x, lo_y = ix0 - n // 2, iy0 - n // 2
+    edge = (lo_x < 0) | (lo_y < 0) | (lo_x + n > nx) | (lo_y + n > ny)
+    flags[edge] |= flag_value("EDGE")
+    masked_only = bad & ~nonfinite
+    for sl, win in _stamp_windows(masked_only, ix0, iy0, n, False):
+        flags[sl] |= np.where(win.any(axis=(1, 2)), flag_value("MASKED"), 0)
+    for sl, win in _stamp_windows(nonfinite, ix0, iy0, n, False):
+        flags[sl] |= np.where(win.any(axis=(1, 2)), flag_value("BAD_PIXELS"), 0)
+    if w is not None:
+        smap = np.where(bad_det, np.nan, sigma)
+        for sl, win in _stamp_windows(smap, ix0, iy0, n, np.nan):
+            flat = win.reshape(win.shape[0], -1)
+            has = np.isfinite(flat).any(axis=1)
+            med = np.full(win.shape[0], np.nan)
+            if has.any():
+                med[has] = np.nanmedian(flat[has], axis=1)
+            noise_sigma[sl] = med
+    flags |= np.where(
+        close_pairs(x, y, flux=flux_iso, stamp_size=n, faint_ratio=faint_ratio),
+        flag_value("CLOSE_PAIR"),
+        0,
+    )
+    return flags, noise_sigma
+
+
+def _catalogue_table(objs: np.ndarray, cols: dict[str, np.ndarray], meta) -> Table:
+    """The output catalogue: SEP's shape columns and ``cols``, with dtypes, units, descriptions."""
+    cols = dict(
+        cols,
+        id=np.arange(1, len(objs) + 1),
+        flux_iso=objs["flux"],
+        a=objs["a"].astype(np.float64),
+        b=objs["b"].astype(np.float64),
+        theta=objs["theta"].astype(np.float64),
+        npix=objs["npix"],
+    )
+    out = Table(meta=meta)
+    for name, dtype, unit, desc in _COLUMNS:
+        out[name] = np.asarray(cols[name], dtype=dtype)
+        out[name].unit = unit or None
+        out[name].description = desc
+    return out
 
 
 def detect(
@@ -485,167 +739,41 @@ def detect(
     ValueError
         If the image is not 2-D, has no finite pixel, or a map has another shape.
     """
-    data = _as_image(image)
-    bad, w = _bad_pixels(data, mask, weight)
-    if not np.isfinite(data).any():
-        raise ValueError("image has no finite pixel: nothing to detect")
-    nonfinite = ~np.isfinite(data)
-    if background is None:
-        background = measure_background(
-            data,
-            mask=mask,
-            weight=weight,
-            box=box,
-            filter_size=filter_size,
-            mask_sources=mask_sources,
-        )
-    elif not isinstance(background, Background):
-        raise ValueError("background must be a Background from measure_background")
-    elif background.shape != data.shape:
-        raise ValueError(f"background shape {background.shape} differs from {data.shape}")
-    n = int(stamp_size)
-    if n < 2:
-        raise ValueError(f"stamp_size must be >= 2, got {stamp_size}")
-    if max_aperture is None:
-        max_aperture = float(max(n, min_aperture))
-
-    sub = data - background.back
-    sub[bad] = 0.0
-    if w is not None:
-        with np.errstate(divide="ignore"):
-            sigma = np.where(bad, np.inf, 1.0 / np.sqrt(np.where(bad, 1.0, w)))
-    else:
-        sigma = np.array(background.rms, dtype=np.float64)
-    bad_det = bad | ~(sigma > 0) | ~np.isfinite(sigma)
-    err = np.where(bad_det, 1.0, sigma)  # masked pixels: SEP gives them infinite noise
-
-    t = _empty_table()
-    t.meta.update(
-        BKG=background.global_back,
-        BKGRMS=background.global_rms,
-        THRESH=float(threshold),
-        ZP=float(zeropoint),
-        STAMP=n,
+    data, bad, w, nonfinite, background = _detect_inputs(
+        image, weight, mask, background, box, filter_size, mask_sources
     )
+    n, max_aperture = _stamp_and_aperture(stamp_size, min_aperture, max_aperture)
+    sub, sigma, bad_det, err = _detection_maps(data, bad, w, background)
+    t = _detect_meta_table(background, threshold, zeropoint, n)
     if bad_det.all():
         return t
-
-    kw = dict(
-        minarea=int(min_area),
-        deblend_nthresh=int(deblend_nthresh),
-        deblend_cont=float(deblend_cont),
+    objs = _run_extract(
+        sub, threshold, err, bad_det, min_area, deblend_nthresh, deblend_cont, filter_kernel
     )
-    if not (isinstance(filter_kernel, str) and filter_kernel == "default"):
-        kw["filter_kernel"] = filter_kernel
-    objs = _extract(sub, float(threshold), err, bad_det, **kw)
-    k = len(objs)
-    if k == 0:
+    if len(objs) == 0:
         return t
-
-    ny, nx = data.shape
-    x = objs["x"].astype(np.float64)
-    y = objs["y"].astype(np.float64)
-    a = objs["a"].astype(np.float64)
+    x, y, r0 = _refine_positions(sub, objs, bad_det, min_aperture, max_aperture, windowed)
     sep_flag = objs["flag"].astype(np.int32)
-    badf = bad_det.astype(np.float64)
-
-    # first half-light radius: normalised to the flux inside max(6a, min_aperture)
-    rmax0 = np.clip(np.nan_to_num(6.0 * a, nan=min_aperture), min_aperture, max_aperture)
-    r0 = _half_radius(sub, x, y, rmax0)
-    if windowed:
-        # the window's cost grows as its area: capped at 3 px, past which the position
-        # gains little (the likelihood fit re-centres every object anyway)
-        sig = np.clip(2.0 * r0 / 2.35, 0.5, 3.0)
-        xw, yw, wflag = sep.winpos(sub, x, y, sig, mask=bad_det)
-        ok = (wflag == 0) & np.isfinite(xw) & np.isfinite(yw)
-        # a window that runs off (towards a neighbour, typically) is not used
-        ok &= np.hypot(xw - x, yw - y) < np.maximum(1.0, 0.5 * r0)
-        ok &= (xw > objs["xmin"] - 0.5) & (xw < objs["xmax"] + 0.5)
-        ok &= (yw > objs["ymin"] - 0.5) & (yw < objs["ymax"] + 0.5)
-        x = np.where(ok, xw, x)
-        y = np.where(ok, yw, y)
-        r0 = _half_radius(sub, x, y, rmax0)
-
-    rap = np.clip(aperture * r0, min_aperture, max_aperture)
-    # bad pixels are summed as 0 with no variance (SEP's own masking rescales by area)
-    flux, flux_err, aflag = sep.sum_circle(
-        sub, x, y, rap, err=np.where(bad_det, 0.0, sigma), gain=gain, subpix=5
+    rap, flux, flux_err, r_half, sep_flag = _aperture_photometry(
+        sub, x, y, r0, sigma, bad_det, sep_flag, aperture, min_aperture, max_aperture, gain
     )
-    nbad, _, _ = sep.sum_circle(badf, x, y, rap, subpix=0)
-    sep_flag |= aflag.astype(np.int32)
-    sep_flag |= np.where(nbad > 0, SEP_FLAGS["APER_HASMASKED"], 0).astype(np.int32)
-    r_half, _ = sep.flux_radius(sub, x, y, rap, 0.5, normflux=flux, subpix=5)
-    r_half = np.where((flux > 0) & np.isfinite(r_half) & (r_half > 0), r_half, np.nan)
-
-    ix = np.clip(np.rint(x).astype(np.int64), 0, nx - 1)
-    iy = np.clip(np.rint(y).astype(np.int64), 0, ny - 1)
-    bkg_rms = background.rms[iy, ix]
-    bkg_level = background.back[iy, ix]
-    xp = np.clip(objs["xpeak"].astype(np.int64), 0, nx - 1)
-    yp = np.clip(objs["ypeak"].astype(np.int64), 0, ny - 1)
-    peak = objs["peak"].astype(np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        peak_snr = peak / np.where(bad_det[yp, xp], np.nan, sigma[yp, xp])
-        snr = flux / flux_err
-        mag = np.where(flux > 0, zeropoint - 2.5 * np.log10(np.where(flux > 0, flux, 1.0)), np.nan)
-
-    # stamp-level quantities: noise sigma and flags
-    flags = np.zeros(k, dtype=np.int64)
-    noise_sigma = bkg_rms.copy()
-    ix0 = np.rint(x).astype(np.int64)
-    iy0 = np.rint(y).astype(np.int64)
-    lo_x, lo_y = ix0 - n // 2, iy0 - n // 2
-    edge = (lo_x < 0) | (lo_y < 0) | (lo_x + n > nx) | (lo_y + n > ny)
-    flags[edge] |= flag_value("EDGE")
-    masked_only = bad & ~nonfinite
-    for sl, win in _stamp_windows(masked_only, ix0, iy0, n, False):
-        flags[sl] |= np.where(win.any(axis=(1, 2)), flag_value("MASKED"), 0)
-    for sl, win in _stamp_windows(nonfinite, ix0, iy0, n, False):
-        flags[sl] |= np.where(win.any(axis=(1, 2)), flag_value("BAD_PIXELS"), 0)
-    if w is not None:
-        smap = np.where(bad_det, np.nan, sigma)
-        for sl, win in _stamp_windows(smap, ix0, iy0, n, np.nan):
-            flat = win.reshape(win.shape[0], -1)
-            has = np.isfinite(flat).any(axis=1)
-            med = np.full(win.shape[0], np.nan)
-            if has.any():
-                med[has] = np.nanmedian(flat[has], axis=1)
-            noise_sigma[sl] = med
-    flags |= np.where(
-        close_pairs(x, y, flux=objs["flux"], stamp_size=n, faint_ratio=faint_ratio),
-        flag_value("CLOSE_PAIR"),
-        0,
+    pix = _pixel_quantities(objs, x, y, flux, flux_err, sigma, bad_det, background, zeropoint)
+    flags, noise_sigma = _stamp_quantities(
+        x, y, objs["flux"], pix["bkg_rms"], bad, nonfinite, bad_det, sigma, w, n, faint_ratio
     )
-
     cols = dict(
-        id=np.arange(1, k + 1),
+        pix,
         x=x,
         y=y,
         flux=flux,
         flux_err=flux_err,
-        flux_iso=objs["flux"],
-        snr=snr,
-        mag=mag,
-        peak=peak,
-        peak_snr=peak_snr,
-        a=a,
-        b=objs["b"].astype(np.float64),
-        theta=objs["theta"].astype(np.float64),
         r_half=r_half,
         aper_radius=rap,
-        npix=objs["npix"],
-        background=bkg_level,
-        bkg_rms=bkg_rms,
         noise_sigma=noise_sigma,
         sep_flag=sep_flag,
         flags=flags,
     )
-    out = Table(meta=t.meta)
-    for name, dtype, unit, desc in _COLUMNS:
-        out[name] = np.asarray(cols[name], dtype=dtype)
-        out[name].unit = unit or None
-        out[name].description = desc
-    return out
+    return _catalogue_table(objs, cols, t.meta)
 
 
 # --------------------------------------------------------------------------------------

@@ -63,7 +63,7 @@ from .detection import (
     select_stars,
 )
 from .grid import ellipticity_grid
-from .likelihood import e_annuli, fit_stamps, merge_fits
+from .likelihood import StampFits, e_annuli, fit_stamps, merge_fits
 from .models import model_bank, render_models
 from .prior import (
     Prior,
@@ -409,21 +409,17 @@ def _starfield_task(task: dict[str, Any]) -> PSFResult | PSFModel:
         raise InputError(f"{img.path}: no usable star for the PSF ({err})") from None
 
 
-def _image_task(task: dict[str, Any]) -> dict[str, Any]:
-    """Measure one image: every detected object gets a row, measured or flagged."""
-    t0 = time.perf_counter()
-    single_thread(task.get("single_thread", False))
-    cfg = Config.from_dict(task["config"])
-    path = task["path"]
-    img = _read_image(path, task.get("weight"), task.get("mask"))
-    saturated = _mask_saturated(img, cfg)
-    positions = _read_positions(task["catalogue"], path) if task.get("catalogue") else None
-    sub, det, bkg = _detect(img, cfg, positions)
-    t_detect = time.perf_counter()
+def _image_psf(task: dict[str, Any], cfg: Config, img: _Image, sub: np.ndarray, det: Table,
+               ) -> tuple[PSFResult | None, PSFModel | None, np.ndarray, str]:  # fmt: skip
+    """The image's PSF: given, this image's stars co-added with the star fields', or the
+    model of the most stars (``Config.psf_model = "polynomial"``).
+
+    Returns ``(psf, field_model, own_stars, note)``: the PSF at the image's centre (None
+    when no star was usable), the model varying over the image (None for a constant
+    PSF), which detections were the image's own PSF stars, and why the image's own stars
+    gave no PSF ("" if they did).
+    """
     n = len(det)
-    lost = np.asarray(det["no_position"]) if "no_position" in det.colnames else np.zeros(n, bool)
-    flags = np.zeros(n, dtype=np.int32)
-    # the PSF: this image's stars co-added with the star fields'
     psfs = list(task.get("star_psfs", []))
     own_stars = np.zeros(n, dtype=bool)
     psf_note = ""
@@ -456,10 +452,175 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         if psfs:  # the model of the most stars (the image's own or a star field's)
             field_model = max(psfs, key=lambda m: m.diagnostics.get("n_used", 0))
             psfs = [field_model.centre]
-    if psfs:
-        psf = combine_psfs(psfs) if len(psfs) > 1 else psfs[0]
+    if not psfs:
+        return None, field_model, own_stars, psf_note
+    psf = combine_psfs(psfs) if len(psfs) > 1 else psfs[0]
+    return psf, field_model, own_stars, psf_note
+
+
+@dataclass
+class _ImageStamps:
+    """The stamps of an image's objects: the base stamps and, on the objects whose
+    larger stamp (``Config.max_stamp_size``) lies in the image with no bad pixel, the
+    larger ones, which ``fit_stamps`` then fits, choosing the tier."""
+
+    stamps: np.ndarray  # (n, stamp_size, stamp_size)
+    bstamps: np.ndarray  # (n, n_big, n_big); ``stamps`` when there is one tier
+    use_big: np.ndarray  # (n,) bool: fitted on the larger stamp
+    cx: np.ndarray  # the detections' positions in the base stamps (pixels)
+    cy: np.ndarray
+    fcx: np.ndarray  # ... in the stamps each object is fitted on
+    fcy: np.ndarray
+    base_cfg: Config  # the configuration of the base stamps' fits
+    offset: int  # the base stamp's origin in the larger one (pixels)
+
+
+def _image_stamps(sub: np.ndarray, img: _Image, det: Table, cfg: Config,
+                  saturated: np.ndarray, flags: np.ndarray) -> _ImageStamps:  # fmt: skip
+    """Cut the objects' stamps; set the stamp, saturation, close-pair and noise flags in
+    ``flags``. The flags, close pairs and everything else are those of the base stamp."""
+    n = len(det)
+    x = np.asarray(det["x"], dtype=float)
+    y = np.asarray(det["y"], dtype=float)
+    noise = np.asarray(det["noise_sigma"], dtype=float)
+    stamps, cx, cy, sflags = cut_stamps(sub, x, y, cfg.stamp_size, bad=img.bad)
+    flags |= sflags
+    flags[_box_any(saturated, x, y, cfg.stamp_size)] |= _flags.flag_value("SATURATED")
+    n_big = cfg.largest_stamp
+    if n_big > cfg.stamp_size:
+        bstamps, bcx, bcy, bflags = cut_stamps(sub, x, y, n_big, bad=img.bad)
+        use_big = bflags == 0
+        base_cfg = cfg.replace(max_stamp_size=0)
     else:
-        psf = None
+        bstamps, bcx, bcy, use_big, base_cfg = stamps, cx, cy, np.zeros(n, bool), cfg
+    if n:
+        # a galaxy is a close pair if a significant detection lies inside its stamp; a
+        # faint detection (often a noise peak) is one if anything does
+        fr = cfg.close_pair_faint_ratio or None
+        flux = np.asarray(det["flux"], dtype=float)
+        sig = np.nan_to_num(np.asarray(det["snr"], dtype=float)) >= cfg.close_pair_min_snr
+        pair = close_pairs(x, y, flux=flux, stamp_size=cfg.stamp_size)
+        pair[sig] = close_pairs(x[sig], y[sig], flux=flux[sig], stamp_size=cfg.stamp_size,
+                                faint_ratio=fr)  # fmt: skip
+        flags[pair] |= _flags.flag_value("CLOSE_PAIR")
+    flags[~(np.isfinite(noise) & (noise > 0))] |= _flags.flag_value("BAD_NOISE")
+    return _ImageStamps(stamps=stamps, bstamps=bstamps, use_big=use_big, cx=cx, cy=cy,
+                        fcx=np.where(use_big, bcx, cx), fcy=np.where(use_big, bcy, cy),
+                        base_cfg=base_cfg, offset=n_big // 2 - cfg.stamp_size // 2)
+
+
+@dataclass
+class _ImageFitter:
+    """Fits an image's objects on their stamps, each with the PSF of its cell."""
+
+    st: _ImageStamps
+    noise: np.ndarray  # (n,) per-object noise sigma
+    cfg: Config
+    psf_image: np.ndarray | None  # the image's PSF (a constant PSF)
+    cell_images: np.ndarray | None  # the PSF of every cell of a varying model
+    cell: np.ndarray  # (n,) each object's cell
+    size_prior: SizePrior | None
+    rings: np.ndarray | None  # fit_stamps' lnL_r_groups
+    size_marginal_prior: Any
+
+    def __call__(self, idx: np.ndarray, less: np.ndarray | None = None) -> StampFits:
+        """Fit the stamps of objects ``idx``, less ``less`` (``(len(idx), n_big, n_big)``:
+        the neighbours' light and the sky's change, about each object)."""
+        if self.cell_images is None:
+            return self._fit_with(idx, less, self.psf_image)
+        parts = []
+        for c in np.unique(self.cell[idx]):  # one fit per cell of the PSF model
+            sel = np.flatnonzero(self.cell[idx] == c)
+            parts.append((sel, self._fit_with(idx[sel], None if less is None else less[sel],
+                                              self.cell_images[c])))  # fmt: skip
+        return parts[0][1] if len(parts) == 1 else merge_fits(parts, idx.size)
+
+    def _fit_with(self, idx: np.ndarray, less: np.ndarray | None,
+                  psf_image: np.ndarray) -> StampFits:  # fmt: skip
+        """Fit objects ``idx`` with one PSF image, each on its stamp tier."""
+        st, cfg, o = self.st, self.cfg, self.st.offset
+        n_big = st.bstamps.shape[1]
+        parts = []
+        for sel, stamps, c in ((~st.use_big[idx], st.stamps, st.base_cfg),
+                               (st.use_big[idx], st.bstamps, cfg)):  # fmt: skip
+            if not sel.any():
+                continue
+            j = idx[sel]
+            data = stamps[j]
+            if less is not None:
+                lj = less[sel]
+                data = data - (lj if stamps.shape[1] == n_big else
+                               lj[:, o : o + cfg.stamp_size, o : o + cfg.stamp_size])  # fmt: skip
+            parts.append((np.flatnonzero(sel), fit_stamps(
+                data, psf_image, self.noise[j], config=c, centres=(st.fcx[j], st.fcy[j]),
+                size_prior=self.size_prior, lnL_r_groups=self.rings,
+                size_marginal_prior=self.size_marginal_prior)))  # fmt: skip
+        return parts[0][1] if len(parts) == 1 else merge_fits(parts, idx.size)
+
+
+@dataclass
+class _ImageResults:
+    """The per-object results of an image's fits, filled as the objects are fitted."""
+
+    x: np.ndarray  # detected positions (pixels)
+    y: np.ndarray
+    st: _ImageStamps
+    lnL: np.ndarray
+    lnL_r: np.ndarray | None
+    lnL_bulge: np.ndarray | None
+    lnL_star: np.ndarray
+    flags: np.ndarray
+    cols: dict[str, np.ndarray]
+    xf: np.ndarray  # fitted positions (pixels)
+    yf: np.ndarray
+    is_star: np.ndarray
+
+    @classmethod
+    def empty(cls, x: np.ndarray, y: np.ndarray, st: _ImageStamps, flags: np.ndarray,
+              bank, egrid: np.ndarray, keep_lnL_r: Any) -> _ImageResults:  # fmt: skip
+        """NaN results for every object; ``lnL_r`` as ``keep_lnL_r`` asks (None, True
+        or ``"annuli"``, per ring of ``|e|``: :func:`pylensfit.likelihood.e_annuli`)."""
+        n = x.size
+        n_b = bank.n_r // bank.n_sizes
+        if keep_lnL_r == "annuli":  # L(r) per ring of |e|, for any prior of |e|
+            rings = e_annuli(bank.egrid)
+            lnL_r = np.full((n, int(rings.max()) + 1, bank.n_r + 1), np.nan, dtype=np.float32)
+        else:
+            lnL_r = (np.full((n, bank.n_r + 1), np.nan, dtype=np.float32) if keep_lnL_r
+                     else None)  # fmt: skip
+        cols = {k: np.full(n, np.nan) for k in ("model_flux", "model_SNratio", "scalelength",
+                                                "e1_best", "e2_best")}  # fmt: skip
+        cols["stamp_size"] = np.zeros(n, dtype=np.int32)
+        return cls(x=x, y=y, st=st, lnL=np.full((n, egrid.shape[0]), np.nan, dtype=np.float32),
+                   lnL_r=lnL_r,
+                   lnL_bulge=(None if n_b == 1 else
+                              np.full((n, n_b, egrid.shape[0]), np.nan, np.float32)),
+                   lnL_star=np.full(n, np.nan), flags=flags, cols=cols, xf=x.copy(),
+                   yf=y.copy(), is_star=np.zeros(n, dtype=bool))  # fmt: skip
+
+    def store(self, f: StampFits, idx: np.ndarray) -> None:
+        """Keep the fits ``f`` of objects ``idx``."""
+        _store_fit(f, idx, self.x, self.y, self.st.fcx, self.st.fcy, self.lnL, self.lnL_r,
+                   self.lnL_bulge, self.lnL_star, self.flags, self.cols, self.xf, self.yf,
+                   self.is_star)  # fmt: skip
+
+
+def _image_task(task: dict[str, Any]) -> dict[str, Any]:
+    """Measure one image: every detected object gets a row, measured or flagged."""
+    t0 = time.perf_counter()
+    single_thread(task.get("single_thread", False))
+    cfg = Config.from_dict(task["config"])
+    path = task["path"]
+    img = _read_image(path, task.get("weight"), task.get("mask"))
+    saturated = _mask_saturated(img, cfg)
+    positions = _read_positions(task["catalogue"], path) if task.get("catalogue") else None
+    sub, det, bkg = _detect(img, cfg, positions)
+    t_detect = time.perf_counter()
+    n = len(det)
+    lost = np.asarray(det["no_position"]) if "no_position" in det.colnames else np.zeros(n, bool)
+    flags = np.zeros(n, dtype=np.int32)
+    psf, field_model, own_stars, psf_note = _image_psf(task, cfg, img, sub, det)
+    if psf is None:
         flags[:] |= _flags.flag_value("PSF_FAILED")
         if n:
             log.error("%s: no usable star for the PSF in the image or the star fields (%s); "
@@ -476,96 +637,25 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     x = np.asarray(det["x"], dtype=float)
     y = np.asarray(det["y"], dtype=float)
     noise = np.asarray(det["noise_sigma"], dtype=float)
-    stamps, cx, cy, sflags = cut_stamps(sub, x, y, cfg.stamp_size, bad=img.bad)
-    flags |= sflags
-    flags[_box_any(saturated, x, y, cfg.stamp_size)] |= _flags.flag_value("SATURATED")
-    # the stamp tiers (Config.max_stamp_size): an object whose larger stamp lies in the
-    # image with no bad pixel is fitted on it, fit_stamps choosing its tier; the flags,
-    # close pairs and everything else stay those of the base stamp
-    n_big = cfg.largest_stamp
-    if n_big > cfg.stamp_size:
-        bstamps, bcx, bcy, bflags = cut_stamps(sub, x, y, n_big, bad=img.bad)
-        use_big = bflags == 0
-        base_cfg = cfg.replace(max_stamp_size=0)
-    else:
-        bstamps, bcx, bcy, use_big, base_cfg = stamps, cx, cy, np.zeros(n, bool), cfg
-    o = n_big // 2 - cfg.stamp_size // 2  # the base stamp's origin in the larger one
-    fcx, fcy = np.where(use_big, bcx, cx), np.where(use_big, bcy, cy)
-    if n:
-        # a galaxy is a close pair if a significant detection lies inside its stamp; a
-        # faint detection (often a noise peak) is one if anything does
-        fr = cfg.close_pair_faint_ratio or None
-        flux = np.asarray(det["flux"], dtype=float)
-        sig = np.nan_to_num(np.asarray(det["snr"], dtype=float)) >= cfg.close_pair_min_snr
-        pair = close_pairs(x, y, flux=flux, stamp_size=cfg.stamp_size)
-        pair[sig] = close_pairs(x[sig], y[sig], flux=flux[sig], stamp_size=cfg.stamp_size,
-                                faint_ratio=fr)  # fmt: skip
-        flags[pair] |= _flags.flag_value("CLOSE_PAIR")
-    flags[~(np.isfinite(noise) & (noise > 0))] |= _flags.flag_value("BAD_NOISE")
+    st = _image_stamps(sub, img, det, cfg, saturated, flags)
     t_stamps = time.perf_counter()
     bank = model_bank(cfg)
     egrid = ellipticity_grid(cfg.output_e_step, emax=cfg.e_max)  # fit_stamps' grid
-    n_b = bank.n_r // bank.n_sizes
-    lnL = np.full((n, egrid.shape[0]), np.nan, dtype=np.float32)
-    lnL_bulge = None if n_b == 1 else np.full((n, n_b, egrid.shape[0]), np.nan, np.float32)
-    lnL_star = np.full(n, np.nan)
-    keep_r = bool(task.get("keep_lnL_r"))
-    rings = None
-    if task.get("keep_lnL_r") == "annuli":  # L(r) per ring of |e|, for any prior of |e|
-        rings = e_annuli(bank.egrid)
-        lnL_r = np.full((n, int(rings.max()) + 1, bank.n_r + 1), np.nan, dtype=np.float32)
-    else:
-        lnL_r = np.full((n, bank.n_r + 1), np.nan, dtype=np.float32) if keep_r else None
+    res = _ImageResults.empty(x, y, st, flags, bank, egrid, task.get("keep_lnL_r"))
     size_prior = task.get("size_prior")
-    if size_prior is not None:
-        size_prior = SizePrior.from_dict(size_prior)
-    cols = {k: np.full(n, np.nan) for k in ("model_flux", "model_SNratio", "scalelength",
-                                            "e1_best", "e2_best")}  # fmt: skip
-    cols["stamp_size"] = np.zeros(n, dtype=np.int32)
-    xf, yf = x.copy(), y.copy()
-    is_star = np.zeros(n, dtype=bool)
+    fit = _ImageFitter(
+        st=st, noise=noise, cfg=cfg, psf_image=None if psf is None else psf.image,
+        cell_images=cell_images, cell=cell,
+        size_prior=None if size_prior is None else SizePrior.from_dict(size_prior),
+        rings=e_annuli(bank.egrid) if task.get("keep_lnL_r") == "annuli" else None,
+        size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
     todo = np.flatnonzero(flags == 0)
-
-    def fit(idx, less=None):
-        """Fit the stamps of objects ``idx``, less ``less`` (``(len(idx), n_big, n_big)``:
-        the neighbours' light and the sky's change, about each object), each with the
-        PSF of its cell."""
-        if cell_images is None:
-            return fit_with(idx, less, psf.image)
-        parts = []
-        for c in np.unique(cell[idx]):  # one fit per cell of the PSF model
-            sel = np.flatnonzero(cell[idx] == c)
-            parts.append((sel, fit_with(idx[sel], None if less is None else less[sel],
-                                        cell_images[c])))  # fmt: skip
-        return parts[0][1] if len(parts) == 1 else merge_fits(parts, idx.size)
-
-    def fit_with(idx, less, psf_image):
-        parts = []
-        for sel, st, c in ((~use_big[idx], stamps, base_cfg), (use_big[idx], bstamps, cfg)):
-            if not sel.any():
-                continue
-            j = idx[sel]
-            data = st[j]
-            if less is not None:
-                lj = less[sel]
-                data = data - (lj if st.shape[1] == n_big else
-                               lj[:, o : o + cfg.stamp_size, o : o + cfg.stamp_size])  # fmt: skip
-            parts.append((np.flatnonzero(sel), fit_stamps(
-                data, psf_image, noise[j], config=c, centres=(fcx[j], fcy[j]),
-                size_prior=size_prior, lnL_r_groups=rings,
-                size_marginal_prior=task.get("size_marginal_prior"))))  # fmt: skip
-        return parts[0][1] if len(parts) == 1 else merge_fits(parts, idx.size)
-
-    def store(f, idx):
-        _store_fit(f, idx, x, y, fcx, fcy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols,
-                   xf, yf, is_star)  # fmt: skip
-
     # the PSF the neighbours are rendered with: each object's cell's, or the image's
     render_psf = (cell_images, cell) if cell_images is not None else (
         psf.image if psf is not None else None)
     if todo.size:
         fits_ = fit(todo)
-        store(fits_, todo)
+        res.store(fits_, todo)
     # a model that does not fit its stamp (a defect: a saturated star, a bleed trail, a
     # hot pixel) is flagged DEFECT and kept out of the others' stamps and of the sky
     defect = np.zeros(todo.size, dtype=bool)
@@ -581,30 +671,49 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
             return back - bkg.back
 
         redo, defect = subtract_neighbours(
-            sub.shape, x, y, xf, yf, noise, todo, fits_, render_psf, cfg, fit, store,
-            sky=sky if cfg.model_background else None, data=bstamps)  # fmt: skip
+            sub.shape, x, y, res.xf, res.yf, noise, todo, fits_, render_psf, cfg, fit,
+            res.store, sky=sky if cfg.model_background else None,
+            data=st.bstamps)  # fmt: skip
     elif todo.size:  # no refit: the first fits are judged as they are
-        others, _, own, _ = _neighbour_light(sub.shape, x, y, xf, yf, todo, fits_,
+        others, _, own, _ = _neighbour_light(sub.shape, x, y, res.xf, res.yf, todo, fits_,
                                              render_psf, cfg, own_too=True)  # fmt: skip
-        defect = _implausible_models(bstamps, todo, noise, fits_, cfg, others, own)
+        defect = _implausible_models(st.bstamps, todo, noise, fits_, cfg, others, own)
     if defect.any():
         flags[todo[defect]] |= _flags.flag_value("DEFECT")
         log.info("%s: %d object(s) whose best model does not fit the stamp flagged DEFECT "
                  "(Config.max_reduced_chi2, max_residual_fraction)", path,
                  int(defect.sum()))  # fmt: skip
     t_fit = time.perf_counter()
-    ra, dec, frame = _sky(img.header, xf, yf)
-    measured = np.isfinite(lnL).all(axis=1)
+    rows = _image_rows(task, img, det, res, back, psf, cell_e, cell, own_stars, redo, lost)
+    timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
+              "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
+    return {
+        "index": task["index"], "path": path, "rows": rows, "lnL": res.lnL,
+        "lnL_bulge": res.lnL_bulge, "lnL_r": res.lnL_r, "egrid": egrid,
+        "psf": None if psf is None else _psf_summary(psf), "psf_note": psf_note,
+        "timing": timing,
+    }  # fmt: skip
+
+
+def _image_rows(task: dict[str, Any], img: _Image, det: Table, res: _ImageResults,
+                back: np.ndarray, psf: PSFResult | None, cell_e, cell: np.ndarray,
+                own_stars: np.ndarray, redo: np.ndarray, lost: np.ndarray,
+                ) -> dict[str, np.ndarray]:  # fmt: skip
+    """The image's catalogue columns; completes the flags (``FIT_FAILED``,
+    ``BAD_POSITION``) in ``res.flags``."""
+    n, flags, x, y = len(det), res.flags, res.x, res.y
+    ra, dec, frame = _sky(img.header, res.xf, res.yf)
+    measured = np.isfinite(res.lnL).all(axis=1)
     # a fit that left no finite ln L row says so in its flags (STAR alone would not)
     flags[~measured & ((flags & ~_flags.flag_value("STAR")) == 0)] |= _flags.flag_value(
         "FIT_FAILED")
-    fitclass = np.where(measured, np.where(is_star, FITCLASS["star"], FITCLASS["galaxy"]),
+    fitclass = np.where(measured, np.where(res.is_star, FITCLASS["star"], FITCLASS["galaxy"]),
                         FITCLASS["not_measured"])  # fmt: skip
     rows = {
-        "image": np.full(n, os.path.basename(path)),
+        "image": np.full(n, os.path.basename(task["path"])),
         "image_index": np.full(n, task["index"], dtype=np.int32),
         "object_id": np.asarray(det["id"], dtype=np.int64),
-        "x": xf, "y": yf, "ALPHA_J2000": ra, "DELTA_J2000": dec,
+        "x": res.xf, "y": res.yf, "ALPHA_J2000": ra, "DELTA_J2000": dec,
         "x_detect": x, "y_detect": y,
         "mag": np.asarray(det["mag"], dtype=float),
         "flux_aper": np.asarray(det["flux"], dtype=float),
@@ -612,11 +721,11 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         "r_half": np.asarray(det["r_half"], dtype=float),
         "sep_flag": np.asarray(det["sep_flag"], dtype=np.int32),
         "pixel_SNratio": np.asarray(det["snr"], dtype=float),
-        "noise_sigma": noise,
+        "noise_sigma": np.asarray(det["noise_sigma"], dtype=float),
         "background": _value_at(back, x, y),
-        **cols,
+        **res.cols,
         "fitclass": fitclass.astype(np.int16),
-        "is_star": is_star,
+        "is_star": res.is_star,
         "psf_star": own_stars,
         "PSF_e1": (cell_e[0][cell] if cell_e is not None else
                    np.full(n, psf.e1 if psf is not None else np.nan)),
@@ -626,22 +735,15 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         "wcs_g1": frame.g1, "wcs_g2": frame.g2,
         "flags": flags,
     }  # fmt: skip
-    if lnL_bulge is not None:
-        rows["lnL_star"] = lnL_star
-    timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
-              "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
+    if res.lnL_bulge is not None:
+        rows["lnL_star"] = res.lnL_star
     rows["refit_neighbours"] = np.zeros(n, dtype=bool)
     rows["refit_neighbours"][redo] = True
     for c in ("x", "y", "x_detect", "y_detect", "ALPHA_J2000", "DELTA_J2000", "background",
               "noise_sigma"):  # an input catalogue's rows without a position: kept as NaN
         rows[c][lost] = np.nan
     flags[lost] = _flags.flag_value("BAD_POSITION")
-    return {
-        "index": task["index"], "path": path, "rows": rows, "lnL": lnL,
-        "lnL_bulge": lnL_bulge, "lnL_r": lnL_r, "egrid": egrid,
-        "psf": None if psf is None else _psf_summary(psf), "psf_note": psf_note,
-        "timing": timing,
-    }  # fmt: skip
+    return rows
 
 
 def _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols, xf, yf,
@@ -1278,6 +1380,68 @@ def measure(
         (its headers read) before any work starts.
     """
     cfg = config if config is not None else Config()
+    inp = _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_prior,
+                          priors, output, overwrite)  # fmt: skip
+    cfgd = cfg.to_dict()
+    if psf_dir is not None:
+        Path(psf_dir).mkdir(parents=True, exist_ok=True)
+    parts = inp.parts
+    # one set of workers for every pass; a run failing before it has written a part
+    # leaves no empty <output>.parts/
+    with worker_pool(jobs, scheduler) as pool, _parts_dropped_if_unused(parts):
+        # star fields first: their PSFs go to every image
+        star_psfs = []
+        st_tasks = [{"path": p, "config": cfgd, "index": i} for i, p in enumerate(inp.stars)]
+        for _, res in run_tasks(_starfield_task, st_tasks, jobs, scheduler, "star fields",
+                                progress, pool):  # fmt: skip
+            star_psfs.append(res)
+        star_psfs.sort(key=lambda r: inp.stars.index(r.source))
+        tasks = [
+            {"path": p, "weight": w, "mask": m, "catalogue": c, "config": cfgd, "index": i,
+             "star_psfs": star_psfs, "star_column": star_column,
+             "psf_dir": None if psf_dir is None else str(psf_dir),
+             "psf": None if inp.psfs is None else inp.psfs[i]}
+            for i, (p, w, m, c) in enumerate(zip(inp.images, inp.weights, inp.masks,
+                                                 inp.catalogues, strict=True))
+        ]  # fmt: skip
+        pr_file = parts / "priors.json" if parts is not None else None
+        last: dict[str, Any] = {}
+        priors = inp.priors
+        if priors is None and pr_file is not None and pr_file.exists():
+            priors = Priors.load(pr_file)  # a resumed run keeps its priors
+            log.info("priors of the interrupted run read from %s", pr_file)
+        if priors is None:
+            priors = _calibrate_images(tasks, cfg, inp.prior, inp.size_prior, jobs, scheduler,
+                                       progress, pool, last, parts)  # fmt: skip
+        results = _measure_pass(tasks, cfg, priors, last, parts, pr_file, jobs, scheduler,
+                                progress, pool)  # fmt: skip
+    cat = _assemble([results[i] for i in range(len(tasks))], cfg, priors)
+    if inp.out is not None:
+        write_catalogue(cat, inp.out, overwrite=overwrite)
+        shutil.rmtree(parts, ignore_errors=True)
+    return cat
+
+
+@dataclass
+class _MeasureInputs:
+    """:func:`measure`'s inputs, checked: paths as strings, one entry per image."""
+
+    images: list[str]
+    stars: list[str]
+    weights: list
+    masks: list
+    catalogues: list
+    psfs: list[PSFResult | PSFModel] | None  # given PSFs, one per image
+    prior: Prior | None
+    size_prior: SizePrior | None
+    priors: Priors | None
+    out: Path | None  # the catalogue
+    parts: Path | None  # the finished images' folder, ``<output>.parts/``
+
+
+def _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_prior,
+                    priors, output, overwrite: bool) -> _MeasureInputs:  # fmt: skip
+    """Check :func:`measure`'s inputs (every file opened) before any work starts."""
     if isinstance(images, (str, os.PathLike)):
         images = [images]
     images = [str(p) for p in images]
@@ -1303,64 +1467,41 @@ def measure(
     parts = out.with_name(out.name + ".parts") if out is not None else None
     if out is not None:
         _remove_stale_temporaries(out, parts)
-    cfgd = cfg.to_dict()
-    if psf_dir is not None:
-        Path(psf_dir).mkdir(parents=True, exist_ok=True)
+    return _MeasureInputs(images=images, stars=stars, weights=weights, masks=masks,
+                          catalogues=catalogues, psfs=given_psfs, prior=prior,
+                          size_prior=size_prior, priors=priors, out=out, parts=parts)
 
-    # one set of workers for every pass; a run failing before it has written a part
-    # leaves no empty <output>.parts/
-    with worker_pool(jobs, scheduler) as pool, _parts_dropped_if_unused(parts):
-        # star fields first: their PSFs go to every image
-        star_psfs = []
-        st_tasks = [{"path": p, "config": cfgd, "index": i} for i, p in enumerate(stars)]
-        for _, res in run_tasks(_starfield_task, st_tasks, jobs, scheduler, "star fields",
-                            progress, pool):
-            star_psfs.append(res)
-        star_psfs.sort(key=lambda r: stars.index(r.source))
 
-        tasks = [
-            {"path": p, "weight": w, "mask": m, "catalogue": c, "config": cfgd, "index": i,
-             "star_psfs": star_psfs, "star_column": star_column,
-             "psf_dir": None if psf_dir is None else str(psf_dir),
-             "psf": None if given_psfs is None else given_psfs[i]}
-            for i, (p, w, m, c) in enumerate(zip(images, weights, masks, catalogues, strict=True))
-        ]  # fmt: skip
-        results: dict[int, dict] = {}
-        pr_file = parts / "priors.json" if parts is not None else None
-        last: dict[str, Any] = {}
-        if priors is None and pr_file is not None and pr_file.exists():
-            priors = Priors.load(pr_file)  # a resumed run keeps its priors
-            log.info("priors of the interrupted run read from %s", pr_file)
-        if priors is None:
-            priors = _calibrate_images(tasks, cfg, prior, size_prior, jobs, scheduler,
-                                       progress, pool, last, parts)  # fmt: skip
-        run_cfg = priors.apply(cfg)
-        final = [dict(t, config=run_cfg.to_dict(),
-                      size_prior=None if priors.size is None else priors.size.to_dict())
-                 for t in tasks]  # fmt: skip
-        if last.get("key") == _pass_key(run_cfg, priors.size, False):
-            results = dict(last["results"])  # the recipe's last pass is the measurement
-        last.clear()
+def _measure_pass(tasks: list[dict], cfg: Config, priors: Priors, last: dict[str, Any],
+                  parts: Path | None, pr_file: Path | None, jobs: int, scheduler: str | None,
+                  progress: bool, pool) -> dict[int, dict]:  # fmt: skip
+    """The measurement: every image under ``priors``, the recipe's last pass reused where
+    it was made under them, finished images kept in ``parts`` (a resumed run reads them).
+    """
+    results: dict[int, dict] = {}
+    run_cfg = priors.apply(cfg)
+    final = [dict(t, config=run_cfg.to_dict(),
+                  size_prior=None if priors.size is None else priors.size.to_dict())
+             for t in tasks]  # fmt: skip
+    if last.get("key") == _pass_key(run_cfg, priors.size, False):
+        results = dict(last["results"])  # the recipe's last pass is the measurement
+    last.clear()
+    if parts is not None:
+        parts.mkdir(parents=True, exist_ok=True)
+        priors.save(pr_file)
+    for t in final:
+        if t["index"] in results and parts is not None:
+            pp = _part_path(parts, t)
+            if not pp.exists():
+                _write_part(pp, results[t["index"]])
+    todo = _resumed([t for t in final if t["index"] not in results], parts, results)
+    for t, res in run_tasks(_image_task, todo, jobs, scheduler, "images", progress, pool):
         if parts is not None:
-            parts.mkdir(parents=True, exist_ok=True)
-            priors.save(pr_file)
-        for t in final:
-            if t["index"] in results and parts is not None:
-                pp = _part_path(parts, t)
-                if not pp.exists():
-                    _write_part(pp, results[t["index"]])
-        todo = _resumed([t for t in final if t["index"] not in results], parts, results)
-        for t, res in run_tasks(_image_task, todo, jobs, scheduler, "images", progress, pool):
-            if parts is not None:
-                _write_part(_part_path(parts, t), res)
-            results[t["index"]] = res
-            log.info("%s: %d objects, %s", t["path"], len(res["rows"]["x"]),
-                     ", ".join(f"{k} {v:.2f} s" for k, v in res["timing"].items()))  # fmt: skip
-    cat = _assemble([results[i] for i in range(len(tasks))], cfg, priors)
-    if out is not None:
-        write_catalogue(cat, out, overwrite=overwrite)
-        shutil.rmtree(parts, ignore_errors=True)
-    return cat
+            _write_part(_part_path(parts, t), res)
+        results[t["index"]] = res
+        log.info("%s: %d objects, %s", t["path"], len(res["rows"]["x"]),
+                 ", ".join(f"{k} {v:.2f} s" for k, v in res["timing"].items()))  # fmt: skip
+    return results
 
 
 def _resumed(tasks: list[dict], parts: Path | None, results: dict) -> list[dict]:

@@ -667,6 +667,72 @@ def _cross_entropy_fit(p: np.ndarray, r: np.ndarray, x0: np.ndarray):
 # ----------------------------------------------------------------------------------------
 # Estimation from the likelihood grids
 # ----------------------------------------------------------------------------------------
+def _prior_em(L: np.ndarray, w: np.ndarray, r: np.ndarray, x: np.ndarray, n_iter: int,
+              tol: float, history: list[dict[str, Any]], record,
+              ) -> tuple[np.ndarray, bool]:  # fmt: skip
+    """:func:`estimate_prior`'s EM iteration from ``x`` (log B, C, D): the summed
+    posterior (the E-step), then the functional form fitted to it by minimum cross
+    entropy (the M-step). Returns the final ``x`` and whether it converged."""
+    wsum = float(w.sum())
+    converged = False
+    ell_prev = -np.inf
+    for it in range(n_iter + 1):
+        _, _, q = _grid_logq(r, x)
+        z = np.maximum(L @ q, 1e-300)
+        ell = float(w @ np.log(z))
+        record(it, x, ell)
+        if it > 0 and abs(ell - ell_prev) <= tol * wsum:
+            converged = True
+            break
+        if it == n_iter:
+            break
+        ell_prev = ell
+        # E-step: the summed posterior (eq-prior-iteration) -> cell probabilities p_out
+        p_out = q * ((w / z) @ L) / wsum
+        # M-step: minimum cross-entropy fit of the functional form (eq-funcprior)
+        x, _ = _cross_entropy_fit(p_out, r, x)
+    return x, converged
+
+
+def _prior_direct(L: np.ndarray, w: np.ndarray, r: np.ndarray, x: np.ndarray, n_iter: int,
+                  tol: float, history: list[dict[str, Any]], record,
+                  ) -> tuple[np.ndarray, bool]:  # fmt: skip
+    """:func:`estimate_prior`'s direct maximisation of the marginal likelihood from ``x``
+    (log B, C, D) by SLSQP, with its analytic gradient. Returns the best allowed iterate
+    and whether SLSQP converged."""
+    wsum = float(w.sum())
+    cache: dict[bytes, tuple[float, np.ndarray]] = {}
+
+    def fun(xx):
+        key = xx.tobytes()
+        if key not in cache:
+            ell, g = _marginal_terms(L, w, r, xx)
+            cache.clear()
+            cache[key] = (ell, g)
+        ell, g = cache[key]
+        return -ell / wsum, -g / wsum
+
+    record(0, x, -fun(x)[0] * wsum)
+    it_count = [0]
+
+    def cb(xk):
+        it_count[0] += 1
+        record(it_count[0], xk, -fun(np.asarray(xk, dtype=float))[0] * wsum)
+
+    res = _slsqp(fun, x, ftol=tol, maxiter=n_iter, callback=cb)
+    # the result, or (should it end a hair outside the allowed region) the best
+    # allowed iterate
+    xr = np.clip(res.x, [b[0] for b in _LOG_BOUNDS], [b[1] for b in _LOG_BOUNDS])
+    candidates = [(-fun(xr)[0] * wsum, xr)] + [
+        (h["marginal_lnL"], np.log([h[k] for k in _NAMES])) for h in history
+    ]
+    valid = [(ell, xx) for ell, xx in candidates if prior_is_valid(*np.exp(xx))]
+    x = max(valid, key=lambda c: c[0])[1]
+    if not np.allclose(np.log([history[-1][k] for k in _NAMES]), x, rtol=0, atol=1e-12):
+        record(len(history), x, -fun(x)[0] * wsum)
+    return x, bool(res.success)
+
+
 def estimate_prior(
     lnL: np.ndarray,
     egrid: np.ndarray,
@@ -740,7 +806,6 @@ def estimate_prior(
         raise ValueError(f"method must be 'direct' or 'em', got {method!r}")
     egrid, L, w, _, n_excl = _prepare(lnL, egrid, weights)
     r = np.hypot(egrid[:, 0], egrid[:, 1])
-    wsum = float(w.sum())
     x = _start_x(start)
     history: list[dict[str, Any]] = []
 
@@ -751,58 +816,12 @@ def estimate_prior(
         )
 
     if method == "em":
-        n_iter = 10 if n_iter is None else int(n_iter)
-        converged = False
-        ell_prev = -np.inf
-        for it in range(n_iter + 1):
-            logq, _, q = _grid_logq(r, x)
-            z = np.maximum(L @ q, 1e-300)
-            ell = float(w @ np.log(z))
-            record(it, x, ell)
-            if it > 0 and abs(ell - ell_prev) <= tol * wsum:
-                converged = True
-                break
-            if it == n_iter:
-                break
-            ell_prev = ell
-            # E-step: the summed posterior (eq-prior-iteration) -> cell probabilities p_out
-            p_out = q * ((w / z) @ L) / wsum
-            # M-step: minimum cross-entropy fit of the functional form (eq-funcprior)
-            x, _ = _cross_entropy_fit(p_out, r, x)
-        n_steps = len(history) - 1
+        x, converged = _prior_em(L, w, r, x, 10 if n_iter is None else int(n_iter), tol,
+                                 history, record)  # fmt: skip
     else:
-        n_iter = 200 if n_iter is None else int(n_iter)
-        cache: dict[bytes, tuple[float, np.ndarray]] = {}
-
-        def fun(xx):
-            key = xx.tobytes()
-            if key not in cache:
-                ell, g = _marginal_terms(L, w, r, xx)
-                cache.clear()
-                cache[key] = (ell, g)
-            ell, g = cache[key]
-            return -ell / wsum, -g / wsum
-
-        record(0, x, -fun(x)[0] * wsum)
-        it_count = [0]
-
-        def cb(xk):
-            it_count[0] += 1
-            record(it_count[0], xk, -fun(np.asarray(xk, dtype=float))[0] * wsum)
-
-        res = _slsqp(fun, x, ftol=tol, maxiter=n_iter, callback=cb)
-        # the result, or (should it end a hair outside the allowed region) the best
-        # allowed iterate
-        xr = np.clip(res.x, [b[0] for b in _LOG_BOUNDS], [b[1] for b in _LOG_BOUNDS])
-        candidates = [(-fun(xr)[0] * wsum, xr)] + [
-            (h["marginal_lnL"], np.log([h[k] for k in _NAMES])) for h in history
-        ]
-        valid = [(ell, xx) for ell, xx in candidates if prior_is_valid(*np.exp(xx))]
-        x = max(valid, key=lambda c: c[0])[1]
-        if not np.allclose(np.log([history[-1][k] for k in _NAMES]), x, rtol=0, atol=1e-12):
-            record(len(history), x, -fun(x)[0] * wsum)
-        converged = bool(res.success)
-        n_steps = len(history) - 1
+        x, converged = _prior_direct(L, w, r, x, 200 if n_iter is None else int(n_iter),
+                                     tol, history, record)  # fmt: skip
+    n_steps = len(history) - 1
 
     bounds_hit = _at_bound(x)
     if bounds_hit:
