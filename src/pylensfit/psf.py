@@ -600,158 +600,17 @@ def stack_psf(
     ValueError
         For inconsistent arguments.
     """
-    image, x, y, weight = check_star_inputs(image, x, y, weight, size)
-    if weighting not in ("inverse_variance", "median"):
-        raise ValueError(f"weighting must be 'inverse_variance' or 'median', got {weighting!r}")
-    if not (centroid_sigma > 0 and max_shift > 0 and margin >= 0 and n_iter >= 0):
-        raise ValueError("centroid_sigma and max_shift must be positive, margin and n_iter >= 0")
-    n = x.size
-    sigma_all = per_object(noise_sigma, n, "noise_sigma")
+    image, x, y, weight = _check_stack_args(
+        image, x, y, weight, size, weighting, centroid_sigma, max_shift, margin, n_iter
+    )
+    sigma_all = per_object(noise_sigma, x.size, "noise_sigma")
     big = size + 2 * margin + 1
-    npix = size * size
-
-    stamps, idx, ix, iy, reason = star_cutouts(image, weight, x, y, big)
-    bad_sig = ~(np.isfinite(sigma_all) & (sigma_all > 0))
-    reason[(reason == "") & bad_sig] = REASONS["noise"]
-    keep = reason[idx] == ""
-    stamps, idx = stamps[keep], idx[keep]
-    m = idx.size
-    sig = sigma_all[idx]
-    out = {k: np.full(n, np.nan) for k in ("x", "y", "flux", "snr", "correlation", "chi2")}
-
-    def reject(mask: np.ndarray, why: str) -> None:
-        reason[idx[mask & (reason[idx] == "")]] = why
-
-    def result_error() -> PSFError:
-        counts = {r: int(np.count_nonzero(reason == r)) for r in set(reason.tolist()) if r}
-        detail = ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()))
-        return PSFError(f"{source}: no usable PSF star among {n} candidates ({detail or 'none'})")
-
-    if m == 0:
-        raise result_error()
-
-    # stage 1: centre on the Gaussian cross-correlation peak, Gaussian-weighted flux
-    kx, ky, _ = rfft_frequencies(big)
-    phase = np.exp(1j * (kx * (big // 2) + ky * (big // 2)))
-    F0 = np.fft.rfft2(stamps)
-    D = F0 * phase[None]
-    x0 = x[idx] - ix[idx]
-    y0 = y[idx] - iy[idx]
-    X, Y, ok = gaussian_peak(D, centroid_sigma, x0, y0, max(max_shift, 1.0))
-    reject(~ok, REASONS["peak"])
-    reject(np.hypot(X - x0, Y - y0) > max_shift, REASONS["shift"])
-    stars = subpixel_shift(F0, X, Y, big, size)
-    G = gaussian_image(size, centroid_sigma)
-    amp = np.einsum("ijk,jk->i", stars, G) / np.sum(G * G)
-    snr = amp * np.sqrt(np.sum(G * G)) / sig
-    out["snr"][idx] = snr  # replaced by the PSF-matched S/N at each check
-    reject(~(snr >= min_snr), REASONS["snr"])
-    reject(~(amp > 0), REASONS["flux"])
-
-    def used_now() -> np.ndarray:
-        return reason[idx] == ""
-
-    used = used_now()
-    if not used.any():
-        raise result_error()
-    safe_amp = np.where(amp > 0, amp, 1.0)
-    unit = stars / safe_amp[:, None, None]
-    var_unit = (sig / safe_amp) ** 2  # per-pixel variance of each unit-flux star
-
-    def median_stack(use):
-        med = np.median(unit[use], axis=0)
-        var = 0.5 * np.pi * var_unit[use].mean() / use.sum()
-        return med, var
-
-    def mean_parts(use):
-        wts = np.where(use, 1.0 / var_unit, 0.0)
-        return np.einsum("i,ijk->jk", wts, unit), wts
-
-    # references: the median for the first pass, then the leave-one-out stack
+    cand, stamps = _cut_stars(image, weight, x, y, sigma_all, big, source)
+    cen = _centre_on_gaussian(cand, stamps, x, y, big, size, centroid_sigma, max_shift, min_snr)
     for it in range(n_iter):
-        used = used_now()
-        if it == 0 or weighting == "median":
-            med, var = median_stack(used)
-            refs = np.broadcast_to(med, (m, size, size))
-            var_ref = np.full(m, var)
-            common = med
-        else:
-            num, wts = mean_parts(used)
-            W = wts.sum()
-            w_loo = W - wts
-            alone = ~(w_loo > 0)
-            w_loo = np.where(alone, W, w_loo)
-            refs = (num[None] - np.where(alone, 0.0, wts)[:, None, None] * unit) / w_loo[
-                :, None, None
-            ]
-            var_ref = 1.0 / w_loo
-            common = num / W
-        tot = refs.sum(axis=(1, 2))
-        refs = refs / tot[:, None, None]
-        var_ref = var_ref / tot**2
-        # re-centre each star on its cross-correlation with the reference
-        R = np.fft.rfft2(pad_to(refs, big)) * phase[None]
-        Xn, Yn, okn = newton_peak(D, R, X, Y)
-        Xn = np.where(okn, Xn, X)
-        Yn = np.where(okn, Yn, Y)
-        st = subpixel_shift(F0, Xn, Yn, big, size)
-        sp = np.einsum("ijk,ijk->i", st, refs)
-        pp = np.einsum("ijk,ijk->i", refs, refs)
-        ss = np.einsum("ijk,ijk->i", st, st)
-        f = sp / pp
-        tiny = 1e-300
-        corr = sp / np.sqrt(
-            np.maximum(ss - npix * sig**2, tiny) * np.maximum(pp - npix * var_ref, tiny)
-        )
-        core = common >= core_level * common.max()
-        resid = st - f[:, None, None] * refs
-        var_pix = (
-            sig[:, None, None] ** 2
-            + (f**2 * var_ref)[:, None, None]
-            + (model_error * f[:, None, None] * refs) ** 2
-        )
-        chi2 = np.sum(np.where(core[None], resid**2 / var_pix, 0.0), axis=(1, 2)) / max(
-            int(core.sum()) - 3, 1
-        )
-        # record this check for the stars still in play, then reject
-        active = used
-        X = np.where(active, Xn, X)
-        Y = np.where(active, Yn, Y)
-        stars = np.where(active[:, None, None], st, stars)
-        for name, val in (("flux", f), ("correlation", corr), ("chi2", chi2)):
-            out[name][idx[active]] = val[active]
-        out["snr"][idx[active]] = (sp / (sig * np.sqrt(pp)))[active]
-        reject(active & (np.hypot(X - x0, Y - y0) > max_shift), REASONS["shift"])
-        reject(active & ~(f > 0), REASONS["flux"])
-        reject(active & ~(corr >= min_correlation), REASONS["correlation"])
-        if max_chi2 is not None:
-            reject(active & ~(chi2 <= max_chi2), REASONS["chi2"])
-        if not used_now().any():
-            raise result_error()
-        fa = np.where(f > 0, f, 1.0)
-        unit = np.where(active[:, None, None], st / fa[:, None, None], unit)
-        var_unit = np.where(active, (sig / fa) ** 2, var_unit)
-
-    used = used_now()
-    if weighting == "median":
-        psf, var = median_stack(used)
-    else:
-        num, wts = mean_parts(used)
-        psf, var = num / wts.sum(), 1.0 / wts.sum()
-    # put the Gaussian cross-correlation peak of the stack on [c, c]
-    Pbig = pad_to(psf[None], big)
-    Dp = np.fft.rfft2(Pbig) * phase[None]
-    sx, sy, okp = gaussian_peak(Dp, centroid_sigma, np.zeros(1), np.zeros(1), 1.0)
-    if not okp[0]:
-        sx, sy = np.zeros(1), np.zeros(1)
-    psf = subpixel_shift(np.fft.rfft2(Pbig), sx, sy, big, size)[0]
-    total = psf.sum()
-    if not total > 0:
-        raise PSFError(f"{source}: the stack of {used.sum()} stars has non-positive flux")
-    psf = psf / total
-    out["x"][idx] = ix[idx] + X + sx[0]
-    out["y"][idx] = iy[idx] + Y + sy[0]
-    reason_arr = np.array([str(r) for r in reason], dtype=str) if n else np.array([], str)
+        _refine_pass(cand, cen, it == 0 or weighting == "median", size, big,
+                     min_correlation, max_chi2, model_error, core_level, max_shift)  # fmt: skip
+    psf, var, total, sx, sy = _final_stack(cand, cen, weighting, size, big, centroid_sigma, source)
     meta = {
         "n_iter": n_iter,
         "min_correlation": min_correlation,
@@ -761,16 +620,377 @@ def stack_psf(
         "centroid_sigma": centroid_sigma,
         "weighting": weighting,
     }
+    return _build_result(cand, cen, x, y, psf, var, total, sx, sy, source, meta)
+
+
+def _check_stack_args(
+    image: np.ndarray,
+    x,
+    y,
+    weight: np.ndarray | None,
+    size: int,
+    weighting: str,
+    centroid_sigma: float,
+    max_shift: float,
+    margin: int,
+    n_iter: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The checked float image, positions and weight map of :func:`stack_psf`
+    (``ValueError`` for inconsistent arguments)."""
+    image, x, y, weight = check_star_inputs(image, x, y, weight, size)
+    if weighting not in ("inverse_variance", "median"):
+        raise ValueError(f"weighting must be 'inverse_variance' or 'median', got {weighting!r}")
+    if not (centroid_sigma > 0 and max_shift > 0 and margin >= 0 and n_iter >= 0):
+        raise ValueError("centroid_sigma and max_shift must be positive, margin and n_iter >= 0")
+    return image, x, y, weight
+
+
+@dataclass
+class _StarRecord:
+    """Per-candidate diagnostics of :func:`stack_psf` (NaN until measured), ``(n,)`` each."""
+
+    x: np.ndarray
+    y: np.ndarray
+    flux: np.ndarray
+    snr: np.ndarray
+    correlation: np.ndarray
+    chi2: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int) -> _StarRecord:
+        """All-NaN diagnostics for ``n`` candidates."""
+        return cls(*(np.full(n, np.nan) for _ in range(6)))
+
+
+@dataclass
+class _Candidates:
+    """The candidate stars of :func:`stack_psf`: why each is rejected, and which have cutouts.
+
+    ``reason`` has one entry per candidate (``''`` while in play); ``idx`` indexes the
+    ``m`` candidates with a usable cutout, which all the ``(m,)`` arrays follow.
+    """
+
+    n: int
+    source: str
+    reason: np.ndarray
+    idx: np.ndarray
+    ix: np.ndarray
+    iy: np.ndarray
+    sig: np.ndarray
+    record: _StarRecord
+
+    @property
+    def m(self) -> int:
+        """Number of candidates with a usable cutout."""
+        return int(self.idx.size)
+
+    def reject(self, mask: np.ndarray, why: str) -> None:
+        """Reject the cutout stars of ``mask`` (``(m,)``) still in play, for ``why``."""
+        self.reason[self.idx[mask & (self.reason[self.idx] == "")]] = why
+
+    def used_now(self) -> np.ndarray:
+        """``(m,)`` boolean, the cutout stars still in play."""
+        return self.reason[self.idx] == ""
+
+    def error(self) -> PSFError:
+        """The error for no usable star, with the counts of the rejection reasons."""
+        reason = self.reason
+        counts = {r: int(np.count_nonzero(reason == r)) for r in set(reason.tolist()) if r}
+        detail = ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()))
+        return PSFError(
+            f"{self.source}: no usable PSF star among {self.n} candidates ({detail or 'none'})"
+        )
+
+
+@dataclass
+class _Centred:
+    """The cutout stars' Fourier transforms, centres and unit-flux images (``(m, ...)``)."""
+
+    phase: np.ndarray
+    F0: np.ndarray
+    D: np.ndarray
+    x0: np.ndarray
+    y0: np.ndarray
+    X: np.ndarray
+    Y: np.ndarray
+    unit: np.ndarray
+    var_unit: np.ndarray
+
+    def median_stack(self, use: np.ndarray) -> tuple[np.ndarray, float]:
+        """Pixel-wise median of the unit-flux stars of ``use`` and its per-pixel variance."""
+        med = np.median(self.unit[use], axis=0)
+        var = 0.5 * np.pi * self.var_unit[use].mean() / use.sum()
+        return med, var
+
+    def mean_parts(self, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Inverse-variance weighted sum of the unit-flux stars of ``use``, and the weights."""
+        wts = np.where(use, 1.0 / self.var_unit, 0.0)
+        return np.einsum("i,ijk->jk", wts, self.unit), wts
+
+
+@dataclass
+class _Check:
+    """One comparison of the cutout stars with their reference stacks (``(m,)`` each)."""
+
+    X: np.ndarray
+    Y: np.ndarray
+    stars: np.ndarray
+    sp: np.ndarray
+    pp: np.ndarray
+    flux: np.ndarray
+    correlation: np.ndarray
+    chi2: np.ndarray
+
+
+def _cut_stars(
+    image: np.ndarray,
+    weight: np.ndarray | None,
+    x: np.ndarray,
+    y: np.ndarray,
+    sigma_all: np.ndarray,
+    big: int,
+    source: str,
+) -> tuple[_Candidates, np.ndarray]:
+    """Cut the candidates out and reject those without a usable cutout or noise level.
+
+    Returns the candidates and the ``(m, big, big)`` cutouts; raises :class:`PSFError`
+    if none is usable.
+    """
+    n = x.size
+    stamps, idx, ix, iy, reason = star_cutouts(image, weight, x, y, big)
+    bad_sig = ~(np.isfinite(sigma_all) & (sigma_all > 0))
+    reason[(reason == "") & bad_sig] = REASONS["noise"]
+    keep = reason[idx] == ""
+    stamps, idx = stamps[keep], idx[keep]
+    cand = _Candidates(
+        n=n, source=source, reason=reason, idx=idx, ix=ix, iy=iy, sig=sigma_all[idx],
+        record=_StarRecord.empty(n),
+    )  # fmt: skip
+    if cand.m == 0:
+        raise cand.error()
+    return cand, stamps
+
+
+def _centre_on_gaussian(
+    cand: _Candidates,
+    stamps: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    big: int,
+    size: int,
+    centroid_sigma: float,
+    max_shift: float,
+    min_snr: float,
+) -> _Centred:
+    """Stage 1: centre on the Gaussian cross-correlation peak, Gaussian-weighted flux.
+
+    Rejects stars without a peak, too far from the catalogue, below ``min_snr`` or of
+    non-positive flux; raises :class:`PSFError` if none remains.
+    """
+    idx = cand.idx
+    kx, ky, _ = rfft_frequencies(big)
+    phase = np.exp(1j * (kx * (big // 2) + ky * (big // 2)))
+    F0 = np.fft.rfft2(stamps)
+    D = F0 * phase[None]
+    x0 = x[idx] - cand.ix[idx]
+    y0 = y[idx] - cand.iy[idx]
+    X, Y, ok = gaussian_peak(D, centroid_sigma, x0, y0, max(max_shift, 1.0))
+    cand.reject(~ok, REASONS["peak"])
+    cand.reject(np.hypot(X - x0, Y - y0) > max_shift, REASONS["shift"])
+    stars = subpixel_shift(F0, X, Y, big, size)
+    G = gaussian_image(size, centroid_sigma)
+    amp = np.einsum("ijk,jk->i", stars, G) / np.sum(G * G)
+    snr = amp * np.sqrt(np.sum(G * G)) / cand.sig
+    cand.record.snr[idx] = snr  # replaced by the PSF-matched S/N at each check
+    cand.reject(~(snr >= min_snr), REASONS["snr"])
+    cand.reject(~(amp > 0), REASONS["flux"])
+    if not cand.used_now().any():
+        raise cand.error()
+    safe_amp = np.where(amp > 0, amp, 1.0)
+    unit = stars / safe_amp[:, None, None]
+    var_unit = (cand.sig / safe_amp) ** 2  # per-pixel variance of each unit-flux star
+    return _Centred(phase=phase, F0=F0, D=D, x0=x0, y0=y0, X=X, Y=Y, unit=unit,
+                    var_unit=var_unit)  # fmt: skip
+
+
+def _reference_stacks(
+    cen: _Centred, used: np.ndarray, median: bool, m: int, size: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each star's unit-sum reference: the median stack, or the leave-one-out weighted
+    stack of the other ``used`` stars. Returns ``refs``, their per-pixel variance and
+    the common stack (which delimits the chi-square core)."""
+    if median:
+        med, var = cen.median_stack(used)
+        refs = np.broadcast_to(med, (m, size, size))
+        var_ref = np.full(m, var)
+        common = med
+    else:
+        num, wts = cen.mean_parts(used)
+        W = wts.sum()
+        w_loo = W - wts
+        alone = ~(w_loo > 0)
+        w_loo = np.where(alone, W, w_loo)
+        refs = (num[None] - np.where(alone, 0.0, wts)[:, None, None] * cen.unit) / w_loo[
+            :, None, None
+        ]
+        var_ref = 1.0 / w_loo
+        common = num / W
+    tot = refs.sum(axis=(1, 2))
+    refs = refs / tot[:, None, None]
+    var_ref = var_ref / tot**2
+    return refs, var_ref, common
+
+
+def _compare_with_stack(
+    cen: _Centred,
+    sig: np.ndarray,
+    refs: np.ndarray,
+    var_ref: np.ndarray,
+    common: np.ndarray,
+    size: int,
+    big: int,
+    model_error: float,
+    core_level: float,
+) -> _Check:
+    """Re-centre each star on its cross-correlation with its reference; measure its flux,
+    noise-debiased correlation and core chi-square against it."""
+    npix = size * size
+    # re-centre each star on its cross-correlation with the reference
+    R = np.fft.rfft2(pad_to(refs, big)) * cen.phase[None]
+    Xn, Yn, okn = newton_peak(cen.D, R, cen.X, cen.Y)
+    Xn = np.where(okn, Xn, cen.X)
+    Yn = np.where(okn, Yn, cen.Y)
+    st = subpixel_shift(cen.F0, Xn, Yn, big, size)
+    sp = np.einsum("ijk,ijk->i", st, refs)
+    pp = np.einsum("ijk,ijk->i", refs, refs)
+    ss = np.einsum("ijk,ijk->i", st, st)
+    f = sp / pp
+    tiny = 1e-300
+    corr = sp / np.sqrt(
+        np.maximum(ss - npix * sig**2, tiny) * np.maximum(pp - npix * var_ref, tiny)
+    )
+    core = common >= core_level * common.max()
+    resid = st - f[:, None, None] * refs
+    var_pix = (
+        sig[:, None, None] ** 2
+        + (f**2 * var_ref)[:, None, None]
+        + (model_error * f[:, None, None] * refs) ** 2
+    )
+    chi2 = np.sum(np.where(core[None], resid**2 / var_pix, 0.0), axis=(1, 2)) / max(
+        int(core.sum()) - 3, 1
+    )
+    return _Check(X=Xn, Y=Yn, stars=st, sp=sp, pp=pp, flux=f, correlation=corr, chi2=chi2)
+
+
+def _refine_pass(
+    cand: _Candidates,
+    cen: _Centred,
+    median: bool,
+    size: int,
+    big: int,
+    min_correlation: float,
+    max_chi2: float | None,
+    model_error: float,
+    core_level: float,
+    max_shift: float,
+) -> None:
+    """One re-centre / reject / re-stack pass against the median (``median``) or the
+    leave-one-out stack; updates ``cand`` and ``cen``, raises :class:`PSFError` if no
+    star remains."""
+    used = cand.used_now()
+    refs, var_ref, common = _reference_stacks(cen, used, median, cand.m, size)
+    chk = _compare_with_stack(cen, cand.sig, refs, var_ref, common, size, big, model_error,
+                              core_level)  # fmt: skip
+    f, corr, chi2 = chk.flux, chk.correlation, chk.chi2
+    # record this check for the stars still in play, then reject
+    active = used
+    idx, sig, rec = cand.idx, cand.sig, cand.record
+    cen.X = np.where(active, chk.X, cen.X)
+    cen.Y = np.where(active, chk.Y, cen.Y)
+    rec.flux[idx[active]] = f[active]
+    rec.correlation[idx[active]] = corr[active]
+    rec.chi2[idx[active]] = chi2[active]
+    rec.snr[idx[active]] = (chk.sp / (sig * np.sqrt(chk.pp)))[active]
+    cand.reject(active & (np.hypot(cen.X - cen.x0, cen.Y - cen.y0) > max_shift),
+                REASONS["shift"])  # fmt: skip
+    cand.reject(active & ~(f > 0), REASONS["flux"])
+    cand.reject(active & ~(corr >= min_correlation), REASONS["correlation"])
+    if max_chi2 is not None:
+        cand.reject(active & ~(chi2 <= max_chi2), REASONS["chi2"])
+    if not cand.used_now().any():
+        raise cand.error()
+    fa = np.where(f > 0, f, 1.0)
+    cen.unit = np.where(active[:, None, None], chk.stars / fa[:, None, None], cen.unit)
+    cen.var_unit = np.where(active, (sig / fa) ** 2, cen.var_unit)
+
+
+def _final_stack(
+    cand: _Candidates,
+    cen: _Centred,
+    weighting: str,
+    size: int,
+    big: int,
+    centroid_sigma: float,
+    source: str,
+) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray]:
+    """The stack of the surviving stars, centred on its Gaussian cross-correlation peak
+    and of unit sum. Returns it, its pre-normalisation pixel variance, its
+    pre-normalisation sum and its shift ``sx, sy``."""
+    used = cand.used_now()
+    if weighting == "median":
+        psf, var = cen.median_stack(used)
+    else:
+        num, wts = cen.mean_parts(used)
+        psf, var = num / wts.sum(), 1.0 / wts.sum()
+    # put the Gaussian cross-correlation peak of the stack on [c, c]
+    Pbig = pad_to(psf[None], big)
+    Dp = np.fft.rfft2(Pbig) * cen.phase[None]
+    sx, sy, okp = gaussian_peak(Dp, centroid_sigma, np.zeros(1), np.zeros(1), 1.0)
+    if not okp[0]:
+        sx, sy = np.zeros(1), np.zeros(1)
+    psf = subpixel_shift(np.fft.rfft2(Pbig), sx, sy, big, size)[0]
+    total = psf.sum()
+    if not total > 0:
+        raise PSFError(f"{source}: the stack of {used.sum()} stars has non-positive flux")
+    psf = psf / total
+    return psf, var, total, sx, sy
+
+
+def _build_result(
+    cand: _Candidates,
+    cen: _Centred,
+    x: np.ndarray,
+    y: np.ndarray,
+    psf: np.ndarray,
+    var: float,
+    total: float,
+    sx: np.ndarray,
+    sy: np.ndarray,
+    source: str,
+    meta: dict,
+) -> PSFResult:
+    """The :class:`PSFResult` of :func:`stack_psf`: measured centres, reasons, noise and
+    the size and shape diagnostics of ``psf``."""
+    idx, rec = cand.idx, cand.record
+    rec.x[idx] = cand.ix[idx] + cen.X + sx[0]
+    rec.y[idx] = cand.iy[idx] + cen.Y + sy[0]
+    reason = cand.reason
+    reason_arr = np.array([str(r) for r in reason], dtype=str) if cand.n else np.array([], str)
     return PSFResult(
         image=psf,
         x_cat=x.copy(),
         y_cat=y.copy(),
+        x=rec.x,
+        y=rec.y,
+        flux=rec.flux,
+        snr=rec.snr,
+        correlation=rec.correlation,
+        chi2=rec.chi2,
         used=reason_arr == "",
         reason=reason_arr,
         pixel_noise=float(np.sqrt(var) / total),
         source=source,
         meta=meta,
-        **out,
         **psf_diagnostics(psf),
     )
 
