@@ -57,8 +57,15 @@ from ._util import newton_peak, per_object
 from .catalogue import atomic_write
 from .config import Config
 from .grid import ellipticity_grid
-from .models import fourier_profile, half_light_radius, in_disc, model_bank, rfft_frequencies
-from .prior import Prior
+from .models import (
+    ModelBank,
+    fourier_profile,
+    half_light_radius,
+    in_disc,
+    model_bank,
+    rfft_frequencies,
+)
+from .prior import Prior, SizePrior
 from .psf import psf_transform
 from .shear import refine_lnL
 
@@ -857,18 +864,43 @@ def _logsumexp_groups(a: np.ndarray) -> np.ndarray:
         return np.log(np.sum(np.exp(a - safe[:, None]), axis=1)) + safe
 
 
-def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_marginal_prior,
-                lnL_r_groups=None):  # fmt: skip
-    """:func:`fit_stamps` on ``cfg.stamp_size`` windows (one stamp size for all)."""
-    n_gal = stamps.shape[0]
-    n = cfg.stamp_size
-    bank = model_bank(cfg)
-    pb = _psf_bank(psf, cfg, bank)
-    cx_in, cy_in = cx, cy
-    stamps, cx, cy = _cut_stamps(stamps, n, cx, cy)
-    shift_x, shift_y = cx_in - cx, cy_in - cy  # window origin in the input stamps
+@dataclass
+class _Window:
+    """One stamp size's galaxies cleaned, transformed and centred: what every stage reads.
 
-    flags = np.zeros(n_gal, dtype=np.int32)
+    ``xc, yc`` (the origin of the expansion in position, offsets from the centre pixel
+    ``c``) are moved in place by the centring pass (:func:`_recentre_block`), and
+    ``flags`` gains bits in place.
+    """
+
+    n_gal: int
+    n: int  # stamp side
+    c: int  # centre pixel, n // 2
+    bank: ModelBank
+    pb: _PSFBank
+    sigma: np.ndarray  # (n_gal,) noise, 1 for the bad stamps
+    flags: np.ndarray  # (n_gal,) int32 bit mask
+    bad: np.ndarray  # (n_gal,) bad pixels or bad noise
+    shift_x: np.ndarray  # window origin in the input stamps
+    shift_y: np.ndarray
+    x0: np.ndarray  # catalogue positions, offsets from the centre pixel
+    y0: np.ndarray
+    kx: np.ndarray  # rfft2 frequencies of the window
+    ky: np.ndarray
+    D: np.ndarray  # (n_gal, n, n // 2 + 1) transforms, phase-referenced to the centre
+    xc: np.ndarray
+    yc: np.ndarray
+    no_peak: np.ndarray  # no positive peak of the cross-correlation
+
+
+def _clean_stamps(stamps: np.ndarray, sigma: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """Flag the stamps with non-finite pixels or a bad noise value and neutralise them.
+
+    Returns the stamps and the noise (the bad ones zeros and 1), the flags and the bad
+    stamps' mask.
+    """
+    flags = np.zeros(stamps.shape[0], dtype=np.int32)
     bad_pix = ~np.isfinite(stamps).all(axis=(1, 2))
     bad_sig = ~(np.isfinite(sigma) & (sigma > 0))
     flags[bad_pix] |= _flags.flag_value("BAD_PIXELS")
@@ -878,7 +910,19 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
         stamps = np.where(bad[:, None, None], 0.0, stamps)
         stamps = np.nan_to_num(stamps, nan=0.0, posinf=0.0, neginf=0.0)
         sigma = np.where(bad, 1.0, sigma)
+    return stamps, sigma, flags, bad
 
+
+def _prepare_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Config,
+                    cx: np.ndarray, cy: np.ndarray) -> _Window:  # fmt: skip
+    """Cut and clean the windows, their transforms, the PSF bank and the centres."""
+    n_gal = stamps.shape[0]
+    n = cfg.stamp_size
+    bank = model_bank(cfg)
+    pb = _psf_bank(psf, cfg, bank)
+    cx_in, cy_in = cx, cy
+    stamps, cx, cy = _cut_stamps(stamps, n, cx, cy)
+    stamps, sigma, flags, bad = _clean_stamps(stamps, sigma)
     kx, ky, _ = rfft_frequencies(n)
     c = n // 2
     x0 = cx - c
@@ -886,140 +930,272 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     D = np.fft.rfft2(stamps) * np.exp(1j * (kx * c + ky * c))[None]
     xc, yc, no_peak = _centre(D, pb.P.reshape(kx.shape), cfg, x0, y0)
     flags[no_peak & ~bad] |= _flags.flag_value("NO_PEAK")
-    dtype = np.dtype(cfg.dtype)
-    n_e, n_r = bank.n_e, bank.n_r
-    fb = _folded_bank(cfg, bank)
-    coarse = fb.coarse
-    kxf = kx.ravel()
-    kyf = ky.ravel()
-    Pc = np.conj(pb.P)
+    return _Window(n_gal=n_gal, n=n, c=c, bank=bank, pb=pb, sigma=sigma, flags=flags, bad=bad,
+                   shift_x=cx_in - cx, shift_y=cy_in - cy, x0=x0, y0=y0, kx=kx, ky=ky, D=D,
+                   xc=xc, yc=yc, no_peak=no_peak)  # fmt: skip
 
-    def rows(sl, cubic):
+
+@dataclass(frozen=True)
+class _Products:
+    """The window's Fourier rows and their matrix products with the folded model bank."""
+
+    win: _Window
+    fb: _FoldedBank  # with the columns of the sizes that the size prior keeps
+    kxf: np.ndarray  # (n_freq,) frequencies
+    kyf: np.ndarray
+    Pc: np.ndarray  # (n_freq,) conjugate PSF transform
+    dtype: np.dtype
+    store: np.ndarray  # one buffer for every block's products: the pages are mapped once
+
+    def rows(self, sl: slice | np.ndarray, cubic: bool) -> np.ndarray:
         """h, grad h, Hess h (and third derivatives) as ``(q * m, frequency)`` rows."""
-        ph = np.exp(1j * (kxf[None] * xc[sl, None] + kyf[None] * yc[sl, None]))
-        Dp = D[sl].reshape(-1, kxf.size) * ph * Pc[None]
+        kxf, kyf, win = self.kxf, self.kyf, self.win
+        ph = np.exp(1j * (kxf[None] * win.xc[sl, None] + kyf[None] * win.yc[sl, None]))
+        Dp = win.D[sl].reshape(-1, kxf.size) * ph * self.Pc[None]
         r, i = Dp.real, Dp.imag
         out = [r, -kxf * i, -kyf * i, -kxf * kxf * r, -kxf * kyf * r, -kyf * kyf * r]
         if cubic:
             out += [kxf**3 * i, kxf**2 * kyf * i, kxf * kyf**2 * i, kyf**3 * i]
         return np.concatenate(out, axis=0)
 
-    n_cols = fb.G[0].shape[1]
-    # one buffer for every block's products, so that the pages are mapped once
-    store = np.empty(4 * 10 * min(cfg.block_size, n_gal) * n_cols, dtype=dtype)
-
-    def folded_products(sl, cubic, Gf=None):
+    def folded(self, sl: slice | np.ndarray, cubic: bool, Gf: tuple | None = None
+               ) -> np.ndarray:  # fmt: skip
         """The products with every model (or the coarse ones), folded by the square's
         symmetries (_FoldedBank)."""
+        fb = self.fb
         Gf = fb.G if Gf is None else Gf
-        R = rows(sl, cubic)[:, fb.idx]  # (q m, 4, octant)
+        R = self.rows(sl, cubic)[:, fb.idx]  # (q m, 4, octant)
         nc = Gf[0].shape[1]
-        out = store[: 4 * R.shape[0] * nc].reshape(4, R.shape[0], nc)
+        out = self.store[: 4 * R.shape[0] * nc].reshape(4, R.shape[0], nc)
         for ch in range(4):
             Fh = np.einsum("h,rhk->rk", _CHI[ch], R[:, :, fb.keep[ch]])
             Fh *= fb.coef[fb.keep[ch]]
-            np.matmul(Fh.astype(dtype), Gf[ch], out=out[ch])
+            np.matmul(Fh.astype(self.dtype), Gf[ch], out=out[ch])
         return out
 
-    n_b = bank.n_r // bank.n_sizes  # bulge fractions, a uniform prior over them here
-    ln_pi = np.full(n_b, -np.log(n_b))
-    ln_pi1 = np.zeros(1)
+
+def _products(win: _Window, cfg: Config, fb: _FoldedBank, n_cols: int) -> _Products:
+    """The products of ``win`` with ``fb``'s columns, in a buffer for ``n_cols`` columns."""
+    dtype = np.dtype(cfg.dtype)
+    store = np.empty(4 * 10 * min(cfg.block_size, win.n_gal) * n_cols, dtype=dtype)
+    return _Products(win=win, fb=fb, kxf=win.kx.ravel(), kyf=win.ky.ravel(),
+                     Pc=np.conj(win.pb.P), dtype=dtype, store=store)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _Weights:
+    """The priors and weights that the likelihood kernel applies, and the e cells' groups."""
+
+    n_b: int  # bulge fractions, a uniform prior over them here
+    ln_pi: np.ndarray  # (n_b,) ln prior of each fraction
+    node_w: np.ndarray  # (n_r,) weight of each size node (size prior, trapezoid rule)
+    w_star: float  # the point source's weight
+    e_w: np.ndarray  # (n_e,) the e cells' weights in lnL_r (size_marginal_prior)
+    e_grp: np.ndarray  # (n_e,) group of each e cell in lnL_r
+    n_grp: int
+    amp: tuple[float, float, float, float]  # amplitude prior: power, ln S power, limits
+    b2: float  # variance of the position prior
+    e_w_c: np.ndarray  # the centring pass's weights of its e cells
+    rw_c: np.ndarray  # and of its sizes
+
+
+def _size_weights(cfg: Config, bank: ModelBank, fb: _FoldedBank, size_prior: SizePrior | None,
+                  n_b: int) -> tuple[np.ndarray, float, _FoldedBank]:  # fmt: skip
+    """The weight of every size node and of the point source, and ``fb`` without the
+    columns of the sizes outside the size prior (no models to evaluate)."""
     if size_prior is None:
         run_w = bank.run_weights if bank.run_weights is not None else np.ones(n_b)
         node_w = np.tile(np.asarray(bank.r_weights, float), n_b) * np.repeat(run_w, bank.n_sizes)
         w_star = float(bank.star_weight)
     else:
         node_w, w_star = size_prior.node_weights(bank, cfg)
-        if not (node_w > 0).all():  # the sizes outside the prior: no models to evaluate
+        if not (node_w > 0).all():
             fb = _active_columns(fb, bank, node_w > 0)
-    mp = size_marginal_prior if size_marginal_prior is not None else Prior()
-    e_w = mp.pdf(bank.egrid[:, 0], bank.egrid[:, 1])
-    e_w = e_w / e_w.sum()
-    e_w_c = np.full(coarse.n_e, 1.0 / coarse.n_e)
+    return node_w, w_star, fb
+
+
+def _e_groups(lnL_r_groups: np.ndarray | None, n_e: int) -> np.ndarray:
+    """The checked group of every e cell in ``lnL_r`` (all in group 0 by default)."""
     if lnL_r_groups is None:
-        e_grp = np.zeros(n_e, dtype=np.int64)
-    else:
-        e_grp = np.asarray(lnL_r_groups)
-        if e_grp.shape != (n_e,) or e_grp.dtype.kind not in "iu" or e_grp.min() < 0:
-            raise ValueError(f"lnL_r_groups needs {n_e} non-negative integers (one per e "
-                             f"cell), got shape {e_grp.shape}, dtype {e_grp.dtype}")  # fmt: skip
-        e_grp = e_grp.astype(np.int64)
-    n_grp = int(e_grp.max()) + 1
+        return np.zeros(n_e, dtype=np.int64)
+    e_grp = np.asarray(lnL_r_groups)
+    if e_grp.shape != (n_e,) or e_grp.dtype.kind not in "iu" or e_grp.min() < 0:
+        raise ValueError(f"lnL_r_groups needs {n_e} non-negative integers (one per e "
+                         f"cell), got shape {e_grp.shape}, dtype {e_grp.dtype}")  # fmt: skip
+    return e_grp.astype(np.int64)
+
+
+def _amplitude_prior(cfg: Config) -> tuple[float, float, float, float]:
+    """The kernel's amplitude prior: its power, the power of ``S`` in ``ln L``, its limits."""
     amp_pow = -1.0 if cfg.amplitude_prior == "uniform" else float(cfg.amplitude_prior_power)
     amp_lns = amp_pow - 1.0 if cfg.amplitude_prior == "flux" else 0.0
     flux_prior = cfg.amplitude_prior == "flux"
     amp_lo = float(cfg.amplitude_prior_min) if flux_prior else 0.0
     amp_hi = float(cfg.amplitude_prior_max) if flux_prior else np.inf
-    lnle = np.empty((n_gal, n_e))
-    lnleb = np.empty((n_gal, n_e, n_b))
-    lnlr = np.empty((n_gal, n_grp, n_r + 1))
-    best = np.empty(n_gal, dtype=np.int64)
-    hbest = np.empty(n_gal)
-    xb = np.empty(n_gal)
-    yb = np.empty(n_gal)
+    return amp_pow, amp_lns, amp_lo, amp_hi
+
+
+def _kernel_weights(cfg: Config, bank: ModelBank, fb: _FoldedBank, size_prior: SizePrior | None,
+                    size_marginal_prior: Prior | None, lnL_r_groups: np.ndarray | None
+                    ) -> tuple[_Weights, _FoldedBank]:  # fmt: skip
+    """The kernel's priors and weights, and the folded bank of the sizes they keep."""
+    coarse = fb.coarse
+    n_b = bank.n_r // bank.n_sizes
+    ln_pi = np.full(n_b, -np.log(n_b))
+    node_w, w_star, fb = _size_weights(cfg, bank, fb, size_prior, n_b)
+    mp = size_marginal_prior if size_marginal_prior is not None else Prior()
+    e_w = mp.pdf(bank.egrid[:, 0], bank.egrid[:, 1])
+    e_w = e_w / e_w.sum()
+    e_w_c = np.full(coarse.n_e, 1.0 / coarse.n_e)
+    e_grp = _e_groups(lnL_r_groups, bank.n_e)
+    amp = _amplitude_prior(cfg)
     r_w = np.asarray(bank.r_weights, dtype=float)
-    rw_c = np.tile(r_w, bank.n_r // bank.n_sizes)[coarse.cols[:-1] % n_r][: coarse.n_r]
-    b2 = cfg.position_prior_sigma**2
-    cubic_g = np.zeros(n_gal, dtype=bool)
+    rw_c = np.tile(r_w, bank.n_r // bank.n_sizes)[coarse.cols[:-1] % bank.n_r][: coarse.n_r]
+    wts = _Weights(n_b=n_b, ln_pi=ln_pi, node_w=node_w, w_star=w_star, e_w=e_w, e_grp=e_grp,
+                   n_grp=int(e_grp.max()) + 1, amp=amp, b2=cfg.position_prior_sigma**2,
+                   e_w_c=e_w_c, rw_c=rw_c)  # fmt: skip
+    return wts, fb
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """The kernel's results for every galaxy of the window (filled block by block)."""
+
+    lnle: np.ndarray  # (n_gal, n_e) ln L(e)
+    lnleb: np.ndarray  # (n_gal, n_e, n_b) per bulge fraction
+    lnlr: np.ndarray  # (n_gal, n_grp, n_r + 1) ln L(r) per group of e cells
+    best: np.ndarray  # (n_gal,) the most likely model
+    hbest: np.ndarray  # its h*
+    xb: np.ndarray  # its peak, from the origin (xc, yc)
+    yb: np.ndarray
+    cubic_g: np.ndarray  # fitted with the third-order expansion in position
+
+
+def _recentre_block(win: _Window, prod: _Products, wts: _Weights, cfg: Config, sl: slice,
+                    coarse_psf: tuple) -> np.ndarray:  # fmt: skip
+    """Pass 1 on a block, on a coarse subset of models: move the origin to the peak of the
+    most likely model, so that the Laplace step of every model near it is short.
+
+    Returns the faint galaxies (S/N of that model below ``cfg.cubic_snr``), whose models'
+    peaks spread over a good fraction of a pixel: pass 2 fits them with the third-order
+    expansion in position.
+    """
+    fb = prod.fb
+    coarse = fb.coarse
+    m = sl.stop - sl.start
+    S_c, mxx_c, mxy_c, myy_c = coarse_psf
+    tmp = (np.empty((m, coarse.n_e)), np.empty((m, coarse.n_e, 1)),
+           np.empty((m, 1, coarse.n_r + 1)), np.empty(m, dtype=np.int64), np.empty(m),
+           np.empty(m), np.empty(m))  # fmt: skip
+    laplace_grid(
+        prod.folded(sl, False, fb.coarse_G), fb.coarse_members, _NO_MIX[0],
+        _NO_MIX[0], _NO_MIX[1], m, coarse.n_e,
+        coarse.n_r, coarse.n_r, S_c, mxx_c, mxy_c, myy_c, win.sigma[sl],
+        win.x0[sl] - win.xc[sl], win.y0[sl] - win.yc[sl], wts.b2, cfg.max_newton_step,
+        wts.rw_c, win.bank.star_weight, np.zeros(1), wts.e_w_c,
+        np.zeros(coarse.n_e, dtype=np.int64), *wts.amp, False,
+        *tmp,
+    )  # fmt: skip
+    step_x, step_y = tmp[5], tmp[6]
+    move = np.isfinite(step_x) & np.isfinite(step_y) & ~win.no_peak[sl]
+    win.xc[sl] += np.where(move, step_x, 0.0)
+    win.yc[sl] += np.where(move, step_y, 0.0)
+    snr_c = tmp[4] / (win.sigma[sl] * np.sqrt(S_c[tmp[3]]))
+    return snr_c < cfg.cubic_snr
+
+
+def _fit_block(win: _Window, prod: _Products, wts: _Weights, cfg: Config, grid: _Grid,
+               idx: np.ndarray, cubic: bool) -> None:  # fmt: skip
+    """Pass 2 on the galaxies ``idx`` of a block: every model, into ``grid``."""
+    bank, pb, fb = win.bank, win.pb, prod.fb
+    n_e, n_r, k = bank.n_e, bank.n_r, idx.size
+    out = (np.empty((k, n_e)), np.empty((k, n_e, wts.n_b)),
+           np.empty((k, wts.n_grp, n_r + 1)), np.empty(k, dtype=np.int64),
+           np.empty(k), np.empty(k), np.empty(k))  # fmt: skip
+    laplace_grid(
+        prod.folded(idx, cubic), fb.members, fb.mix_a, fb.mix_b, fb.mix_f,
+        k, n_e, n_r, bank.n_sizes,
+        pb.S, pb.mxx, pb.mxy, pb.myy,
+        win.sigma[idx], win.x0[idx] - win.xc[idx], win.y0[idx] - win.yc[idx], wts.b2,
+        cfg.max_newton_step, wts.node_w, wts.w_star, wts.ln_pi, wts.e_w, wts.e_grp,
+        *wts.amp, cubic,
+        *out,
+    )  # fmt: skip
+    (grid.lnle[idx], grid.lnleb[idx], grid.lnlr[idx], grid.best[idx], grid.hbest[idx],
+     grid.xb[idx], grid.yb[idx]) = out  # fmt: skip
+
+
+def _evaluate_grid(win: _Window, prod: _Products, wts: _Weights, cfg: Config) -> _Grid:
+    """The likelihood of every galaxy on the model grid, block by block: the centring
+    pass on the coarse models (:func:`_recentre_block`), then every model
+    (:func:`_fit_block`), the faint galaxies and the others apart."""
+    n_gal, bank, pb = win.n_gal, win.bank, win.pb
+    grid = _Grid(lnle=np.empty((n_gal, bank.n_e)), lnleb=np.empty((n_gal, bank.n_e, wts.n_b)),
+                 lnlr=np.empty((n_gal, wts.n_grp, bank.n_r + 1)),
+                 best=np.empty(n_gal, dtype=np.int64), hbest=np.empty(n_gal),
+                 xb=np.empty(n_gal), yb=np.empty(n_gal),
+                 cubic_g=np.zeros(n_gal, dtype=bool))  # fmt: skip
     # the PSF bank's values at the coarse models, once for every block
-    S_c, mxx_c, mxy_c, myy_c = (a[coarse.cols] for a in (pb.S, pb.mxx, pb.mxy, pb.myy))
+    coarse_psf = tuple(a[prod.fb.coarse.cols] for a in (pb.S, pb.mxx, pb.mxy, pb.myy))
     for s0 in range(0, n_gal, cfg.block_size):
         sl = slice(s0, min(s0 + cfg.block_size, n_gal))
-        m = sl.stop - sl.start
-        # pass 1, on a coarse subset of models: move the origin to the peak of the most
-        # likely model, so that the Laplace step of every model near it is short
-        tmp = (np.empty((m, coarse.n_e)), np.empty((m, coarse.n_e, 1)),
-               np.empty((m, 1, coarse.n_r + 1)), np.empty(m, dtype=np.int64), np.empty(m),
-               np.empty(m), np.empty(m))  # fmt: skip
-        laplace_grid(
-            folded_products(sl, False, fb.coarse_G), fb.coarse_members, _NO_MIX[0],
-            _NO_MIX[0], _NO_MIX[1], m, coarse.n_e,
-            coarse.n_r, coarse.n_r, S_c, mxx_c, mxy_c, myy_c, sigma[sl], x0[sl] - xc[sl],
-            y0[sl] - yc[sl], b2, cfg.max_newton_step, rw_c, bank.star_weight, ln_pi1, e_w_c,
-            np.zeros(coarse.n_e, dtype=np.int64), amp_pow, amp_lns, amp_lo, amp_hi, False,
-            *tmp,
-        )  # fmt: skip
-        step_x, step_y = tmp[5], tmp[6]
-        move = np.isfinite(step_x) & np.isfinite(step_y) & ~no_peak[sl]
-        xc[sl] += np.where(move, step_x, 0.0)
-        yc[sl] += np.where(move, step_y, 0.0)
-        # pass 2, every model; faint galaxies, whose models' peaks spread over a good
-        # fraction of a pixel, with the third-order expansion in position
-        snr_c = tmp[4] / (sigma[sl] * np.sqrt(S_c[tmp[3]]))
-        low = snr_c < cfg.cubic_snr
-        cubic_g[sl] = low
+        low = _recentre_block(win, prod, wts, cfg, sl, coarse_psf)
+        grid.cubic_g[sl] = low
         for sel, cubic in ((np.flatnonzero(low), True), (np.flatnonzero(~low), False)):
             if sel.size == 0:
                 continue
-            idx = sel + s0
-            out = (np.empty((sel.size, n_e)), np.empty((sel.size, n_e, n_b)),
-                   np.empty((sel.size, n_grp, n_r + 1)), np.empty(sel.size, dtype=np.int64),
-                   np.empty(sel.size), np.empty(sel.size), np.empty(sel.size))  # fmt: skip
-            laplace_grid(
-                folded_products(idx, cubic), fb.members, fb.mix_a, fb.mix_b, fb.mix_f,
-                sel.size, n_e, n_r, bank.n_sizes,
-                pb.S, pb.mxx, pb.mxy, pb.myy,
-                sigma[idx], x0[idx] - xc[idx], y0[idx] - yc[idx], b2, cfg.max_newton_step,
-                node_w, w_star, ln_pi, e_w, e_grp, amp_pow, amp_lns, amp_lo, amp_hi, cubic,
-                *out,
-            )  # fmt: skip
-            lnle[idx], lnleb[idx], lnlr[idx], best[idx], hbest[idx], xb[idx], yb[idx] = out
+            _fit_block(win, prod, wts, cfg, grid, sel + s0, cubic)
+    return grid
 
-    egrid = bank.egrid
+
+@dataclass(frozen=True)
+class _RefineKernel:
+    """Per-galaxy inputs and priors of the kernel that :func:`_refine_grid` runs again."""
+
+    sigma: np.ndarray  # (n_gal,) noise
+    x0: np.ndarray  # (n_gal,) catalogue positions from the origin of the expansion
+    y0: np.ndarray
+    b2: float
+    node_w: np.ndarray
+    w_star: float
+    ln_pi: np.ndarray
+    amp: tuple[float, float, float, float]
+
+
+def _refined(win: _Window, prod: _Products, wts: _Weights, grid: _Grid, cfg: Config,
+             psf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The e grid returned, ``ln L(e)`` and per fraction on it: the bank's, or with
+    ``cfg.e_refine > 1`` the finer grid, every galaxy interpolated and the narrow ones
+    fitted again there (:func:`_refine_grid`)."""
     if cfg.e_refine > 1:
-        # the finer grid: every galaxy interpolated, the narrow ones fitted again there
-        ok = ~bad & np.isfinite(lnle).all(axis=1)
-        kern = dict(sigma=sigma, x0=x0 - xc, y0=y0 - yc, b2=b2, node_w=node_w, w_star=w_star,
-                    ln_pi=ln_pi, amp=(amp_pow, amp_lns, amp_lo, amp_hi))  # fmt: skip
-        egrid, lnle, lnleb = _refine_grid(cfg, psf, bank, lnle, lnleb, ok, cubic_g, rows, kern)
+        ok = ~win.bad & np.isfinite(grid.lnle).all(axis=1)
+        kern = _RefineKernel(sigma=win.sigma, x0=win.x0 - win.xc, y0=win.y0 - win.yc,
+                             b2=wts.b2, node_w=wts.node_w, w_star=wts.w_star,
+                             ln_pi=wts.ln_pi, amp=wts.amp)  # fmt: skip
+        return _refine_grid(cfg, psf, win.bank, grid.lnle, grid.lnleb, ok, grid.cubic_g,
+                            prod.rows, kern)  # fmt: skip
+    return win.bank.egrid, grid.lnle, grid.lnleb
 
-    lnlr_grp = None
-    if n_grp > 1:  # the sum over all cells, and the groups apart
+
+def _collapse_groups(lnlr: np.ndarray, n_r: int, n_grp: int
+                     ) -> tuple[np.ndarray, np.ndarray | None]:  # fmt: skip
+    """``ln L(r)`` summed over all e cells, and the groups apart where there are several."""
+    if n_grp > 1:
         lnlr_grp = lnlr
         lnlr = lnlr[:, 0].copy()
         lnlr[:, :n_r] = _logsumexp_groups(lnlr_grp[:, :, :n_r])
-    else:
-        lnlr = lnlr[:, 0]
+        return lnlr, lnlr_grp
+    return lnlr[:, 0], None
+
+
+def _assemble_fits(win: _Window, wts: _Weights, grid: _Grid, egrid: np.ndarray,
+                   lnle: np.ndarray, lnleb: np.ndarray, cfg: Config) -> StampFits:  # fmt: skip
+    """The :class:`StampFits`: every row shifted to its maximum, the failed fits and the
+    stars flagged, the most likely model's parameters."""
+    bank, pb, flags, bad = win.bank, win.pb, win.flags, win.bad
+    n_r, n_b, w_star = bank.n_r, wts.n_b, wts.w_star
+    best, hbest, sigma = grid.best, grid.hbest, win.sigma
+    lnlr, lnlr_grp = _collapse_groups(grid.lnlr, n_r, wts.n_grp)
     peak = lnle.max(axis=1)
     # a stamp of absurd values (a pixel at 1e30) gives ln L a range beyond float32's: -inf
     # cells in the returned rows, which no posterior can use; failed like a NaN row
@@ -1052,14 +1228,15 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
     nanif = np.where(dead, np.nan, 1.0)
     fracs = bank.bulge if bank.bulge is not None else np.full(n_r, cfg.bulge_fraction)
     bulge_best = np.where(ie_best >= 0, fracs[best % max(n_r, 1)], np.nan) * nanif
+    c = win.c
     return StampFits(
         egrid=egrid.copy(),
         lnL=lnL,
         lnL_peak=np.where(dead, np.nan, peak),
         r_best=r_best * nanif,
         flux=hbest / S_best * nanif,
-        x=(c + xc + xb + shift_x) * nanif,
-        y=(c + yc + yb + shift_y) * nanif,
+        x=(c + win.xc + grid.xb + win.shift_x) * nanif,
+        y=(c + win.yc + grid.yb + win.shift_y) * nanif,
         snr=hbest / (sigma * np.sqrt(S_best)) * nanif,
         is_star=is_star,
         flags=flags,
@@ -1074,9 +1251,31 @@ def _fit_window(stamps, psf, sigma, cfg: Config, cx, cy, size_prior, size_margin
             bank.bulge_size[:: bank.n_sizes], float),
         lnL_r=lnL_r,
         bulge_best=bulge_best,
-        stamp=np.full(n_gal, n),
+        stamp=np.full(win.n_gal, win.n),
         lnL_r_grouped=lnlr_grp,
     )
+
+
+def _fit_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Config,
+                cx: np.ndarray, cy: np.ndarray, size_prior: SizePrior | None,
+                size_marginal_prior: Prior | None,
+                lnL_r_groups: np.ndarray | None = None) -> StampFits:  # fmt: skip
+    """:func:`fit_stamps` on ``cfg.stamp_size`` windows (one stamp size for all).
+
+    The stages: the windows cleaned, transformed and centred (:func:`_prepare_window`),
+    the kernel's priors (:func:`_kernel_weights`), the likelihood on the model grid
+    (:func:`_evaluate_grid`), the finer e grid (:func:`_refined`) and the result
+    (:func:`_assemble_fits`).
+    """
+    win = _prepare_window(stamps, psf, sigma, cfg, cx, cy)
+    fb = _folded_bank(cfg, win.bank)
+    wts, fb_kept = _kernel_weights(cfg, win.bank, fb, size_prior, size_marginal_prior,
+                                   lnL_r_groups)  # fmt: skip
+    # the buffer holds the products with every column of the bank, coarse ones included
+    prod = _products(win, cfg, fb_kept, fb.G[0].shape[1])
+    grid = _evaluate_grid(win, prod, wts, cfg)
+    egrid, lnle, lnleb = _refined(win, prod, wts, grid, cfg, psf)
+    return _assemble_fits(win, wts, grid, egrid, lnle, lnleb, cfg)
 
 
 @lru_cache(maxsize=4)
@@ -1098,7 +1297,8 @@ def _fine_lattice(step: float, e_max: float, k: int):
     return lat, parent, nbr, seg_of
 
 
-def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern):
+def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn,
+                 kern: _RefineKernel):
     """``ln L(e)`` on the finer grid of ``cfg.e_refine`` (adaptive refinement).
 
     Every usable galaxy's ``ln L`` (and each bulge fraction's) is interpolated from the
@@ -1175,9 +1375,9 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
         wk = wk[bank_f.rows]
     G = bank_f.G
     dtype = np.dtype(cfg.dtype)
-    node_w = kern["node_w"]
+    node_w = kern.node_w
     live_r = node_w > 0
-    table = amplitude_table(kern["amp"][0])
+    table = amplitude_table(kern.amp[0])
     # segments (seg_of): the fine cells of one fine row within one coarse column
     # (adjacent columns of the bank), one product each for every galaxy that needs it
     for cubic in (False, True):
@@ -1215,10 +1415,10 @@ def _refine_grid(cfg: Config, psf, bank, lnle, lnleb, ok, cubic_g, rows_fn, kern
                 laplace_grid_tab(
                     np.ascontiguousarray(prod), j[:, None], _NO_MIX[0], _NO_MIX[0], _NO_MIX[1],
                     1, nw, n_r, bank.n_sizes, pb_f.S[gid], pb_f.mxx[gid], pb_f.mxy[gid],
-                    pb_f.myy[gid], kern["sigma"][g : g + 1], kern["x0"][g : g + 1],
-                    kern["y0"][g : g + 1], kern["b2"], cfg.max_newton_step, node_w,
-                    kern["w_star"], kern["ln_pi"], np.full(nw, 1.0 / nw),
-                    np.zeros(nw, dtype=np.int64), *kern["amp"], cubic, *table, *res,
+                    pb_f.myy[gid], kern.sigma[g : g + 1], kern.x0[g : g + 1],
+                    kern.y0[g : g + 1], kern.b2, cfg.max_newton_step, node_w,
+                    kern.w_star, kern.ln_pi, np.full(nw, 1.0 / nw),
+                    np.zeros(nw, dtype=np.int64), *kern.amp, cubic, *table, *res,
                 )  # fmt: skip
                 lnle_f[g, win] = res[0][0]
                 lnleb_f[g, win, :] = res[1][0]
