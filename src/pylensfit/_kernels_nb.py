@@ -657,6 +657,158 @@ def _laplace_grid_nb(
 laplace_grid = _one_launch_at_a_time(_laplace_grid_nb)
 
 
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def _tile_tables(members, mix_a, mix_b, mix_f, s_m, sq_m, mxx, mxy, myy, ln_m):
+    """:func:`_laplace_grid_tab_nb`'s tables: the length of the run of mixed columns
+    starting at each (``mix_run``), and every tile's model indices ``cj`` and model
+    constants ``cm`` (S, sqrt S, mxx, mxy, myy, ln S), in the order the tiles read them."""
+    n_cols = members.shape[0]
+    # runs of mixed columns whose base columns are consecutive and whose fraction is one
+    n_mix = mix_a.size
+    mix_run = np.ones(n_mix, dtype=np.int64)
+    for d in range(n_mix - 2, -1, -1):
+        if (mix_a[d + 1] == mix_a[d] + 1 and mix_b[d + 1] == mix_b[d] + 1
+                and mix_f[d + 1] == mix_f[d]):  # fmt: skip
+            mix_run[d] = mix_run[d + 1] + 1
+    n_memb = members.shape[1]
+    # the model constants of every (member, column) slot, tile by tile, in the order the
+    # tiles read them (padding: a harmless model, member -1)
+    n_tiles = -(-n_cols // _TILE)
+    cj = np.full((n_tiles, n_memb, _TILE), -1, dtype=np.int64)
+    cm = np.zeros((n_tiles, n_memb, 6, _TILE))
+    cm[:, :, 0] = 1.0  # S, sqrt S, mxx, mxy, myy, ln S of the padding
+    cm[:, :, 1] = 1.0
+    cm[:, :, 2] = -1.0
+    cm[:, :, 4] = -1.0
+    for it in range(n_tiles):
+        for hm in range(n_memb):
+            for k in range(min(_TILE, n_cols - it * _TILE)):
+                j = members[it * _TILE + k, hm]
+                cj[it, hm, k] = j
+                if j >= 0:
+                    cm[it, hm, 0, k] = s_m[j]
+                    cm[it, hm, 1, k] = sq_m[j]
+                    cm[it, hm, 2, k] = mxx[j]
+                    cm[it, hm, 3, k] = mxy[j]
+                    cm[it, hm, 4, k] = myy[j]
+                    cm[it, hm, 5, k] = ln_m[j]
+    return mix_run, cj, cm
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def _read_tile(prod, g, n_gal, t0, nt, n_q, n_base, mix_a, mix_b, mix_f, mix_run, V):
+    """Fill ``V`` with galaxy ``g``'s products of the tile of columns ``t0 .. t0 + nt``
+    (:func:`_laplace_grid_tab_nb`)."""
+    n_chi = prod.shape[0]
+    one = prod.dtype.type(1.0)
+    zero = prod.dtype.type(0.0)
+    # the rows of every model of the tile's columns: the column's own values
+    # (n_chi = 1) or the four sign combinations of the four characters (n_chi = 4),
+    # read row by row (contiguous) rather than column by column
+    for q in range(n_q):
+        row = q * n_gal + g
+        # runs of base columns, read directly, and of mixed columns, each the
+        # mix of two runs of base columns in prod's precision
+        k = 0
+        while k < nt:
+            c = t0 + k
+            if c < n_base:
+                ca, cb = c, c
+                fa, fm = one, zero  # unused: the base columns are read as they are
+                ln = min(n_base - c, nt - k)
+            else:
+                ca = mix_a[c - n_base]
+                cb = mix_b[c - n_base]
+                fm = prod.dtype.type(mix_f[c - n_base])
+                fa = prod.dtype.type(1.0 - mix_f[c - n_base])
+                ln = min(mix_run[c - n_base], nt - k)
+            if c < n_base and n_chi == 4:
+                for kk in range(ln):
+                    ia = ca + kk
+                    _fold(V, q, k + kk, prod[0, row, ia], prod[1, row, ia],
+                          prod[2, row, ia], prod[3, row, ia])  # fmt: skip
+            elif n_chi == 4:
+                for kk in range(ln):
+                    ia = ca + kk
+                    ib = cb + kk
+                    _fold(V, q, k + kk, fa * prod[0, row, ia] + fm * prod[0, row, ib],
+                          fa * prod[1, row, ia] + fm * prod[1, row, ib],
+                          fa * prod[2, row, ia] + fm * prod[2, row, ib],
+                          fa * prod[3, row, ia] + fm * prod[3, row, ib])  # fmt: skip
+            elif c < n_base:
+                for kk in range(ln):
+                    V[0, q, k + kk] = prod[0, row, ca + kk]
+            else:
+                for kk in range(ln):
+                    V[0, q, k + kk] = (fa * prod[0, row, ca + kk]
+                                       + fm * prod[0, row, cb + kk])  # fmt: skip
+            k += ln
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "afn"})
+def _collapse_models(g, buf, best, w_star, n_e, n_r, n_sub, e_grp, e_w, node_w, ln_w, ln_pi,
+                     pi, out_lnle, out_lnlb, out_lnlr):  # fmt: skip
+    """Galaxy ``g``'s second pass (:func:`_laplace_grid_tab_nb`): from its ``ln L`` of
+    every model ``buf`` (peak ``best``), ``ln L(e)`` summed over r, ``ln L_k(e)`` per run
+    and ``ln L(r)`` per group of e cells."""
+    star = buf.size - 1
+    n_blk = n_r // n_sub
+    n_grp = out_lnlr.shape[1]
+    lw_star = buf[star] + math.log(w_star)
+    ex_star = math.exp(lw_star - best)
+    rsum = np.zeros((n_grp, n_r))
+    lwr = np.empty(n_sub)
+    for ie in range(n_e):
+        ge = e_grp[ie]
+        ew = e_w[ie]
+        acc = ex_star
+        emax = lw_star
+        for ib in range(n_blk):  # runs of increasing r, one per bulge fraction
+            bacc = 0.0
+            rmax = -np.inf
+            km = 0
+            for irr in range(n_sub):
+                ir = ib * n_sub + irr
+                if not node_w[ir] > 0.0:  # outside the size prior: not evaluated
+                    lwr[irr] = -np.inf
+                    continue
+                l = buf[ie * n_r + ir]
+                dlb = l - best
+                ex = math.exp(dlb) if dlb > -_EXP_ZERO else 0.0
+                bacc += ex * node_w[ir]
+                rsum[ge, ir] += ex * ew
+                lw = l + ln_w[ir]
+                lwr[irr] = lw
+                if lw > rmax:
+                    rmax = lw
+                    km = irr
+            ir = ib * n_sub + km
+            if 0 < km < n_sub - 1 and node_w[ir - 1] > 0.0 and node_w[ir + 1] > 0.0:
+                bacc *= _run_peak_factor(
+                    lwr[km - 1], lwr[km], lwr[km + 1], buf[ie * n_r + ir - 1],
+                    buf[ie * n_r + ir], buf[ie * n_r + ir + 1],
+                    ln_w[ir - 1] - 2.0 * ln_w[ir] + ln_w[ir + 1],
+                )  # fmt: skip
+            if rmax > best - _UNDERFLOW and bacc > 0.0:
+                out_lnlb[g, ie, ib] = best + math.log(bacc)
+            else:
+                out_lnlb[g, ie, ib] = rmax
+            acc += bacc * pi[ib]
+            if rmax + ln_pi[ib] > emax:
+                emax = rmax + ln_pi[ib]
+        if emax > best - _UNDERFLOW:
+            out_lnle[g, ie] = best + math.log(acc)
+        else:
+            out_lnle[g, ie] = emax
+    for a in range(n_grp):
+        for ir in range(n_r):
+            if rsum[a, ir] > 0.0:
+                out_lnlr[g, a, ir] = best + math.log(rsum[a, ir])
+            else:
+                out_lnlr[g, a, ir] = -np.inf
+        out_lnlr[g, a, n_r] = buf[star]
+
+
 @njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
 def _laplace_grid_tab_nb(
     prod, members, mix_a, mix_b, mix_f, n_gal, n_e, n_r, n_sub, s_m, mxx, mxy, myy, sigma,
@@ -744,49 +896,17 @@ def _laplace_grid_tab_nb(
         ``ln L_k(e)`` of each run (bulge fraction) alone, without the point source.
     """
     n_mod = n_e * n_r + 1
-    n_blk = n_r // n_sub
     max_step2 = max_step * max_step
-    star = n_mod - 1
     sq_m = np.sqrt(s_m)
     ln_m = np.log(s_m)
     ln_w = np.log(node_w)
     pi = np.exp(ln_pi)
-    n_chi = prod.shape[0]
     n_cols = members.shape[0]
     n_base = n_cols - mix_a.size  # prod's further columns only feed mixed ones
-    one = prod.dtype.type(1.0)
-    zero = prod.dtype.type(0.0)
-    # runs of mixed columns whose base columns are consecutive and whose fraction is one
-    n_mix = mix_a.size
-    mix_run = np.ones(n_mix, dtype=np.int64)
-    for d in range(n_mix - 2, -1, -1):
-        if (mix_a[d + 1] == mix_a[d] + 1 and mix_b[d + 1] == mix_b[d] + 1
-                and mix_f[d + 1] == mix_f[d]):  # fmt: skip
-            mix_run[d] = mix_run[d + 1] + 1
     n_memb = members.shape[1]
     n_q = 10 if cubic else 6
-    n_grp = out_lnlr.shape[1]
-    # the model constants of every (member, column) slot, tile by tile, in the order the
-    # tiles read them (padding: a harmless model, member -1)
     n_tiles = -(-n_cols // _TILE)
-    cj = np.full((n_tiles, n_memb, _TILE), -1, dtype=np.int64)
-    cm = np.zeros((n_tiles, n_memb, 6, _TILE))
-    cm[:, :, 0] = 1.0  # S, sqrt S, mxx, mxy, myy, ln S of the padding
-    cm[:, :, 1] = 1.0
-    cm[:, :, 2] = -1.0
-    cm[:, :, 4] = -1.0
-    for it in range(n_tiles):
-        for hm in range(n_memb):
-            for k in range(min(_TILE, n_cols - it * _TILE)):
-                j = members[it * _TILE + k, hm]
-                cj[it, hm, k] = j
-                if j >= 0:
-                    cm[it, hm, 0, k] = s_m[j]
-                    cm[it, hm, 1, k] = sq_m[j]
-                    cm[it, hm, 2, k] = mxx[j]
-                    cm[it, hm, 3, k] = mxy[j]
-                    cm[it, hm, 4, k] = myy[j]
-                    cm[it, hm, 5, k] = ln_m[j]
+    mix_run, cj, cm = _tile_tables(members, mix_a, mix_b, mix_f, s_m, sq_m, mxx, mxy, myy, ln_m)
     for g in prange(n_gal):
         sig = sigma[g]
         gx0 = x0[g]
@@ -799,47 +919,7 @@ def _laplace_grid_tab_nb(
         for it in range(n_tiles):
             t0 = it * _TILE
             nt = min(_TILE, n_cols - t0)
-            # the rows of every model of the tile's columns: the column's own values
-            # (n_chi = 1) or the four sign combinations of the four characters (n_chi = 4),
-            # read row by row (contiguous) rather than column by column
-            for q in range(n_q):
-                row = q * n_gal + g
-                # runs of base columns, read directly, and of mixed columns, each the
-                # mix of two runs of base columns in prod's precision
-                k = 0
-                while k < nt:
-                    c = t0 + k
-                    if c < n_base:
-                        ca, cb = c, c
-                        fa, fm = one, zero  # unused: the base columns are read as they are
-                        ln = min(n_base - c, nt - k)
-                    else:
-                        ca = mix_a[c - n_base]
-                        cb = mix_b[c - n_base]
-                        fm = prod.dtype.type(mix_f[c - n_base])
-                        fa = prod.dtype.type(1.0 - mix_f[c - n_base])
-                        ln = min(mix_run[c - n_base], nt - k)
-                    if c < n_base and n_chi == 4:
-                        for kk in range(ln):
-                            ia = ca + kk
-                            _fold(V, q, k + kk, prod[0, row, ia], prod[1, row, ia],
-                                  prod[2, row, ia], prod[3, row, ia])  # fmt: skip
-                    elif n_chi == 4:
-                        for kk in range(ln):
-                            ia = ca + kk
-                            ib = cb + kk
-                            _fold(V, q, k + kk, fa * prod[0, row, ia] + fm * prod[0, row, ib],
-                                  fa * prod[1, row, ia] + fm * prod[1, row, ib],
-                                  fa * prod[2, row, ia] + fm * prod[2, row, ib],
-                                  fa * prod[3, row, ia] + fm * prod[3, row, ib])  # fmt: skip
-                    elif c < n_base:
-                        for kk in range(ln):
-                            V[0, q, k + kk] = prod[0, row, ca + kk]
-                    else:
-                        for kk in range(ln):
-                            V[0, q, k + kk] = (fa * prod[0, row, ca + kk]
-                                               + fm * prod[0, row, cb + kk])  # fmt: skip
-                    k += ln
+            _read_tile(prod, g, n_gal, t0, nt, n_q, n_base, mix_a, mix_b, mix_f, mix_run, V)
             for hm in range(n_memb):
                 Vh = V[hm]
                 Wh = W[hm]
@@ -863,59 +943,8 @@ def _laplace_grid_tab_nb(
                         out_x[g] = W[hm, _X, k]
                         out_y[g] = W[hm, _Y, k]
         out_best[g] = jb
-        lw_star = buf[star] + math.log(w_star)
-        ex_star = math.exp(lw_star - best)
-        rsum = np.zeros((n_grp, n_r))
-        lwr = np.empty(n_sub)
-        for ie in range(n_e):
-            ge = e_grp[ie]
-            ew = e_w[ie]
-            acc = ex_star
-            emax = lw_star
-            for ib in range(n_blk):  # runs of increasing r, one per bulge fraction
-                bacc = 0.0
-                rmax = -np.inf
-                km = 0
-                for irr in range(n_sub):
-                    ir = ib * n_sub + irr
-                    if not node_w[ir] > 0.0:  # outside the size prior: not evaluated
-                        lwr[irr] = -np.inf
-                        continue
-                    l = buf[ie * n_r + ir]
-                    dlb = l - best
-                    ex = math.exp(dlb) if dlb > -_EXP_ZERO else 0.0
-                    bacc += ex * node_w[ir]
-                    rsum[ge, ir] += ex * ew
-                    lw = l + ln_w[ir]
-                    lwr[irr] = lw
-                    if lw > rmax:
-                        rmax = lw
-                        km = irr
-                ir = ib * n_sub + km
-                if 0 < km < n_sub - 1 and node_w[ir - 1] > 0.0 and node_w[ir + 1] > 0.0:
-                    bacc *= _run_peak_factor(
-                        lwr[km - 1], lwr[km], lwr[km + 1], buf[ie * n_r + ir - 1],
-                        buf[ie * n_r + ir], buf[ie * n_r + ir + 1],
-                        ln_w[ir - 1] - 2.0 * ln_w[ir] + ln_w[ir + 1],
-                    )  # fmt: skip
-                if rmax > best - _UNDERFLOW and bacc > 0.0:
-                    out_lnlb[g, ie, ib] = best + math.log(bacc)
-                else:
-                    out_lnlb[g, ie, ib] = rmax
-                acc += bacc * pi[ib]
-                if rmax + ln_pi[ib] > emax:
-                    emax = rmax + ln_pi[ib]
-            if emax > best - _UNDERFLOW:
-                out_lnle[g, ie] = best + math.log(acc)
-            else:
-                out_lnle[g, ie] = emax
-        for a in range(n_grp):
-            for ir in range(n_r):
-                if rsum[a, ir] > 0.0:
-                    out_lnlr[g, a, ir] = best + math.log(rsum[a, ir])
-                else:
-                    out_lnlr[g, a, ir] = -np.inf
-            out_lnlr[g, a, n_r] = buf[star]
+        _collapse_models(g, buf, best, w_star, n_e, n_r, n_sub, e_grp, e_w, node_w, ln_w,
+                         ln_pi, pi, out_lnle, out_lnlb, out_lnlr)
 
 
 laplace_grid_tab = _one_launch_at_a_time(_laplace_grid_tab_nb)
