@@ -1,0 +1,82 @@
+"""The package's layout rules, checked on its source.
+
+* No module imports a private name (``_x``) of another module.
+* An import inside a function says why in a comment (an optional dependency, a heavy
+  import, an import cycle), on its line or just above it.
+* No function of the method's modules is longer than 150 lines (the validation
+  harness's modules, which render and score simulations, are not held to it).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pylensfit
+
+SRC = Path(pylensfit.__file__).parent
+HARNESS = {"validation", "precision", "convergence", "simulate"}
+MAX_LINES = 150
+FUNCS = (ast.FunctionDef, ast.AsyncFunctionDef)
+
+
+def _module(name: str, text: str):
+    return name, text.splitlines(), ast.parse(text)
+
+
+def _package():
+    return [_module(p.relative_to(SRC).with_suffix("").as_posix().replace("/", "."),
+                    p.read_text()) for p in sorted(SRC.rglob("*.py"))]  # fmt: skip
+
+
+def private_imports(modules) -> list[str]:
+    return [f"{name}: from {node.module} import {a.name}"
+            for name, _, tree in modules for node in ast.walk(tree)
+            if isinstance(node, ast.ImportFrom)
+            for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+
+
+def silent_local_imports(modules) -> list[str]:
+    found = []
+    for name, lines, tree in modules:
+        for fn in (n for n in ast.walk(tree) if isinstance(n, FUNCS)):
+            for node in ast.walk(fn):
+                if not isinstance(node, (ast.Import, ast.ImportFrom)):
+                    continue
+                here = lines[node.lineno - 1]
+                # a comment on the line, or on one of the two above it (a block of
+                # imports from one optional package shares its comment)
+                above = lines[max(node.lineno - 3, 0):node.lineno - 1]
+                if "#" not in here and not any(s.strip().startswith("#") for s in above):
+                    found.append(f"{name}:{node.lineno}: {here.strip()}")
+    return found
+
+
+def long_functions(modules) -> list[str]:
+    return [f"{name}.{fn.name}: {fn.end_lineno - fn.lineno + 1} lines"
+            for name, _, tree in modules if name.split(".")[0] not in HARNESS
+            for fn in ast.walk(tree)
+            if isinstance(fn, FUNCS) and fn.end_lineno - fn.lineno + 1 > MAX_LINES]
+
+
+def test_no_private_imports_across_modules():
+    assert private_imports(_package()) == []
+
+
+def test_function_level_imports_say_why():
+    assert silent_local_imports(_package()) == []
+
+
+def test_no_long_functions_in_the_method():
+    assert long_functions(_package()) == []
+
+
+def test_the_checks_find_what_they_are_for():
+    bad = [_module("m", "from .x import _hidden, shown\n"
+                        "def f():\n    import os\n    import sys  # start-up cost\n"
+                        "    return os, sys\n"
+                        "def g():\n" + "    pass\n" * MAX_LINES)]
+    assert private_imports(bad) == ["m: from x import _hidden"]
+    assert silent_local_imports(bad) == ["m:3: import os"]
+    assert long_functions(bad) == [f"m.g: {MAX_LINES + 1} lines"]
+    assert long_functions([("validation", *bad[0][1:])]) == []
