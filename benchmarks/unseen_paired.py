@@ -885,6 +885,52 @@ def _mean_row(method: str, rows: list[dict]) -> dict:
     return out
 
 
+def combine(paths: list[str], n_groups: int) -> int:
+    """Print the per-PSF, mean and by-kind tables of runs saved with ``--columns``.
+
+    The runs must share the population (``--ngal`` and ``--seed``); each contributes
+    the PSFs it ran. pylensfit's shear is ``sum e / sum sens`` (the default estimator).
+    """
+    runs = [np.load(p) for p in paths]
+    first = runs[0]
+    pop = Population(**{k[4:]: first[k] for k in first.files if k.startswith("pop_")})
+    g = float(first["g"])
+    cols = {k: np.array(first[k]) for k in ("e_plf", "s_plf", "ok_plf", "e_hsm", "ok_hsm")}
+    done: set[int] = set()
+    for path, r in zip(paths, runs, strict=True):
+        if not all(np.array_equal(r[f"pop_{k}"], getattr(pop, k))
+                   for k in pop.__dataclass_fields__) or float(r["g"]) != g:
+            raise SystemExit(f"{path}: another population or shear than {paths[0]}'s")
+        psfs = {int(i) for i in r["psfs_run"]}
+        if psfs & done:
+            raise SystemExit(f"{path}: PSFs {sorted(psfs & done)} are in an earlier file")
+        sel = np.isin(pop.psf, sorted(psfs))
+        for k in cols:
+            cols[k][sel] = r[k][sel]
+        done |= psfs
+    rows = {"pylensfit": [], "REGAUSS": []}
+    for ipsf in sorted(done):
+        sel = np.flatnonzero(pop.psf == ipsf)
+        keep_p = np.all(cols["ok_plf"][sel], axis=1)
+        keep_h = np.all(cols["ok_hsm"][sel], axis=1)
+        vp, ep = m_c_ratio(cols["e_plf"][sel][keep_p], cols["s_plf"][sel][keep_p], g, n_groups)
+        vh, eh = m_c_regauss(cols["e_hsm"][sel][keep_h], g, n_groups)
+        for name, v, err, kp in (("pylensfit", vp, ep, keep_p), ("REGAUSS", vh, eh, keep_h)):
+            r = {"method": name, "psf": PSFS[ipsf][0], "n": int(kp.sum())}
+            for q, x, dx in zip(("m1", "m2", "c1", "c2"), v, err, strict=True):
+                r[q], r[f"{q}_err"] = float(x), float(dx)
+            rows[name].append(r)
+    table_rows = []
+    for name in rows:
+        table_rows += rows[name] + [_mean_row(name, rows[name])]
+    print(f"{len(paths)} runs, PSFs {sorted(done)}; g = {g}")
+    print_table(table_rows)
+    print("\nby kind (paired selection; the mean over the PSFs run):")
+    print_table(kind_table(pop, done, cols["e_plf"], cols["s_plf"], cols["ok_plf"],
+                           cols["e_hsm"], cols["ok_hsm"], g, n_groups))  # fmt: skip
+    return 0
+
+
 def main(argv=None) -> int:
     """Run the benchmark (see the module docstring); returns the exit status."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -914,7 +960,12 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="write the table (ECSV) here")
     ap.add_argument("--columns", default=None,
                     help="write the per-rendering columns and the population (NPZ) here")
+    ap.add_argument("--combine", nargs="+", default=None, metavar="NPZ",
+                    help="measure nothing: combine the --columns files of runs of different "
+                         "PSFs (the same --ngal and --seed) and print their tables")
     a = ap.parse_args(argv)  # fmt: skip
+    if a.combine:
+        return combine(a.combine, a.groups)
     if a.estimator == "plf" and a.method != "api":
         ap.error("--estimator plf needs --method api (the table's lnL and meta)")
     if min(a.chunk, a.task, a.jobs, a.block) < 1:
