@@ -48,10 +48,11 @@ from tqdm.auto import tqdm
 
 from .config import Config
 from .flags import BAD, flag_value
+from .galaxies import GalaxyProfile, PSFProfile
 from .likelihood import fit_stamps
 from .prior import Prior
 from .shear import shapes, shear_sensitivity
-from .simulate import draw_shapes, galaxy_profile
+from .simulate import draw_shapes
 
 __all__ = [
     "DEFAULT_DES",
@@ -177,11 +178,12 @@ def render_sample(
         Range of the galaxy size ``r`` in px, drawn log-uniformly (its meaning is the
         model grid's, see :attr:`ConvergenceSample.r`).
     psf : mapping, optional
-        Moffat PSF ``{"fwhm": px, "beta": ..., "e1": ..., "e2": ...}``; default
-        :data:`DEFAULT_PSF`.
+        Moffat PSF ``{"fwhm": px, "beta": ..., "e1": ..., "e2": ...}``, or any PSF of
+        :meth:`pylensfit.galaxies.PSFProfile.from_dict`; default :data:`DEFAULT_PSF`.
     model : str
         ``"devaucouleurs"``, ``"exponential"`` or ``"bulge+disc"`` (with the default
-        :class:`~pylensfit.Config` bulge fraction and size ratio).
+        :class:`~pylensfit.Config` bulge fraction and size ratio):
+        :meth:`pylensfit.galaxies.GalaxyProfile.from_model`.
     prior : Prior, optional
         Functional prior of the intrinsic ellipticities (default ``Prior()``, the
         STEP-like B, C, D = 0.19, 0.58, 2.4); draws with ``|e| > 0.99`` are redrawn.
@@ -221,12 +223,13 @@ def render_sample(
     big = 2 * int(stamp_size)
     c = big // 2
 
-    gpsf = galsim.Moffat(beta=psf["beta"], fwhm=psf["fwhm"]).shear(g1=psf["e1"], g2=psf["e2"])
+    gpsf = PSFProfile.from_dict(psf).galsim()
     n = int(stamp_size)
     psf_image = gpsf.drawImage(nx=n, ny=n, scale=1.0, offset=(0.5, 0.5)).array.astype(float)
     stamps = np.empty((ngal, big, big))
     for i in range(ngal):  # GalSim renders one object at a time
-        gal = galaxy_profile(model, r[i]).shear(g1=e[i, 0], g2=e[i, 1])
+        # r as the model bank's; bulge+disc: Config's bulge fraction 0.5, size ratio 0.6
+        gal = GalaxyProfile.from_model(model, r[i]).galsim().shear(g1=e[i, 0], g2=e[i, 1])
         stamps[i] = (
             galsim.Convolve(gal, gpsf)
             .drawImage(nx=big, ny=big, scale=1.0, offset=(0.5 + dxy[i, 0], 0.5 + dxy[i, 1]))

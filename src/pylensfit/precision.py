@@ -90,8 +90,9 @@ from astropy.table import Table, vstack
 
 from .calibration import MIN_FLUX_RANGE_GALAXIES, CalibrationSample, run_recipe
 from .config import Config
+from .galaxies import GalaxyProfile, PSFProfile
 from .likelihood import e_annuli, fit_stamps
-from .models import DEVAUC_TRUNCATION, model_bank
+from .models import model_bank
 from .prior import Prior, SizePrior, mix_bulge_fractions
 from .runner import run_tasks, single_thread, worker_pool
 from .shear import (
@@ -263,19 +264,8 @@ class PrecisionSpec:
 # Rendering
 # ----------------------------------------------------------------------------------------
 def _galsim_psf(p: dict):
-    import galsim  # galsim: heavy import, only for rendering
-
-    if p["kind"] == "moffat":
-        psf = galsim.Moffat(beta=p["beta"], fwhm=p["fwhm"])
-    elif p["kind"] == "kolmogorov":
-        psf = galsim.Kolmogorov(fwhm=p["fwhm"])
-    elif p["kind"] == "asymmetric":
-        core = galsim.Moffat(beta=p["beta"], fwhm=p["fwhm"]).withFlux(1.0 - p["lobe_flux"])
-        lobe = galsim.Moffat(beta=p["beta"], fwhm=1.5 * p["fwhm"]).withFlux(p["lobe_flux"])
-        psf = galsim.Add(core, lobe.shift(p["lobe_shift"], 0.0))
-    else:
-        raise ValueError(f"unknown PSF kind {p['kind']!r}")
-    return psf.shear(g1=p["e1"], g2=p["e2"])
+    """The GalSim profile of a PSF of :data:`PRECISION_PSFS` (no pixel response)."""
+    return PSFProfile.from_dict(p).galsim()
 
 
 def _draw(obj, n: int, offset=(0.0, 0.0)) -> np.ndarray:
@@ -296,28 +286,17 @@ def _psf_image(p: dict, n: int) -> tuple[np.ndarray, float]:
 
 def _profile(morph: str, r: float, bulge_frac: float, sersic_n: float, n_knots: int,
              knot_frac: float, knot_seed: int):  # fmt: skip
-    """Round unit-flux galaxy of half-light radius ``r`` (pixels)."""
-    import galsim  # galsim: heavy import, only for rendering
+    """Round unit-flux galaxy of half-light radius ``r`` (pixels).
 
-    T = DEVAUC_TRUNCATION
-
-    if morph == "exponential":
-        return galsim.Exponential(half_light_radius=r)
-    if morph == "devaucouleurs":
-        return galsim.DeVaucouleurs(half_light_radius=r, trunc=T * r)
-    if morph == "sersic":
-        return galsim.Sersic(n=sersic_n, half_light_radius=r, trunc=T * r if sersic_n > 2 else 0.0)
-    rb = 0.5 * r
-    bulge = galsim.DeVaucouleurs(half_light_radius=rb, trunc=T * rb).withFlux(bulge_frac)
-    disc_flux = 1.0 - bulge_frac
-    if morph == "bulge+disc":
-        return galsim.Add(bulge, galsim.Exponential(half_light_radius=r).withFlux(disc_flux))
-    if morph == "knots":
-        knots = galsim.RandomKnots(n_knots, half_light_radius=r, flux=knot_frac * disc_flux,
-                                   rng=galsim.BaseDeviate(knot_seed))  # fmt: skip
-        disc = galsim.Exponential(half_light_radius=r).withFlux((1 - knot_frac) * disc_flux)
-        return galsim.Add(bulge, disc, knots)
-    raise ValueError(f"unknown morphology {morph!r}")
+    :class:`~pylensfit.galaxies.GalaxyProfile`, every size a half-light radius, with the
+    STEP2-like bulge (:func:`pylensfit.validation._step2_galaxy`'s): half-light radius
+    ``0.5 r`` (``r`` the disc's), flux ``bulge_frac``.
+    """
+    if morph not in MORPHOLOGIES:
+        raise ValueError(f"unknown morphology {morph!r}")
+    return GalaxyProfile(morph, r, sersic_n=sersic_n, bulge_fraction=bulge_frac,
+                         bulge_size_ratio=0.5, knot_fraction=knot_frac, n_knots=n_knots,
+                         knot_seed=knot_seed).galsim()  # fmt: skip
 
 
 def population_prior(spec: PrecisionSpec) -> Prior:
@@ -485,8 +464,8 @@ def reference_norm(spec: PrecisionSpec, psf_index: int, stamp_size: int = 32) ->
     p = spec.psfs[psf_index]
     _, psf_hlr = _psf_image(p, int(stamp_size))
     r_ref = math.sqrt(spec.size_ratio_range[0] * spec.size_ratio_range[1]) * psf_hlr
-    img = _draw(galsim.Convolve(galsim.Exponential(half_light_radius=r_ref), _galsim_psf(p)),
-                int(stamp_size))  # fmt: skip
+    gal = GalaxyProfile("exponential", r_ref).galsim()
+    img = _draw(galsim.Convolve(gal, _galsim_psf(p)), int(stamp_size))
     return math.sqrt(float(np.sum(img.astype(float) ** 2)))
 
 

@@ -30,7 +30,7 @@ from astropy.wcs import WCS
 from scipy.interpolate import RectBivariateSpline
 
 from .catalogue import atomic_write
-from .models import DEVAUC_TRUNCATION
+from .galaxies import GalaxyProfile, PSFProfile
 from .prior import Prior
 from .shear import apply_shear
 
@@ -182,15 +182,9 @@ class PSFMap:
     def profile(self, u: float = 0.0, v: float = 0.0):
         """The GalSim Moffat profile at normalised ``(u, v)`` (no pixel response)."""
         if self.constant or (u == 0.0 and v == 0.0):
-            return _moffat(self.beta, self.fwhm, self.e1, self.e2)
+            return PSFProfile("moffat", self.fwhm, self.beta, self.e1, self.e2).galsim()
         fwhm, e1, e2 = self.at(u, v)
-        return _moffat(self.beta, float(fwhm), float(e1), float(e2))
-
-
-def _moffat(beta: float, fwhm: float, e1: float, e2: float):
-    import galsim  # galsim: heavy import, only for rendering
-
-    return galsim.Moffat(beta=beta, fwhm=fwhm).shear(g1=e1, g2=e2)
+        return PSFProfile("moffat", float(fwhm), self.beta, float(e1), float(e2)).galsim()
 
 
 def psf_map(spec: FieldSpec) -> PSFMap:
@@ -293,7 +287,7 @@ def local_psfs(spec: FieldSpec, x: np.ndarray, y: np.ndarray) -> list:
     if m.constant:
         return [m.profile()] * len(x)
     fwhm, e1, e2 = psf_at(spec, x, y)
-    return [_moffat(m.beta, float(f), float(a), float(b))
+    return [PSFProfile("moffat", float(f), m.beta, float(a), float(b)).galsim()
             for f, a, b in zip(fwhm, e1, e2, strict=True)]  # fmt: skip
 
 
@@ -447,7 +441,8 @@ def galaxy_profile(model: str, r: float, index: int = 0):
         Size in pixels, as the model bank's (:mod:`pylensfit.models`): the exponential's
         scale length, the de Vaucouleurs half-light radius (truncated at
         :data:`~pylensfit.models.DEVAUC_TRUNCATION` of them), the bulge+disc's disc
-        scale length (bulge half-light radius ``0.6 r``, half the flux each).
+        scale length (bulge half-light radius ``0.6 r``, half the flux each):
+        :meth:`pylensfit.galaxies.GalaxyProfile.from_model`.
     index : int
         The object's index, for ``model="mixed"``.
 
@@ -461,23 +456,10 @@ def galaxy_profile(model: str, r: float, index: int = 0):
     ValueError
         For an unknown ``model``.
     """
-    import galsim  # galsim: heavy import, only for rendering
-
     if model == "mixed":
         model = MIXED_KINDS[index % len(MIXED_KINDS)]
-    T = DEVAUC_TRUNCATION
-
-    if model == "exponential":
-        return galsim.Exponential(scale_radius=r)
-    if model == "devaucouleurs":
-        return galsim.DeVaucouleurs(half_light_radius=r, trunc=T * r)
-    if model == "bulge+disc":
-        rb = 0.6 * r
-        return galsim.Add(
-            galsim.DeVaucouleurs(half_light_radius=rb, trunc=T * rb).withFlux(0.5),
-            galsim.Exponential(scale_radius=r).withFlux(0.5),
-        )
-    raise ValueError(f"unknown model {model!r}")
+    # the model bank's meaning of r; bulge+disc: STEP1's bulge of 0.6 r, half the flux
+    return GalaxyProfile.from_model(model, r, bulge_fraction=0.5, bulge_size_ratio=0.6).galsim()
 
 
 def draw_population(spec: FieldSpec, rng: np.random.Generator) -> tuple[np.ndarray, ...]:

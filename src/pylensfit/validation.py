@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 
 from . import pipeline
 from .config import Config
-from .models import DEVAUC_TRUNCATION
+from .galaxies import GalaxyProfile, PSFProfile
 from .prior import (
     Prior,
     estimate_prior,
@@ -145,28 +145,16 @@ def _spec_for(psf: dict, **kw) -> FieldSpec:
 def _step2_galaxy(
     kind: str, r: float, n: float, bulge_frac: float, knot_frac: float, n_knots: int, knot_seed: int
 ):
-    """Round (before the intrinsic shear) unit-flux STEP2-like galaxy of half-light radius r."""
-    import galsim  # galsim: heavy import, only for rendering
+    """Round (before the intrinsic shear) unit-flux STEP2-like galaxy of half-light radius r.
 
-    T = DEVAUC_TRUNCATION
-    if kind == "sersic":
-        trunc = T * r if n > 2.0 else 0.0
-        return galsim.Sersic(n=n, half_light_radius=r, trunc=trunc)
-    rb = 0.5 * r
-    bulge = galsim.DeVaucouleurs(half_light_radius=rb, trunc=T * rb).withFlux(bulge_frac)
-    disc_flux = 1.0 - bulge_frac
-    if kind == "bulge+disc":
-        return galsim.Add(bulge, galsim.Exponential(half_light_radius=r).withFlux(disc_flux))
-    if kind == "knots":  # disc with star-forming knots that follow it
-        knots = galsim.RandomKnots(
-            n_knots,
-            half_light_radius=r,
-            flux=knot_frac * disc_flux,
-            rng=galsim.BaseDeviate(knot_seed),
-        )
-        disc = galsim.Exponential(half_light_radius=r).withFlux((1 - knot_frac) * disc_flux)
-        return galsim.Add(bulge, disc, knots)
-    raise ValueError(f"unknown step2 galaxy kind {kind!r}")
+    :class:`~pylensfit.galaxies.GalaxyProfile` with STEP2's bulge: half-light radius
+    ``0.5 r`` (``r`` the disc's half-light radius), flux ``bulge_frac``.
+    """
+    if kind not in STEP2_KINDS:
+        raise ValueError(f"unknown step2 galaxy kind {kind!r}")
+    return GalaxyProfile(kind, r, sersic_n=n, bulge_fraction=bulge_frac, bulge_size_ratio=0.5,
+                         knot_fraction=knot_frac, n_knots=n_knots,
+                         knot_seed=knot_seed).galsim()  # fmt: skip
 
 
 def render_step2_field(
@@ -2017,9 +2005,7 @@ def true_psf_image(p: dict, n: int) -> np.ndarray:
         ``(n, n)`` image of unit sum centred on element ``[n//2, n//2]`` (the centre
         convention of :class:`pylensfit.psf.PSFResult`).
     """
-    import galsim  # galsim: heavy import, only for rendering
-
-    obj = galsim.Moffat(beta=p["beta"], fwhm=p["fwhm"]).shear(g1=p["e1"], g2=p["e2"])
+    obj = PSFProfile.from_dict(p).galsim()
     img = obj.drawImage(nx=n, ny=n, scale=1.0, use_true_center=False).array
     return img / img.sum()
 
