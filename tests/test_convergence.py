@@ -167,3 +167,25 @@ def test_coarse_de_inflates_e2(noisy_table):
     assert d > 2.0 * err, (d, err)
     assert coarse["rel_e1sq"] > 0.05 and coarse["rel_e2sq"] > 0.05
     assert PARAMETERS["de"][2] == "min"
+
+
+def test_report_without_matplotlib(tmp_path, monkeypatch, caplog):
+    """Without the [plots] extra the table and Markdown are written, the figure is left
+    out with a warning, and the Markdown says so; with it, the PNG is back."""
+    import sys
+
+    from pylensfit.convergence import write_convergence
+
+    tab = convergence(None, ngal=6, seed=3, des=(0.1,), drs=(), r_maxs=(), offsets=(),
+                      progress=False)  # fmt: skip
+    for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib fails
+    paths = write_convergence(tab, tmp_path / "a")
+    assert set(paths) == {"ecsv", "md"} and not (tmp_path / "a" / "convergence.png").exists()
+    assert "(figure not drawn)" in paths["md"].read_text()
+    assert "matplotlib is not installed" in caplog.text
+    monkeypatch.undo()
+    paths = write_convergence(tab, tmp_path / "b")
+    assert paths["png"].read_bytes()[:4] == b"\x89PNG"
+    assert "![convergence](convergence.png)" in paths["md"].read_text()

@@ -36,6 +36,7 @@ plots), not the posterior second moment.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -53,6 +54,8 @@ from .likelihood import fit_stamps
 from .prior import Prior
 from .shear import shapes, shear_sensitivity
 from .simulate import draw_shapes
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "DEFAULT_DES",
@@ -556,8 +559,10 @@ def write_convergence(table: Table, out: str | Path) -> dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
     paths = {k: out / f"convergence.{k}" for k in ("png", "ecsv", "md")}
     table.write(paths["ecsv"], format="ascii.ecsv", overwrite=True)
-    plot_convergence(table, paths["png"])
-    paths["md"].write_text(_markdown(table, paths["png"].name))
+    drawn = plot_convergence(table, paths["png"])
+    if not drawn:
+        del paths["png"]
+    paths["md"].write_text(_markdown(table, paths["png"].name if drawn else None))
     return paths
 
 
@@ -565,7 +570,7 @@ def _fmt(v: float, e: float, nd: int = 4) -> str:
     return f"{v:+.{nd}f} ± {e:.{nd}f}" if np.isfinite(v) else "—"
 
 
-def _markdown(t: Table, png: str) -> str:
+def _markdown(t: Table, png: str | None) -> str:
     m = t.meta
     lines = [
         "# lensfit numerical convergence (Kitching et al. 2008, Figure 2)",
@@ -595,20 +600,29 @@ def _markdown(t: Table, png: str) -> str:
             f"| {_fmt(r['rel_e1sq'], r['rel_e1sq_err'], 3)} "
             f"| {_fmt(r['rel_sens1'], r['rel_sens1_err'], 3)} | {r['fit_time']:.1f} |"
         )
-    lines += ["", f"![convergence]({png})", ""]
+    lines += ["", f"![convergence]({png})" if png else "(figure not drawn)", ""]
     return "\n".join(lines)
 
 
-def plot_convergence(table: Table, path: str | Path) -> None:
+def plot_convergence(table: Table, path: str | Path) -> bool:
     """Figure 2 of the paper from a :func:`convergence` table, as a PNG.
+
+    Returns False, drawing nothing, when matplotlib (the ``[plots]`` extra) is not
+    installed.
 
     Top row, one panel per parameter: ``<e_i>`` (black), ``<e_i^2>`` (green) and the
     exact sensitivity divided by 10 (red, the paper's scaling), component 1 solid and 2
     dashed, with standard errors. Bottom row: the paired changes against the finest
     value (sensitivity unscaled), with their errors.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # heavy import: only for plots
-    from matplotlib.figure import Figure  # matplotlib: heavy import, only for plots
+    try:
+        # the optional [plots] extra; a heavy import, only for plots
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        log.warning("%s: matplotlib is not installed, so the figure is not drawn "
+                    "(pip install 'pylensfit[plots]')", path)
+        return False
 
     names = [p for p in PARAMETERS if np.any(table["parameter"] == p)]
     fig = Figure(figsize=(3.6 * len(names), 6.4))
@@ -650,3 +664,4 @@ def plot_convergence(table: Table, path: str | Path) -> None:
     )  # fmt: skip
     fig.tight_layout()
     fig.savefig(str(path), dpi=110)
+    return True

@@ -88,6 +88,7 @@ from typing import Any
 import numpy as np
 from astropy.table import Table, vstack
 
+from ._util import pyplot_or_none
 from .calibration import MIN_FLUX_RANGE_GALAXIES, CalibrationSample, run_recipe
 from .config import Config
 from .galaxies import GalaxyProfile, PSFProfile
@@ -1334,11 +1335,7 @@ def write_report(res: Table, path: str | Path) -> None:
     path : str or pathlib.Path
         The Markdown file; ``<stem>_<breakdown>.png`` and ``<stem>.ecsv`` go beside it.
     """
-    import matplotlib  # matplotlib: heavy import, only for the figures
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # matplotlib: heavy import, only for the figures
-
+    plt = pyplot_or_none(str(path))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     spec, tim = res.meta["spec"], res.meta["timing"]
@@ -1407,7 +1404,8 @@ def write_report(res: Table, path: str | Path) -> None:
                 f"{_fmt(r['m2'], r['m2_err'])} | {_fmt(r['c1'], r['c1_err'], 5)} | "
                 f"{_fmt(r['c2'], r['c2_err'], 5)} | {r['n_gal']} | {cv} |"
             )
-        if bd not in ("all", "selection", "no controls", "no noise twins"):
+        if plt is not None and bd not in ("all", "selection", "no controls",
+                                          "no noise twins"):
             png = path.with_name(f"{path.stem}_{bd}.png")
             labels = list(dict.fromkeys(t["group"]))
             fig, axes = plt.subplots(1, 2, figsize=(max(10.0, 0.45 * len(labels)), 3.6),

@@ -46,6 +46,7 @@ from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
 from . import pipeline
+from ._util import pyplot_or_none
 from .config import Config
 from .galaxies import GalaxyProfile, PSFProfile
 from .prior import (
@@ -2218,25 +2219,27 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
     list of pathlib.Path
         The files written (the report first).
     """
-    import matplotlib  # matplotlib: heavy import, only for the figures
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # matplotlib: heavy import, only for the figures
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = res.meta
     stem = path.with_suffix("")
     pngs = {"resid": path.with_suffix(".png"), "mc": Path(f"{stem}_mc.png"),
             "bins": Path(f"{stem}_bins.png"), "prior": Path(f"{stem}_prior.png")}  # fmt: skip
-    _plot_residuals(meta["estimates"], pngs["resid"], plt, meta["mode"])
-    _plot_mc_plane(res, pngs["mc"], plt)
     has_bins = meta.get("bins") is not None and len(meta["bins"]) > 0
-    if has_bins:
-        _plot_bins(res, pngs["bins"], plt)
-    else:
+    if not has_bins:
         del pngs["bins"]
-    _plot_prior(res, pngs["prior"], plt)
+    plt = pyplot_or_none(str(path))
+    if plt is None:
+        pngs = {}
+    else:
+        _plot_residuals(meta["estimates"], pngs["resid"], plt, meta["mode"])
+        _plot_mc_plane(res, pngs["mc"], plt)
+        if has_bins:
+            _plot_bins(res, pngs["bins"], plt)
+        _plot_prior(res, pngs["prior"], plt)
+
+    def figure(key: str, alt: str) -> str:
+        return f"![{alt}]({pngs[key].name})" if key in pngs else "(figure not drawn)"
     diag = meta["diagnosis"]
     pc = meta["prior_check"]
     n_est = len(meta["estimates"])
@@ -2264,7 +2267,7 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
              *_MC_HEAD]  # fmt: skip
     lines += [_fmt_row(r) for r in res]
     lines += _leakage_lines(meta.get("leakage"))
-    lines += ["", f"![g_meas - g_true]({pngs['resid'].name})", "",
+    lines += ["", figure("resid", "g_meas - g_true"), "",
               "## Diagnosis", ""]  # fmt: skip
     names = {"m": "|<m>| <= 0.006 (within error)", "sigma_c": "sigma_c <= 2e-4", "Q": "Q >= 100"}
     for k, label in names.items():
@@ -2292,7 +2295,7 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
     lines += ["", "## m and c in the (m, c) plane", "",
               "1-sigma error bars and the delta chi^2 = 1 ellipse of each PSF's fit; the shaded "
               "bands are |m| <= 0.006 and |c| <= 2e-4.", "",
-              f"![m-c plane]({pngs['mc'].name})", ""]  # fmt: skip
+              figure("mc", "m-c plane"), ""]  # fmt: skip
     if meta.get("single") is not None and meta["mode"] == "pairs":
         lines += ["Single images (no twin cancellation), for comparison:", "", *_MC_HEAD]
         lines += [_fmt_row(r) for r in meta["single"]]
@@ -2314,7 +2317,7 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
                 f"{r['Q']:.0f} |"
             )
         lines += ["", "Faint lines: each PSF; bold: all PSFs.", "",
-                  f"![m and c per bin]({pngs['bins'].name})", ""]  # fmt: skip
+                  figure("bins", "m and c per bin"), ""]  # fmt: skip
     pcheck = meta["psf_check"]
     if len(pcheck):
         lines += ["## PSF models", "",
@@ -2338,7 +2341,7 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
               f"|e_int| of the {pc['n']} that were matched; fractional residual rms (where P > "
               f"5% of its peak): histogram {pc['rms_hist']:.3f} (Poisson {pc['rms_poisson']:.3f}),"
               f" input functional form {pc['rms_true']:.3f}.", "",
-              f"![prior]({pngs['prior'].name})", "",
+              figure("prior", "prior"), "",
               "Measured catalogues: " + ", ".join(
                   f"`{Path(v['path']).name}`" + (" (reused)" if v["reused"] else "")
                   for v in meta["measured"].values()), ""]  # fmt: skip
