@@ -5,6 +5,7 @@
   import, an import cycle), on its line or just above it.
 * No function of the method's modules is longer than 150 lines (the validation
   harness's modules, which render and score simulations, are not held to it).
+* No import cycle among the package's modules, counting imports inside functions.
 """
 
 from __future__ import annotations
@@ -59,6 +60,34 @@ def long_functions(modules) -> list[str]:
             if isinstance(fn, FUNCS) and fn.end_lineno - fn.lineno + 1 > MAX_LINES]
 
 
+def import_cycles(modules) -> list[tuple[str, str]]:
+    """``(a, b)`` for every import of module ``b`` by ``a`` (relative, at any level of
+    the code) where ``b`` imports ``a`` back, directly or through others."""
+    deps: dict[str, set[str]] = {}
+    for name, _, tree in modules:
+        d = deps.setdefault(name, set())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:
+                d |= {node.module.split(".")[0]} if node.module else {a.name for a in node.names}
+
+    def reaches(a: str, b: str) -> bool:
+        seen, todo = set(), [a]
+        while todo:
+            m = todo.pop()
+            if m == b:
+                return True
+            if m not in seen:
+                seen.add(m)
+                todo += deps.get(m, ())
+        return False
+
+    return [(a, b) for a, ds in deps.items() for b in ds if b != a and reaches(b, a)]
+
+
+def test_no_import_cycles():
+    assert import_cycles(_package()) == []
+
+
 def test_no_private_imports_across_modules():
     assert private_imports(_package()) == []
 
@@ -80,3 +109,5 @@ def test_the_checks_find_what_they_are_for():
     assert silent_local_imports(bad) == ["m:3: import os"]
     assert long_functions(bad) == [f"m.g: {MAX_LINES + 1} lines"]
     assert long_functions([("validation", *bad[0][1:])]) == []
+    loop = [_module("a", "from .b import x\n"), _module("b", "def f():\n    from .a import y\n")]
+    assert sorted(import_cycles(loop)) == [("a", "b"), ("b", "a")]

@@ -29,6 +29,8 @@ from typing import Any
 
 import yaml
 
+from .bankruns import bank_runs
+
 __all__ = ["PRESETS", "Config", "ConfigError"]
 
 
@@ -438,13 +440,11 @@ class Config:
     @property
     def bulge_runs(self):
         """The profile of each run of sizes of the model bank
-        (:func:`pylensfit.models.bank_runs`: ``Run(fraction, bulge size, ...)``):
+        (:func:`pylensfit.bankruns.bank_runs`: ``Run(fraction, bulge size, ...)``):
         ``n_bulge_fractions`` fractions evenly spaced on [0, 1] with ``bulge_size_ratio``,
         then with ``bulge_size_ratio2 > 0`` the fractions above 0 again with that size,
         then the Sersic ladder's (one run, the fixed ``bulge_fraction``, unless the
         fractions are marginalised)."""
-        from .models import bank_runs  # models imports Config: a cycle at module level
-
         return bank_runs(self.model, float(self.bulge_fraction), float(self.bulge_size_ratio),
                          int(self.n_bulge_fractions), float(self.bulge_size_ratio2),
                          tuple(self.sersic_ladder))  # fmt: skip
