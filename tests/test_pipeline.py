@@ -191,8 +191,8 @@ def test_missing_and_corrupt_files(fields, tmp_path):
 def _no_task_runs(monkeypatch) -> list:
     """The tasks that start (none should), in place of the pipeline's."""
     calls = []
-    monkeypatch.setattr(pl, "_image_task", lambda t: calls.append(t["path"]))
-    monkeypatch.setattr(pl, "_starfield_task", lambda t: calls.append(t["path"]))
+    monkeypatch.setattr(pl, "_image_task", lambda t: calls.append(t.path))
+    monkeypatch.setattr(pl, "_starfield_task", lambda t: calls.append(t.path))
     return calls
 
 
@@ -431,8 +431,8 @@ def test_resume_after_a_killed_run(fields, tmp_path, monkeypatch):
     real = pl._image_task
 
     def crashing(task):
-        calls.append(task["path"])
-        if task["path"].endswith("b.fits"):
+        calls.append(task.path)
+        if task.path.endswith("b.fits"):
             raise KeyboardInterrupt("killed")
         return real(task)
 
@@ -444,7 +444,7 @@ def test_resume_after_a_killed_run(fields, tmp_path, monkeypatch):
     parts = list((tmp_path / "run.fits.parts").glob("*.fits"))
     assert len(parts) == 1 and "_a_" in parts[0].name
     calls.clear()
-    monkeypatch.setattr(pl, "_image_task", lambda t: (calls.append(t["path"]), real(t))[1])
+    monkeypatch.setattr(pl, "_image_task", lambda t: (calls.append(t.path), real(t))[1])
     cat = measure([d / "a.fits", d / "b.fits"], **args)
     assert [c.rsplit("/", 1)[-1] for c in calls] == ["b.fits"], "finished images not redone"
     assert out.exists() and not (tmp_path / "run.fits.parts").exists()

@@ -37,7 +37,7 @@ def _killed_at(monkeypatch, name: str) -> None:
     real = pl._image_task
 
     def task(t):
-        if t["path"].endswith(name):
+        if t.path.endswith(name):
             raise KeyboardInterrupt("killed")
         return real(t)
 

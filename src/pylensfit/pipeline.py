@@ -39,7 +39,7 @@ import time
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -392,11 +392,41 @@ def _cell_psfs(model: PSFModel, shape: tuple[int, int], cells: int):
     return images, np.vstack([e1, e2]), cell_of
 
 
-def _starfield_task(task: dict[str, Any]) -> PSFResult | PSFModel:
+@dataclass(frozen=True)
+class _StarfieldTask:
+    """One star-field image to build a PSF from (a task of :func:`_starfield_task`)."""
+
+    path: str
+    index: int
+    config: Config
+    single_thread: bool = False  # set by the runner on its workers
+
+
+@dataclass(frozen=True)
+class _ImageTask:
+    """One image to measure (a task of :func:`_image_task`)."""
+
+    path: str
+    index: int
+    config: Config
+    weight: str | None = None  # the image's weight and mask files
+    mask: str | None = None
+    catalogue: str | None = None  # an input catalogue instead of detection
+    star_psfs: tuple = ()  # the star fields' PSFs (PSFResult or PSFModel)
+    star_column: str | None = None
+    psf_dir: str | None = None
+    psf: PSFResult | PSFModel | None = None  # a given PSF: no stars stacked
+    size_prior: SizePrior | None = None
+    keep_lnL_r: bool | str = False  # keep L(r): True, or "annuli" (per ring of |e|)
+    size_marginal_prior: Any = None
+    single_thread: bool = False  # set by the runner on its workers
+
+
+def _starfield_task(task: _StarfieldTask) -> PSFResult | PSFModel:
     """The PSF of a separate star-field image."""
-    single_thread(task.get("single_thread", False))
-    cfg = Config.from_dict(task["config"])
-    img = _read_image(task["path"], task.get("weight"), task.get("mask"))
+    single_thread(task.single_thread)
+    cfg = task.config
+    img = _read_image(task.path)
     _mask_saturated(img, cfg)
     sub, det, _ = _detect(img, cfg, None)
     if len(det) == 0:
@@ -409,7 +439,7 @@ def _starfield_task(task: dict[str, Any]) -> PSFResult | PSFModel:
         raise InputError(f"{img.path}: no usable star for the PSF ({err})") from None
 
 
-def _image_psf(task: dict[str, Any], cfg: Config, img: _Image, sub: np.ndarray, det: Table,
+def _image_psf(task: _ImageTask, cfg: Config, img: _Image, sub: np.ndarray, det: Table,
                ) -> tuple[PSFResult | None, PSFModel | None, np.ndarray, str]:  # fmt: skip
     """The image's PSF: given, this image's stars co-added with the star fields', or the
     model of the most stars (``Config.psf_model = "polynomial"``).
@@ -420,31 +450,31 @@ def _image_psf(task: dict[str, Any], cfg: Config, img: _Image, sub: np.ndarray, 
     gave no PSF ("" if they did).
     """
     n = len(det)
-    psfs = list(task.get("star_psfs", []))
+    psfs = list(task.star_psfs)
     own_stars = np.zeros(n, dtype=bool)
     psf_note = ""
-    if task.get("psf") is not None:  # given: no stars stacked
-        psfs = [task["psf"]]
+    if task.psf is not None:  # given: no stars stacked
+        psfs = [task.psf]
     elif n:
         try:
-            own, own_stars = _psf_from_stars(sub, img, det, cfg, task.get("star_column"))
+            own, own_stars = _psf_from_stars(sub, img, det, cfg, task.star_column)
             psfs.append(own)
         except PSFError as err:
             psf_note = str(err)
             log.info("%s", err)
     field_model = None  # a PSF varying over the image (given, or Config.psf_model)
-    if isinstance(task.get("psf"), PSFModel):  # e.g. a Piff model
-        field_model = task["psf"]
+    if isinstance(task.psf, PSFModel):  # e.g. a Piff model
+        field_model = task.psf
         psfs = [field_model.centre]
-    elif cfg.psf_model == "polynomial" and task.get("psf") is None:
-        psfs = list(task.get("star_psfs", []))
+    elif cfg.psf_model == "polynomial" and task.psf is None:
+        psfs = list(task.star_psfs)
         best = max([m.diagnostics.get("n_used", 0) for m in psfs], default=0)
         if n:
             try:
                 # the image's own stars only where they may beat the star fields' model
-                if int(_psf_stars(img, det, cfg, task.get("star_column")).sum()) > best:
+                if int(_psf_stars(img, det, cfg, task.star_column).sum()) > best:
                     own_model, own_stars = _poly_from_stars(sub, img, det, cfg,
-                                                            task.get("star_column"))  # fmt: skip
+                                                            task.star_column)  # fmt: skip
                     psfs.append(own_model)
             except PSFError as err:
                 psf_note = str(err)
@@ -605,15 +635,15 @@ class _ImageResults:
                    self.is_star)  # fmt: skip
 
 
-def _image_task(task: dict[str, Any]) -> dict[str, Any]:
+def _image_task(task: _ImageTask) -> dict[str, Any]:
     """Measure one image: every detected object gets a row, measured or flagged."""
     t0 = time.perf_counter()
-    single_thread(task.get("single_thread", False))
-    cfg = Config.from_dict(task["config"])
-    path = task["path"]
-    img = _read_image(path, task.get("weight"), task.get("mask"))
+    single_thread(task.single_thread)
+    cfg = task.config
+    path = task.path
+    img = _read_image(path, task.weight, task.mask)
     saturated = _mask_saturated(img, cfg)
-    positions = _read_positions(task["catalogue"], path) if task.get("catalogue") else None
+    positions = _read_positions(task.catalogue, path) if task.catalogue else None
     sub, det, bkg = _detect(img, cfg, positions)
     t_detect = time.perf_counter()
     n = len(det)
@@ -625,8 +655,8 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
         if n:
             log.error("%s: no usable star for the PSF in the image or the star fields (%s); "
                       "its %d objects are flagged PSF_FAILED", path, psf_note, n)  # fmt: skip
-    if psf is not None and task.get("psf_dir"):
-        (field_model or psf).write(Path(task["psf_dir"]) / f"{Path(path).stem}.psf.fits",
+    if psf is not None and task.psf_dir:
+        (field_model or psf).write(Path(task.psf_dir) / f"{Path(path).stem}.psf.fits",
                                    overwrite=True)  # fmt: skip
     cell_images = cell_e = None
     cell = np.zeros(n, dtype=np.int64)
@@ -641,14 +671,14 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     t_stamps = time.perf_counter()
     bank = model_bank(cfg)
     egrid = ellipticity_grid(cfg.output_e_step, emax=cfg.e_max)  # fit_stamps' grid
-    res = _ImageResults.empty(x, y, st, flags, bank, egrid, task.get("keep_lnL_r"))
-    size_prior = task.get("size_prior")
+    res = _ImageResults.empty(x, y, st, flags, bank, egrid, task.keep_lnL_r)
+    size_prior = task.size_prior
     fit = _ImageFitter(
         st=st, noise=noise, cfg=cfg, psf_image=None if psf is None else psf.image,
         cell_images=cell_images, cell=cell,
-        size_prior=None if size_prior is None else SizePrior.from_dict(size_prior),
-        rings=e_annuli(bank.egrid) if task.get("keep_lnL_r") == "annuli" else None,
-        size_marginal_prior=task.get("size_marginal_prior"))  # fmt: skip
+        size_prior=size_prior,
+        rings=e_annuli(bank.egrid) if task.keep_lnL_r == "annuli" else None,
+        size_marginal_prior=task.size_marginal_prior)  # fmt: skip
     todo = np.flatnonzero(flags == 0)
     # the PSF the neighbours are rendered with: each object's cell's, or the image's
     render_psf = (cell_images, cell) if cell_images is not None else (
@@ -688,14 +718,14 @@ def _image_task(task: dict[str, Any]) -> dict[str, Any]:
     timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
               "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
     return {
-        "index": task["index"], "path": path, "rows": rows, "lnL": res.lnL,
+        "index": task.index, "path": path, "rows": rows, "lnL": res.lnL,
         "lnL_bulge": res.lnL_bulge, "lnL_r": res.lnL_r, "egrid": egrid,
         "psf": None if psf is None else _psf_summary(psf), "psf_note": psf_note,
         "timing": timing,
     }  # fmt: skip
 
 
-def _image_rows(task: dict[str, Any], img: _Image, det: Table, res: _ImageResults,
+def _image_rows(task: _ImageTask, img: _Image, det: Table, res: _ImageResults,
                 back: np.ndarray, psf: PSFResult | None, cell_e, cell: np.ndarray,
                 own_stars: np.ndarray, redo: np.ndarray, lost: np.ndarray,
                 ) -> dict[str, np.ndarray]:  # fmt: skip
@@ -710,8 +740,8 @@ def _image_rows(task: dict[str, Any], img: _Image, det: Table, res: _ImageResult
     fitclass = np.where(measured, np.where(res.is_star, FITCLASS["star"], FITCLASS["galaxy"]),
                         FITCLASS["not_measured"])  # fmt: skip
     rows = {
-        "image": np.full(n, os.path.basename(task["path"])),
-        "image_index": np.full(n, task["index"], dtype=np.int32),
+        "image": np.full(n, os.path.basename(task.path)),
+        "image_index": np.full(n, task.index, dtype=np.int32),
         "object_id": np.asarray(det["id"], dtype=np.int64),
         "x": res.xf, "y": res.yf, "ALPHA_J2000": ra, "DELTA_J2000": dec,
         "x_detect": x, "y_detect": y,
@@ -1079,26 +1109,27 @@ def _sky(header: fits.Header, x: np.ndarray, y: np.ndarray):
 # ----------------------------------------------------------------------------------------
 # Parts: one file per finished image, for restarts
 # ----------------------------------------------------------------------------------------
-def _task_key(task: dict[str, Any]) -> str:
+def _task_key(task: _ImageTask) -> str:
     """A digest of everything that determines an image's result."""
     stamp = []
     for k in ("path", "weight", "mask", "catalogue"):
-        p = task.get(k)
+        p = getattr(task, k)
         if p:
             st = Path(p).stat()
             stamp.append((k, os.path.abspath(p), st.st_size, st.st_mtime_ns))
-    given = task.get("psf")  # a given PSF (its image), else the star fields' PSFs
-    psfs = [given] if given is not None else task.get("star_psfs", [])
+    given = task.psf  # a given PSF (its image), else the star fields' PSFs
+    psfs = [given] if given is not None else task.star_psfs
+    sp = None if task.size_prior is None else task.size_prior.to_dict()
     blob = json.dumps(
-        [stamp, task["config"], task.get("star_column"), given is not None,
-         [r.digest for r in psfs], task.get("size_prior"),
+        [stamp, task.config.to_dict(), task.star_column, given is not None,
+         [r.digest for r in psfs], sp,
          __version__], sort_keys=True, default=str,
     )  # fmt: skip
     return hashlib.sha1(blob.encode()).hexdigest()[:16]
 
 
-def _part_path(parts: Path, task: dict[str, Any]) -> Path:
-    return parts / f"{task['index']:05d}_{Path(task['path']).stem}_{_task_key(task)}.fits"
+def _part_path(parts: Path, task: _ImageTask) -> Path:
+    return parts / f"{task.index:05d}_{Path(task.path).stem}_{_task_key(task)}.fits"
 
 
 def _write_part(path: Path, res: dict[str, Any]) -> None:
@@ -1382,7 +1413,6 @@ def measure(
     cfg = config if config is not None else Config()
     inp = _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_prior,
                           priors, output, overwrite)  # fmt: skip
-    cfgd = cfg.to_dict()
     if psf_dir is not None:
         Path(psf_dir).mkdir(parents=True, exist_ok=True)
     parts = inp.parts
@@ -1391,16 +1421,16 @@ def measure(
     with worker_pool(jobs, scheduler) as pool, _parts_dropped_if_unused(parts):
         # star fields first: their PSFs go to every image
         star_psfs = []
-        st_tasks = [{"path": p, "config": cfgd, "index": i} for i, p in enumerate(inp.stars)]
+        st_tasks = [_StarfieldTask(path=p, index=i, config=cfg) for i, p in enumerate(inp.stars)]
         for _, res in run_tasks(_starfield_task, st_tasks, jobs, scheduler, "star fields",
                                 progress, pool):  # fmt: skip
             star_psfs.append(res)
         star_psfs.sort(key=lambda r: inp.stars.index(r.source))
         tasks = [
-            {"path": p, "weight": w, "mask": m, "catalogue": c, "config": cfgd, "index": i,
-             "star_psfs": star_psfs, "star_column": star_column,
-             "psf_dir": None if psf_dir is None else str(psf_dir),
-             "psf": None if inp.psfs is None else inp.psfs[i]}
+            _ImageTask(path=p, index=i, config=cfg, weight=w, mask=m, catalogue=c,
+                       star_psfs=tuple(star_psfs), star_column=star_column,
+                       psf_dir=None if psf_dir is None else str(psf_dir),
+                       psf=None if inp.psfs is None else inp.psfs[i])
             for i, (p, w, m, c) in enumerate(zip(inp.images, inp.weights, inp.masks,
                                                  inp.catalogues, strict=True))
         ]  # fmt: skip
@@ -1472,7 +1502,7 @@ def _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_
                           size_prior=size_prior, priors=priors, out=out, parts=parts)
 
 
-def _measure_pass(tasks: list[dict], cfg: Config, priors: Priors, last: dict[str, Any],
+def _measure_pass(tasks: list[_ImageTask], cfg: Config, priors: Priors, last: dict[str, Any],
                   parts: Path | None, pr_file: Path | None, jobs: int, scheduler: str | None,
                   progress: bool, pool) -> dict[int, dict]:  # fmt: skip
     """The measurement: every image under ``priors``, the recipe's last pass reused where
@@ -1480,9 +1510,7 @@ def _measure_pass(tasks: list[dict], cfg: Config, priors: Priors, last: dict[str
     """
     results: dict[int, dict] = {}
     run_cfg = priors.apply(cfg)
-    final = [dict(t, config=run_cfg.to_dict(),
-                  size_prior=None if priors.size is None else priors.size.to_dict())
-             for t in tasks]  # fmt: skip
+    final = [replace(t, config=run_cfg, size_prior=priors.size) for t in tasks]
     if last.get("key") == _pass_key(run_cfg, priors.size, False):
         results = dict(last["results"])  # the recipe's last pass is the measurement
     last.clear()
@@ -1490,21 +1518,22 @@ def _measure_pass(tasks: list[dict], cfg: Config, priors: Priors, last: dict[str
         parts.mkdir(parents=True, exist_ok=True)
         priors.save(pr_file)
     for t in final:
-        if t["index"] in results and parts is not None:
+        if t.index in results and parts is not None:
             pp = _part_path(parts, t)
             if not pp.exists():
-                _write_part(pp, results[t["index"]])
-    todo = _resumed([t for t in final if t["index"] not in results], parts, results)
+                _write_part(pp, results[t.index])
+    todo = _resumed([t for t in final if t.index not in results], parts, results)
     for t, res in run_tasks(_image_task, todo, jobs, scheduler, "images", progress, pool):
         if parts is not None:
             _write_part(_part_path(parts, t), res)
-        results[t["index"]] = res
-        log.info("%s: %d objects, %s", t["path"], len(res["rows"]["x"]),
+        results[t.index] = res
+        log.info("%s: %d objects, %s", t.path, len(res["rows"]["x"]),
                  ", ".join(f"{k} {v:.2f} s" for k, v in res["timing"].items()))  # fmt: skip
     return results
 
 
-def _resumed(tasks: list[dict], parts: Path | None, results: dict) -> list[dict]:
+def _resumed(tasks: list[_ImageTask], parts: Path | None, results: dict,
+             ) -> list[_ImageTask]:  # fmt: skip
     """The tasks still to do: those of ``tasks`` whose part file in ``parts`` is read into
     ``results`` are not (a damaged part is redone)."""
     if parts is None:
@@ -1514,11 +1543,11 @@ def _resumed(tasks: list[dict], parts: Path | None, results: dict) -> list[dict]
         pp = _part_path(parts, t)
         if pp.exists():
             try:
-                results[t["index"]] = _read_part(pp)
-                log.info("%s: resumed from %s", t["path"], pp)
+                results[t.index] = _read_part(pp)
+                log.info("%s: resumed from %s", t.path, pp)
                 continue
             except Exception as err:  # a damaged part is redone
-                log.warning("%s: unreadable part file %s (%s); redoing", t["path"], pp, err)
+                log.warning("%s: unreadable part file %s (%s); redoing", t.path, pp, err)
         todo.append(t)
     return todo
 
@@ -1544,7 +1573,7 @@ def _pass_key(cfg: Config, size_prior: SizePrior | None, keep) -> str:
     return json.dumps([cfg.to_dict(), sp, keep], sort_keys=True, default=str)
 
 
-def _calibrate_images(tasks: list[dict], cfg: Config, prior: Prior | None,
+def _calibrate_images(tasks: list[_ImageTask], cfg: Config, prior: Prior | None,
                       size_prior: SizePrior | None, jobs: int, scheduler: str | None,
                       progress: bool, pool, last: dict,
                       parts: Path | None = None) -> Priors:  # fmt: skip
@@ -1560,9 +1589,8 @@ def _calibrate_images(tasks: list[dict], cfg: Config, prior: Prior | None,
 
     def fit_pass(cfgs, sps, keep, label):
         keep_r = "annuli" if keep else False
-        run = [dict(t, config=cfgs[0].to_dict(), keep_lnL_r=keep_r,
-                    psf_dir=t["psf_dir"] if not keep else None,
-                    size_prior=None if sps[0] is None else sps[0].to_dict())
+        run = [replace(t, config=cfgs[0], keep_lnL_r=keep_r,
+                       psf_dir=t.psf_dir if not keep else None, size_prior=sps[0])
                for t in tasks]  # fmt: skip
         results, samples = {}, []
         todo = run
@@ -1572,7 +1600,7 @@ def _calibrate_images(tasks: list[dict], cfg: Config, prior: Prior | None,
         for t, res in run_tasks(_image_task, todo, jobs, scheduler, label, progress, pool):
             if parts is not None and not keep:
                 _write_part(_part_path(parts, t), res)
-            results[t["index"]] = res
+            results[t.index] = res
         for i in range(len(tasks)):
             res = results[i]
             rows = res["rows"]

@@ -2,14 +2,16 @@
 dask.distributed cluster.
 
 The pipeline (:func:`pylensfit.measure`) and the validation harness hand their work to
-:func:`run_tasks` as a list of tasks, each a picklable mapping that the task function
-takes as its only argument, and receive ``(task, result)`` pairs as the tasks finish.
+:func:`run_tasks` as a list of tasks, each a picklable mapping or dataclass that the task
+function takes as its only argument, and receive ``(task, result)`` pairs as the tasks
+finish.
 
 * ``jobs = 1`` (and no scheduler): the tasks run in this process, in order.
 * ``jobs > 1``: the tasks run on ``jobs`` *spawned* worker processes (not forked, so a
   worker never inherits a parent's threads or locks). A worker ends within a second of
   the process that started it, so a run killed by a signal leaves no orphans computing.
-  Every task a worker receives carries ``"single_thread": True``; the task function
+  Every task a worker receives carries ``single_thread = True`` (a mapping's key, or a
+  dataclass's field); the task function
   passes it to :func:`single_thread`, so that ``jobs`` workers use ``jobs`` cores rather
   than ``jobs`` times every core.
 * ``scheduler="tcp://host:port"``: the tasks are submitted to that dask.distributed
@@ -21,11 +23,12 @@ the workers build once (the model banks) serves every pass of a calibration reci
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing as mp
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from typing import Any
@@ -35,6 +38,13 @@ from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 __all__ = ["run_tasks", "single_thread", "worker_pool"]
+
+
+def _on_a_worker(task):
+    """The task as a worker receives it: with ``single_thread`` set."""
+    if dataclasses.is_dataclass(task):
+        return dataclasses.replace(task, single_thread=True)
+    return {**task, "single_thread": True}
 
 
 def single_thread(on: bool) -> None:
@@ -98,18 +108,19 @@ def worker_pool(jobs: int, scheduler: str | None = None,
         yield ex
 
 
-def run_tasks(fn: Callable[[Mapping[str, Any]], Any], tasks: Sequence[Mapping[str, Any]],
+def run_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any],
               jobs: int = 1, scheduler: str | None = None, desc: str = "tasks",
               progress: bool = False, pool: ProcessPoolExecutor | None = None,
-              ) -> Iterator[tuple[Mapping[str, Any], Any]]:  # fmt: skip
+              ) -> Iterator[tuple[Any, Any]]:  # fmt: skip
     """Run ``fn`` on every task and yield ``(task, result)`` as the tasks finish.
 
     Parameters
     ----------
     fn : callable
         The task function, a module-level function (it is pickled by reference).
-    tasks : sequence of mapping
-        Its arguments, one per call.
+    tasks : sequence of mapping or dataclass
+        Its arguments, one per call: a mapping, or a dataclass with a ``single_thread``
+        field.
     jobs : int
         Worker processes; 1 runs the tasks in this process, in order.
     scheduler : str, optional
@@ -143,7 +154,7 @@ def run_tasks(fn: Callable[[Mapping[str, Any]], Any], tasks: Sequence[Mapping[st
                     yield futs.pop(f), f.result()  # the cluster's copy freed with it
                     bar.update()
         elif pool is not None:
-            futs = {pool.submit(fn, {**t, "single_thread": True}): t for t in tasks}
+            futs = {pool.submit(fn, _on_a_worker(t)): t for t in tasks}
             try:
                 for f in as_completed(futs):
                     # a finished future is dropped as its result is handed on: kept, every
@@ -160,7 +171,7 @@ def run_tasks(fn: Callable[[Mapping[str, Any]], Any], tasks: Sequence[Mapping[st
                 bar.update()
         else:
             with _executor(min(jobs, len(tasks))) as ex:
-                futs = {ex.submit(fn, {**t, "single_thread": True}): t for t in tasks}
+                futs = {ex.submit(fn, _on_a_worker(t)): t for t in tasks}
                 for f in as_completed(futs):
                     yield futs.pop(f), f.result()
                     bar.update()
