@@ -81,7 +81,9 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -946,6 +948,245 @@ def default_config(spec: PrecisionSpec | None = None) -> Config:
     return Config()
 
 
+@dataclass
+class _Run:
+    """What the passes of one :func:`precision` run share: the set, the workers, CPU time."""
+
+    spec: PrecisionSpec
+    jobs: int
+    scheduler: str | None
+    progress: bool
+    pool: ProcessPoolExecutor | None
+    render_s: float = 0.0  # CPU seconds rendering, summed over the passes
+    fit_s: float = 0.0  # CPU seconds fitting (and reducing), summed over the passes
+
+
+@dataclass(frozen=True)
+class _Calibrated:
+    """The priors from the calibration sample, the configurations per PSF, their meta."""
+
+    prior: Prior
+    bulge_weights: np.ndarray | None
+    size_priors: list[SizePrior | None]
+    cfgs: list[Config]
+    flux_meta: dict[str, Any] | None
+    bounds_meta: list[dict[str, Any] | None] | None
+
+
+def _check_arguments(spec: PrecisionSpec, cfg: Config,
+                     size_prior: SizePrior | Sequence[SizePrior] | None,
+                     flux_bounds: bool) -> tuple[list[SizePrior] | None, int]:  # fmt: skip
+    """The given size priors (one per PSF) and the calibration blocks; errors said early."""
+    npsf = len(spec.psfs)
+    given_sp = None
+    if size_prior is not None:
+        given_sp = [size_prior] * npsf if isinstance(size_prior, SizePrior) else list(size_prior)
+        if len(given_sp) != npsf or not all(isinstance(s, SizePrior) for s in given_sp):
+            raise ValueError(f"size_prior needs one SizePrior or one per PSF ({npsf})")
+    fit_bounds = (flux_bounds and cfg.amplitude_prior == "flux" and cfg.estimate_flux_prior
+                  and cfg.amplitude_prior_min == 0
+                  and not math.isfinite(cfg.amplitude_prior_max))  # fmt: skip
+    ncb = _n_blocks(spec.ncal, spec.block_size)
+    if ncb == 0:
+        raise ValueError("spec.ncal is 0: a calibration sample is needed to estimate the "
+                         "priors")  # fmt: skip
+    if fit_bounds:  # the calibration sample's size per PSF, before any fit: say it now
+        per_psf = min(sum(min(spec.block_size, spec.ncal - b * spec.block_size)
+                          for b in range(k, ncb, npsf)) for k in range(npsf))  # fmt: skip
+        if per_psf < MIN_FLUX_RANGE_GALAXIES:
+            raise ValueError(f"flux_bounds needs at least {MIN_FLUX_RANGE_GALAXIES} "
+                             f"calibration galaxies per PSF to estimate its flux range; "
+                             f"spec.ncal = {spec.ncal} gives {per_psf} (a larger ncal, or "
+                             f"flux_bounds=False)")  # fmt: skip
+    return given_sp, ncb
+
+
+def _calibration_pass(run: _Run, ncb: int, cfgs: list[Config],
+                      size_priors: Sequence[SizePrior | None], keep: bool,
+                      label: str) -> CalibrationSample:  # fmt: skip
+    """One fit of the ``ncb`` calibration blocks (the recipe's ``fit_pass``), CPU time counted."""
+    npsf = len(run.spec.psfs)
+    tasks = [{"spec": run.spec, "config": cfgs[b % npsf], "psf": b % npsf, "block": b,
+              "calibration": True, "size_prior": size_priors[b % npsf],
+              "keep_lnL_r": "annuli" if keep else False}
+             for b in range(ncb)]  # fmt: skip
+    parts = []
+    for _, r in sorted(run_tasks(_block_task, tasks, run.jobs, run.scheduler, label,
+                                 run.progress, run.pool),
+                       key=lambda tr: tr[0]["block"]):  # fmt: skip
+        parts.append(r["sample"])
+        run.render_s += r["render_s"]
+        run.fit_s += r["fit_s"]
+    return CalibrationSample.concatenate(parts)
+
+
+def _calibrate(run: _Run, ncb: int, cfg: Config, *, prior: Prior | None,
+               given_sp: list[SizePrior] | None, bulge_weights: Sequence[float] | None,
+               flux_slope: float | None, flux_bounds: bool,
+               size_prior_per_psf: bool) -> _Calibrated:  # fmt: skip
+    """The priors of the calibration recipe (:func:`~pylensfit.calibration.run_recipe`)."""
+    spec = run.spec
+    cal_priors = run_recipe(
+        partial(_calibration_pass, run, ncb), cfg, len(spec.psfs), prior=prior,
+        size_priors=given_sp, bulge_weights=bulge_weights, flux_slope=flux_slope,
+        flux_bounds=flux_bounds, size_prior_per_group=size_prior_per_psf,
+        group_names=[p["name"] for p in spec.psfs])  # fmt: skip
+    ellipticity = cal_priors[0].ellipticity
+    weights = cal_priors[0].bulge_weights
+    size_priors = [p.size for p in cal_priors]
+    cfgs = [p.apply(cfg) for p in cal_priors]
+    cfg = cfgs[0]
+    info = cal_priors[0].info
+    flux_meta = None
+    if cfg.amplitude_prior == "flux":
+        flux_meta = {"value": cfg.amplitude_prior_power,
+                     "error": info.get("flux_power_err", 0.0),
+                     "estimated": flux_slope is None and cfg.estimate_flux_prior}  # fmt: skip
+    bounds_meta = None
+    if info.get("flux_range"):
+        bounds_meta = [None if fr is None else
+                       {"psf": spec.psfs[k]["name"], **fr,
+                        "true": list(population_flux_range(
+                            spec, k, stamp_size=cfg.largest_stamp))}
+                       for k, fr in enumerate(info["flux_range"])]  # fmt: skip
+    return _Calibrated(prior=ellipticity, bulge_weights=weights, size_priors=size_priors,
+                       cfgs=cfgs, flux_meta=flux_meta, bounds_meta=bounds_meta)  # fmt: skip
+
+
+def _main_pass(run: _Run, cal: _Calibrated) -> list[dict[str, Any]]:
+    """The renderings of every galaxy, fitted and reduced: the blocks' results in order."""
+    spec = run.spec
+    npsf = len(spec.psfs)
+    nb = _n_blocks(spec.ngal, spec.block_size)
+    tasks = [{"spec": spec, "config": cal.cfgs[b % npsf], "prior": cal.prior,
+              "bulge_weights": cal.bulge_weights, "size_prior": cal.size_priors[b % npsf],
+              "psf": b % npsf, "block": b, "calibration": False}
+             for b in range(nb)]  # fmt: skip
+    parts: dict[int, dict] = {}
+    for t, r in run_tasks(_block_task, tasks, run.jobs, run.scheduler, "precision",
+                          run.progress, run.pool):  # fmt: skip
+        parts[t["block"]] = r
+    return [parts[b] for b in range(nb)]
+
+
+def _galaxy_table(res: list[dict[str, Any]],
+                  spec: PrecisionSpec) -> tuple[np.ndarray, np.ndarray, Table]:  # fmt: skip
+    """The blocks' reduced renderings ``Q``, their ``usable`` flags and the galaxies' truth."""
+    Q = np.concatenate([r["Q"] for r in res])
+    usable = np.concatenate([r["usable"] for r in res])
+    gal = Table(np.hstack([np.asarray(r["truth"]) for r in res]))
+    gal["psf"] = np.concatenate([np.full(len(r["truth"]), r["psf"]) for r in res])
+    gal["block"] = np.concatenate([np.full(len(r["truth"]), r["block"]) for r in res])
+    # jackknife groups: the blocks cut into runs of _JACKKNIFE_GALAXIES (the galaxies
+    # are independent; the blocks only share out the work), so that a small run still
+    # has the groups per PSF that the control variates need
+    per_block = -(-spec.block_size // _JACKKNIFE_GALAXIES)
+    gal["jk"] = np.concatenate([r["block"] * per_block + np.arange(len(r["truth"]))
+                                // _JACKKNIFE_GALAXIES for r in res])  # fmt: skip
+    gal["r_best"] = np.concatenate([r["r_best"] for r in res])
+    gal["snr_meas"] = np.concatenate([r["snr_meas"] for r in res])
+    gal["stamp"] = np.concatenate([r["stamp"] for r in res])
+    gal["n_usable"] = usable.sum(axis=1)
+    return Q, usable, gal
+
+
+def _bias_tables(Q: np.ndarray, usable: np.ndarray, gal: Table, spec: PrecisionSpec) -> Table:
+    """The :func:`bias_table` rows of every breakdown, column ``breakdown`` first."""
+    npsf = len(spec.psfs)
+    X = shape_controls(gal["e1_int"], gal["e2_int"])
+    tabs = [bias_table(Q, usable, gal["jk"], spec.g, controls=X)]
+    tabs[0]["breakdown"] = "all"
+    for name, groups in _breakdowns(gal, spec.psfs).items():
+        t = bias_table(Q, usable, gal["jk"], spec.g, groups=groups, controls=X)
+        t["breakdown"] = name
+        tabs.append(t)
+        if name == "psf" and npsf > 1:
+            tabs.insert(1, _psf_mean(t))
+    t = bias_table(Q, usable, gal["jk"], spec.g, selection="independent", controls=X)
+    t["breakdown"] = "selection"
+    t.replace_column("group", np.full(len(t), "independent"))
+    tabs.append(t)
+    t = bias_table(Q, usable, gal["jk"], spec.g)
+    t["breakdown"] = "no controls"
+    tabs.append(t)
+    if Q.shape[1] == 8:  # the same galaxies without their noise twins: what the twins buy
+        psf_groups = _breakdowns(gal, spec.psfs)["psf"] if npsf > 1 else {}
+        t = bias_table(Q[:, :4], usable[:, :4], gal["jk"], spec.g, controls=X,
+                       groups={"all": np.ones(len(gal), bool), **psf_groups})  # fmt: skip
+        if npsf > 1:
+            t = vstack([t[:1], _psf_mean(t[t["group"] != "all"])[_BIAS_COLUMNS], t[1:]])
+        t["breakdown"] = "no noise twins"
+        tabs.append(t)
+    out = vstack(tabs)
+    return out[["breakdown", *[c for c in out.colnames if c != "breakdown"]]]
+
+
+def _fp_step(Q: np.ndarray, usable: np.ndarray, g: float) -> float:
+    """The fixed-point linearisation's largest distance of the estimate from the nominal shear."""
+    step = 0.0
+    for s, ks in enumerate(_shear_sets(Q.shape[1])):
+        w = usable.all(axis=1)
+        T = np.nan_to_num(Q[w][:, ks].astype(float)).sum(axis=(0, 1))
+        gn = np.array([g, g]) * (1 if s == 0 else -1)
+        gh = _shear_from_sums(T, np.asarray(len(ks) * float(w.sum())), gn, "fixed-point")
+        step = max(step, float(np.max(np.abs(gh - gn))))
+    return step
+
+
+def _config_meta(cfg: Config) -> dict[str, Any]:
+    """The measurement settings of ``meta["config"]``."""
+    return {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
+            "bulge_size_ratio": cfg.bulge_size_ratio,
+            "bulge_size_ratio2": cfg.bulge_size_ratio2,
+            "sersic_ladder": list(cfg.sersic_ladder),
+            "e_step": cfg.e_step, "e_refine": int(cfg.e_refine),
+            "r_step": cfg.r_step, "stamp_size": cfg.stamp_size,
+            "max_stamp_size": cfg.largest_stamp,
+            "integration_refine": cfg.integration_refine,
+            "size_prior": cfg.size_prior,
+            "amplitude_prior": cfg.amplitude_prior,
+            "amplitude_prior_power": cfg.amplitude_prior_power,
+            "amplitude_prior_min": cfg.amplitude_prior_min,
+            "amplitude_prior_max": cfg.amplitude_prior_max,
+            "position_prior_sigma": cfg.position_prior_sigma}  # fmt: skip
+
+
+def _run_meta(spec: PrecisionSpec, cal: _Calibrated, gal: Table, step: float,
+              timing: dict[str, Any], *, prior_given: bool, bulge_method: str,
+              size_prior_per_psf: bool, size_prior_given: bool) -> dict[str, Any]:  # fmt: skip
+    """The result's ``meta``, in the order of :func:`precision`'s documentation."""
+    cfg, prior, bulge_weights = cal.cfgs[0], cal.prior, cal.bulge_weights
+    meta: dict[str, Any] = {}
+    meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D, "given": prior_given}
+    meta["bulge_prior"] = {
+        "method": bulge_method if cfg.n_bulge_fractions > 1 else "none",
+        "fractions": [float(run.fraction) for run in cfg.bulge_runs],
+        "sizes": ([float(run.size) for run in cfg.bulge_runs]
+                  if cfg.bulge_size_ratio2 > 0 or cfg.sersic_ladder else None),
+        "labels": cfg.run_labels,
+        "weights": None if bulge_weights is None else [float(w) for w in bulge_weights],
+    }
+    meta["size_prior"] = None if cal.size_priors[0] is None else [
+        {"psf": spec.psfs[k]["name"], "ln_h": sp.ln_h.tolist(), "density": sp.density.tolist(),
+         "star": sp.star, "smoothing": sp.smoothing,
+         # a prior per run: the runs mixed with the bulge weights, for the report
+         **({"marginal": sp.marginal(bulge_weights).tolist()} if sp.per_run else {})}
+        for k, sp in enumerate(cal.size_priors)]  # fmt: skip
+    meta["size_prior_per_psf"] = bool(size_prior_per_psf)
+    meta["size_prior_given"] = size_prior_given
+    meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
+    meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
+    meta["config"] = _config_meta(cfg)
+    meta["flux_slope"] = cal.flux_meta
+    meta["flux_bounds"] = cal.bounds_meta
+    sizes, counts = np.unique(np.asarray(gal["stamp"]), return_counts=True)
+    meta["stamps"] = {int(a): int(b) for a, b in zip(sizes, counts, strict=True)}
+    meta["fp_step"] = step
+    meta["timing"] = timing
+    meta["galaxies"] = gal
+    return meta
+
+
 def precision(
     spec: PrecisionSpec | None = None,
     *,
@@ -1060,186 +1301,36 @@ def precision(
     """
     spec = spec if spec is not None else PrecisionSpec()
     cfg = config if config is not None else default_config(spec)
-    bulge_prior = cfg.bulge_prior
-    weights_given = bulge_weights is not None
-    npsf = len(spec.psfs)
+    bulge_method = "given" if bulge_weights is not None else cfg.bulge_prior
     t_start = time.perf_counter()
-    # 1. the priors, from an unsheared calibration sample of the same population, by the
-    # calibration recipe that calibrate() and measure() run (pylensfit.calibration)
-    given_sp = None
-    if size_prior is not None:
-        given_sp = [size_prior] * npsf if isinstance(size_prior, SizePrior) else list(size_prior)
-        if len(given_sp) != npsf or not all(isinstance(s, SizePrior) for s in given_sp):
-            raise ValueError(f"size_prior needs one SizePrior or one per PSF ({npsf})")
-    prior_given = prior is not None
-    fit_bounds = (flux_bounds and cfg.amplitude_prior == "flux" and cfg.estimate_flux_prior
-                  and cfg.amplitude_prior_min == 0
-                  and not math.isfinite(cfg.amplitude_prior_max))  # fmt: skip
-    ncb = _n_blocks(spec.ncal, spec.block_size)
-    if ncb == 0:
-        raise ValueError("spec.ncal is 0: a calibration sample is needed to estimate the "
-                         "priors")  # fmt: skip
-    if fit_bounds:  # the calibration sample's size per PSF, before any fit: say it now
-        per_psf = min(sum(min(spec.block_size, spec.ncal - b * spec.block_size)
-                          for b in range(k, ncb, npsf)) for k in range(npsf))  # fmt: skip
-        if per_psf < MIN_FLUX_RANGE_GALAXIES:
-            raise ValueError(f"flux_bounds needs at least {MIN_FLUX_RANGE_GALAXIES} "
-                             f"calibration galaxies per PSF to estimate its flux range; "
-                             f"spec.ncal = {spec.ncal} gives {per_psf} (a larger ncal, or "
-                             f"flux_bounds=False)")  # fmt: skip
-    render_s, fit_s = 0.0, 0.0
-
-    def calibration_pass(cfgs, size_priors, keep, label):
-        nonlocal render_s, fit_s
-        tasks = [{"spec": spec, "config": cfgs[b % npsf], "psf": b % npsf, "block": b,
-                  "calibration": True, "size_prior": size_priors[b % npsf],
-                  "keep_lnL_r": "annuli" if keep else False}
-                 for b in range(ncb)]  # fmt: skip
-        parts = []
-        for _, r in sorted(run_tasks(_block_task, tasks, jobs, scheduler, label, progress, pool),
-                           key=lambda tr: tr[0]["block"]):  # fmt: skip
-            parts.append(r["sample"])
-            render_s += r["render_s"]
-            fit_s += r["fit_s"]
-        return CalibrationSample.concatenate(parts)
-
+    given_sp, ncb = _check_arguments(spec, cfg, size_prior, flux_bounds)
     with worker_pool(jobs, scheduler) as pool:  # one set of workers for every pass
-        cal_priors = run_recipe(
-            calibration_pass, cfg, npsf, prior=prior, size_priors=given_sp,
-            bulge_weights=bulge_weights, flux_slope=flux_slope, flux_bounds=flux_bounds,
-            size_prior_per_group=size_prior_per_psf,
-            group_names=[p["name"] for p in spec.psfs])  # fmt: skip
-        prior = cal_priors[0].ellipticity
-        bulge_weights = cal_priors[0].bulge_weights
-        size_priors = [p.size for p in cal_priors]
-        cfgs = [p.apply(cfg) for p in cal_priors]
-        cfg = cfgs[0]
-        info = cal_priors[0].info
-        flux_meta = None
-        if cfg.amplitude_prior == "flux":
-            flux_meta = {"value": cfg.amplitude_prior_power,
-                         "error": info.get("flux_power_err", 0.0),
-                         "estimated": flux_slope is None and cfg.estimate_flux_prior}  # fmt: skip
-        bounds_meta = None
-        if info.get("flux_range"):
-            bounds_meta = [None if fr is None else
-                           {"psf": spec.psfs[k]["name"], **fr,
-                            "true": list(population_flux_range(
-                                spec, k, stamp_size=cfg.largest_stamp))}
-                           for k, fr in enumerate(info["flux_range"])]  # fmt: skip
+        run = _Run(spec=spec, jobs=jobs, scheduler=scheduler, progress=progress, pool=pool)
+        # 1. the priors, from an unsheared calibration sample of the same population, by
+        # the calibration recipe that calibrate() and measure() run (pylensfit.calibration)
+        cal = _calibrate(run, ncb, cfg, prior=prior, given_sp=given_sp, flux_slope=flux_slope,
+                         bulge_weights=bulge_weights, flux_bounds=flux_bounds,
+                         size_prior_per_psf=size_prior_per_psf)  # fmt: skip
         t_cal = time.perf_counter() - t_start
         # 2. the four renderings of every galaxy, streamed block by block
-        nb = _n_blocks(spec.ngal, spec.block_size)
-        tasks = [{"spec": spec, "config": cfgs[b % npsf], "prior": prior,
-                  "bulge_weights": bulge_weights, "size_prior": size_priors[b % npsf],
-                  "psf": b % npsf, "block": b, "calibration": False}
-                 for b in range(nb)]  # fmt: skip
-        parts: dict[int, dict] = {}
-        for t, r in run_tasks(_block_task, tasks, jobs, scheduler, "precision", progress,
-                         pool):
-            parts[t["block"]] = r
-    res = [parts[b] for b in range(nb)]
+        res = _main_pass(run, cal)
     t_main = time.perf_counter() - t_start - t_cal
-    Q = np.concatenate([r["Q"] for r in res])
-    usable = np.concatenate([r["usable"] for r in res])
-    gal = Table(np.hstack([np.asarray(r["truth"]) for r in res]))
-    gal["psf"] = np.concatenate([np.full(len(r["truth"]), r["psf"]) for r in res])
-    gal["block"] = np.concatenate([np.full(len(r["truth"]), r["block"]) for r in res])
-    # jackknife groups: the blocks cut into runs of _JACKKNIFE_GALAXIES (the galaxies
-    # are independent; the blocks only share out the work), so that a small run still
-    # has the groups per PSF that the control variates need
-    per_block = -(-spec.block_size // _JACKKNIFE_GALAXIES)
-    gal["jk"] = np.concatenate([r["block"] * per_block + np.arange(len(r["truth"]))
-                                // _JACKKNIFE_GALAXIES for r in res])  # fmt: skip
-    gal["r_best"] = np.concatenate([r["r_best"] for r in res])
-    gal["snr_meas"] = np.concatenate([r["snr_meas"] for r in res])
-    gal["stamp"] = np.concatenate([r["stamp"] for r in res])
-    gal["n_usable"] = usable.sum(axis=1)
+    Q, usable, gal = _galaxy_table(res, spec)
     # 3. m and c, with the intrinsic shapes' spin-4 parts as control variates
-    X = shape_controls(gal["e1_int"], gal["e2_int"])
-    tabs = [bias_table(Q, usable, gal["jk"], spec.g, controls=X)]
-    tabs[0]["breakdown"] = "all"
-    for name, groups in _breakdowns(gal, spec.psfs).items():
-        t = bias_table(Q, usable, gal["jk"], spec.g, groups=groups, controls=X)
-        t["breakdown"] = name
-        tabs.append(t)
-        if name == "psf" and npsf > 1:
-            tabs.insert(1, _psf_mean(t))
-    t = bias_table(Q, usable, gal["jk"], spec.g, selection="independent", controls=X)
-    t["breakdown"] = "selection"
-    t.replace_column("group", np.full(len(t), "independent"))
-    tabs.append(t)
-    t = bias_table(Q, usable, gal["jk"], spec.g)
-    t["breakdown"] = "no controls"
-    tabs.append(t)
-    if Q.shape[1] == 8:  # the same galaxies without their noise twins: what the twins buy
-        psf_groups = _breakdowns(gal, spec.psfs)["psf"] if npsf > 1 else {}
-        t = bias_table(Q[:, :4], usable[:, :4], gal["jk"], spec.g, controls=X,
-                       groups={"all": np.ones(len(gal), bool), **psf_groups})  # fmt: skip
-        if npsf > 1:
-            t = vstack([t[:1], _psf_mean(t[t["group"] != "all"])[_BIAS_COLUMNS], t[1:]])
-        t["breakdown"] = "no noise twins"
-        tabs.append(t)
-    out = vstack(tabs)
-    out = out[["breakdown", *[c for c in out.colnames if c != "breakdown"]]]
-    # the fixed-point linearisation: distance of the estimate from the nominal shear
-    step = 0.0
-    for s, ks in enumerate(_shear_sets(Q.shape[1])):
-        w = usable.all(axis=1)
-        T = np.nan_to_num(Q[w][:, ks].astype(float)).sum(axis=(0, 1))
-        gn = np.array([spec.g, spec.g]) * (1 if s == 0 else -1)
-        gh = _shear_from_sums(T, np.asarray(len(ks) * float(w.sum())), gn, "fixed-point")
-        step = max(step, float(np.max(np.abs(gh - gn))))
-    render_s += sum(r["render_s"] for r in res)
-    fit_s += sum(r["fit_s"] + r["reduce_s"] for r in res)
-    total = time.perf_counter() - t_start
-    out.meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D,
-                         "given": prior_given}  # fmt: skip
-    bp_method = "given" if weights_given else bulge_prior
-    out.meta["bulge_prior"] = {
-        "method": bp_method if cfg.n_bulge_fractions > 1 else "none",
-        "fractions": [float(run.fraction) for run in cfg.bulge_runs],
-        "sizes": ([float(run.size) for run in cfg.bulge_runs]
-                  if cfg.bulge_size_ratio2 > 0 or cfg.sersic_ladder else None),
-        "labels": cfg.run_labels,
-        "weights": None if bulge_weights is None else [float(w) for w in bulge_weights],
-    }
-    out.meta["size_prior"] = None if size_priors[0] is None else [
-        {"psf": spec.psfs[k]["name"], "ln_h": sp.ln_h.tolist(), "density": sp.density.tolist(),
-         "star": sp.star, "smoothing": sp.smoothing,
-         # a prior per run: the runs mixed with the bulge weights, for the report
-         **({"marginal": sp.marginal(bulge_weights).tolist()} if sp.per_run else {})}
-        for k, sp in enumerate(size_priors)]  # fmt: skip
-    out.meta["size_prior_per_psf"] = bool(size_prior_per_psf)
-    out.meta["size_prior_given"] = given_sp is not None
-    out.meta["prior_true"] = dict(zip("BCD", spec.prior_params, strict=True))
-    out.meta["spec"] = {k: v for k, v in asdict(spec).items() if k != "extra"}
-    out.meta["config"] = {"model": cfg.model, "n_bulge_fractions": cfg.n_bulge_fractions,
-                          "bulge_size_ratio": cfg.bulge_size_ratio,
-                          "bulge_size_ratio2": cfg.bulge_size_ratio2,
-                          "sersic_ladder": list(cfg.sersic_ladder),
-                          "e_step": cfg.e_step, "e_refine": int(cfg.e_refine),
-                          "r_step": cfg.r_step, "stamp_size": cfg.stamp_size,
-                          "max_stamp_size": cfg.largest_stamp,
-                          "integration_refine": cfg.integration_refine,
-                          "size_prior": cfg.size_prior,
-                          "amplitude_prior": cfg.amplitude_prior,
-                          "amplitude_prior_power": cfg.amplitude_prior_power,
-                          "amplitude_prior_min": cfg.amplitude_prior_min,
-                          "amplitude_prior_max": cfg.amplitude_prior_max,
-                          "position_prior_sigma": cfg.position_prior_sigma}  # fmt: skip
-    out.meta["flux_slope"] = flux_meta
-    out.meta["flux_bounds"] = bounds_meta
-    sizes, counts = np.unique(np.asarray(gal["stamp"]), return_counts=True)
-    out.meta["stamps"] = {int(a): int(b) for a, b in zip(sizes, counts, strict=True)}
-    out.meta["fp_step"] = step
-    out.meta["timing"] = {
-        "total_s": total, "calibration_s": t_cal, "main_s": t_main,
-        "render_cpu_s": render_s, "fit_cpu_s": fit_s, "jobs": jobs,
+    out = _bias_tables(Q, usable, gal, spec)
+    step = _fp_step(Q, usable, spec.g)
+    run.render_s += sum(r["render_s"] for r in res)
+    run.fit_s += sum(r["fit_s"] + r["reduce_s"] for r in res)
+    timing = {
+        "total_s": time.perf_counter() - t_start, "calibration_s": t_cal, "main_s": t_main,
+        "render_cpu_s": run.render_s, "fit_cpu_s": run.fit_s, "jobs": jobs,
         "galaxies_per_s": spec.ngal / t_main,
         "renderings_per_s": Q.shape[1] * spec.ngal / t_main,
     }  # fmt: skip
-    out.meta["galaxies"] = gal
+    out.meta.update(_run_meta(spec, cal, gal, step, timing, prior_given=prior is not None,
+                              bulge_method=bulge_method,
+                              size_prior_per_psf=size_prior_per_psf,
+                              size_prior_given=given_sp is not None))  # fmt: skip
     if report is not None:
         write_report(out, report)
     return out
