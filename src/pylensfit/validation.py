@@ -34,9 +34,9 @@ import logging
 import math
 import os
 import time
-from collections.abc import Sequence
-from dataclasses import asdict
-from functools import lru_cache
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -386,17 +386,63 @@ def simulate_step(
     out.mkdir(parents=True, exist_ok=True)
     psfs = tuple(psfs) if psfs is not None else (STEP1_PSFS if kind == "step1" else STEP2_PSFS)
     rng = np.random.default_rng(seed)
+    lay = _set_layout(kind, psfs, rng, ngal=ngal, noise_sigma=noise_sigma,
+                      field_size=field_size, n_shear=n_shear, gmax=gmax, spacing=spacing,
+                      star_fraction=star_fraction, snr_range=snr_range, size_range=size_range,
+                      star_field_size=star_field_size, prior_ngal=prior_ngal, twins=twins,
+                      noise_twins=noise_twins, psf_variation=psf_variation,
+                      wcs_rotation_deg=wcs_rotation_deg, wcs_flip=wcs_flip)  # fmt: skip
+    tasks, star_files, fields = _field_tasks(kind, lay, out, rng)
+    _render_fields(tasks, star_files, fields, jobs, progress)
+    manifest = _set_manifest(kind, lay, star_files, fields, ngal=ngal, seed=seed,
+                             noise_sigma=noise_sigma, prior_ngal=prior_ngal)  # fmt: skip
+    with open(out / "manifest.json", "w") as fh:
+        json.dump(manifest, fh, indent=1, default=list)
+    return out
+
+
+@dataclass
+class _SetLayout:
+    """What the fields of a simulated set share (:func:`_set_layout`)."""
+
+    psfs: tuple[dict, ...]  # the PSFs' parameters
+    shears: list[tuple[float, float]]  # the shear fields' (g1, g2), per PSF
+    twins: tuple[bool, ...]  # (False,) or (False, True): the rotated twins
+    negs: tuple[bool, ...]  # (False,) or (False, True): the noise twins
+    size: int  # shear fields' size (px)
+    star_size: int  # star fields' size (px)
+    prior_size: int  # zero-shear fields' size (px)
+    pixel: float  # pixel scale (arcsec)
+    common: dict[str, Any]  # the FieldSpec keywords every field shares
+    psf_variation: str
+    wcs_rotation_deg: float
+    wcs_flip: bool
+
+
+def _set_shears(kind: str, n_shear: int | None, gmax: float,
+                size_range: tuple[float, float] | None,
+                rng: np.random.Generator) -> tuple[list[tuple[float, float]], tuple[float, float]]:
+    """The set's shears and its galaxies' size range (the default of ``kind`` if None)."""
     if kind == "step1":
         shears = [(g, 0.0) for g in STEP1_SHEARS[: (n_shear or len(STEP1_SHEARS))]]
-        size_range = size_range or (1.2, 3.5)
-    else:
-        shears = _step2_shears(n_shear or 4, gmax, rng)
-        size_range = size_range or (1.5, 4.5)
+        return shears, size_range or (1.2, 3.5)
+    return _step2_shears(n_shear or 4, gmax, rng), size_range or (1.5, 4.5)
+
+
+def _set_layout(kind: str, psfs: tuple[dict, ...], rng: np.random.Generator, *, ngal: int,
+                noise_sigma: float, field_size: int | None, n_shear: int | None, gmax: float,
+                spacing: float, star_fraction: float, snr_range: tuple[float, float],
+                size_range: tuple[float, float] | None, star_field_size: int | None,
+                prior_ngal: int | None, twins: bool | None, noise_twins: bool,
+                psf_variation: str, wcs_rotation_deg: float,
+                wcs_flip: bool) -> _SetLayout:  # fmt: skip
+    """Check :func:`simulate_step`'s arguments and lay out its set: shears, twins, sizes."""
+    shears, size_range = _set_shears(kind, n_shear, gmax, size_range, rng)
     if twins is None:
         twins = kind == "step2"
-    twins = (False, True) if twins else (False,)
+    twin_flags = (False, True) if twins else (False,)
     negs = (False, True) if noise_twins else (False,)
-    n_fields = len(psfs) * len(shears) * len(twins) * len(negs)
+    n_fields = len(psfs) * len(shears) * len(twin_flags) * len(negs)
     size = int(field_size) if field_size else _field_size(ngal, n_fields, spacing, star_fraction)
     star_size = int(star_field_size) if star_field_size else size
     prior_size = (_field_size(prior_ngal, len(psfs), spacing, star_fraction)
@@ -424,18 +470,32 @@ def simulate_step(
         wcs_rotation_deg=float(wcs_rotation_deg),
         wcs_flip=bool(wcs_flip),
     )
+    return _SetLayout(psfs=psfs, shears=shears, twins=twin_flags, negs=negs, size=size,
+                      star_size=star_size, prior_size=prior_size, pixel=pixel, common=common,
+                      psf_variation=psf_variation, wcs_rotation_deg=float(wcs_rotation_deg),
+                      wcs_flip=bool(wcs_flip))  # fmt: skip
 
-    def seeds() -> tuple[int, int]:
-        s = rng.integers(1, 2**31 - 1, 2)
-        return int(s[0]), int(s[1])
 
+def _draw_seeds(rng: np.random.Generator) -> tuple[int, int]:
+    """A field's object and noise seeds, the next two draws of the set's ``rng``."""
+    s = rng.integers(1, 2**31 - 1, 2)
+    return int(s[0]), int(s[1])
+
+
+def _field_tasks(kind: str, lay: _SetLayout, out: Path,
+                 rng: np.random.Generator) -> tuple[list[dict], list[dict], list[dict]]:
+    """Every field's render task (its seeds drawn here, in order) and manifest entry.
+
+    Returns the tasks of :func:`_render_task`, the star fields' and the galaxy fields'
+    manifest entries (without their counts of objects).
+    """
     fields = []
     star_files = []
-    tasks = []  # every field's seeds drawn here, in order; rendered below
-    for k, psf in enumerate(psfs):
+    tasks = []
+    for k, psf in enumerate(lay.psfs):
         star_file = f"psf{k}_stars.fits"
-        s_obj, s_noise = seeds()
-        sspec = _spec_for(psf, **{**common, "size": star_size, "star_fraction": 1.0})
+        s_obj, s_noise = _draw_seeds(rng)
+        sspec = _spec_for(psf, **{**lay.common, "size": lay.star_size, "star_fraction": 1.0})
         tasks.append({"render": "step1", "spec": sspec, "seed": s_obj, "noise_seed": s_noise,
                       "path": str(out / star_file)})  # fmt: skip
         star_files.append(
@@ -447,42 +507,54 @@ def simulate_step(
                 "noise_seed": s_noise,
             }
         )
-        todo = [("prior", None, 0.0, 0.0, False, False)]
-        todo += [("shear", j, g1, g2, t, ng) for j, (g1, g2) in enumerate(shears)
-                 for t in twins for ng in negs]  # fmt: skip
-        obj_seed = {}
-        for role, j, g1, g2, twin, neg in todo:
-            if role == "prior":
-                name = f"psf{k}_prior.fits"
-            else:
-                name = f"psf{k}_g{j}" + ("_rot" if twin else "") + ("_neg" if neg else "") + ".fits"
-            if not neg:  # a noise twin draws no seeds: the same objects and noise field
-                s_obj, s_noise = seeds()
-                if twin:
-                    s_obj = obj_seed[j]  # the same objects, rotated; independent noise
-                else:
-                    obj_seed[j] = s_obj
-            kw = {**common, "size": prior_size} if role == "prior" else common
-            spec = _spec_for(psf, **kw, g1=g1, g2=g2, rotate=twin, noise_sign=-1.0 if neg else 1.0)
-            tasks.append({"render": kind, "spec": spec, "seed": s_obj, "noise_seed": s_noise,
-                          "path": str(out / name)})  # fmt: skip
-            fields.append(
-                {
-                    "file": name,
-                    "role": role,
-                    "psf": k,
-                    "psf_params": dict(psf),
-                    "g1": g1,
-                    "g2": g2,
-                    "shear_index": j,
-                    "twin": twin,
-                    "noise_twin": neg,
-                    "star_file": star_file,
-                    "seed": s_obj,
-                    "noise_seed": s_noise,
-                }
-            )
+        _galaxy_field_tasks(kind, k, psf, star_file, lay, out, rng, tasks, fields)
+    return tasks, star_files, fields
 
+
+def _galaxy_field_tasks(kind: str, k: int, psf: dict, star_file: str, lay: _SetLayout,
+                        out: Path, rng: np.random.Generator, tasks: list[dict],
+                        fields: list[dict]) -> None:  # fmt: skip
+    """Append the tasks and manifest entries of PSF ``k``'s zero-shear and shear fields."""
+    todo = [("prior", None, 0.0, 0.0, False, False)]
+    todo += [("shear", j, g1, g2, t, ng) for j, (g1, g2) in enumerate(lay.shears)
+             for t in lay.twins for ng in lay.negs]  # fmt: skip
+    obj_seed = {}
+    for role, j, g1, g2, twin, neg in todo:
+        if role == "prior":
+            name = f"psf{k}_prior.fits"
+        else:
+            name = f"psf{k}_g{j}" + ("_rot" if twin else "") + ("_neg" if neg else "") + ".fits"
+        if not neg:  # a noise twin draws no seeds: the same objects and noise field
+            s_obj, s_noise = _draw_seeds(rng)
+            if twin:
+                s_obj = obj_seed[j]  # the same objects, rotated; independent noise
+            else:
+                obj_seed[j] = s_obj
+        kw = {**lay.common, "size": lay.prior_size} if role == "prior" else lay.common
+        spec = _spec_for(psf, **kw, g1=g1, g2=g2, rotate=twin, noise_sign=-1.0 if neg else 1.0)
+        tasks.append({"render": kind, "spec": spec, "seed": s_obj, "noise_seed": s_noise,
+                      "path": str(out / name)})  # fmt: skip
+        fields.append(
+            {
+                "file": name,
+                "role": role,
+                "psf": k,
+                "psf_params": dict(psf),
+                "g1": g1,
+                "g2": g2,
+                "shear_index": j,
+                "twin": twin,
+                "noise_twin": neg,
+                "star_file": star_file,
+                "seed": s_obj,
+                "noise_seed": s_noise,
+            }
+        )
+
+
+def _render_fields(tasks: list[dict], star_files: list[dict], fields: list[dict], jobs: int,
+                   progress: bool) -> None:  # fmt: skip
+    """Render and write every field; add its counts of objects to its manifest entry."""
     counts = {}
     for t, res in run_tasks(_render_task, tasks, jobs, None, "fields", progress):
         counts[Path(t["path"]).name] = res
@@ -490,30 +562,35 @@ def simulate_step(
         f["n_star"] = counts[f["file"]][1]
     for f in fields:
         f["n_gal"], f["n_obj"] = counts[f["file"]]
+
+
+def _set_manifest(kind: str, lay: _SetLayout, star_files: list[dict], fields: list[dict], *,
+                  ngal: int, seed: int, noise_sigma: float,
+                  prior_ngal: int | None) -> dict[str, Any]:  # fmt: skip
+    """The set's ``manifest.json`` content (:func:`read_manifest`)."""
     manifest = {
         "kind": kind,
-        "pixel_scale_arcsec": pixel,
+        "pixel_scale_arcsec": lay.pixel,
         "ngal": ngal,
         "ngal_shear_fields": sum(f["n_gal"] for f in fields if f["role"] == "shear"),
         "seed": seed,
         "noise_sigma": noise_sigma,
-        "field_size": size,
-        "star_field_size": star_size,
-        "prior_field_size": prior_size,
+        "field_size": lay.size,
+        "star_field_size": lay.star_size,
+        "prior_field_size": lay.prior_size,
         "prior_ngal": prior_ngal,
-        "psfs": [dict(p) for p in psfs],
-        "psf_variation": psf_variation,
-        "wcs_rotation_deg": float(wcs_rotation_deg),
-        "wcs_flip": bool(wcs_flip),
-        "shears": [list(s) for s in shears],
-        "fieldspec": {k: v for k, v in asdict(FieldSpec(**common)).items() if k not in ("extra",)},
+        "psfs": [dict(p) for p in lay.psfs],
+        "psf_variation": lay.psf_variation,
+        "wcs_rotation_deg": lay.wcs_rotation_deg,
+        "wcs_flip": lay.wcs_flip,
+        "shears": [list(s) for s in lay.shears],
+        "fieldspec": {k: v for k, v in asdict(FieldSpec(**lay.common)).items()
+                      if k not in ("extra",)},  # fmt: skip
         "star_fields": star_files,
         "fields": fields,
     }
     manifest["fieldspec"]["model"] = "bulge+disc" if kind == "step1" else "step2"
-    with open(out / "manifest.json", "w") as fh:
-        json.dump(manifest, fh, indent=1, default=list)
-    return out
+    return manifest
 
 
 def _render_task(task: dict) -> tuple[int, int]:
@@ -1644,20 +1721,10 @@ def step_config(n_bulge_fractions: int = 5) -> Config:
     return Config(n_bulge_fractions=n_bulge_fractions)
 
 
-def validate(
-    directory: str | Path,
-    *,
-    config=None,
-    jobs: int = 1,
-    estimator: str = "fixed-point",
-    report: str | Path | None = None,
-    progress: bool = True,
-    remeasure: bool = False,
-    bins: dict[str, int | Sequence[float]] | None = None,
-    bin_min_count: int = 300,
-    true_psf: bool = False,
-    truth_control: bool = False,
-):
+def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: str = "fixed-point",
+             report: str | Path | None = None, progress: bool = True, remeasure: bool = False,
+             bins: dict[str, int | Sequence[float]] | None = None, bin_min_count: int = 300,
+             true_psf: bool = False, truth_control: bool = False):  # fmt: skip
     """Run the pipeline on a simulated set and measure m, c, sigma_c and Q per PSF and bin.
 
     1. **Measure** each PSF's zero-shear (prior) fields and its shear fields with its own
@@ -1794,30 +1861,111 @@ def validate(
         (:func:`pylensfit.simulate.pixel_to_sky_shear`), the fixed point solves for the
         sky-frame shear, and the manifest's shears are the sky frame's.
     """
-    if estimator not in ("key2", "fixed-point"):
-        raise ValueError(f"estimator must be 'key2' or 'fixed-point', got {estimator!r}")
+    opts = _Options(estimator=estimator, jobs=jobs, progress=progress, remeasure=remeasure,
+                    min_count=bin_min_count, true_psf=true_psf, truth_control=truth_control)
     man = read_manifest(directory)
-    sky = _set_frame(man)
+    sky, bins = _set_frame(man), _bin_quantities(man, bins)
+    cfg = config if config is not None else Config()
+    out = _analyse(man, cfg, sky, bins, opts)
+    if report is not None:
+        write_report(out, man, Path(report))
+    return out
+
+
+@dataclass(frozen=True)
+class _Options:
+    """:func:`validate`'s options for the analysis (the estimator checked here)."""
+
+    estimator: str
+    jobs: int
+    progress: bool
+    remeasure: bool
+    min_count: int  # bin_min_count
+    true_psf: bool
+    truth_control: bool
+
+    def __post_init__(self) -> None:
+        """Refuse an unknown estimator."""
+        if self.estimator not in ("key2", "fixed-point"):
+            raise ValueError(
+                f"estimator must be 'key2' or 'fixed-point', got {self.estimator!r}"
+            )
+
+
+def _bin_quantities(man: dict, bins: dict[str, int | Sequence[float]] | None
+                    ) -> dict[str, int | Sequence[float]]:  # fmt: skip
+    """:func:`validate`'s ``bins``, checked, with the galaxy kinds of a STEP2-like set."""
     bins = dict(DEFAULT_BINS if bins is None else bins)
     if bins and man.get("fieldspec", {}).get("model") == "step2":
         bins.setdefault("morphology", _MORPHOLOGY_EDGES)
     for k in bins:
         if k not in _BIN_LABEL:
             raise ValueError(f"unknown bin quantity {k!r}; use {sorted(_BIN_LABEL)}")
-    cfg = config if config is not None else Config()
+    return bins
+
+
+@dataclass
+class _MeasuredSet:
+    """A set's galaxies measured per PSF (:func:`_measure_set`)."""
+
+    fields: dict[str, dict]  # the manifest's fields by file name
+    psfs: list[int]  # the PSFs' indices, sorted
+    pg: Table  # galaxies of the zero-shear (prior) fields
+    sg: Table  # galaxies of the shear fields
+    egrid: np.ndarray  # the ellipticity grid of the lnL grids
+    measured: dict[str, dict]  # meta["measured"]: catalogue paths, whether reused
+    psf_rows: list[tuple]  # rows of meta["psf_check"]
+    priors_of: dict[int, Any]  # the priors estimated on each PSF's zero-shear field
+
+
+def _analyse(man: dict, cfg: Config, sky: tuple[float, bool],
+             bins: dict[str, int | Sequence[float]], opts: _Options) -> Table:  # fmt: skip
+    """:func:`validate`'s stages after the arguments and the manifest, up to the report."""
+    ms = _measure_set(man, cfg, sky, opts)
+    prior, bulge_weights = _set_prior(ms, cfg)
+    e_s_of = partial(_sky_shapes, egrid=ms.egrid, cfg=cfg, sky=sky)
+    e, s = e_s_of(ms.sg, prior)
+    pairs = any(f["twin"] or f.get("noise_twin") for f in man["fields"])
+    fits = _shear_fits(ms, e, s, prior, cfg, sky, opts, pairs)
+    out = Table(rows=fits.mc, names=_MC_NAMES)
+    out.meta.update(_summary(out[:-1]))
+    out.meta["prior"] = prior
+    out.meta["priors"] = [ms.priors_of[k] for k in sorted(ms.priors_of)]
+    out.meta["bulge_weights"] = None if bulge_weights is None else bulge_weights.tolist()
+    out.meta["bulge_runs"] = None if bulge_weights is None else cfg.run_labels
+    out.meta["mode"] = "pairs" if pairs else "images"
+    out.meta["estimator"] = opts.estimator
+    out.meta["estimates"] = fits.pairs if pairs else fits.images
+    out.meta["images"] = fits.images
+    out.meta["pairs"] = fits.pairs
+    out.meta["single"] = fits.single
+    out.meta["fits"] = Table(rows=fits.fit_rows, names=("psf", "component", "m", "m_err", "c",
+                                                        "c_err", "rho"))  # fmt: skip
+    out.meta["measured"] = ms.measured
+    out.meta["psf_source"] = "true" if opts.true_psf else "stars"
+    out.meta["truth_control"] = bool(opts.truth_control)
+    out.meta["leakage"] = _leakage_table(ms.sg, e, s, ms.fields, ms.psfs, pairs)
+    out.meta["bins"], out.meta["bin_edges"] = _bins(ms, pairs, bins, e_s_of, cfg, sky, opts)
+    _add_diagnostics(out, ms, man, prior)
+    return out
+
+
+def _measure_set(man: dict, cfg: Config, sky: tuple[float, bool],
+                 opts: _Options) -> _MeasuredSet:  # fmt: skip
+    """Measure (or reuse the kept catalogues of) each PSF's zero-shear and shear fields."""
     fields = {f["file"]: f for f in man["fields"]}
     by_psf: dict[int, list] = {}
     for f in man["fields"]:
         by_psf.setdefault(int(f["psf"]), []).append(f)
     stars = {int(s["psf"]): s for s in man["star_fields"]}
-    mdir = Path(man["dir"]) / ("measured_true_psf" if true_psf else "measured")
+    mdir = Path(man["dir"]) / ("measured_true_psf" if opts.true_psf else "measured")
     pgs, sgs, measured, psf_rows = [], [], {}, []
     priors_of: dict = {}
     egrid = None
     for k, fl in sorted(by_psf.items()):
         fwhm = float(man["psfs"][k]["fwhm"])
         given = (psf_from_image(true_psf_image(man["psfs"][k], cfg.largest_stamp),
-                                source=f"true PSF {k}") if true_psf else None)  # fmt: skip
+                                source=f"true PSF {k}") if opts.true_psf else None)  # fmt: skip
         for role, lst in (("prior", pgs), ("shear", sgs)):
             sel = [f for f in fl if f["role"] == role]
             if not sel:
@@ -1826,8 +1974,9 @@ def validate(
             # the priors come from the zero-shear field by the calibration recipe (as a
             # survey's from its own galaxies): the shear fields are measured once, with them
             pr = priors_of.get(k) if role == "shear" else None
-            cat, reused = _measured(name, sel, stars[k], cfg, mdir, jobs=jobs, progress=progress,
-                                    remeasure=remeasure, priors=pr, psf=given)  # fmt: skip
+            cat, reused = _measured(name, sel, stars[k], cfg, mdir, jobs=opts.jobs,
+                                    progress=opts.progress, remeasure=opts.remeasure,
+                                    priors=pr, psf=given)  # fmt: skip
             _check_frame(cat, sky, name)
             if role == "prior":
                 priors_of[k] = cat.meta["priors"]
@@ -1835,68 +1984,93 @@ def validate(
             egrid = cat.meta["egrid"]
             lst.append(_galaxies(cat, fields, k, fwhm, sky))
             if role == "shear" and "psfs" in cat.meta:
-                p = cat.meta["psfs"]
-                pt = man["psfs"][k]
-                meas = [_nanmean(p[f"psf_{q}"]) for q in ("fwhm", "e1", "e2")]
-                tru = _true_psf_diagnostics(pt)
-                psf_rows.append((k, tru["fwhm"], tru["e1"], tru["e2"], *meas))
+                psf_rows.append(_psf_check_row(k, man["psfs"][k], cat))
     if not pgs:
         raise ValueError(f"{man['dir']}: no zero-shear (prior) field in the manifest")
-    pg, sg = vstack(pgs), vstack(sgs)
+    return _MeasuredSet(fields=fields, psfs=sorted(by_psf), pg=vstack(pgs), sg=vstack(sgs),
+                        egrid=egrid, measured=measured, psf_rows=psf_rows,
+                        priors_of=priors_of)  # fmt: skip
+
+
+def _psf_check_row(k: int, psf_params: dict, cat: Table) -> tuple:
+    """A row of ``meta["psf_check"]``: PSF ``k``'s true and modelled FWHM and ellipticity."""
+    p = cat.meta["psfs"]
+    meas = [_nanmean(p[f"psf_{q}"]) for q in ("fwhm", "e1", "e2")]
+    tru = _true_psf_diagnostics(psf_params)
+    return (k, tru["fwhm"], tru["e1"], tru["e2"], *meas)
+
+
+def _set_prior(ms: _MeasuredSet, cfg: Config) -> tuple[Prior, np.ndarray | None]:
+    """The ellipticity prior from the zero-shear fields' galaxies (and the bulge weights).
+
+    With the bulge prior estimated, both samples' ``lnL`` are replaced by their mixture
+    over the bulge fractions with the estimated weights (None otherwise).
+    """
+    pg, sg = ms.pg, ms.sg
     bulge_weights = None
     if cfg.bulge_prior == "estimated" and all("lnL_bulge" in t.colnames for t in (pg, sg)):
         # the prior over the bulge fractions with the ellipticity prior, from the prior
         # fields; both samples' L(e) mixed with it
         prior, bulge_weights = estimate_prior_and_bulge(
-            np.asarray(pg["lnL_bulge"]), np.asarray(pg["lnL_star"]), egrid,
+            np.asarray(pg["lnL_bulge"]), np.asarray(pg["lnL_star"]), ms.egrid,
             method=cfg.prior_method)  # fmt: skip
         for t in (pg, sg):
             t["lnL"] = mix_bulge_fractions(np.asarray(t["lnL_bulge"]),
                                            np.asarray(t["lnL_star"]), bulge_weights)
     else:
-        prior = estimate_prior(np.asarray(pg["lnL"]), egrid, method=cfg.prior_method)
-    refine = cfg.output_refine
+        prior = estimate_prior(np.asarray(pg["lnL"]), ms.egrid, method=cfg.prior_method)
+    return prior, bulge_weights
 
-    def e_s_of(t: Table, p: Prior) -> tuple[np.ndarray, np.ndarray]:
-        if len(t) == 0:
-            return np.zeros((0, 2)), np.zeros((0, 2))
-        sh = shapes(np.asarray(t["lnL"]), egrid, p, sensitivity=cfg.sensitivity, refine=refine)
-        # the lnL grids are the pixel frame's; the truth and the shears the sky frame's
-        return _to_sky(np.column_stack([sh["e1"], sh["e2"]]),
-                       np.column_stack([sh["sens1"], sh["sens2"]]), sky)
 
-    e, s = e_s_of(sg, prior)
-    psfs = sorted(by_psf)
-    kw = dict(estimator=estimator, prior=prior, egrid=egrid, refine=refine,
-              truth_control=truth_control, sky=sky)  # fmt: skip
-    img = _shear_estimates(sg, e, s, fields, pairs=False, **kw)
-    pairs = any(f["twin"] or f.get("noise_twin") for f in man["fields"])
-    mc, fit_rows = _mc_rows(img, psfs)
+def _sky_shapes(t: Table, p: Prior, *, egrid: np.ndarray, cfg: Config,
+                sky: tuple[float, bool]) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The ``(n, 2)`` ellipticities and sensitivities of ``t``'s galaxies under prior ``p``,
+    in the set's sky frame."""
+    if len(t) == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    sh = shapes(np.asarray(t["lnL"]), egrid, p, sensitivity=cfg.sensitivity,
+                refine=cfg.output_refine)  # fmt: skip
+    # the lnL grids are the pixel frame's; the truth and the shears the sky frame's
+    return _to_sky(np.column_stack([sh["e1"], sh["e2"]]),
+                   np.column_stack([sh["sens1"], sh["sens2"]]), sky)
+
+
+@dataclass
+class _ShearFits:
+    """The shear estimates of :func:`validate` and the fits of m and c on them."""
+
+    images: Table  # per-image estimates
+    pairs: Table | None  # per-group estimates (twins), or None
+    single: Table  # the per-PSF fit table from the single images
+    mc: list[tuple]  # rows of the result table, from the groups if any
+    fit_rows: list[tuple]  # rows of meta["fits"]
+
+
+def _shear_fits(ms: _MeasuredSet, e: np.ndarray, s: np.ndarray, prior: Prior, cfg: Config,
+                sky: tuple[float, bool], opts: _Options, pairs: bool) -> _ShearFits:  # fmt: skip
+    """Shear per image (and per twin group if ``pairs``) and the fits of m and c per PSF."""
+    kw = dict(estimator=opts.estimator, prior=prior, egrid=ms.egrid, refine=cfg.output_refine,
+              truth_control=opts.truth_control, sky=sky)  # fmt: skip
+    img = _shear_estimates(ms.sg, e, s, ms.fields, pairs=False, **kw)
+    mc, fit_rows = _mc_rows(img, ms.psfs)
     single = Table(rows=mc, names=_MC_NAMES)
     pair_tab = None
     if pairs:
-        pair_tab = _shear_estimates(sg, e, s, fields, pairs=True, **kw)
-        mc, fit_rows = _mc_rows(pair_tab, psfs)
-    out = Table(rows=mc, names=_MC_NAMES)
-    out.meta.update(_summary(out[:-1]))
-    out.meta["prior"] = prior
-    out.meta["priors"] = [priors_of[k] for k in sorted(priors_of)]
-    out.meta["bulge_weights"] = None if bulge_weights is None else bulge_weights.tolist()
-    out.meta["bulge_runs"] = None if bulge_weights is None else cfg.run_labels
-    out.meta["mode"] = "pairs" if pairs else "images"
-    out.meta["estimator"] = estimator
-    out.meta["estimates"] = pair_tab if pairs else img
-    out.meta["images"] = img
-    out.meta["pairs"] = pair_tab
-    out.meta["single"] = single
-    out.meta["fits"] = Table(rows=fit_rows, names=("psf", "component", "m", "m_err", "c", "c_err",
-                                                   "rho"))  # fmt: skip
-    out.meta["measured"] = measured
-    out.meta["psf_source"] = "true" if true_psf else "stars"
-    out.meta["truth_control"] = bool(truth_control)
-    out.meta["leakage"] = _leakage_table(sg, e, s, fields, psfs, pairs)
-    # bins (paper Table 2): a group's value is the mean of its members'
-    gid = _groups(sg, fields)[0] if pairs else np.full(len(sg), -1)
+        pair_tab = _shear_estimates(ms.sg, e, s, ms.fields, pairs=True, **kw)
+        mc, fit_rows = _mc_rows(pair_tab, ms.psfs)
+    return _ShearFits(images=img, pairs=pair_tab, single=single, mc=mc, fit_rows=fit_rows)
+
+
+def _bins(ms: _MeasuredSet, pairs: bool, bins: dict[str, int | Sequence[float]],
+          e_s_of: Callable[[Table, Prior], tuple[np.ndarray, np.ndarray]], cfg: Config,
+          sky: tuple[float, bool], opts: _Options) -> tuple[Table, dict[str, np.ndarray]]:
+    """``meta["bins"]`` and ``meta["bin_edges"]`` (paper Table 2).
+
+    A twin group's value is the mean of its members'; adds a ``_bin_{kind}`` column to
+    the shear fields' galaxies per binned quantity.
+    """
+    sg, pg = ms.sg, ms.pg
+    gid = _groups(sg, ms.fields)[0] if pairs else np.full(len(sg), -1)
     has = gid >= 0
     bin_rows, bin_edges = [], {}
     for kind, spec in bins.items():
@@ -1913,22 +2087,23 @@ def validate(
         if edges.size < 2:
             continue
         bin_edges[kind] = edges
-        bin_rows += _bins_table(kind, edges, pg, sg, e_s_of, psfs, fields, pairs, estimator,
-                                egrid, cfg, bin_min_count, sky)  # fmt: skip
-    out.meta["bins"] = Table(rows=bin_rows, names=_BIN_NAMES) if bin_rows else Table()
-    out.meta["bin_edges"] = bin_edges
-    # diagnostics: the PSF models and the prior against the truth
+        bin_rows += _bins_table(kind, edges, pg, sg, e_s_of, ms.psfs, ms.fields, pairs,
+                                opts.estimator, ms.egrid, cfg, opts.min_count,
+                                sky)  # fmt: skip
+    return (Table(rows=bin_rows, names=_BIN_NAMES) if bin_rows else Table()), bin_edges
+
+
+def _add_diagnostics(out: Table, ms: _MeasuredSet, man: dict, prior: Prior) -> None:
+    """Add the PSF models' and the prior's checks against the truth, and the diagnosis."""
+    pg = ms.pg
     names = ("psf", "fwhm_true", "e1_true", "e2_true", "fwhm_meas", "e1_meas", "e2_meas")
-    out.meta["psf_check"] = Table(rows=psf_rows, names=names) if psf_rows else Table()
+    out.meta["psf_check"] = Table(rows=ms.psf_rows, names=names) if ms.psf_rows else Table()
     gal_p = ~np.asarray(pg["truth_star"]) & (np.asarray(pg["truth_index"]) >= 0)
     true_params = man.get("fieldspec", {}).get("prior_params")
     out.meta["prior_check"] = _prior_check(
         prior, np.column_stack([pg["e1_int"], pg["e2_int"]])[gal_p], true_params
     )
     out.meta["diagnosis"] = _diagnose(out)
-    if report is not None:
-        write_report(out, man, Path(report))
-    return out
 
 
 def _diagnose(res: Table) -> dict[str, Any]:
@@ -2196,6 +2371,35 @@ def _leakage_lines(lk: Table | None) -> list[str]:
     return out
 
 
+def _diagnosis_lines(diag: dict[str, Any], pc: dict, has_bins: bool) -> list[str]:
+    """The lines of the report's diagnosis: each target's state, and why any is not met."""
+    lines: list[str] = []
+    names = {"m": "|<m>| <= 0.006 (within error)", "sigma_c": "sigma_c <= 2e-4", "Q": "Q >= 100"}
+    for k, label in names.items():
+        lines.append(f"- **{label}**: {diag[k][0]} ({diag[k][1]}).")
+    lines.append("")
+    if diag["all_met"]:
+        lines.append("All targets are met.")
+    else:
+        why = ["Where it falls short, the evidence below says why: "]
+        if diag["bins_significant"]:
+            sig = "; ".join(diag["bins_significant"])
+            why.append(f"m departs from 0 by more than 2 sigma in {sig} (see m against "
+                       "magnitude, S/N and size). ")  # fmt: skip
+        elif has_bins:
+            why.append("no bin of magnitude, S/N or size has m beyond 2 sigma of 0. ")
+        if "psf_worst" in diag:
+            why.append(f"The largest PSF-model ellipticity residual is "
+                       f"{diag['psf_worst'][1]:.4f} (PSF {diag['psf_worst'][0]}); see the PSF "
+                       "table. ")  # fmt: skip
+        why.append(f"The recovered prior differs from the input functional form by "
+                   f"{pc['rms_true']:.3f} rms (fractional, where P > 5% of its peak), and from "
+                   f"the truth histogram by {pc['rms_hist']:.3f} against {pc['rms_poisson']:.3f} "
+                   "expected from Poisson noise.")  # fmt: skip
+        lines.append("".join(why))
+    return lines
+
+
 def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
     """Write the Markdown report of :func:`validate` and its PNG figures beside it.
 
@@ -2269,29 +2473,7 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
     lines += _leakage_lines(meta.get("leakage"))
     lines += ["", figure("resid", "g_meas - g_true"), "",
               "## Diagnosis", ""]  # fmt: skip
-    names = {"m": "|<m>| <= 0.006 (within error)", "sigma_c": "sigma_c <= 2e-4", "Q": "Q >= 100"}
-    for k, label in names.items():
-        lines.append(f"- **{label}**: {diag[k][0]} ({diag[k][1]}).")
-    lines.append("")
-    if diag["all_met"]:
-        lines.append("All targets are met.")
-    else:
-        why = ["Where it falls short, the evidence below says why: "]
-        if diag["bins_significant"]:
-            sig = "; ".join(diag["bins_significant"])
-            why.append(f"m departs from 0 by more than 2 sigma in {sig} (see m against "
-                       "magnitude, S/N and size). ")  # fmt: skip
-        elif has_bins:
-            why.append("no bin of magnitude, S/N or size has m beyond 2 sigma of 0. ")
-        if "psf_worst" in diag:
-            why.append(f"The largest PSF-model ellipticity residual is "
-                       f"{diag['psf_worst'][1]:.4f} (PSF {diag['psf_worst'][0]}); see the PSF "
-                       "table. ")  # fmt: skip
-        why.append(f"The recovered prior differs from the input functional form by "
-                   f"{pc['rms_true']:.3f} rms (fractional, where P > 5% of its peak), and from "
-                   f"the truth histogram by {pc['rms_hist']:.3f} against {pc['rms_poisson']:.3f} "
-                   "expected from Poisson noise.")  # fmt: skip
-        lines.append("".join(why))
+    lines += _diagnosis_lines(diag, pc, has_bins)
     lines += ["", "## m and c in the (m, c) plane", "",
               "1-sigma error bars and the delta chi^2 = 1 ellipse of each PSF's fit; the shaded "
               "bands are |m| <= 0.006 and |c| <= 2e-4.", "",
