@@ -885,6 +885,15 @@ def _mean_row(method: str, rows: list[dict]) -> dict:
     return out
 
 
+def _add_psf_rows(rows: dict[str, list], ipsf: int, plf_fit: tuple, hsm_fit: tuple) -> None:
+    """Append PSF ``ipsf``'s rows (``(values, errors, kept)`` of each method) to ``rows``."""
+    for name, (v, err, kp) in (("pylensfit", plf_fit), ("REGAUSS", hsm_fit)):
+        r = {"method": name, "psf": PSFS[ipsf][0], "n": int(kp.sum())}
+        for q, x, dx in zip(("m1", "m2", "c1", "c2"), v, err, strict=True):
+            r[q], r[f"{q}_err"] = float(x), float(dx)
+        rows[name].append(r)
+
+
 def combine(paths: list[str], n_groups: int) -> int:
     """Print the per-PSF, mean and by-kind tables of runs saved with ``--columns``.
 
@@ -915,14 +924,8 @@ def combine(paths: list[str], n_groups: int) -> int:
         keep_h = np.all(cols["ok_hsm"][sel], axis=1)
         vp, ep = m_c_ratio(cols["e_plf"][sel][keep_p], cols["s_plf"][sel][keep_p], g, n_groups)
         vh, eh = m_c_regauss(cols["e_hsm"][sel][keep_h], g, n_groups)
-        for name, v, err, kp in (("pylensfit", vp, ep, keep_p), ("REGAUSS", vh, eh, keep_h)):
-            r = {"method": name, "psf": PSFS[ipsf][0], "n": int(kp.sum())}
-            for q, x, dx in zip(("m1", "m2", "c1", "c2"), v, err, strict=True):
-                r[q], r[f"{q}_err"] = float(x), float(dx)
-            rows[name].append(r)
-    table_rows = []
-    for name in rows:
-        table_rows += rows[name] + [_mean_row(name, rows[name])]
+        _add_psf_rows(rows, ipsf, (vp, ep, keep_p), (vh, eh, keep_h))
+    table_rows = [r for name in rows for r in (*rows[name], _mean_row(name, rows[name]))]
     print(f"{len(paths)} runs, PSFs {sorted(done)}; g = {g}")
     print_table(table_rows)
     print("\nby kind (paired selection; the mean over the PSFs run):")
@@ -1064,14 +1067,8 @@ def main(argv=None) -> int:
         else:
             vp, ep = m_c_ratio(e_plf[sel][keep_p], s_plf[sel][keep_p], a.g, a.groups)
         vh, eh = m_c_regauss(e_hsm[sel][keep_h], a.g, a.groups)
-        for name, v, err, kp in (("pylensfit", vp, ep, keep_p), ("REGAUSS", vh, eh, keep_h)):
-            r = {"method": name, "psf": PSFS[ipsf][0], "n": int(kp.sum())}
-            for q, x, dx in zip(("m1", "m2", "c1", "c2"), v, err, strict=True):
-                r[q], r[f"{q}_err"] = float(x), float(dx)
-            rows[name].append(r)
-    table_rows = []
-    for name in rows:
-        table_rows += rows[name] + [_mean_row(name, rows[name])]
+        _add_psf_rows(rows, ipsf, (vp, ep, keep_p), (vh, eh, keep_h))
+    table_rows = [r for name in rows for r in (*rows[name], _mean_row(name, rows[name]))]
     kind_rows = kind_table(pop, done, e_plf, s_plf, ok_plf, e_hsm, ok_hsm, a.g, a.groups)
 
     n_main = a.ngal * n_r
