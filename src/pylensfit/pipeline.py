@@ -607,13 +607,14 @@ class _ImageResults:
 
     @classmethod
     def empty(cls, x: np.ndarray, y: np.ndarray, st: _ImageStamps, flags: np.ndarray,
-              bank, egrid: np.ndarray, keep_lnL_r: Any) -> _ImageResults:  # fmt: skip
+              bank, egrid: np.ndarray, keep_lnL_r: Any,
+              rings: np.ndarray | None) -> _ImageResults:  # fmt: skip
         """NaN results for every object; ``lnL_r`` as ``keep_lnL_r`` asks (None, True
-        or ``"annuli"``, per ring of ``|e|``: :func:`pylensfit.likelihood.e_annuli`)."""
+        or ``"annuli"``: per ring of ``|e|``, ``rings`` from
+        :func:`pylensfit.likelihood.e_annuli`)."""
         n = x.size
         n_b = bank.n_r // bank.n_sizes
         if keep_lnL_r == "annuli":  # L(r) per ring of |e|, for any prior of |e|
-            rings = e_annuli(bank.egrid)
             lnL_r = np.full((n, int(rings.max()) + 1, bank.n_r + 1), np.nan, dtype=np.float32)
         else:
             lnL_r = (np.full((n, bank.n_r + 1), np.nan, dtype=np.float32) if keep_lnL_r
@@ -658,26 +659,24 @@ def _image_task(task: _ImageTask) -> dict[str, Any]:
     if psf is not None and task.psf_dir:
         (field_model or psf).write(Path(task.psf_dir) / f"{Path(path).stem}.psf.fits",
                                    overwrite=True)  # fmt: skip
+    x = np.asarray(det["x"], dtype=float)
+    y = np.asarray(det["y"], dtype=float)
+    noise = np.asarray(det["noise_sigma"], dtype=float)
     cell_images = cell_e = None
     cell = np.zeros(n, dtype=np.int64)
     if field_model is not None:
         cell_images, cell_e, cell_of = _cell_psfs(field_model, sub.shape, cfg.psf_cells)
-        cell = cell_of(np.asarray(det["x"], dtype=float), np.asarray(det["y"], dtype=float))
+        cell = cell_of(x, y)
     t_psf = time.perf_counter()
-    x = np.asarray(det["x"], dtype=float)
-    y = np.asarray(det["y"], dtype=float)
-    noise = np.asarray(det["noise_sigma"], dtype=float)
     st = _image_stamps(sub, img, det, cfg, saturated, flags)
     t_stamps = time.perf_counter()
     bank = model_bank(cfg)
     egrid = ellipticity_grid(cfg.output_e_step, emax=cfg.e_max)  # fit_stamps' grid
-    res = _ImageResults.empty(x, y, st, flags, bank, egrid, task.keep_lnL_r)
-    size_prior = task.size_prior
+    rings = e_annuli(bank.egrid) if task.keep_lnL_r == "annuli" else None
+    res = _ImageResults.empty(x, y, st, flags, bank, egrid, task.keep_lnL_r, rings)
     fit = _ImageFitter(
         st=st, noise=noise, cfg=cfg, psf_image=None if psf is None else psf.image,
-        cell_images=cell_images, cell=cell,
-        size_prior=size_prior,
-        rings=e_annuli(bank.egrid) if task.keep_lnL_r == "annuli" else None,
+        cell_images=cell_images, cell=cell, size_prior=task.size_prior, rings=rings,
         size_marginal_prior=task.size_marginal_prior)  # fmt: skip
     todo = np.flatnonzero(flags == 0)
     # the PSF the neighbours are rendered with: each object's cell's, or the image's
