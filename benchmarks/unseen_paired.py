@@ -158,6 +158,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+import yaml
 
 #: stamp side (pixels) and the galaxy's pixel ``[CENTRE, CENTRE]``
 STAMP = 64
@@ -589,6 +590,17 @@ def _lower_config():
     return plf.Config(model="bulge+disc", n_bulge_fractions=3, max_stamp_size=STAMP)
 
 
+#: ``--set`` overrides of the default configuration (applied in every process)
+CONFIG_OVERRIDES: dict = {}
+
+
+def _api_config():
+    """``Config()`` with the ``--set`` overrides (None without any: the defaults)."""
+    import pylensfit as plf
+
+    return plf.Config(**CONFIG_OVERRIDES) if CONFIG_OVERRIDES else None
+
+
 def pylensfit_priors(method: str, cal_stamps: np.ndarray, psf_img: np.ndarray):
     """pylensfit's priors for one PSF, from its calibration stamps (once per PSF).
 
@@ -615,7 +627,7 @@ def pylensfit_priors(method: str, cal_stamps: np.ndarray, psf_img: np.ndarray):
         for name in ("calibrate", "measure_stamps"):
             if not hasattr(plf, name):
                 raise SystemExit(f"pylensfit has no {name}() yet: run with --method lower")
-        priors = plf.calibrate(cal_stamps, psf_img, noise_sigma=SIGMA)
+        priors = plf.calibrate(cal_stamps, psf_img, noise_sigma=SIGMA, config=_api_config())
         return priors, time.perf_counter() - t0
     fits = plf.fit_stamps(cal_stamps, psf_img, SIGMA, config=_lower_config())
     ok = (np.asarray(fits.flags) == 0) & ~np.asarray(fits.is_star)
@@ -653,7 +665,8 @@ def pylensfit_measure(method: str, priors, stamps: np.ndarray, psf_img: np.ndarr
 
     t0 = time.perf_counter()
     if method == "api":
-        tab = plf.measure_stamps(stamps, psf_img, noise_sigma=SIGMA, priors=priors)
+        tab = plf.measure_stamps(stamps, psf_img, noise_sigma=SIGMA, priors=priors,
+                                 config=_api_config())  # fmt: skip
         usable = (np.asarray(tab["flags"]) == 0) & (np.asarray(tab["weight"], dtype=float) > 0)
     else:
         fits = plf.fit_stamps(stamps, psf_img, SIGMA, config=_lower_config())
@@ -960,6 +973,9 @@ def main(argv=None) -> int:
     ap.add_argument("--psfs", default=None,
                     help="comma-separated PSF indices to run (default: all; the population "
                          "is the same, so runs of different PSFs combine)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a Config default for pylensfit (api method), e.g. "
+                         "--set prior_form=spline; repeatable")  # fmt: skip
     ap.add_argument("--out", default=None, help="write the table (ECSV) here")
     ap.add_argument("--columns", default=None,
                     help="write the per-rendering columns and the population (NPZ) here")
@@ -967,6 +983,11 @@ def main(argv=None) -> int:
                     help="measure nothing: combine the --columns files of runs of different "
                          "PSFs (the same --ngal and --seed) and print their tables")
     a = ap.parse_args(argv)  # fmt: skip
+    for item in a.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            ap.error(f"--set {item!r}: expected KEY=VALUE")
+        CONFIG_OVERRIDES[key.strip()] = yaml.safe_load(value)
     if a.combine:
         return combine(a.combine, a.groups)
     if a.estimator == "plf" and a.method != "api":
@@ -1024,6 +1045,9 @@ def main(argv=None) -> int:
                 warm_up(cal_stamps[:4], psf_img)
             priors, tc = pylensfit_priors(a.method, cal_stamps, psf_img)
             t_cal += tc
+            ell = getattr(priors, "ellipticity", priors)
+            print(f"PSF {ipsf}: ellipticity prior {ell!r}, at a bound: "
+                  f"{ell.info.get('at_bound') or 'no'}", flush=True)
             del cal_stamps
             for k in range(0, len(sel), a.chunk):
                 idx = sel[k:k + a.chunk]

@@ -61,6 +61,7 @@ from .models import model_bank
 from .prior import (
     MIN_FLUX_RANGE_SAMPLE,
     Prior,
+    RadialPrior,
     SizePrior,
     estimate_bulge_weights,
     estimate_flux_range,
@@ -191,7 +192,7 @@ class Priors:
                       else "no 'ellipticity' entry")  # fmt: skip
             raise ValueError(f"{source}: not a priors file ({detail})")
         try:
-            ell = Prior.from_dict(d["ellipticity"], source="entry 'ellipticity'")
+            ell = RadialPrior.from_dict(d["ellipticity"], source="entry 'ellipticity'")
             size = None if d.get("size") is None else SizePrior.from_dict(
                 d["size"], source="entry 'size'")  # fmt: skip
             bw = d.get("bulge_weights")
@@ -502,7 +503,7 @@ def run_recipe(
     pos_sigma = None
 
     def ellipticity_priors(cal: CalibrationSample, prior0):
-        return _ellipticity_priors(cal, prior0, given_bw, fit_bulge, cfg.prior_method, info)
+        return _ellipticity_priors(cal, prior0, given_bw, fit_bulge, cfg, info)
 
     cal = fit_pass(cfgs, sps, fit_size, "calibration")
     n_used = len(cal)
@@ -548,7 +549,7 @@ def run_recipe(
             prior, bw = ellipticity_priors(cal, prior0)
     n_used = len(cal)
     info["prior_given"] = prior_given
-    if isinstance(prior, Prior) and prior.info.get("at_bound"):
+    if isinstance(prior, RadialPrior) and prior.info.get("at_bound"):
         info["ellipticity_at_bound"] = list(prior.info["at_bound"])
     log.info("priors estimated from %d galaxies: %r, bulge weights %s", n_used, prior,
              None if bw is None else np.round(bw, 3).tolist())
@@ -559,9 +560,9 @@ def run_recipe(
             for k in range(n_groups)]  # fmt: skip
 
 
-def _ellipticity_priors(cal: CalibrationSample, prior0: Prior | None,
-                        given_bw: np.ndarray | None, fit_bulge: bool, method: str,
-                        info: dict[str, Any]) -> tuple[Prior, np.ndarray | None]:  # fmt: skip
+def _ellipticity_priors(cal: CalibrationSample, prior0: RadialPrior | None,
+                        given_bw: np.ndarray | None, fit_bulge: bool, cfg: Config,
+                        info: dict[str, Any]) -> tuple[RadialPrior, np.ndarray | None]:  # fmt: skip
     """The ellipticity prior and bulge weights from a pass: ``prior0`` kept where given,
     the bulge weights estimated under it (``fit_bulge``) or ``given_bw``; a sample too
     small for the estimate falls back to the default prior."""
@@ -572,14 +573,15 @@ def _ellipticity_priors(cal: CalibrationSample, prior0: Prior | None,
         return (prior0 if prior0 is not None else Prior(egrid=cal.egrid)), given_bw
     if fit_bulge and prior0 is None:
         return estimate_prior_and_bulge(cal.lnL_bulge, cal.lnL_star, cal.egrid,
-                                        method=method)  # fmt: skip
+                                        method=cfg.prior_method, form=cfg.prior_form)  # fmt: skip
     if fit_bulge:
         return prior0, estimate_bulge_weights(cal.lnL_bulge, cal.lnL_star, prior0)
     if prior0 is None:
         lnL = cal.lnL
         if given_bw is not None and cal.lnL_bulge is not None:
             lnL = mix_bulge_fractions(cal.lnL_bulge, cal.lnL_star, given_bw)
-        return estimate_prior(lnL, cal.egrid, method=method), given_bw
+        return estimate_prior(lnL, cal.egrid, method=cfg.prior_method,
+                              form=cfg.prior_form), given_bw  # fmt: skip
     return prior0, given_bw
 
 

@@ -31,7 +31,7 @@ from astropy.table import vstack
 
 from .config import PRESETS, Config
 from .pipeline import InputError, catalogue_frame, measure, read_catalogue
-from .prior import Prior, estimate_prior
+from .prior import RadialPrior, estimate_prior
 from .shear import shapes, shear_table
 from .skyframe import sensitivity_to_sky, to_sky
 
@@ -131,11 +131,16 @@ def _prior(args: argparse.Namespace) -> int:
     gal = _usable_galaxies(cat)
     if not gal.any():
         raise ValueError("no measured galaxy in the catalogue(s): cannot estimate a prior")
-    prior = estimate_prior(np.asarray(cat["lnL"])[gal], cat.meta["egrid"], method=args.method)
+    if args.form == "spline" and args.method != "direct":
+        raise ValueError("--form spline is estimated with --method direct")
+    prior = estimate_prior(np.asarray(cat["lnL"])[gal], cat.meta["egrid"], method=args.method,
+                           form=args.form)  # fmt: skip
     prior.save(args.output)
     for h in prior.history[-3:]:
-        print(f"  step {h.get('iteration', '?')}: B={h['B']:.4f} C={h['C']:.4f} "
-              f"D={h['D']:.4f} marginal lnL={h.get('marginal_lnL', float('nan')):.3f}")  # fmt: skip
+        par = (" ".join(f"{v:.3f}" for v in h["coef"]) if "coef" in h
+               else f"B={h['B']:.4f} C={h['C']:.4f} D={h['D']:.4f}")
+        print(f"  step {h.get('iteration', '?')}: {par} "
+              f"marginal lnL={h.get('marginal_lnL', float('nan')):.3f}")  # fmt: skip
     print(f"{args.output}: {prior!r} from {int(gal.sum())} galaxies")
     return 0
 
@@ -145,7 +150,7 @@ def _shear(args: argparse.Namespace) -> int:
     cat = _read_catalogues(args.catalogs, need=("flags", "fitclass", *per_image),
                            bin_column=args.bin_column)  # fmt: skip
     cfg = cat.meta.get("config")
-    prior = Prior.load(args.prior) if args.prior else cat.meta.get("prior")
+    prior = RadialPrior.load(args.prior) if args.prior else cat.meta.get("prior")
     if prior is None:
         raise ValueError("no prior: give --prior (see `pylensfit prior`)")
     sens = args.sensitivity or (cfg.sensitivity if cfg is not None else "exact")
@@ -413,6 +418,9 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("-o", "--output", required=True, help="prior file (JSON)")
     pr.add_argument("--method", choices=("direct", "em"), default="direct",
                     help="direct maximisation (default) or the paper's EM iteration")  # fmt: skip
+    pr.add_argument("--form", choices=("functional", "spline"), default="functional",
+                    help="the paper's three-parameter form (default) or a cubic B-spline "
+                         "in |e| that follows any smooth population")  # fmt: skip
     pr.set_defaults(func=_prior)
 
     sh = sub.add_parser("shear", help="shear per image and bin, with errors")

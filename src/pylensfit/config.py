@@ -280,6 +280,13 @@ class Config:
         4, "the Bayesian integrals run on an e grid this many times finer (ln L interpolated)"
     )
     prior_method: str = _f("direct", "prior estimation: 'direct' (maximum marginal L) or 'em'")
+    prior_form: str = _f(
+        "functional",
+        "form of the estimated ellipticity prior: 'functional' (Kitching et al. 2008's "
+        "three-parameter form, prior.Prior) or 'spline' (a cubic B-spline in |e| that "
+        "follows any smooth population and has no bound to end on, prior.SplinePrior; "
+        "estimated with prior_method 'direct')",
+    )
     min_snr: float = _f(
         5.0,
         "a galaxy is used (weight > 0), and enters the calibration, only if its best "
@@ -550,7 +557,7 @@ PRESETS: dict[str, tuple[dict[str, Any], str]] = {
         {"model": "devaucouleurs", "n_bulge_fractions": 1, "max_stamp_size": 0,
          "r_step": 0.2, "size_prior": "flat", "size_prior_per_run": False,
          "amplitude_prior": "uniform", "estimate_flux_prior": False,
-         "estimate_position_prior": False, "min_snr": 0.0},
+         "estimate_position_prior": False, "min_snr": 0.0, "prior_form": "functional"},
         "Kitching et al. (2008)'s setup: de Vaucouleurs model, flat size prior, uniform "
         "amplitude prior, 2-pixel position prior",
     ),
@@ -650,6 +657,10 @@ def _validate(c: Config) -> None:
     need(c.sensitivity in ("exact", "paper"), "sensitivity must be 'exact' or 'paper'")
     need(c.integration_refine >= 1, "integration_refine must be >= 1")
     need(c.prior_method in ("direct", "em"), "prior_method must be 'direct' or 'em'")
+    need(c.prior_form in ("functional", "spline"),
+         f"prior_form must be 'functional' or 'spline', got {c.prior_form!r}")  # fmt: skip
+    need(c.prior_form == "functional" or c.prior_method == "direct",
+         "prior_form 'spline' is estimated with prior_method 'direct'")  # fmt: skip
     need(c.detect_threshold > 0, "detect_threshold must be > 0")
     need(c.detect_min_area >= 1, "detect_min_area must be >= 1")
     need(c.background_box >= 8, "background_box must be >= 8")

@@ -297,7 +297,7 @@ def measure_setting(
     )  # fmt: skip
     fit_time = time.perf_counter() - t0
     p = sample.prior if prior is None else prior
-    pr = Prior(B=p.B, C=p.C, D=p.D, egrid=fits.egrid)
+    pr = p.on_grid(fits.egrid)
     try:
         sh = shapes(fits.lnL, fits.egrid, pr, sensitivity="exact", refine=refine)
     except ValueError:

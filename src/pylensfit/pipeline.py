@@ -68,6 +68,7 @@ from .models import model_bank, render_models
 from .prior import (
     Prior,
     SizePrior,
+    SplinePrior,
     mix_bulge_fractions,
 )
 from .psf import (
@@ -1794,9 +1795,8 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
                    "UTC time the catalogue was written")  # fmt: skip
     hdr["NOBJ"] = (len(cat), "objects (rows)")
     if prior is not None:
-        hdr["PRIOR_B"] = (prior.B, "prior B (Kitching et al. 2008, section 3.1)")
-        hdr["PRIOR_C"] = (prior.C, "prior C")
-        hdr["PRIOR_D"] = (prior.D, "prior D")
+        for key, value, comment in prior.header_cards():
+            hdr[key] = (value, comment)
         hdr["PRIORMTH"] = (prior.method, "how the prior was obtained")
     if cfg is not None:
         hdr["SENSTVTY"] = (cfg.sensitivity, "shear sensitivity formula")
@@ -1852,6 +1852,17 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
     atomic_write(fits.HDUList(hdus), path, overwrite=overwrite)
 
 
+def _header_prior(hdr, egrid: np.ndarray) -> Prior | SplinePrior:
+    """The ellipticity prior of a catalogue's primary header (its ``PRIORFRM`` form)."""
+    method = hdr.get("PRIORMTH", "fixed")
+    if hdr.get("PRIORFRM") == SplinePrior.form:
+        n = len(SplinePrior().coef)
+        return SplinePrior(coef=[hdr[f"PRIORS{j}"] for j in range(n)], egrid=egrid,
+                           method=method)  # fmt: skip
+    return Prior(B=hdr["PRIOR_B"], C=hdr["PRIOR_C"], D=hdr["PRIOR_D"], egrid=egrid,
+                 method=method)  # fmt: skip
+
+
 def read_catalogue(path: str | os.PathLike) -> Table:
     """Read a catalogue written by :func:`write_catalogue` (``lnL`` as a 2-D column).
 
@@ -1895,11 +1906,8 @@ def read_catalogue(path: str | os.PathLike) -> Table:
             hdu = "PRIMARY"
             hdr = h[0].header
             cat.meta["frame"] = str(hdr.get("EFRAME", "pixel"))
-            if "PRIOR_B" in hdr:
-                cat.meta["prior"] = Prior(
-                    B=hdr["PRIOR_B"], C=hdr["PRIOR_C"], D=hdr["PRIOR_D"],
-                    egrid=cat.meta["egrid"], method=hdr.get("PRIORMTH", "fixed"),
-                )  # fmt: skip
+            if "PRIOR_B" in hdr or hdr.get("PRIORFRM") == SplinePrior.form:
+                cat.meta["prior"] = _header_prior(hdr, cat.meta["egrid"])
             if "SIZEPRI" in h:
                 hdu = "SIZEPRI"
                 hs = h["SIZEPRI"]

@@ -1151,13 +1151,20 @@ def _config_meta(cfg: Config) -> dict[str, Any]:
             "position_prior_sigma": cfg.position_prior_sigma}  # fmt: skip
 
 
+def _prior_params_text(p: dict[str, Any]) -> str:
+    """``B=..., C=..., D=...`` or the spline's coefficients, from a result's ``meta``."""
+    if p.get("form") == "spline":
+        return "spline coefficients " + ", ".join(f"{v:.2f}" for v in p["coef"])
+    return f"B={p['B']:.3f}, C={p['C']:.3f}, D={p['D']:.3f}"
+
+
 def _run_meta(spec: PrecisionSpec, cal: _Calibrated, gal: Table, step: float,
               timing: dict[str, Any], *, prior_given: bool, bulge_method: str,
               size_prior_per_psf: bool, size_prior_given: bool) -> dict[str, Any]:  # fmt: skip
     """The result's ``meta``, in the order of :func:`precision`'s documentation."""
     cfg, prior, bulge_weights = cal.cfgs[0], cal.prior, cal.bulge_weights
     meta: dict[str, Any] = {}
-    meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D, "given": prior_given}
+    meta["prior"] = {**prior.form_dict(), "given": prior_given}
     meta["bulge_prior"] = {
         "method": bulge_method if cfg.n_bulge_fractions > 1 else "none",
         "fractions": [float(run.fraction) for run in cfg.bulge_runs],
@@ -1453,8 +1460,7 @@ def write_report(res: Table, path: str | Path) -> None:
         ("Prior given: " if res.meta["prior"].get("given") else
          f"Prior from {spec['ncal']} unsheared calibration galaxies"
          f"{' (stratified)' if spec.get('stratified_calibration') else ''}: ") +
-        f"B={res.meta['prior']['B']:.3f}, C={res.meta['prior']['C']:.3f}, "
-        f"D={res.meta['prior']['D']:.3f} (true {tuple(spec['prior_params'])}). "
+        _prior_params_text(res.meta["prior"]) + f" (true {tuple(spec['prior_params'])}). "
         f"Largest fixed-point Newton step {res.meta['fp_step']:.1e}.", "",
         _bulge_line(res.meta.get("bulge_prior")),
         _size_line(res.meta.get("size_prior"), spec, res.meta.get("size_prior_given", False)),

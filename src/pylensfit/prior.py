@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import optimize
+from scipy import interpolate, optimize
 from scipy.special import logsumexp
 
 from ._util import (
@@ -49,8 +49,12 @@ from .models import half_light_radius, run_half_light_radius
 
 __all__ = [
     "PRIOR_BOUNDS",
+    "SPLINE_KNOTS",
+    "SPLINE_SMOOTHING",
     "BinnedPrior",
     "Prior",
+    "RadialPrior",
+    "SplinePrior",
     "SizePrior",
     "estimate_bulge_weights",
     "estimate_flux_range",
@@ -198,28 +202,19 @@ def prior_is_valid(B: float, C: float, D: float) -> bool:
 
 
 # ----------------------------------------------------------------------------------------
-# The Prior class
+# The prior classes
 # ----------------------------------------------------------------------------------------
-class Prior:
-    """The functional ellipticity prior (docs: method, eq-funcprior), normalised on a grid.
+class RadialPrior:
+    """An ellipticity prior that depends on ``|e|`` only, normalised on a grid.
 
-    Parameters
-    ----------
-    B, C, D : float
-        Parameters of the functional prior (docs: method, eq-funcprior; dimensionless).
-        The defaults (0.19, 0.58, 2.4) describe a STEP-like population. They must
-        satisfy :func:`prior_is_valid`.
-    step : float, optional
-        Cell side ``de`` of the normalisation grid (default 0.1, the paper's grid).
-        Ignored when ``egrid`` is given.
-    egrid : numpy.ndarray, optional
-        ``(n_e, 2)`` grid of cell centres (from :func:`pylensfit.ellipticity_grid`) on
-        which the prior is normalised.
+    The base of the two forms, the functional :class:`Prior` of Kitching et al. (2008)
+    and the flexible :class:`SplinePrior`. A form supplies the unnormalised
+    ``ln f(|e|)`` and its radial derivative; the density is ``P(e) = A f(|e|)`` with
+    ``A`` fixed by ``sum_grid P de^2 = 1`` on :attr:`egrid` (units: per unit e1 per unit
+    e2).
 
     Attributes
     ----------
-    B, C, D : float
-        The parameters.
     egrid : numpy.ndarray
         ``(n_e, 2)`` normalisation grid (cell centres).
     step : float
@@ -227,36 +222,27 @@ class Prior:
     A : float
         Normalisation constant, ``1 / sum_grid f(e) de^2`` (per unit e^2).
     method : str
-        How the parameters were obtained: ``"fixed"`` (given), ``"direct"``, ``"em"`` or
-        ``"cross-entropy"`` (fitted to a gridded distribution).
+        How the prior was obtained (``"fixed"`` when given).
     history : list of dict
-        One entry per estimation step: ``iteration``, ``B``, ``C``, ``D`` and
-        ``marginal_lnL`` (``sum_a w_a ln sum_e P L_a de^2``, with each ``L_a`` scaled to a
-        maximum of 1), where computed.
+        One entry per estimation step, with ``marginal_lnL`` where computed.
     info : dict
-        Bookkeeping of the estimation: ``n_used``, ``n_excluded`` (rows rejected as
-        unusable), ``at_bound`` (parameters that ended on a bound), ``converged``, ...
+        Bookkeeping of the estimation: ``n_used``, ``n_excluded``, ``at_bound``, ...
     """
 
-    def __init__(
-        self,
-        *,
-        B: float = DEFAULT_PARAMS[0],
-        C: float = DEFAULT_PARAMS[1],
-        D: float = DEFAULT_PARAMS[2],
-        step: float | None = None,
-        egrid: np.ndarray | None = None,
-        method: str = "fixed",
-        history: Sequence[dict[str, Any]] | None = None,
-        info: dict[str, Any] | None = None,
-    ) -> None:
-        B, C, D = float(B), float(C), float(D)
-        if not prior_is_valid(B, C, D):
-            raise ValueError(
-                f"prior parameters (B, C, D) = ({B:g}, {C:g}, {D:g}) are outside the allowed "
-                f"region (box {PRIOR_BOUNDS} plus the positivity / no-turning-point conditions "
-                "of prior_is_valid)"
-            )
+    #: the form's name in :meth:`to_dict` and in catalogue headers
+    form = ""
+
+    def _log_f(self, r: np.ndarray) -> np.ndarray:
+        """Unnormalised ``ln P`` at radii ``0 <= r < 1``."""
+        raise NotImplementedError
+
+    def _dlogf_dr(self, r: np.ndarray) -> np.ndarray:
+        """``d ln P / d|e|`` at radii ``0 < r < 1``."""
+        raise NotImplementedError
+
+    def _normalise(self, step: float | None, egrid: np.ndarray | None, method: str,
+                   history, info) -> None:  # fmt: skip
+        """Set the grid, its step and ``A``, and the bookkeeping."""
         if egrid is None:
             egrid = ellipticity_grid(0.1 if step is None else float(step))
         egrid = np.ascontiguousarray(egrid, dtype=float)
@@ -266,33 +252,27 @@ class Prior:
         r = np.hypot(egrid[:, 0], egrid[:, 1])
         if np.any(r >= 1.0):
             raise ValueError("the normalisation grid must lie inside |e| < 1")
-        self.B, self.C, self.D = B, C, D
         self.egrid = egrid
         self.method = method
         self.history: list[dict[str, Any]] = [dict(h) for h in (history or [])]
         self.info: dict[str, Any] = dict(info or {})
-        lf = _log_f(r, B, C, D)
+        lf = self._log_f(r)
         m = float(np.max(lf))
         self._log_norm = m + math.log(float(np.sum(np.exp(lf - m))) * self.step**2)
         self.A = math.exp(-self._log_norm)
 
     # -- evaluation ------------------------------------------------------------------
-    @property
-    def params(self) -> tuple[float, float, float]:
-        """``(B, C, D)``."""
-        return (self.B, self.C, self.D)
-
     def log_pdf(self, e1: np.ndarray | float, e2: np.ndarray | float) -> np.ndarray:
         """Natural log of :meth:`pdf` (``-inf`` for ``|e| >= 1``)."""
         e1, e2 = np.broadcast_arrays(np.asarray(e1, dtype=float), np.asarray(e2, dtype=float))
         r = np.hypot(e1, e2)
         inside = r < 1.0
         out = np.full(r.shape, -np.inf)
-        out[inside] = _log_f(r[inside], self.B, self.C, self.D) - self._log_norm
+        out[inside] = self._log_f(r[inside]) - self._log_norm
         return out
 
     def pdf(self, e1: np.ndarray | float, e2: np.ndarray | float) -> np.ndarray:
-        """Prior density at ``(e1, e2)`` (docs: method, eq-funcprior).
+        """Prior density at ``(e1, e2)``.
 
         Parameters
         ----------
@@ -310,11 +290,10 @@ class Prior:
     def grad(self, e1: np.ndarray | float, e2: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """Analytic gradient ``(dP/de1, dP/de2)`` of :meth:`pdf` (same normalisation).
 
-        ``P`` depends on ``|e|`` only, so ``dP/de_i = P (d ln P / d|e|) e_i / |e|`` with
-        ``d ln P/d|e| = -(pi/2) tan(pi |e|/2) - C u^C (1 + (1-D)|e|^D) / (|e| (1+|e|^D))``
-        and ``u = 2|e| / (B (1 + |e|^D))``. At ``e = 0`` the prior has a cusp when
-        ``C < 1`` and the gradient does not exist; there (and for ``|e| >= 1``) zeros are
-        returned. The grids of :func:`pylensfit.ellipticity_grid` never contain ``e = 0``.
+        ``P`` depends on ``|e|`` only, so ``dP/de_i = P (d ln P / d|e|) e_i / |e|``. At
+        ``e = 0`` the prior may have a cusp and the gradient need not exist; there (and
+        for ``|e| >= 1``) zeros are returned. The grids of
+        :func:`pylensfit.ellipticity_grid` never contain ``e = 0``.
 
         Returns
         -------
@@ -326,8 +305,8 @@ class Prior:
         ok = (r > 0) & (r < 1.0)
         g = np.zeros(r.shape)
         rr = r[ok]
-        p = np.exp(_log_f(rr, self.B, self.C, self.D) - self._log_norm)
-        g[ok] = p * _dlogf_dr(rr, self.B, self.C, self.D) / rr
+        p = np.exp(self._log_f(rr) - self._log_norm)
+        g[ok] = p * self._dlogf_dr(rr) / rr
         return g * e1, g * e2
 
     def radial_pdf(self, r: np.ndarray | float) -> np.ndarray:
@@ -367,12 +346,24 @@ class Prior:
         return np.column_stack([r * np.cos(phi), r * np.sin(phi)])
 
     # -- persistence ------------------------------------------------------------------
+    def form_dict(self) -> dict[str, Any]:
+        """The form and its parameters (``form`` and ``B, C, D`` or ``coef``)."""
+        raise NotImplementedError
+
+    def on_grid(self, egrid: np.ndarray) -> RadialPrior:
+        """The same prior normalised on another grid ``egrid`` (``(n_e, 2)``)."""
+        d = self.form_dict()
+        return type(self)(**{k: d[k] for k in self._KEYS}, egrid=egrid, method=self.method,
+                          history=self.history, info=self.info)  # fmt: skip
+
+    def header_cards(self) -> list[tuple[str, float | str, str]]:
+        """``(keyword, value, comment)`` FITS cards that describe the prior."""
+        raise NotImplementedError
+
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready description (parameters, grid step, method, history, info)."""
+        """JSON-ready description (form, parameters, grid step, method, history, info)."""
         d: dict[str, Any] = {
-            "B": self.B,
-            "C": self.C,
-            "D": self.D,
+            **self.form_dict(),
             "step": self.step,
             "method": self.method,
             "history": self.history,
@@ -388,8 +379,8 @@ class Prior:
         Path(path).write_text(json.dumps(self.to_dict(), indent=1))
 
     @classmethod
-    def load(cls, path: str | Path) -> Prior:
-        """Read a prior written by :meth:`save`.
+    def load(cls, path: str | Path) -> RadialPrior:
+        """Read a prior written by :meth:`save` (either form).
 
         Raises
         ------
@@ -399,14 +390,15 @@ class Prior:
         return cls.from_dict(read_json(path), source=str(path))
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], source: str = "prior dict") -> Prior:
-        """The prior of :meth:`to_dict`.
+    def from_dict(cls, d: dict[str, Any], source: str = "prior dict") -> RadialPrior:
+        """The prior of :meth:`to_dict`, of the form it names (``"form"``; functional
+        where absent).
 
         Parameters
         ----------
         d : dict
-            ``B``, ``C``, ``D`` and ``step`` (or ``egrid``); optionally ``method``,
-            ``history`` and ``info``.
+            The functional form's ``B``, ``C``, ``D`` or the spline's ``coef``, and
+            ``step`` (or ``egrid``); optionally ``method``, ``history`` and ``info``.
         source : str
             What ``d`` came from (a file name), for the error message.
 
@@ -416,10 +408,16 @@ class Prior:
             One line naming ``source`` if ``d`` is not a prior.
         """
         what = f"{source}: not an ellipticity prior"
-        need = "a prior holds B, C, D and step"
         if not isinstance(d, dict):
-            raise ValueError(f"{what} (a JSON {json_kind(d)}; {need})")
-        missing = [k for k in ("B", "C", "D") if k not in d]
+            raise ValueError(f"{what} (a JSON {json_kind(d)}; a prior holds B, C, D and step "
+                             "or coef and step)")  # fmt: skip
+        form = d.get("form", Prior.form)
+        kinds = {Prior.form: Prior, SplinePrior.form: SplinePrior}
+        if form not in kinds or (cls is not RadialPrior and kinds[form] is not cls):
+            raise ValueError(f"{what} of form {cls.form!r} (form {form!r})")
+        kind = kinds[form]
+        need = f"a {form} prior holds {', '.join(kind._KEYS)} and step"
+        missing = [k for k in kind._KEYS if k not in d]
         if "step" not in d and "egrid" not in d:
             missing.append("step")
         if missing:
@@ -429,10 +427,8 @@ class Prior:
             egrid = np.asarray(d["egrid"], dtype=float) if "egrid" in d else None
             if egrid is not None:
                 egrid = check_egrid(egrid)
-            return cls(
-                B=d["B"],
-                C=d["C"],
-                D=d["D"],
+            return kind(
+                **{k: d[k] for k in kind._KEYS},
                 step=None if egrid is not None else d["step"],
                 egrid=egrid,
                 method=str(d.get("method", "fixed")),
@@ -442,11 +438,259 @@ class Prior:
         except (TypeError, ValueError) as err:
             raise ValueError(f"{what} ({err})") from None
 
+
+class Prior(RadialPrior):
+    """The functional ellipticity prior (docs: method, eq-funcprior), normalised on a grid.
+
+    Parameters
+    ----------
+    B, C, D : float
+        Parameters of the functional prior (docs: method, eq-funcprior; dimensionless).
+        The defaults (0.19, 0.58, 2.4) describe a STEP-like population. They must
+        satisfy :func:`prior_is_valid`.
+    step : float, optional
+        Cell side ``de`` of the normalisation grid (default 0.1, the paper's grid).
+        Ignored when ``egrid`` is given.
+    egrid : numpy.ndarray, optional
+        ``(n_e, 2)`` grid of cell centres (from :func:`pylensfit.ellipticity_grid`) on
+        which the prior is normalised.
+
+    Attributes
+    ----------
+    B, C, D : float
+        The parameters.
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` normalisation grid (cell centres).
+    step : float
+        Its cell side ``de``.
+    A : float
+        Normalisation constant, ``1 / sum_grid f(e) de^2`` (per unit e^2).
+    method : str
+        How the parameters were obtained: ``"fixed"`` (given), ``"direct"``, ``"em"`` or
+        ``"cross-entropy"`` (fitted to a gridded distribution).
+    history : list of dict
+        One entry per estimation step: ``iteration``, ``B``, ``C``, ``D`` and
+        ``marginal_lnL`` (``sum_a w_a ln sum_e P L_a de^2``, with each ``L_a`` scaled to a
+        maximum of 1), where computed.
+    info : dict
+        Bookkeeping of the estimation: ``n_used``, ``n_excluded`` (rows rejected as
+        unusable), ``at_bound`` (parameters that ended on a bound), ``converged``, ...
+    """
+
+    form = "functional"
+    _KEYS = ("B", "C", "D")
+
+    def __init__(
+        self,
+        *,
+        B: float = DEFAULT_PARAMS[0],
+        C: float = DEFAULT_PARAMS[1],
+        D: float = DEFAULT_PARAMS[2],
+        step: float | None = None,
+        egrid: np.ndarray | None = None,
+        method: str = "fixed",
+        history: Sequence[dict[str, Any]] | None = None,
+        info: dict[str, Any] | None = None,
+    ) -> None:
+        B, C, D = float(B), float(C), float(D)
+        if not prior_is_valid(B, C, D):
+            raise ValueError(
+                f"prior parameters (B, C, D) = ({B:g}, {C:g}, {D:g}) are outside the allowed "
+                f"region (box {PRIOR_BOUNDS} plus the positivity / no-turning-point conditions "
+                "of prior_is_valid)"
+            )
+        self.B, self.C, self.D = B, C, D
+        self._normalise(step, egrid, method, history, info)
+
+    def _log_f(self, r: np.ndarray) -> np.ndarray:
+        return _log_f(r, self.B, self.C, self.D)
+
+    def _dlogf_dr(self, r: np.ndarray) -> np.ndarray:
+        return _dlogf_dr(r, self.B, self.C, self.D)
+
+    @property
+    def params(self) -> tuple[float, float, float]:
+        """``(B, C, D)``."""
+        return (self.B, self.C, self.D)
+
+    def form_dict(self) -> dict[str, Any]:
+        return {"form": self.form, "B": self.B, "C": self.C, "D": self.D}
+
+    def header_cards(self) -> list[tuple[str, float | str, str]]:
+        return [("PRIORFRM", self.form, "ellipticity prior form"),
+                ("PRIOR_B", self.B, "prior B (Kitching et al. 2008, section 3.1)"),
+                ("PRIOR_C", self.C, "prior C"), ("PRIOR_D", self.D, "prior D")]  # fmt: skip
+
     def __repr__(self) -> str:
         return (
             f"Prior(B={self.B:.4g}, C={self.C:.4g}, D={self.D:.4g}, step={self.step:g}, "
             f"method={self.method!r})"
         )
+
+
+#: Knots of :class:`SplinePrior`'s cubic B-spline in ``|e|``: uniform on ``[0, 1]`` with
+#: interior knots every 0.2, eight coefficients. Finer than the likelihoods resolve on the
+#: paper's grid (cells 0.1 wide, likelihood widths 0.1-0.3) would only add noise.
+SPLINE_KNOTS = np.concatenate([[0.0] * 4, [0.2, 0.4, 0.6, 0.8], [1.0] * 4])
+#: Default weight of :class:`SplinePrior`'s roughness penalty (see :func:`estimate_prior`).
+SPLINE_SMOOTHING = 10.0
+
+
+def _spline_design(r: np.ndarray, deriv: int = 0) -> np.ndarray:
+    """``(n, K)`` values (or ``deriv``-th derivatives) of the B-spline basis at ``r``."""
+    r = np.clip(np.asarray(r, dtype=float), 0.0, 1.0 - 1e-12)
+    k = len(SPLINE_KNOTS) - 4
+    if deriv == 0:
+        return interpolate.BSpline.design_matrix(r, SPLINE_KNOTS, 3).toarray()
+    out = np.empty((r.size, k))
+    for j in range(k):
+        out[:, j] = interpolate.BSpline(SPLINE_KNOTS, np.eye(k)[j], 3).derivative(deriv)(r)
+    return out
+
+
+class SplinePrior(RadialPrior):
+    """A flexible ellipticity prior: ``ln P = ln cos(pi |e| / 2) + s(|e|)`` with ``s`` a
+    cubic B-spline, normalised on a grid.
+
+    The functional form of Kitching et al. (2008) has three parameters and a shape of its
+    own; a population outside it (discs of one inclination distribution, bulges of
+    another) drives its estimate onto a bound of the parameters. The spline follows any
+    smooth radial distribution with no bound to end on: eight coefficients on
+    :data:`SPLINE_KNOTS` (uniform in ``|e|``, every 0.2), estimated by
+    :func:`estimate_prior` with ``form="spline"`` as the functional form is, by maximum
+    marginal likelihood of the sample. The cosine factor takes ``P`` to zero at
+    ``|e| = 1``, as the functional form does.
+
+    Parameters
+    ----------
+    coef : sequence of float
+        The spline's eight coefficients (a constant added to all of them changes nothing).
+        Default: the spline closest to the functional prior's STEP-like defaults.
+    step, egrid, method, history, info
+        As for :class:`Prior`.
+
+    Attributes
+    ----------
+    coef : numpy.ndarray
+        ``(8,)`` the coefficients.
+    """
+
+    form = "spline"
+    _KEYS = ("coef",)
+
+    def __init__(
+        self,
+        *,
+        coef: Sequence[float] | None = None,
+        step: float | None = None,
+        egrid: np.ndarray | None = None,
+        method: str = "fixed",
+        history: Sequence[dict[str, Any]] | None = None,
+        info: dict[str, Any] | None = None,
+    ) -> None:
+        k = len(SPLINE_KNOTS) - 4
+        c = _spline_start() if coef is None else np.asarray(coef, dtype=float).ravel()
+        if c.shape != (k,) or not np.all(np.isfinite(c)):
+            raise ValueError(f"coef must be {k} finite numbers, got {coef!r}")
+        self.coef = c - c.mean()
+        self._s = interpolate.BSpline(SPLINE_KNOTS, self.coef, 3)
+        self._ds = self._s.derivative()
+        self._normalise(step, egrid, method, history, info)
+
+    def _log_f(self, r: np.ndarray) -> np.ndarray:
+        r = np.asarray(r, dtype=float)
+        return np.log(np.cos(0.5 * np.pi * r)) + self._s(np.clip(r, 0.0, 1.0))
+
+    def _dlogf_dr(self, r: np.ndarray) -> np.ndarray:
+        r = np.asarray(r, dtype=float)
+        return -0.5 * np.pi * np.tan(0.5 * np.pi * r) + self._ds(np.clip(r, 0.0, 1.0))
+
+    @property
+    def params(self) -> tuple[float, ...]:
+        """The coefficients, as a tuple."""
+        return tuple(float(v) for v in self.coef)
+
+    def form_dict(self) -> dict[str, Any]:
+        return {"form": self.form, "coef": self.coef.tolist()}
+
+    def header_cards(self) -> list[tuple[str, float | str, str]]:
+        return [("PRIORFRM", self.form, "ellipticity prior form: cubic B-spline in |e|")] + [
+            (f"PRIORS{j}", float(v), f"spline coefficient {j}") for j, v in enumerate(self.coef)]
+
+    def __repr__(self) -> str:
+        c = ", ".join(f"{v:.3g}" for v in self.coef)
+        return f"SplinePrior(coef=[{c}], step={self.step:g}, method={self.method!r})"
+
+
+def _spline_start() -> np.ndarray:
+    """The coefficients whose spline is closest (least squares in ``ln P``) to the
+    functional prior with its STEP-like defaults, on ``|e| < 0.95``."""
+    r = np.linspace(0.0, 0.95, 200)
+    target = _log_f(r, *DEFAULT_PARAMS) - np.log(np.cos(0.5 * np.pi * r))
+    c = np.linalg.lstsq(_spline_design(r), target, rcond=None)[0]
+    return c - c.mean()
+
+
+def _roughness() -> np.ndarray:
+    """``D^T D`` with ``D`` the second differences of the spline's coefficients."""
+    k = len(SPLINE_KNOTS) - 4
+    d2 = np.diff(np.eye(k), n=2, axis=0)
+    return d2.T @ d2
+
+
+def _prior_spline(L: np.ndarray, w: np.ndarray, r: np.ndarray, c0: np.ndarray, n_iter: int,
+                  tol: float, smoothing: float, record) -> tuple[np.ndarray, bool]:  # fmt: skip
+    """:func:`estimate_prior`'s maximisation for the spline form: ``l(c) - (smoothing/2)
+    |D c|^2`` by L-BFGS with its analytic gradient (``D`` the coefficients' second
+    differences). Returns the coefficients and whether the optimiser converged."""
+    wsum = float(w.sum())
+    bm = _spline_design(r)
+    lc = np.log(np.cos(0.5 * np.pi * r))
+    R = _roughness()
+    M = np.empty((r.size, bm.shape[1] + 1))
+
+    def terms(c):
+        lf = lc + bm @ c
+        q = np.exp(lf - lf.max())
+        q /= q.sum()
+        M[:, 0] = q
+        M[:, 1:] = q[:, None] * bm
+        S = L @ M
+        z = np.maximum(S[:, 0], 1e-300)
+        ell = float(w @ np.log(z))
+        g = (w / z) @ S[:, 1:] - wsum * (q @ bm)
+        return ell, g
+
+    def fun(c):
+        ell, g = terms(c)
+        pen = 0.5 * smoothing * float(c @ R @ c) + 0.5 * float(c.mean()) ** 2 * wsum
+        gpen = smoothing * (R @ c) + c.mean() * wsum / c.size
+        return -(ell - pen) / wsum, -(g - gpen) / wsum
+
+    record(0, c0, terms(c0)[0])
+    res = optimize.minimize(fun, c0, jac=True, method="L-BFGS-B",
+                            options={"ftol": tol, "gtol": 1e-9, "maxiter": n_iter})  # fmt: skip
+    c = np.asarray(res.x, dtype=float)
+    record(int(res.nit), c, terms(c)[0])
+    return c, bool(res.success)
+
+
+def _estimate_spline(L, w, r, egrid, start, n_iter, tol, smoothing, n_excl) -> SplinePrior:
+    """:func:`estimate_prior` with ``form="spline"`` on the prepared sample."""
+    c0 = _spline_start() if start is None else np.asarray(start, dtype=float)
+    if c0.shape != (len(SPLINE_KNOTS) - 4,):
+        c0 = _spline_start()  # a functional start (B, C, D): the default shape instead
+    history: list[dict[str, Any]] = []
+
+    def record(it: int, c: np.ndarray, ell: float) -> None:
+        history.append({"iteration": it, "coef": [float(v) for v in c], "marginal_lnL": ell})
+
+    c, converged = _prior_spline(L, w, r, c0, 500 if n_iter is None else int(n_iter),
+                                 min(tol, 1e-9), float(smoothing), record)  # fmt: skip
+    return SplinePrior(coef=c, egrid=egrid, method="direct", history=history,
+                       info={"n_used": int(L.shape[0]), "n_excluded": n_excl, "at_bound": [],
+                             "converged": converged, "n_steps": history[-1]["iteration"],
+                             "smoothing": float(smoothing)})  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------
@@ -561,9 +805,9 @@ def marginal_log_likelihood(
     float
     """
     egrid, L, w, _, _ = _prepare(lnL, egrid, weights)
-    r = np.hypot(egrid[:, 0], egrid[:, 1])
-    x = np.log(np.array(prior.params))
-    return _marginal_terms(L, w, r, x)[0]
+    p = prior.on_grid(egrid).grid_pdf()
+    q = p / p.sum()
+    return float(w @ np.log(np.maximum(L @ q, 1e-300)))
 
 
 def _slsqp(fun_and_grad, x0: np.ndarray, *, ftol: float, maxiter: int, callback=None):
@@ -742,8 +986,10 @@ def estimate_prior(
     start: tuple[float, float, float] | None = None,
     weights: np.ndarray | None = None,
     tol: float = 1e-12,
-) -> Prior:
-    """Estimate the functional prior (eq-funcprior) from stored likelihood grids.
+    form: str = "functional",
+    smoothing: float = SPLINE_SMOOTHING,
+) -> RadialPrior:
+    """Estimate the ellipticity prior from stored likelihood grids.
 
     Both methods maximise the marginal likelihood of the sample,
     ``l(B, C, D) = sum_a w_a ln sum_e P(e) L_a(e) de^2`` (``P`` normalised on the grid),
@@ -766,6 +1012,12 @@ def estimate_prior(
     residual rms (where ``P`` exceeds 5% of its peak) is ~0.01-0.035 from 30,000 galaxies
     and ~0.04 from 3,000.
 
+    With ``form="spline"`` the prior is a :class:`SplinePrior`, whose eight coefficients
+    ``c`` maximise ``l(c) - (smoothing / 2) |D c|^2`` (``D`` their second differences, a
+    roughness penalty that matters only where few galaxies constrain the shape) by
+    L-BFGS with the analytic gradient; it has no bound to end on. ``method`` must then
+    be ``"direct"``.
+
     Memory: the likelihoods are held as one float64 ``(n_gal, n_e)`` array
     (2.5 kB per galaxy on the paper's grid); each step costs one product with it.
 
@@ -779,11 +1031,17 @@ def estimate_prior(
         ``(n_e, 2)`` grid of cell centres (:func:`pylensfit.ellipticity_grid`).
     method : {"direct", "em"}
         Estimation method.
+    form : {"functional", "spline"}
+        The prior's form: :class:`Prior` (Kitching et al. 2008's, eq-funcprior) or the
+        flexible :class:`SplinePrior`.
+    smoothing : float
+        ``form="spline"``: weight of the roughness penalty (dimensionless, per sample).
     n_iter : int, optional
         EM: maximum number of iterations (default 10, the paper's); direct: maximum
         number of optimiser iterations (default 200).
     start : tuple of float, optional
-        Starting ``(B, C, D)`` (default the STEP-like 0.19, 0.58, 2.4).
+        Starting ``(B, C, D)`` (default the STEP-like 0.19, 0.58, 2.4), or the spline's
+        coefficients.
     weights : numpy.ndarray, optional
         ``(n_gal,)`` non-negative per-galaxy weights ``w_a`` (default 1).
     tol : float
@@ -792,10 +1050,10 @@ def estimate_prior(
 
     Returns
     -------
-    Prior
-        Normalised on ``egrid``; ``history`` has ``B, C, D, marginal_lnL`` at every step,
-        ``info`` has ``n_used``, ``n_excluded``, ``at_bound`` (a warning is logged when the
-        fit ends on a bound), ``converged`` and ``n_steps``.
+    Prior or SplinePrior
+        Normalised on ``egrid``; ``history`` has the parameters and ``marginal_lnL`` at
+        every step, ``info`` has ``n_used``, ``n_excluded``, ``at_bound`` (a warning is
+        logged when the fit ends on a bound), ``converged`` and ``n_steps``.
 
     Raises
     ------
@@ -804,8 +1062,14 @@ def estimate_prior(
     """
     if method not in ("direct", "em"):
         raise ValueError(f"method must be 'direct' or 'em', got {method!r}")
+    if form not in ("functional", "spline"):
+        raise ValueError(f"form must be 'functional' or 'spline', got {form!r}")
+    if form == "spline" and method != "direct":
+        raise ValueError("the spline prior is estimated by method 'direct' only")
     egrid, L, w, _, n_excl = _prepare(lnL, egrid, weights)
     r = np.hypot(egrid[:, 0], egrid[:, 1])
+    if form == "spline":
+        return _estimate_spline(L, w, r, egrid, start, n_iter, tol, smoothing, n_excl)
     x = _start_x(start)
     history: list[dict[str, Any]] = []
 
@@ -989,29 +1253,32 @@ def estimate_prior_and_bulge(
     method: str = "direct",
     n_iter: int = 4,
     tol: float = 1e-3,
-) -> tuple[Prior, np.ndarray]:
+    form: str = "functional",
+) -> tuple[RadialPrior, np.ndarray]:
     """The ellipticity prior and the bulge-fraction prior together, from one sample.
 
     Alternates :func:`estimate_prior` on the mixed likelihoods
     (:func:`mix_bulge_fractions`) with :func:`estimate_bulge_weights` under that prior,
     from uniform weights, until no weight moves by more than ``tol`` (at most ``n_iter``
-    rounds); the prior returned is the one estimated with the final weights.
+    rounds); the prior returned is the one estimated with the final weights, of the
+    given ``form`` (:func:`estimate_prior`).
 
     Returns
     -------
-    prior : Prior
+    prior : Prior or SplinePrior
     weights : numpy.ndarray
         ``(n_b,)`` prior probabilities of the bulge fractions.
     """
     lb = np.asarray(lnL_bulge)
     w = np.full(lb.shape[1], 1.0 / lb.shape[1])
-    prior = estimate_prior(mix_bulge_fractions(lb, lnL_star, w), egrid, method=method)
+    prior = estimate_prior(mix_bulge_fractions(lb, lnL_star, w), egrid, method=method,
+                           form=form)  # fmt: skip
     for _ in range(n_iter):
         new = estimate_bulge_weights(lb, lnL_star, prior, start=w)
         moved = np.max(np.abs(new - w))
         w = new
         prior = estimate_prior(mix_bulge_fractions(lb, lnL_star, w), egrid, method=method,
-                               start=prior.params)  # fmt: skip
+                               start=prior.params, form=form)  # fmt: skip
         if moved < tol:
             break
     log.info("bulge-fraction prior %s with %r", np.round(w, 4).tolist(), prior)

@@ -37,7 +37,7 @@ from ._kernels_nb import launch_guard
 from ._util import check_egrid, check_lnL
 from .flags import flag_value
 from .grid import grid_step
-from .prior import BinnedPrior, Prior, usable_rows
+from .prior import BinnedPrior, Prior, RadialPrior, usable_rows
 from .skyframe import SkyFrame, frame_of_table, shear_to_pixel, spin2_matrix, to_sky
 
 __all__ = [
@@ -610,8 +610,9 @@ def sensitivity_from_sums(S: np.ndarray, method: str) -> tuple[np.ndarray, np.nd
 def _check_inputs(lnL, egrid, prior, sensitivity="exact", refine=1):
     egrid = check_egrid(egrid)
     lnL = check_lnL(lnL, egrid)
-    if not isinstance(prior, (Prior, BinnedPrior)):
-        raise TypeError(f"prior must be a pylensfit Prior, got {type(prior).__name__}")
+    if not isinstance(prior, (RadialPrior, BinnedPrior)):
+        raise TypeError("prior must be a pylensfit Prior or SplinePrior, got "
+                        f"{type(prior).__name__}")
     if sensitivity not in _SENS_METHODS:
         raise ValueError(f"sensitivity must be 'exact' or 'paper', got {sensitivity!r}")
     if int(refine) != refine or refine < 1:
@@ -796,8 +797,8 @@ def shapes(
     t.meta["sensitivity"] = sensitivity
     t.meta["refine"] = int(refine)
     t.meta["flag_names"] = {str(k): v for k, v in FLAG_NAMES.items()}
-    if isinstance(prior, Prior):
-        t.meta["prior"] = {"B": prior.B, "C": prior.C, "D": prior.D, "step": prior.step}
+    if isinstance(prior, RadialPrior):
+        t.meta["prior"] = {**prior.form_dict(), "step": prior.step}
     return t
 
 
@@ -900,7 +901,7 @@ def estimate_shear(
         meta = shapes_table.meta
         prior = prior if prior is not None else meta.get("prior")
         egrid = egrid if egrid is not None else meta.get("egrid")
-        if "lnL" not in shapes_table.colnames or not isinstance(prior, Prior) \
+        if "lnL" not in shapes_table.colnames or not isinstance(prior, RadialPrior) \
                 or egrid is None:
             raise ValueError("the fixed-point estimator needs the table's lnL column and its "
                              "prior and egrid (measure_stamps' table, a measure catalogue, or "
@@ -1064,7 +1065,8 @@ def shear_table(
         egrid = egrid if egrid is not None else shapes_table.meta.get("egrid")
         refine = int(refine if refine is not None
                      else shapes_table.meta.get("refine", DEFAULT_REFINE))  # fmt: skip
-        if not isinstance(prior, Prior) or egrid is None or "lnL" not in shapes_table.colnames:
+        if (not isinstance(prior, RadialPrior) or egrid is None
+                or "lnL" not in shapes_table.colnames):
             raise ValueError("the fixed-point estimator needs the table's lnL column, "
                              "prior= and egrid= (or estimator='key2')")  # fmt: skip
         lnL = np.asarray(shapes_table["lnL"])

@@ -2013,12 +2013,13 @@ def _set_prior(ms: _MeasuredSet, cfg: Config) -> tuple[Prior, np.ndarray | None]
         # fields; both samples' L(e) mixed with it
         prior, bulge_weights = estimate_prior_and_bulge(
             np.asarray(pg["lnL_bulge"]), np.asarray(pg["lnL_star"]), ms.egrid,
-            method=cfg.prior_method)  # fmt: skip
+            method=cfg.prior_method, form=cfg.prior_form)  # fmt: skip
         for t in (pg, sg):
             t["lnL"] = mix_bulge_fractions(np.asarray(t["lnL_bulge"]),
                                            np.asarray(t["lnL_star"]), bulge_weights)
     else:
-        prior = estimate_prior(np.asarray(pg["lnL"]), ms.egrid, method=cfg.prior_method)
+        prior = estimate_prior(np.asarray(pg["lnL"]), ms.egrid, method=cfg.prior_method,
+                               form=cfg.prior_form)  # fmt: skip
     return prior, bulge_weights
 
 
