@@ -381,6 +381,19 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} -h`)\n")
 
 
+def _add_prior_parser(sub) -> None:
+    """The ``prior`` command's parser."""
+    pr = sub.add_parser("prior", help="estimate the ellipticity prior from catalogues")
+    pr.add_argument("catalogs", nargs="+", help="catalogues from `pylensfit measure`")
+    pr.add_argument("-o", "--output", required=True, help="prior file (JSON)")
+    pr.add_argument("--method", choices=("direct", "em"), default="direct",
+                    help="direct maximisation (default) or the paper's EM iteration")  # fmt: skip
+    pr.add_argument("--form", choices=("functional", "spline"), default="functional",
+                    help="the paper's three-parameter form (default) or a cubic B-spline "
+                         "in |e| that follows any smooth population")  # fmt: skip
+    pr.set_defaults(func=_prior)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="pylensfit", description=__doc__,
                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
@@ -413,15 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     m.set_defaults(func=_measure)
 
-    pr = sub.add_parser("prior", help="estimate the ellipticity prior from catalogues")
-    pr.add_argument("catalogs", nargs="+", help="catalogues from `pylensfit measure`")
-    pr.add_argument("-o", "--output", required=True, help="prior file (JSON)")
-    pr.add_argument("--method", choices=("direct", "em"), default="direct",
-                    help="direct maximisation (default) or the paper's EM iteration")  # fmt: skip
-    pr.add_argument("--form", choices=("functional", "spline"), default="functional",
-                    help="the paper's three-parameter form (default) or a cubic B-spline "
-                         "in |e| that follows any smooth population")  # fmt: skip
-    pr.set_defaults(func=_prior)
+    _add_prior_parser(sub)
 
     sh = sub.add_parser("shear", help="shear per image and bin, with errors")
     sh.add_argument("catalogs", nargs="+", help="catalogues from `pylensfit measure`")
