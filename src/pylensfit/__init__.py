@@ -19,7 +19,14 @@ from .config import Config, ConfigError
 from .grid import ellipticity_grid
 from .likelihood import StampFits, fit_stamps
 from .pipeline import InputError, measure, read_catalogue, write_catalogue
-from .prior import BinnedPrior, Prior, SizePrior, estimate_prior, estimate_prior_binned
+from .prior import (
+    BinnedPrior,
+    Prior,
+    SizePrior,
+    SplinePrior,
+    estimate_prior,
+    estimate_prior_binned,
+)
 from .shear import ShearEstimate, estimate_shear, shapes, shear_fixed_point
 
 __all__ = [
@@ -34,6 +41,7 @@ __all__ = [
     "Prior",
     "ShearEstimate",
     "SizePrior",
+    "SplinePrior",
     "StampFits",
     "ellipticity_grid",
     "estimate_prior",
