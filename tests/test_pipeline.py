@@ -12,6 +12,7 @@ from pylensfit import Config, Prior
 from pylensfit.cli import main
 from pylensfit.flags import flag_value
 from pylensfit.pipeline import InputError, measure, read_catalogue
+from pylensfit.prior import RadialPrior, SplinePrior
 from pylensfit.simulate import FieldSpec, simulate_field, write_field
 
 CFG = Config.paper(model="exponential", r_max=6.0, r_step=0.3)
@@ -512,8 +513,8 @@ def test_cli_measure_prior_shear(fields, tmp_path, capsys):
     stars = psf.stars()
     assert np.all((stars["reason"] == "") == stars["used"])
     assert main(["prior", str(out), "-o", str(tmp_path / "prior.json")]) == 0
-    p = Prior.load(tmp_path / "prior.json")
-    assert p.method == "direct"
+    p = RadialPrior.load(tmp_path / "prior.json")
+    assert isinstance(p, SplinePrior) and p.method == "direct"  # Config.prior_form
     assert main(["shear", str(out), "--prior", str(tmp_path / "prior.json"),
                  "--bin-by", "mag:-20,-5,0", "-o", str(tmp_path / "g.ecsv")]) == 0  # fmt: skip
     g = Table.read(tmp_path / "g.ecsv")

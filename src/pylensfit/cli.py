@@ -388,9 +388,10 @@ def _add_prior_parser(sub) -> None:
     pr.add_argument("-o", "--output", required=True, help="prior file (JSON)")
     pr.add_argument("--method", choices=("direct", "em"), default="direct",
                     help="direct maximisation (default) or the paper's EM iteration")  # fmt: skip
-    pr.add_argument("--form", choices=("functional", "spline"), default="functional",
-                    help="the paper's three-parameter form (default) or a cubic B-spline "
-                         "in |e| that follows any smooth population")  # fmt: skip
+    pr.add_argument("--form", choices=("spline", "functional"), default="spline",
+                    help="a cubic B-spline in |e| that follows any smooth population "
+                         "(default, as Config.prior_form) or the paper's three-parameter "
+                         "form")  # fmt: skip
     pr.set_defaults(func=_prior)
 
 

@@ -458,13 +458,7 @@ class Prior(RadialPrior):
     Attributes
     ----------
     B, C, D : float
-        The parameters.
-    egrid : numpy.ndarray
-        ``(n_e, 2)`` normalisation grid (cell centres).
-    step : float
-        Its cell side ``de``.
-    A : float
-        Normalisation constant, ``1 / sum_grid f(e) de^2`` (per unit e^2).
+        The parameters; ``egrid``, ``step`` and ``A`` as for :class:`RadialPrior`.
     method : str
         How the parameters were obtained: ``"fixed"`` (given), ``"direct"``, ``"em"`` or
         ``"cross-entropy"`` (fitted to a gridded distribution).
