@@ -5,7 +5,7 @@ import pytest
 from scipy.optimize import brentq
 from scipy.special import gammainc, gammaincinv
 
-from pylensfit.galaxies import GalaxyProfile, PSFProfile
+from pylensfit.galaxies import GalaxyProfile, PSFProfile, inner_shear
 from pylensfit.models import DEVAUC_TRUNCATION
 
 galsim = pytest.importorskip("galsim")
@@ -136,3 +136,37 @@ def test_from_dict_and_errors():
         GalaxyProfile("exponential", 0.0)
     with pytest.raises(ValueError, match="unknown model"):
         GalaxyProfile.from_model("sersic", 2.0)
+    with pytest.raises(ValueError, match="bulge_shear"):
+        GalaxyProfile("bulge+disc", 2.0, bulge_shear=(0.8, 0.7))
+
+
+def test_inner_shear_ends_a_component_at_its_target_shape():
+    """GalSim's adaptive moments of a Gaussian sheared by ``inner_shear(outer, target)``
+    and then by ``outer`` give ``target``; the naive ``target - outer`` does not."""
+    rng = np.random.default_rng(4)
+    outer = rng.uniform(-0.35, 0.35, (5, 2))
+    target = rng.uniform(-0.35, 0.35, (5, 2))
+    b1, b2 = inner_shear(outer, target)
+    for o, t, g1, g2 in zip(outer, target, b1, b2, strict=True):
+        obj = galsim.Gaussian(sigma=6.0).shear(g1=g1, g2=g2).shear(g1=o[0], g2=o[1])
+        shape = _fine(obj, n=160, scale=1.0).FindAdaptiveMom().observed_shape
+        assert shape.g1 == pytest.approx(t[0], abs=1e-5)
+        assert shape.g2 == pytest.approx(t[1], abs=1e-5)
+        naive = galsim.Gaussian(sigma=6.0).shear(g1=t[0] - o[0], g2=t[1] - o[1])
+        nshape = _fine(naive.shear(g1=o[0], g2=o[1]), n=160, scale=1.0).FindAdaptiveMom()
+        assert np.hypot(nshape.observed_shape.g1 - t[0], nshape.observed_shape.g2 - t[1]) > 1e-3
+
+
+def test_bulge_with_its_own_shape_inside_a_round_disc():
+    """A bulge+disc galaxy whose bulge has its own shear: the sum of a sheared bulge and
+    a round disc, pixel for pixel, with the flux split unchanged."""
+    prof = GalaxyProfile("bulge+disc", 3.0, bulge_fraction=0.4, bulge_shear=(0.3, -0.2))
+    img = _fine(prof.galsim(), n=200, scale=0.25).array
+    bulge = galsim.DeVaucouleurs(half_light_radius=1.5, trunc=DEVAUC_TRUNCATION * 1.5)
+    ref = galsim.Add(bulge.withFlux(0.4).shear(g1=0.3, g2=-0.2),
+                     galsim.Exponential(half_light_radius=3.0).withFlux(0.6))  # fmt: skip
+    np.testing.assert_allclose(img, _fine(ref, n=200, scale=0.25).array, rtol=0, atol=1e-9)
+    round_ = _fine(GalaxyProfile("bulge+disc", 3.0, bulge_fraction=0.4).galsim(), n=200,
+                   scale=0.25).FindAdaptiveMom().observed_shape  # fmt: skip
+    shaped = galsim.Image(img, scale=0.25).FindAdaptiveMom().observed_shape
+    assert abs(round_.g1) < 1e-4 and shaped.g1 > 0.02 and shaped.g2 < -0.01

@@ -860,3 +860,53 @@ def test_breakdowns_take_a_table_or_a_dict_and_bin_sersic_indices():
         assert b["sersic_n"]["2.5-4"].sum() == 2  # 2.5 and the top edge, 4
     none = dict(cols, sersic_n=np.full(n, np.nan))
     assert "sersic_n" not in _breakdowns(none, PRECISION_PSFS[:1])
+
+
+def test_realistic_population_misaligns_the_bulges_and_keeps_the_rest():
+    """``population="realistic"``: the same galaxies, fluxes, disc shapes and noise as the
+    aligned population; only the bulges (their sizes, own shapes and misalignment, rms
+    30 degrees for bulge+disc) and the Sersic indices (0.3-6) differ, and each bulge
+    ends at its drawn position angle and within 0.2-1 of its disc's ellipticity."""
+    kw = dict(ngal=400, block_size=400, ncal=40, psfs=["round"], seed=9)
+    al, _, ta = render_block(spec_with(**kw), 0, 0)
+    re, _, tr = render_block(spec_with(**kw, population="realistic"), 0, 0)
+    for c in ("morph", "snr_ref", "r", "e1_int", "e2_int", "bulge_frac", "dx", "dy"):
+        np.testing.assert_array_equal(ta[c], tr[c])
+    name = np.asarray(("exponential", "devaucouleurs", "bulge+disc", "sersic", "knots"))[
+        np.asarray(tr["morph"])]  # fmt: skip
+    same = (name == "exponential") | (name == "devaucouleurs")
+    np.testing.assert_array_equal(al[same], re[same])  # same renderings, same noise
+    bd = name == "bulge+disc"
+    assert not np.array_equal(al[bd], re[bd])
+    assert np.all(ta["misalign"][bd] == 0) and np.isnan(tr["misalign"][same]).all()
+    assert 22 < np.sqrt(np.mean(np.asarray(tr["misalign"][bd]) ** 2)) < 38
+    sn = np.asarray(tr["sersic_n"])[name == "sersic"]
+    assert sn.min() < 0.5 and sn.max() > 4.0 and sn.min() >= 0.3 and sn.max() <= 6.0
+    # the bulge's final shape: GalSim's shear matrices of the intrinsic shape after its own
+    for row in tr[bd][:20]:
+        a = (galsim.Shear(g1=row["e1_int"], g2=row["e2_int"]).getMatrix()
+             @ galsim.Shear(g1=row["bulge_g1"], g2=row["bulge_g2"]).getMatrix())  # fmt: skip
+        q = a @ a.T
+        d = complex(q[0, 0] - q[1, 1], 2 * q[0, 1]) / (q[0, 0] + q[1, 1])
+        eb = d / (1 + np.sqrt(1 - abs(d) ** 2))
+        ed = complex(row["e1_int"], row["e2_int"])
+        assert 0.2 - 1e-9 <= abs(eb) / abs(ed) <= 1 + 1e-9
+        dphi = np.rad2deg(np.angle(eb / ed)) / 2
+        assert dphi == pytest.approx(row["misalign"], abs=1e-6)
+    with pytest.raises(ValueError, match="population"):
+        spec_with(population="cosmos")
+
+
+def test_realistic_precision_run_reports_m_by_misalignment(tmp_path):
+    """A small run of the realistic population: the misalignment and the wide Sersic
+    breakdowns are in the table, the population in the report."""
+    spec = spec_with(ngal=120, block_size=40, ncal=200, seed=5, psfs=["round"],
+                     population="realistic", snr_range=(40.0, 80.0),
+                     morphology_weights=(0, 0, 1, 1, 0))  # fmt: skip
+    res = precision(spec, config=Config.paper(model="exponential"), progress=False,
+                    prior=PRIOR, report=tmp_path / "r.md")  # fmt: skip
+    groups = set(res["group"][res["breakdown"] == "misalign"])
+    assert groups <= {"0-10", "10-20", "20-40", "40-90"} and len(groups) >= 3
+    assert "0.3-0.5" in set(res["group"][res["breakdown"] == "sersic_n"]) or "4-6" in set(
+        res["group"][res["breakdown"] == "sersic_n"])  # fmt: skip
+    assert "realistic population" in (tmp_path / "r.md").read_text()

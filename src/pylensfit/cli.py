@@ -201,7 +201,8 @@ def _precision(args: argparse.Namespace) -> int:
 
     spec = spec_with(ngal=args.ngal or 200_000, seed=args.seed, psfs=args.psf, g=args.g,
                      ncal=args.ncal, block_size=args.block_size,
-                     noise_twins=args.noise_twins or None)  # fmt: skip
+                     noise_twins=args.noise_twins or None,
+                     population=args.population)  # fmt: skip
     report = args.report or "precision/report.md"
     prior = population_prior(spec) if args.true_prior else None
     size_prior = None
@@ -498,6 +499,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="render every galaxy eight times: the four renderings and the same "
                          "four with their noise negated (at the same number of renderings "
                          "c's error 2.9 times smaller, m's the same)")  # fmt: skip
+    pv.add_argument("--population", choices=("aligned", "realistic"), default="aligned",
+                    help="galaxies: bulges aligned with their discs and as elongated, Sersic "
+                         "0.5-4 (default); or realistic: bulges misaligned (30 degrees rms) "
+                         "and rounder than their discs, of their own sizes, Sersic 0.3-6")
     pv.add_argument("--scheduler", help="dask.distributed scheduler address")
     pv.add_argument("--true-prior", action="store_true",
                     help="diagnostic: use the population's true prior instead of estimating "

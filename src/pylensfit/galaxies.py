@@ -14,7 +14,10 @@ only in their parameters:
   of its disc, Sersic profiles and discs with star-forming knots.
 
 All sizes are in pixels (the simulations draw with ``scale=1``). A galaxy profile is
-round and of unit flux: the callers shear, rotate, scale and convolve it.
+of unit flux and, unless its bulge has a shape of its own (``bulge_shear``), round: the
+callers shear, rotate, scale and convolve it. :func:`inner_shear` gives the bulge's own
+shear that makes it end at a chosen ellipticity once the galaxy's intrinsic shape is
+applied (a bulge misaligned with, or rounder than, its disc).
 """
 
 from __future__ import annotations
@@ -22,9 +25,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+import numpy as np
+
 from .models import DEVAUC_TRUNCATION
 
-__all__ = ["GALAXY_KINDS", "PSF_KINDS", "GalaxyProfile", "PSFProfile"]
+__all__ = ["GALAXY_KINDS", "PSF_KINDS", "GalaxyProfile", "PSFProfile", "inner_shear"]
 
 #: Galaxy kinds of :class:`GalaxyProfile`.
 GALAXY_KINDS: tuple[str, ...] = ("exponential", "devaucouleurs", "sersic", "bulge+disc", "knots")
@@ -73,6 +78,11 @@ class GalaxyProfile:
         Sersic profiles of index above 2, in their half-light radii (the profile's
         half-light radius is that of the truncated profile, GalSim's default). Sersic
         profiles of index 2 or less are not truncated.
+    bulge_shear : tuple of float
+        ``(g1, g2)``, the reduced shear applied to the bulge alone (``"bulge+disc"``,
+        ``"knots"``) before the galaxy's intrinsic shape is applied to the whole: ``(0,
+        0)``, the default, gives a bulge aligned with its disc and as elongated;
+        :func:`inner_shear` gives the one that ends the bulge at a chosen ellipticity.
 
     Raises
     ------
@@ -91,6 +101,7 @@ class GalaxyProfile:
     n_knots: int = 0
     knot_seed: int = 0
     truncation: float = DEVAUC_TRUNCATION
+    bulge_shear: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         if self.kind not in GALAXY_KINDS:
@@ -101,6 +112,8 @@ class GalaxyProfile:
             raise ValueError(f"a {self.kind!r} galaxy's size is a half-light radius")
         if not self.size > 0:
             raise ValueError(f"size must be > 0 pixels, got {self.size}")
+        if not np.hypot(*self.bulge_shear) < 1:
+            raise ValueError(f"bulge_shear must have |g| < 1, got {self.bulge_shear}")
 
     @classmethod
     def from_model(
@@ -142,9 +155,9 @@ class GalaxyProfile:
         Returns
         -------
         galsim.GSObject
-            Round, unit flux, centred on the origin (sizes in pixels), before any shear
-            and PSF. ``"bulge+disc"`` is ``galsim.Add(bulge, disc)``, ``"knots"``
-            ``galsim.Add(bulge, disc, knots)``.
+            Unit flux, centred on the origin (sizes in pixels), before any shear and
+            PSF; round unless ``bulge_shear`` is not zero. ``"bulge+disc"`` is
+            ``galsim.Add(bulge, disc)``, ``"knots"`` ``galsim.Add(bulge, disc, knots)``.
         """
         import galsim  # galsim: heavy import (seconds), only when a profile is rendered
 
@@ -166,6 +179,8 @@ class GalaxyProfile:
         rb = self.bulge_size_ratio * r
         bulge = galsim.DeVaucouleurs(half_light_radius=rb, trunc=T * rb)
         bulge = bulge.withFlux(self.bulge_fraction)
+        if self.bulge_shear[0] or self.bulge_shear[1]:
+            bulge = bulge.shear(g1=float(self.bulge_shear[0]), g2=float(self.bulge_shear[1]))
         disc_flux = 1.0 - self.bulge_fraction
         if self.kind == "bulge+disc":
             return galsim.Add(bulge, exponential(r).withFlux(disc_flux))
@@ -273,3 +288,47 @@ class PSFProfile:
             lobe = lobe.withFlux(self.lobe_flux)
             psf = galsim.Add(core, lobe.shift(self.lobe_shift, 0.0))
         return psf.shear(g1=self.e1, g2=self.e2)
+
+
+def _shear_matrix(g1: np.ndarray, g2: np.ndarray) -> np.ndarray:
+    """GalSim's shear matrices ``[[1 + g1, g2], [g2, 1 - g1]] / sqrt(1 - |g|^2)``, ``(n, 2, 2)``."""
+    norm = 1.0 / np.sqrt(1.0 - g1 * g1 - g2 * g2)
+    return np.stack([np.stack([1 + g1, g2], -1), np.stack([g2, 1 - g1], -1)], -2) * norm[
+        ..., None, None
+    ]
+
+
+def inner_shear(outer, target) -> tuple[np.ndarray, np.ndarray]:
+    """The shear ``b`` that, followed by ``outer``, takes a round profile to ``target``.
+
+    A component of a galaxy (its bulge) sheared first by ``b`` and then, with the rest of
+    the galaxy, by the galaxy's intrinsic shape ``outer`` ends with the ellipticity
+    ``target``: its second moments are those of ``S(outer) S(b)``, where ``S(g)`` is
+    GalSim's shear matrix, and ``b`` is the one for which ``S(b)^2 = S(outer)^-1
+    S(target)^2 S(outer)^-1``. Shears do not commute, so ``b`` is not ``target -
+    outer``.
+
+    Parameters
+    ----------
+    outer : array_like
+        ``(..., 2)`` reduced shears ``(g1, g2)`` applied second (the galaxy's
+        intrinsic shape), ``|g| < 1``.
+    target : array_like
+        ``(..., 2)`` the component's wanted reduced-shear ellipticities, ``|g| < 1``.
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        ``(b1, b2)``, the inner reduced shears, of the broadcast shape of the inputs less
+        their last axis.
+    """
+    o = np.asarray(outer, float)
+    t = np.asarray(target, float)
+    so_inv = _shear_matrix(-o[..., 0], -o[..., 1])
+    st = _shear_matrix(t[..., 0], t[..., 1])
+    q = so_inv @ st @ st @ so_inv
+    tr = q[..., 0, 0] + q[..., 1, 1]
+    d1 = (q[..., 0, 0] - q[..., 1, 1]) / tr
+    d2 = 2.0 * q[..., 0, 1] / tr
+    f = 1.0 / (1.0 + np.sqrt(np.maximum(1.0 - d1 * d1 - d2 * d2, 0.0)))  # distortion to g
+    return d1 * f, d2 * f

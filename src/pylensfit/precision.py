@@ -93,7 +93,7 @@ from astropy.table import Table, vstack
 from ._util import pyplot_or_none
 from .calibration import MIN_FLUX_RANGE_GALAXIES, CalibrationSample, run_recipe
 from .config import Config
-from .galaxies import GalaxyProfile, PSFProfile
+from .galaxies import GalaxyProfile, PSFProfile, inner_shear
 from .likelihood import e_annuli, fit_stamps
 from .models import model_bank
 from .prior import Prior, SizePrior, mix_bulge_fractions
@@ -139,6 +139,18 @@ PRECISION_PSFS: tuple[dict, ...] = (
 
 #: Galaxy morphologies of the precision population (codes are the indices).
 MORPHOLOGIES: tuple[str, ...] = ("exponential", "devaucouleurs", "bulge+disc", "sersic", "knots")
+#: Populations of :class:`PrecisionSpec`.
+POPULATIONS: tuple[str, ...] = ("aligned", "realistic")
+#: The ``"realistic"`` population's ranges: the Sersic index (log-uniform), the bulge's
+#: half-light radius over its disc's, and per kind the bulge's ellipticity over its
+#: disc's (uniform) and the rms of its misalignment (degrees, Gaussian, within +-90).
+REALISTIC: dict[str, tuple[float, float]] = {
+    "sersic_n": (0.3, 6.0),
+    "bulge_size_ratio": (0.25, 0.8),
+    "bulge+disc e_ratio": (0.2, 1.0),
+    "knots e_ratio": (0.0, 0.6),
+    "misalign_rms": (30.0, 10.0),  # bulge+disc, knots
+}
 
 _ESTIMATORS = ("fixed-point", "exact", "paper")
 # per-rendering quantities kept by the workers
@@ -228,6 +240,17 @@ class PrecisionSpec:
         do not cancel either, c's the first-order one.
     seed : int
         Seed: everything is a function of it.
+    population : {"aligned", "realistic"}
+        ``"aligned"``: every bulge aligned with its disc and as elongated, a bulge of half
+        its disc's half-light radius, Sersic indices 0.5-4. ``"realistic"``: what real
+        galaxies have and no model of the bulge+disc family holds (:data:`REALISTIC`):
+        Sersic indices 0.3-6 (log-uniform), bulges of 0.25-0.8 of their disc's
+        half-light radius, the bulge+disc galaxies' bulges 0.2-1 times as elongated as
+        their discs and misaligned by a Gaussian angle of 30 degrees rms, and the knotty
+        discs' bulges 0-0.6 times as elongated (10 degrees rms), drawn after every
+        parameter of the aligned population, so the two share their galaxies' fluxes,
+        sizes, disc shapes and noise (column ``misalign``: the bulge's position angle
+        less its disc's, degrees).
     """
 
     ngal: int = 200_000
@@ -247,6 +270,7 @@ class PrecisionSpec:
     stratified_calibration: bool = True
     noise_twins: bool = False
     seed: int = 1
+    population: str = "aligned"
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -261,6 +285,9 @@ class PrecisionSpec:
             raise ValueError(f"g must be in (0, 0.2), got {self.g}")
         if len(self.morphology_weights) != len(MORPHOLOGIES):
             raise ValueError(f"morphology_weights needs {len(MORPHOLOGIES)} values")
+        if self.population not in POPULATIONS:
+            raise ValueError(f"population must be one of {POPULATIONS}, not "
+                             f"{self.population!r}")  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------
@@ -287,19 +314,22 @@ def _psf_image(p: dict, n: int) -> tuple[np.ndarray, float]:
     return img / img.sum(), float(hlr)
 
 
-def _profile(morph: str, r: float, bulge_frac: float, sersic_n: float, n_knots: int,
-             knot_frac: float, knot_seed: int):  # fmt: skip
-    """Round unit-flux galaxy of half-light radius ``r`` (pixels).
+def _profile(row) -> Any:
+    """The unit-flux galaxy of one row of :func:`_population` (pixels).
 
-    :class:`~pylensfit.galaxies.GalaxyProfile`, every size a half-light radius, with the
-    STEP2-like bulge (:func:`pylensfit.validation._step2_galaxy`'s): half-light radius
-    ``0.5 r`` (``r`` the disc's), flux ``bulge_frac``.
+    :class:`~pylensfit.galaxies.GalaxyProfile`, every size a half-light radius, with a
+    bulge of half-light radius ``bulge_size_ratio r`` (``r`` the disc's; 0.5, the
+    STEP2-like sets' bulge, in the aligned population), flux ``bulge_frac`` and its own
+    shear ``bulge_g1/2``: round unless the bulge has a shape of its own.
     """
-    if morph not in MORPHOLOGIES:
-        raise ValueError(f"unknown morphology {morph!r}")
-    return GalaxyProfile(morph, r, sersic_n=sersic_n, bulge_fraction=bulge_frac,
-                         bulge_size_ratio=0.5, knot_fraction=knot_frac, n_knots=n_knots,
-                         knot_seed=knot_seed).galsim()  # fmt: skip
+    morph = MORPHOLOGIES[int(row["morph"])]
+    bulge_shear = (float(row["bulge_g1"]), float(row["bulge_g2"]))
+    return GalaxyProfile(morph, float(row["r"]), sersic_n=float(row["sersic_n"]),
+                         bulge_fraction=float(row["bulge_frac"]),
+                         bulge_size_ratio=float(row["bulge_size_ratio"]),
+                         knot_fraction=float(row["knot_frac"]), n_knots=int(row["n_knots"]),
+                         knot_seed=int(row["knot_seed"]),
+                         bulge_shear=bulge_shear).galsim()  # fmt: skip
 
 
 def population_prior(spec: PrecisionSpec) -> Prior:
@@ -383,7 +413,36 @@ def _population(spec: PrecisionSpec, n: int, psf_hlr: float, rng: np.random.Gene
     else:
         ux, uy = ux * (2.0 * spec.offset), uy * (2.0 * spec.offset)
     t["dx"], t["dy"] = ux, uy
+    _bulge_shapes(t, name, rng, spec.population == "realistic")
     return t
+
+
+def _bulge_shapes(t: Table, name: np.ndarray, rng: np.random.Generator, realistic: bool) -> None:
+    """The bulges' sizes and own shapes (columns ``bulge_size_ratio``, ``bulge_g1/2``,
+    ``misalign``); for the ``"realistic"`` population the Sersic indices again too,
+    drawn after every other parameter so that both populations share those."""
+    n = len(t)
+    has_bulge = (name == "bulge+disc") | (name == "knots")
+    t["bulge_size_ratio"] = np.full(n, 0.5)
+    t["bulge_g1"], t["bulge_g2"] = np.zeros(n), np.zeros(n)
+    t["misalign"] = np.where(has_bulge, 0.0, np.nan)
+    if not realistic:
+        return
+    lo, hi = np.log(REALISTIC["sersic_n"])
+    t["sersic_n"] = np.where(name == "sersic", np.round(np.exp(rng.uniform(lo, hi, n)), 1),
+                             np.nan)  # fmt: skip
+    t["bulge_size_ratio"] = np.where(has_bulge, rng.uniform(*REALISTIC["bulge_size_ratio"], n),
+                                     0.5)  # fmt: skip
+    knots = name == "knots"
+    ratio = np.where(knots, rng.uniform(*REALISTIC["knots e_ratio"], n),
+                     rng.uniform(*REALISTIC["bulge+disc e_ratio"], n))  # fmt: skip
+    rms = np.where(knots, *REALISTIC["misalign_rms"][::-1])
+    dphi = np.clip(rng.normal(0.0, 1.0, n) * rms, -90.0, 90.0)
+    ed = np.asarray(t["e1_int"]) + 1j * np.asarray(t["e2_int"])
+    eb = ratio * ed * np.exp(2j * np.deg2rad(dphi))
+    b1, b2 = inner_shear(np.stack([ed.real, ed.imag], -1), np.stack([eb.real, eb.imag], -1))
+    t["bulge_g1"], t["bulge_g2"] = np.where(has_bulge, b1, 0.0), np.where(has_bulge, b2, 0.0)
+    t["misalign"] = np.where(has_bulge, dphi, np.nan)
 
 
 def render_block(
@@ -442,9 +501,7 @@ def render_block(
         shears = [(+spec.g, False), (+spec.g, True), (-spec.g, False), (-spec.g, True)]
     out = np.empty((n, len(shears), n_stamp, n_stamp), dtype=np.float32)
     for a in range(n):  # GalSim renders one profile at a time
-        gal = _profile(MORPHOLOGIES[t["morph"][a]], float(t["r"][a]), float(t["bulge_frac"][a]),
-                       float(t["sersic_n"][a]), int(t["n_knots"][a]), float(t["knot_frac"][a]),
-                       int(t["knot_seed"][a]))  # fmt: skip
+        gal = _profile(t[a])
         gal = gal.shear(g1=float(t["e1_int"][a]), g2=float(t["e2_int"][a]))
         off = (float(t["dx"][a]), float(t["dy"][a]))
         for k, (g, rot) in enumerate(shears):
@@ -903,16 +960,22 @@ SIZE_EDGES = (0.5, 0.7, 1.0, 1.4, 2.0, 2.5)
 BULGE_EDGES = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 #: the Sersic galaxies' index (0.5-4): below 1 the profile is not in the bulge+disc family
 SERSIC_EDGES = (0.5, 1.0, 1.5, 2.5, 4.0)
+#: the same for the realistic population's 0.3-6
+SERSIC_EDGES_WIDE = (0.3, 0.5, 1.0, 1.5, 2.5, 4.0, 6.0)
+#: the bulge's misalignment with its disc, |degrees| (the realistic population)
+MISALIGN_EDGES = (0.0, 10.0, 20.0, 40.0, 90.0)
 
 
 def _breakdowns(gal: Table, psfs: tuple[dict, ...]) -> dict[str, dict[str, np.ndarray]]:
-    def binned(col, edges):
-        v = np.asarray(gal[col], float)
+    def binned_values(v, edges):
         out = {}
         for lo, hi in zip(edges[:-1], edges[1:], strict=True):
             sel = (v >= lo) & ((v < hi) | ((hi == edges[-1]) & (v <= hi)))
             out[f"{lo:g}-{hi:g}"] = sel
         return out
+
+    def binned(col, edges):
+        return binned_values(np.asarray(gal[col], float), edges)
 
     psf = np.asarray(gal["psf"])
     morph = np.asarray(gal["morph"])
@@ -925,7 +988,13 @@ def _breakdowns(gal: Table, psfs: tuple[dict, ...]) -> dict[str, dict[str, np.nd
     }
     names = gal.colnames if isinstance(gal, Table) else list(gal)  # a Table or a dict
     if "sersic_n" in names and np.isfinite(np.asarray(gal["sersic_n"], float)).any():
-        out["sersic_n"] = binned("sersic_n", SERSIC_EDGES)
+        n = np.asarray(gal["sersic_n"], float)
+        wide = np.nanmin(n) < SERSIC_EDGES[0] or np.nanmax(n) > SERSIC_EDGES[-1]
+        out["sersic_n"] = binned("sersic_n", SERSIC_EDGES_WIDE if wide else SERSIC_EDGES)
+    if "misalign" in names:
+        mis = np.abs(np.asarray(gal["misalign"], float))
+        if np.nanmax(mis, initial=0.0) > 0:  # the realistic population
+            out["misalign"] = binned_values(mis, MISALIGN_EDGES)
     if len(psfs) > 1:  # the model bias's mix per PSF: m of each morphology under each PSF
         pm = {f"{p['name']} {m}": (psf == i) & (morph == j)
               for i, p in enumerate(psfs) for j, m in enumerate(MORPHOLOGIES)}  # fmt: skip
@@ -1447,8 +1516,8 @@ def write_report(res: Table, path: str | Path) -> None:
         f"{spec['snr_range'][1]:g} (dN/dF ∝ F^-{spec['snr_slope']:g}; the S/N of a round "
         "exponential of the median size, independent of each galaxy's shape and size), "
         "size/PSF size "
-        f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g}, seed {spec['seed']}; "
-        f"model {res.meta['config']['model']} "
+        f"{spec['size_ratio_range'][0]:g}-{spec['size_ratio_range'][1]:g}, seed {spec['seed']}, "
+        f"{spec.get('population', 'aligned')} population; model {res.meta['config']['model']} "
         f"({res.meta['config'].get('n_bulge_fractions', 1)} bulge fraction(s)"
         + (f", bulges of {res.meta['config']['bulge_size_ratio']:g} and "
            f"{res.meta['config']['bulge_size_ratio2']:g} disc scale lengths"
