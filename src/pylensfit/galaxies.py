@@ -29,12 +29,33 @@ import numpy as np
 
 from .models import DEVAUC_TRUNCATION
 
-__all__ = ["GALAXY_KINDS", "PSF_KINDS", "GalaxyProfile", "PSFProfile", "inner_shear"]
+__all__ = [
+    "GALAXY_KINDS",
+    "PSF_KINDS",
+    "REALISTIC",
+    "GalaxyProfile",
+    "PSFProfile",
+    "draw_bulge_shapes",
+    "inner_shear",
+]
 
 #: Galaxy kinds of :class:`GalaxyProfile`.
 GALAXY_KINDS: tuple[str, ...] = ("exponential", "devaucouleurs", "sersic", "bulge+disc", "knots")
 #: PSF kinds of :class:`PSFProfile`.
 PSF_KINDS: tuple[str, ...] = ("moffat", "kolmogorov", "asymmetric")
+
+#: The ranges of the simulations' realistic populations (bulges as COSMOS fits have
+#: them, which no model of the bulge+disc family holds): the Sersic index
+#: (log-uniform), the bulge's half-light radius over its disc's (uniform), the bulge's
+#: ellipticity over its disc's per kind (uniform), and the rms of the bulge's position
+#: angle less its disc's per kind (degrees, Gaussian, clipped to +-90).
+REALISTIC: dict[str, tuple[float, float]] = {
+    "sersic_n": (0.3, 6.0),
+    "bulge_size_ratio": (0.25, 0.8),
+    "bulge+disc e_ratio": (0.2, 1.0),
+    "knots e_ratio": (0.0, 0.6),
+    "misalign_rms": (30.0, 10.0),  # bulge+disc, knots
+}
 
 #: Kinds whose size may be a scale length: those whose size is an exponential's.
 _SCALE_KINDS = ("exponential", "bulge+disc")
@@ -332,3 +353,44 @@ def inner_shear(outer, target) -> tuple[np.ndarray, np.ndarray]:
     d2 = 2.0 * q[..., 0, 1] / tr
     f = 1.0 / (1.0 + np.sqrt(np.maximum(1.0 - d1 * d1 - d2 * d2, 0.0)))  # distortion to g
     return d1 * f, d2 * f
+
+
+def draw_bulge_shapes(bulge_disc, knotty, e_int, rng) -> tuple[np.ndarray, ...]:
+    """Bulges of their own size and shape, as :data:`REALISTIC` draws them.
+
+    Parameters
+    ----------
+    bulge_disc, knotty : array_like of bool
+        ``(n,)`` which galaxies are bulge+disc and which knotty discs (the others get
+        ``bulge_shear = (0, 0)``).
+    e_int : array_like
+        ``(n, 2)`` the discs' intrinsic reduced-shear ellipticities (the galaxy's shape,
+        applied to the whole after the bulge's own).
+    rng : numpy.random.Generator
+        The draws, five arrays of ``n`` in a fixed order whatever the kinds.
+
+    Returns
+    -------
+    size_ratio : numpy.ndarray
+        The bulge's half-light radius over its disc's.
+    b1, b2 : numpy.ndarray
+        The bulge's own shear (:class:`GalaxyProfile`'s ``bulge_shear``), from
+        :func:`inner_shear`: with the disc's shape after it, the bulge ends ``e_ratio``
+        times as elongated as its disc and misaligned by ``misalign``.
+    misalign : numpy.ndarray
+        The bulge's position angle less its disc's, degrees (0 where no bulge).
+    """
+    bd = np.asarray(bulge_disc, bool)
+    kn = np.asarray(knotty, bool)
+    e = np.asarray(e_int, float)
+    n = bd.size
+    size_ratio = rng.uniform(*REALISTIC["bulge_size_ratio"], n)
+    ratio = np.where(kn, rng.uniform(*REALISTIC["knots e_ratio"], n),
+                     rng.uniform(*REALISTIC["bulge+disc e_ratio"], n))  # fmt: skip
+    rms = np.where(kn, REALISTIC["misalign_rms"][1], REALISTIC["misalign_rms"][0])
+    dphi = np.clip(rng.normal(0.0, 1.0, n) * rms, -90.0, 90.0)
+    ed = e[:, 0] + 1j * e[:, 1]
+    eb = ratio * ed * np.exp(2j * np.deg2rad(dphi))
+    b1, b2 = inner_shear(e, np.stack([eb.real, eb.imag], -1))
+    has = bd | kn
+    return size_ratio, np.where(has, b1, 0.0), np.where(has, b2, 0.0), np.where(has, dphi, 0.0)

@@ -93,7 +93,7 @@ from astropy.table import Table, vstack
 from ._util import pyplot_or_none
 from .calibration import MIN_FLUX_RANGE_GALAXIES, CalibrationSample, run_recipe
 from .config import Config
-from .galaxies import GalaxyProfile, PSFProfile, inner_shear
+from .galaxies import REALISTIC, GalaxyProfile, PSFProfile, draw_bulge_shapes
 from .likelihood import e_annuli, fit_stamps
 from .models import model_bank
 from .prior import Prior, SizePrior, mix_bulge_fractions
@@ -141,16 +141,6 @@ PRECISION_PSFS: tuple[dict, ...] = (
 MORPHOLOGIES: tuple[str, ...] = ("exponential", "devaucouleurs", "bulge+disc", "sersic", "knots")
 #: Populations of :class:`PrecisionSpec`.
 POPULATIONS: tuple[str, ...] = ("aligned", "realistic")
-#: The ``"realistic"`` population's ranges: the Sersic index (log-uniform), the bulge's
-#: half-light radius over its disc's, and per kind the bulge's ellipticity over its
-#: disc's (uniform) and the rms of its misalignment (degrees, Gaussian, within +-90).
-REALISTIC: dict[str, tuple[float, float]] = {
-    "sersic_n": (0.3, 6.0),
-    "bulge_size_ratio": (0.25, 0.8),
-    "bulge+disc e_ratio": (0.2, 1.0),
-    "knots e_ratio": (0.0, 0.6),
-    "misalign_rms": (30.0, 10.0),  # bulge+disc, knots
-}
 
 _ESTIMATORS = ("fixed-point", "exact", "paper")
 # per-rendering quantities kept by the workers
@@ -243,7 +233,8 @@ class PrecisionSpec:
     population : {"aligned", "realistic"}
         ``"aligned"``: every bulge aligned with its disc and as elongated, a bulge of half
         its disc's half-light radius, Sersic indices 0.5-4. ``"realistic"``: what real
-        galaxies have and no model of the bulge+disc family holds (:data:`REALISTIC`):
+        galaxies have and no model of the bulge+disc family holds
+        (:data:`pylensfit.galaxies.REALISTIC`):
         Sersic indices 0.3-6 (log-uniform), bulges of 0.25-0.8 of their disc's
         half-light radius, the bulge+disc galaxies' bulges 0.2-1 times as elongated as
         their discs and misaligned by a Gaussian angle of 30 degrees rms, and the knotty
@@ -431,17 +422,10 @@ def _bulge_shapes(t: Table, name: np.ndarray, rng: np.random.Generator, realisti
     lo, hi = np.log(REALISTIC["sersic_n"])
     t["sersic_n"] = np.where(name == "sersic", np.round(np.exp(rng.uniform(lo, hi, n)), 1),
                              np.nan)  # fmt: skip
-    t["bulge_size_ratio"] = np.where(has_bulge, rng.uniform(*REALISTIC["bulge_size_ratio"], n),
-                                     0.5)  # fmt: skip
-    knots = name == "knots"
-    ratio = np.where(knots, rng.uniform(*REALISTIC["knots e_ratio"], n),
-                     rng.uniform(*REALISTIC["bulge+disc e_ratio"], n))  # fmt: skip
-    rms = np.where(knots, *REALISTIC["misalign_rms"][::-1])
-    dphi = np.clip(rng.normal(0.0, 1.0, n) * rms, -90.0, 90.0)
-    ed = np.asarray(t["e1_int"]) + 1j * np.asarray(t["e2_int"])
-    eb = ratio * ed * np.exp(2j * np.deg2rad(dphi))
-    b1, b2 = inner_shear(np.stack([ed.real, ed.imag], -1), np.stack([eb.real, eb.imag], -1))
-    t["bulge_g1"], t["bulge_g2"] = np.where(has_bulge, b1, 0.0), np.where(has_bulge, b2, 0.0)
+    e_int = np.stack([np.asarray(t["e1_int"]), np.asarray(t["e2_int"])], -1)
+    ratio, b1, b2, dphi = draw_bulge_shapes(name == "bulge+disc", name == "knots", e_int, rng)
+    t["bulge_size_ratio"] = np.where(has_bulge, ratio, 0.5)
+    t["bulge_g1"], t["bulge_g2"] = b1, b2
     t["misalign"] = np.where(has_bulge, dphi, np.nan)
 
 
