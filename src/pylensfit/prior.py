@@ -530,16 +530,10 @@ SPLINE_KNOTS = np.concatenate([[0.0] * 4, [0.2, 0.4, 0.6, 0.8], [1.0] * 4])
 SPLINE_SMOOTHING = 10.0
 
 
-def _spline_design(r: np.ndarray, deriv: int = 0) -> np.ndarray:
-    """``(n, K)`` values (or ``deriv``-th derivatives) of the B-spline basis at ``r``."""
+def _spline_design(r: np.ndarray) -> np.ndarray:
+    """``(n, K)`` values of the cubic B-spline basis on :data:`SPLINE_KNOTS` at ``r``."""
     r = np.clip(np.asarray(r, dtype=float), 0.0, 1.0 - 1e-12)
-    k = len(SPLINE_KNOTS) - 4
-    if deriv == 0:
-        return interpolate.BSpline.design_matrix(r, SPLINE_KNOTS, 3).toarray()
-    out = np.empty((r.size, k))
-    for j in range(k):
-        out[:, j] = interpolate.BSpline(SPLINE_KNOTS, np.eye(k)[j], 3).derivative(deriv)(r)
-    return out
+    return interpolate.BSpline.design_matrix(r, SPLINE_KNOTS, 3).toarray()
 
 
 class SplinePrior(RadialPrior):
