@@ -107,7 +107,7 @@ from .shear import (
     sheared_prior_columns,
     sums_with,
 )
-from .simulate import draw_shapes
+from .simulate import POPULATIONS, draw_shapes
 
 __all__ = [
     "PRECISION_PSFS",
@@ -139,8 +139,6 @@ PRECISION_PSFS: tuple[dict, ...] = (
 
 #: Galaxy morphologies of the precision population (codes are the indices).
 MORPHOLOGIES: tuple[str, ...] = ("exponential", "devaucouleurs", "bulge+disc", "sersic", "knots")
-#: Populations of :class:`PrecisionSpec`.
-POPULATIONS: tuple[str, ...] = ("aligned", "realistic")
 
 _ESTIMATORS = ("fixed-point", "exact", "paper")
 # per-rendering quantities kept by the workers

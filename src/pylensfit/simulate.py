@@ -36,6 +36,7 @@ from .shear import apply_shear
 
 __all__ = [
     "MIXED_KINDS",
+    "POPULATIONS",
     "PSF_VARIATIONS",
     "FieldSpec",
     "PSFMap",
@@ -70,6 +71,11 @@ __all__ = [
 #: corners about the centre's).
 PSF_VARIATIONS: dict[str, tuple[float, float]] = {"none": (0.0, 0.0), "survey": (0.1, 0.04)}
 
+#: The galaxy populations of :attr:`FieldSpec.population` (STEP2-like fields,
+#: :func:`pylensfit.validation.render_step2_field`; ranges in
+#: :data:`pylensfit.galaxies.REALISTIC`).
+POPULATIONS: tuple[str, ...] = ("aligned", "realistic")
+
 
 @dataclass(frozen=True)
 class FieldSpec:
@@ -85,6 +91,12 @@ class FieldSpec:
     ``psf_fwhm, psf_beta, psf_e1, psf_e2`` are the PSF at the field's centre (pixel
     frame), ``psf_variation`` (a key of :data:`PSF_VARIATIONS`) how it varies over the
     field (:func:`psf_map`).
+
+    ``population`` (one of :data:`POPULATIONS`) is that of the galaxies of a STEP2-like
+    field (:func:`pylensfit.validation.render_step2_field`): ``"aligned"``, every bulge
+    aligned with its disc, or ``"realistic"``, bulges of their own size and shape
+    (:data:`pylensfit.galaxies.REALISTIC`). :func:`simulate_field` ignores it: its
+    galaxies are the model bank's families.
     """
 
     size: int = 1024
@@ -111,6 +123,7 @@ class FieldSpec:
     psf_variation: str = "none"
     wcs_rotation_deg: float = 0.0
     wcs_flip: bool = False
+    population: str = "aligned"
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -119,6 +132,9 @@ class FieldSpec:
                 f"psf_variation must be one of {sorted(PSF_VARIATIONS)}, "
                 f"not {self.psf_variation!r}"
             )
+        if self.population not in POPULATIONS:
+            raise ValueError(f"population must be one of {POPULATIONS}, not "
+                             f"{self.population!r}")  # fmt: skip
 
 
 @dataclass(frozen=True)

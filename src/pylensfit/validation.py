@@ -21,6 +21,11 @@ Either set can have its PSFs vary over the fields (``psf_variation="survey"``: F
 fields following the same map) and a rotated or flipped WCS (``wcs_rotation_deg``,
 ``wcs_flip``), the shears being the sky frame's (:mod:`pylensfit.simulate`).
 
+A STEP2-like set's galaxies are by default the aligned population, every bulge aligned
+with its disc and as elongated; ``population="realistic"`` gives them the bulges of real
+galaxies, of their own size, elongation and misalignment, and Sersic indices 0.3-6
+(:data:`pylensfit.galaxies.REALISTIC`, :func:`render_step2_field`).
+
 Conventions are those of :mod:`pylensfit.simulate`: sizes in pixels, numpy ``(x, y)``
 0-based is GalSim ``(x + 1, y + 1)``, ``e = (a - b) / (a + b)`` and a shear ``g`` maps
 ``e_s`` to ``(e_s + g) / (1 + g* e_s)``.
@@ -48,7 +53,7 @@ from scipy.spatial import cKDTree
 from . import pipeline
 from ._util import pyplot_or_none
 from .config import Config
-from .galaxies import GalaxyProfile, PSFProfile
+from .galaxies import REALISTIC, GalaxyProfile, PSFProfile, draw_bulge_shapes
 from .prior import (
     Prior,
     estimate_prior,
@@ -60,6 +65,7 @@ from .psf import psf_diagnostics, psf_from_image
 from .runner import run_tasks
 from .shear import ShearEstimate, estimate_shear, shapes, shear_fixed_point
 from .simulate import (
+    POPULATIONS,
     PSF_VARIATIONS,
     FieldSpec,
     add_object,
@@ -144,18 +150,24 @@ def _spec_for(psf: dict, **kw) -> FieldSpec:
 
 
 def _step2_galaxy(
-    kind: str, r: float, n: float, bulge_frac: float, knot_frac: float, n_knots: int, knot_seed: int
-):
-    """Round (before the intrinsic shear) unit-flux STEP2-like galaxy of half-light radius r.
+    kind: str, r: float, n: float, bulge_frac: float, knot_frac: float, n_knots: int,
+    knot_seed: int, *, bulge_size_ratio: float = 0.5,
+    bulge_shear: tuple[float, float] = (0.0, 0.0),
+):  # fmt: skip
+    """Unit-flux STEP2-like galaxy of half-light radius r (px), before its intrinsic shear.
 
-    :class:`~pylensfit.galaxies.GalaxyProfile` with STEP2's bulge: half-light radius
-    ``0.5 r`` (``r`` the disc's half-light radius), flux ``bulge_frac``.
+    :class:`~pylensfit.galaxies.GalaxyProfile` with STEP2's bulge by default: half-light
+    radius ``0.5 r`` (``r`` the disc's half-light radius), flux ``bulge_frac``, round (the
+    aligned population). The realistic population's bulge has a half-light radius of
+    ``bulge_size_ratio r`` and its own shear ``bulge_shear`` (``(g1, g2)``, applied to
+    the bulge before the galaxy's intrinsic shear is applied to the whole).
     """
     if kind not in STEP2_KINDS:
         raise ValueError(f"unknown step2 galaxy kind {kind!r}")
-    return GalaxyProfile(kind, r, sersic_n=n, bulge_fraction=bulge_frac, bulge_size_ratio=0.5,
-                         knot_fraction=knot_frac, n_knots=n_knots,
-                         knot_seed=knot_seed).galsim()  # fmt: skip
+    return GalaxyProfile(kind, r, sersic_n=n, bulge_fraction=bulge_frac,
+                         bulge_size_ratio=bulge_size_ratio, knot_fraction=knot_frac,
+                         n_knots=n_knots, knot_seed=knot_seed,
+                         bulge_shear=bulge_shear).galsim()  # fmt: skip
 
 
 def render_step2_field(
@@ -165,18 +177,35 @@ def render_step2_field(
 
     The lattice, stars, fluxes, intrinsic ellipticities, local PSFs, frames and noise
     follow :func:`pylensfit.simulate.simulate_field`; the galaxies are a mix of Sersic
-    profiles (index 0.5-4), bulge + disc, and discs with star-forming knots
-    (``galsim.RandomKnots``). ``spec.size_range`` is the range of half-light radii (px).
-    Each galaxy is built in the sky frame and drawn in the pixel frame of the WCS
+    profiles, bulge + disc (de Vaucouleurs bulge, exponential disc, bulge fraction
+    0-0.5), and discs with star-forming knots (``galsim.RandomKnots``) and a bulge.
+    ``spec.size_range`` is the range of the discs' half-light radii (px). Each galaxy is
+    built in the sky frame and drawn in the pixel frame of the WCS
     (:func:`pylensfit.simulate.to_pixel_frame`), knots included: a seed gives the same
     galaxies on the sky whatever ``spec.wcs_rotation_deg`` and ``spec.wcs_flip``.
+
+    ``spec.population`` chooses the Sersic indices and the bulges:
+
+    - ``"aligned"``: Sersic indices uniform in 0.5-4, every bulge of half its disc's
+      half-light radius, aligned with its disc and as elongated (the intrinsic shear
+      applied to the whole galaxy).
+    - ``"realistic"`` (:data:`pylensfit.galaxies.REALISTIC`, as
+      :class:`pylensfit.precision.PrecisionSpec`'s): Sersic indices log-uniform in
+      0.3-6, bulges of 0.25-0.8 of their disc's half-light radius with shapes of their
+      own (:func:`pylensfit.galaxies.draw_bulge_shapes`): on the sky the bulge+disc
+      galaxies' bulges are 0.2-1 times as elongated as their discs and misaligned by a
+      Gaussian angle of 30 degrees rms, the knotty discs' 0-0.6 times (10 degrees rms).
+      These are drawn after every parameter of the aligned population, so the two share
+      their objects' positions, S/N, sizes, disc shapes, bulge fractions, knots and
+      noise, and their stars (a galaxy's flux is that of its S/N: it follows its
+      profile).
 
     Parameters
     ----------
     spec : FieldSpec
         What to simulate (``spec.model`` is ignored). With ``spec.rotate`` each galaxy,
-        knots included, is rotated by 90 degrees after its intrinsic shear and before the
-        lensing shear: the twin of the field with the same ``seed``.
+        bulge and knots included, is rotated by 90 degrees after its intrinsic shear and
+        before the lensing shear: the twin of the field with the same ``seed``.
     seed : int
         Seed of the objects.
     noise_seed : int, optional
@@ -190,8 +219,12 @@ def render_step2_field(
         Inverse-variance map.
     truth : astropy.table.Table
         As :func:`pylensfit.simulate.simulate_field`, plus ``kind`` (galaxy type),
-        ``sersic_n``, ``bulge_frac``, ``n_knots``; ``r`` is the half-light radius.
-        ``e1_int, e2_int`` are the (rotated, for a twin) intrinsic shears of the profile.
+        ``sersic_n``, ``bulge_frac``, ``n_knots``; ``r`` is the disc's half-light
+        radius. ``e1_int, e2_int`` are the (rotated, for a twin) intrinsic shears,
+        applied to the whole galaxy: the disc's shape. A realistic population adds
+        ``bulge_size_ratio`` (the bulge's half-light radius over ``r``) and ``misalign``
+        (the bulge's position angle less its disc's on the sky, degrees; the same for a
+        twin), NaN for stars and Sersic galaxies, and its meta ``pop = "realistic"``.
     """
     import galsim  # galsim: heavy import, only for rendering
 
@@ -205,6 +238,17 @@ def render_step2_field(
     knot_frac = rng.uniform(0.2, 0.5, n_obj)
     n_knots = rng.integers(10, 60, n_obj)
     knot_seed = rng.integers(1, 2**31 - 1, n_obj)
+    realistic = spec.population == "realistic"
+    bulge_ratio, b1, b2, misalign = np.full(n_obj, 0.5), *np.zeros((3, n_obj))
+    if realistic:  # after every draw above: the aligned population's galaxies, re-dressed
+        lo, hi = np.log(REALISTIC["sersic_n"])
+        sersic_n = np.round(np.exp(rng.uniform(lo, hi, n_obj)), 1)
+        # The bulge's shear is applied in the sky frame (GalaxyProfile, before
+        # to_pixel_frame) and followed by the disc's intrinsic shape in the sky frame,
+        # the one drawn: e_int before lensed_shapes, the original's for a twin too (the
+        # twin is the original galaxy rotated, bulge included).
+        bulge_ratio, b1, b2, misalign = draw_bulge_shapes(kinds == "bulge+disc",
+                                                          kinds == "knots", e_int, rng)
     e_int, e_obs = lensed_shapes(spec, e_int, is_star)  # pixel frame
     g1, g2 = pixel_shear(spec)
     # a sky-frame rotation by 90 degrees is one by -90 in a flipped pixel frame
@@ -228,6 +272,8 @@ def render_step2_field(
                 knot_frac[i],
                 int(n_knots[i]),
                 int(knot_seed[i]),
+                bulge_size_ratio=float(bulge_ratio[i]),
+                bulge_shear=(float(b1[i]), float(b2[i])),
             )
             gal = to_pixel_frame(gal, spec)  # the knots' pattern: shears are pixel-frame
             # the flux from the S/N of the unlensed, unrotated galaxy (as step1's): lensing
@@ -250,6 +296,11 @@ def render_step2_field(
     truth["bulge_frac"] = np.where(is_star | (kinds == "sersic"), np.nan, bulge_frac)
     truth["n_knots"] = np.where(~is_star & (kinds == "knots"), n_knots, 0)
     truth.meta.update({**field_meta(spec, "step2", seed), "rotate": spec.rotate})
+    if realistic:  # the aligned population's bulges are STEP2's: no columns of their own
+        no_bulge = is_star | (kinds == "sersic")
+        truth["bulge_size_ratio"] = np.where(no_bulge, np.nan, bulge_ratio)
+        truth["misalign"] = np.where(no_bulge, np.nan, misalign)
+        truth.meta["pop"] = spec.population
     return arr, weight, truth
 
 
@@ -292,6 +343,7 @@ def simulate_step(
     psf_variation: str = "none",
     wcs_rotation_deg: float = 0.0,
     wcs_flip: bool = False,
+    population: str = "aligned",
     jobs: int = 1,
     progress: bool = False,
 ) -> Path:
@@ -366,6 +418,14 @@ def simulate_step(
         (:mod:`pylensfit.simulate`); the shears and intrinsic shapes are the sky frame's.
     wcs_flip : bool
         Flip every field's WCS (``dy -> -dy`` before the rotation).
+    population : {"aligned", "realistic"}
+        The step2 galaxies (:func:`render_step2_field`): ``"aligned"`` (the default),
+        bulges of half their disc's half-light radius aligned with their discs and as
+        elongated, Sersic indices 0.5-4; ``"realistic"``, Sersic indices 0.3-6 and
+        bulges of their own size, elongation and misalignment
+        (:data:`pylensfit.galaxies.REALISTIC`), the same seed giving the same objects
+        otherwise. A step1 set's galaxies are the model bank's bulge+disc family by
+        design: only ``"aligned"``.
     jobs : int
         Fields rendered in parallel by this many processes (the pipeline's runner); the
         set is the same for any ``jobs``: every field's seeds are drawn first, in order.
@@ -379,9 +439,15 @@ def simulate_step(
         ``psf{k}_g{j}_rot.fits`` (twins), ``psf{k}_g{j}[_rot]_neg.fits`` (noise twins),
         ``psf{k}_prior.fits`` (zero shear),
         ``psf{k}_stars.fits`` (stars only) and ``manifest.json``.
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``kind`` or ``population``, a realistic step1 set, or arguments
+        that do not fit together (a varying PSF with star or zero-shear fields of
+        another size).
     """
-    if kind not in _PIXEL:
-        raise ValueError(f"kind must be 'step1' or 'step2', not {kind!r}")
+    _check_kind(kind, population)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     psfs = tuple(psfs) if psfs is not None else (STEP1_PSFS if kind == "step1" else STEP2_PSFS)
@@ -391,7 +457,8 @@ def simulate_step(
                       star_fraction=star_fraction, snr_range=snr_range, size_range=size_range,
                       star_field_size=star_field_size, prior_ngal=prior_ngal, twins=twins,
                       noise_twins=noise_twins, psf_variation=psf_variation,
-                      wcs_rotation_deg=wcs_rotation_deg, wcs_flip=wcs_flip)  # fmt: skip
+                      wcs_rotation_deg=wcs_rotation_deg, wcs_flip=wcs_flip,
+                      population=population)  # fmt: skip
     tasks, star_files, fields = _field_tasks(kind, lay, out, rng)
     _render_fields(tasks, star_files, fields, jobs, progress)
     manifest = _set_manifest(kind, lay, star_files, fields, ngal=ngal, seed=seed,
@@ -399,6 +466,17 @@ def simulate_step(
     with open(out / "manifest.json", "w") as fh:
         json.dump(manifest, fh, indent=1, default=list)
     return out
+
+
+def _check_kind(kind: str, population: str) -> None:
+    """:func:`simulate_step`'s set kind and galaxy population, or a ValueError."""
+    if kind not in _PIXEL:
+        raise ValueError(f"kind must be 'step1' or 'step2', not {kind!r}")
+    if population not in POPULATIONS:
+        raise ValueError(f"population must be one of {POPULATIONS}, not {population!r}")
+    if kind == "step1" and population != "aligned":
+        raise ValueError("a step1 set's galaxies are the model bank's bulge+disc family: "
+                         f"population must be 'aligned', not {population!r}")  # fmt: skip
 
 
 @dataclass
@@ -417,6 +495,7 @@ class _SetLayout:
     psf_variation: str
     wcs_rotation_deg: float
     wcs_flip: bool
+    population: str = "aligned"  # the step2 galaxies' (FieldSpec.population)
 
 
 def _set_shears(kind: str, n_shear: int | None, gmax: float,
@@ -435,7 +514,7 @@ def _set_layout(kind: str, psfs: tuple[dict, ...], rng: np.random.Generator, *, 
                 size_range: tuple[float, float] | None, star_field_size: int | None,
                 prior_ngal: int | None, twins: bool | None, noise_twins: bool,
                 psf_variation: str, wcs_rotation_deg: float,
-                wcs_flip: bool) -> _SetLayout:  # fmt: skip
+                wcs_flip: bool, population: str = "aligned") -> _SetLayout:  # fmt: skip
     """Check :func:`simulate_step`'s arguments and lay out its set: shears, twins, sizes."""
     shears, size_range = _set_shears(kind, n_shear, gmax, size_range, rng)
     if twins is None:
@@ -469,11 +548,12 @@ def _set_layout(kind: str, psfs: tuple[dict, ...], rng: np.random.Generator, *, 
         psf_variation=psf_variation,
         wcs_rotation_deg=float(wcs_rotation_deg),
         wcs_flip=bool(wcs_flip),
+        population=population,
     )
     return _SetLayout(psfs=psfs, shears=shears, twins=twin_flags, negs=negs, size=size,
                       star_size=star_size, prior_size=prior_size, pixel=pixel, common=common,
                       psf_variation=psf_variation, wcs_rotation_deg=float(wcs_rotation_deg),
-                      wcs_flip=bool(wcs_flip))  # fmt: skip
+                      wcs_flip=bool(wcs_flip), population=population)  # fmt: skip
 
 
 def _draw_seeds(rng: np.random.Generator) -> tuple[int, int]:
@@ -583,6 +663,7 @@ def _set_manifest(kind: str, lay: _SetLayout, star_files: list[dict], fields: li
         "psf_variation": lay.psf_variation,
         "wcs_rotation_deg": lay.wcs_rotation_deg,
         "wcs_flip": lay.wcs_flip,
+        "population": lay.population,
         "shears": [list(s) for s in lay.shears],
         "fieldspec": {k: v for k, v in asdict(FieldSpec(**lay.common)).items()
                       if k not in ("extra",)},  # fmt: skip
@@ -631,9 +712,9 @@ def read_manifest(directory: str | Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """``pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S] [--noise SIGMA] ...``.
 
-    Among the options, ``--psf-variation {none,survey}``, ``--wcs-rotation DEG`` and
-    ``--wcs-flip`` (:func:`simulate_step`'s ``psf_variation``, ``wcs_rotation_deg``,
-    ``wcs_flip``).
+    Among the options, ``--psf-variation {none,survey}``, ``--wcs-rotation DEG``,
+    ``--wcs-flip`` and ``--population {aligned,realistic}`` (:func:`simulate_step`'s
+    ``psf_variation``, ``wcs_rotation_deg``, ``wcs_flip``, ``population``).
 
     Standalone entry point (``python -m pylensfit.validation ...``), for the CLI to wire in.
 
@@ -676,6 +757,10 @@ def main(argv: list[str] | None = None) -> int:
                         "shears are the sky frame's")
     p.add_argument("--wcs-flip", action="store_true",
                    help="flip every field's WCS (dy -> -dy before the rotation)")
+    p.add_argument("--population", choices=POPULATIONS, default="aligned",
+                   help="step2 galaxies: aligned (bulges aligned with their discs, Sersic "
+                        "n 0.5-4) or realistic (bulges of their own size, shape and "
+                        "misalignment, Sersic n 0.3-6; step1: aligned only)")
     a = p.parse_args(argv)
     d = simulate_step(
         a.kind,
@@ -691,6 +776,7 @@ def main(argv: list[str] | None = None) -> int:
         psf_variation=a.psf_variation,
         wcs_rotation_deg=a.wcs_rotation,
         wcs_flip=a.wcs_flip,
+        population=a.population,
         jobs=a.jobs,
         progress=not a.quiet,
     )
