@@ -36,6 +36,7 @@ __all__ = [
     "GalaxyProfile",
     "PSFProfile",
     "draw_bulge_shapes",
+    "draw_sersic_indices",
     "inner_shear",
 ]
 
@@ -353,6 +354,13 @@ def inner_shear(outer, target) -> tuple[np.ndarray, np.ndarray]:
     d2 = 2.0 * q[..., 0, 1] / tr
     f = 1.0 / (1.0 + np.sqrt(np.maximum(1.0 - d1 * d1 - d2 * d2, 0.0)))  # distortion to g
     return d1 * f, d2 * f
+
+
+def draw_sersic_indices(n: int, rng) -> np.ndarray:
+    """``n`` Sersic indices log-uniform over :data:`REALISTIC` ``"sersic_n"``, rounded to
+    0.1 (GalSim caches its Sersic profiles by index)."""
+    lo, hi = np.log(REALISTIC["sersic_n"])
+    return np.round(np.exp(rng.uniform(lo, hi, n)), 1)
 
 
 def draw_bulge_shapes(bulge_disc, knotty, e_int, rng) -> tuple[np.ndarray, ...]:

@@ -93,7 +93,7 @@ from astropy.table import Table, vstack
 from ._util import pyplot_or_none
 from .calibration import MIN_FLUX_RANGE_GALAXIES, CalibrationSample, run_recipe
 from .config import Config
-from .galaxies import REALISTIC, GalaxyProfile, PSFProfile, draw_bulge_shapes
+from .galaxies import GalaxyProfile, PSFProfile, draw_bulge_shapes, draw_sersic_indices
 from .likelihood import e_annuli, fit_stamps
 from .models import model_bank
 from .prior import Prior, SizePrior, mix_bulge_fractions
@@ -417,9 +417,7 @@ def _bulge_shapes(t: Table, name: np.ndarray, rng: np.random.Generator, realisti
     t["misalign"] = np.where(has_bulge, 0.0, np.nan)
     if not realistic:
         return
-    lo, hi = np.log(REALISTIC["sersic_n"])
-    t["sersic_n"] = np.where(name == "sersic", np.round(np.exp(rng.uniform(lo, hi, n)), 1),
-                             np.nan)  # fmt: skip
+    t["sersic_n"] = np.where(name == "sersic", draw_sersic_indices(n, rng), np.nan)
     e_int = np.stack([np.asarray(t["e1_int"]), np.asarray(t["e2_int"])], -1)
     ratio, b1, b2, dphi = draw_bulge_shapes(name == "bulge+disc", name == "knots", e_int, rng)
     t["bulge_size_ratio"] = np.where(has_bulge, ratio, 0.5)

@@ -53,7 +53,7 @@ from scipy.spatial import cKDTree
 from . import pipeline
 from ._util import pyplot_or_none
 from .config import Config
-from .galaxies import REALISTIC, GalaxyProfile, PSFProfile, draw_bulge_shapes
+from .galaxies import GalaxyProfile, PSFProfile, draw_bulge_shapes, draw_sersic_indices
 from .prior import (
     Prior,
     estimate_prior,
@@ -241,8 +241,7 @@ def render_step2_field(
     realistic = spec.population == "realistic"
     bulge_ratio, b1, b2, misalign = np.full(n_obj, 0.5), *np.zeros((3, n_obj))
     if realistic:  # after every draw above: the aligned population's galaxies, re-dressed
-        lo, hi = np.log(REALISTIC["sersic_n"])
-        sersic_n = np.round(np.exp(rng.uniform(lo, hi, n_obj)), 1)
+        sersic_n = draw_sersic_indices(n_obj, rng)
         # The bulge's shear is applied in the sky frame (GalaxyProfile, before
         # to_pixel_frame) and followed by the disc's intrinsic shape in the sky frame,
         # the one drawn: e_int before lensed_shapes, the original's for a twin too (the
