@@ -62,6 +62,29 @@ def test_each_galaxy_is_fitted_with_the_psf_at_its_position(field):
     a_poly, s_poly = _leakage(t, c)
     assert a_const > 5 * s_const, (a_const, s_const)  # the uncorrected PSF shows through
     assert abs(a_poly) < 3 * s_poly and abs(a_poly) < 0.3 * abs(a_const), (a_poly, s_poly)
+    # the PSFS table keeps the model's held-out check; the constant PSF has none
+    held = poly.meta["psfs"][0]
+    assert held["psf_heldout_n"] >= 5
+    rms = np.hypot(held["psf_heldout_rms_de1"], held["psf_heldout_rms_de2"])
+    assert 0 < rms < 0.01 and held["psf_heldout_noise_de"] > 0
+    assert np.isnan(const.meta["psfs"][0]["psf_heldout_rms_de1"])
+
+
+def test_heldout_residuals_are_pooled_over_images():
+    """validate's PSF table pools the images' held-out stars as sqrt(sum n x^2 / sum n)."""
+    from astropy.table import Table
+
+    from pylensfit.validation import _heldout_pooled
+
+    p = Table({"psf_heldout_n": [10, 30, 0], "psf_heldout_rms_de1": [3e-3, 1e-3, np.nan],
+               "psf_heldout_rms_de2": [2e-3, 2e-3, np.nan],
+               "psf_heldout_noise_de": [1e-3, 1e-3, np.nan]})  # fmt: skip
+    n, r1, r2, noise, x1, x2 = _heldout_pooled(p)
+    assert n == 40
+    assert r1 == pytest.approx(np.sqrt((10 * 9e-6 + 30 * 1e-6) / 40))
+    assert r2 == pytest.approx(2e-3) and noise == pytest.approx(1e-3)
+    assert x1 == pytest.approx(np.sqrt(r1**2 - 1e-6)) and x2 == pytest.approx(np.sqrt(3e-6))
+    assert _heldout_pooled(Table({"psf_n_used": [3]}))[0] == 0  # an older catalogue
 
 
 def test_a_piff_model_fitted_to_the_same_stars(field, tmp_path):

@@ -11,8 +11,12 @@ The output catalogue is a FITS file:
   the fractions can be (re-)estimated; header ``BULGEFR`` (the fractions) and ``BULGEW``
   (their weights in ``LNL``, when estimated);
 * HDU ``EGRID``: the ``(n_e, 2)`` ellipticity cell centres;
-* HDU ``PSFS``: one row per input image with its PSF diagnostics, and ``PSFIMG``, the
-  ``(n_images, N, N)`` PSF images;
+* HDU ``PSFS``: one row per input image with its PSF diagnostics (``psf_n_used``,
+  ``psf_fwhm``, ``psf_e1``, ... of the PSF at the image's centre and, for a PSF model
+  fitted over the image, its held-out stars' ellipticity residuals ``psf_heldout_n``,
+  ``psf_heldout_mean_de1/2``, ``psf_heldout_rms_de1/2``, ``psf_heldout_noise_de`` (the rms
+  the stars' noise alone gives) and ``psf_heldout_excess_de1/2``, NaN for a constant
+  PSF), and ``PSFIMG``, the ``(n_images, N, N)`` PSF images;
 * HDU ``CONFIG``: the configuration (``key``, ``value`` as YAML text);
 * the primary header: provenance (``PLFVERS``, date, number of images and objects, the
   prior's parameters).

@@ -32,6 +32,7 @@ import datetime
 import hashlib
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -720,7 +721,7 @@ def _image_task(task: _ImageTask) -> dict[str, Any]:
     return {
         "index": task.index, "path": path, "rows": rows, "lnL": res.lnL,
         "lnL_bulge": res.lnL_bulge, "lnL_r": res.lnL_r, "egrid": egrid,
-        "psf": None if psf is None else _psf_summary(psf), "psf_note": psf_note,
+        "psf": None if psf is None else _psf_summary(psf, field_model), "psf_note": psf_note,
         "timing": timing,
     }  # fmt: skip
 
@@ -1086,11 +1087,22 @@ def _neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: in
 
 
 _PSF_KEYS = ("n_used", "n_rejected", "fwhm", "sigma", "e1", "e2")
+#: A varying PSF model's check on its held-out stars (:class:`PolynomialPSF`'s
+#: ``diagnostics``), kept per image in the catalogue's ``PSFS`` HDU (NaN otherwise).
+_HELDOUT_KEYS = ("heldout_n", "heldout_mean_de1", "heldout_mean_de2", "heldout_rms_de1",
+                 "heldout_rms_de2", "heldout_noise_de", "heldout_excess_de1",
+                 "heldout_excess_de2")  # fmt: skip
 
 
-def _psf_summary(psf: PSFResult) -> dict[str, Any]:
+def _psf_summary(psf: PSFResult, model: PSFModel | None = None) -> dict[str, Any]:
+    """The PSF's numbers for the catalogue: the PSF at the image's centre and, for a
+    model fitted over the image, its held-out stars' residuals (NaN if it has none)."""
     d = {k: float(getattr(psf, k)) for k in _PSF_KEYS}
     d["n_used"], d["n_rejected"] = int(psf.n_used), int(psf.n_rejected)
+    diag = {} if model is None else model.diagnostics
+    d.update({k: float(diag.get(k, math.nan)) for k in _HELDOUT_KEYS})
+    if diag.get("heldout_n", 0) == 0:  # no held-out star survived: nothing measured
+        d.update({k: math.nan for k in _HELDOUT_KEYS[1:]})
     d["image"] = np.asarray(psf.image, dtype=float)
     return d
 
@@ -1141,7 +1153,7 @@ def _write_part(path: Path, res: dict[str, Any]) -> None:
     stopped (header cards round floats to 16 digits; the PSF HDU's are for reading).
     """
     t = Table(res["rows"])
-    psf = None if res["psf"] is None else {k: res["psf"][k] for k in _PSF_KEYS}
+    psf = None if res["psf"] is None else {k: res["psf"][k] for k in _PSF_KEYS + _HELDOUT_KEYS}
     info = {"index": int(res["index"]), "path": res["path"], "psf": psf,
             "psf_note": res["psf_note"], "timing": res["timing"]}  # fmt: skip
     hdr = fits.Header()
@@ -1717,7 +1729,7 @@ def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
                 cat[c].unit = unit
     psfs = Table()
     psfs["image"] = [os.path.basename(r["path"]) for r in results]
-    for k in _PSF_KEYS:
+    for k in _PSF_KEYS + _HELDOUT_KEYS:
         psfs[f"psf_{k}"] = [np.nan if r["psf"] is None else r["psf"].get(k, np.nan)
                             for r in results]  # fmt: skip
     psfs["note"] = [r["psf_note"] for r in results]
