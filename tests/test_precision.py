@@ -897,6 +897,16 @@ def test_realistic_population_misaligns_the_bulges_and_keeps_the_rest():
         spec_with(population="cosmos")
 
 
+def test_spec_checks_its_morphologies_and_snr_range():
+    assert spec_with(morphology_weights=(1, 0, 0, 0, 0)).morphology_weights == (1, 0, 0, 0, 0)
+    for bad in ((1, 0, 0, 0, -1), (0, 0, 0, 0, 0), (1, 0, 0, 0, np.nan)):
+        with pytest.raises(ValueError, match="morphology_weights"):
+            spec_with(morphology_weights=bad)
+    for bad in ((20.0, 10.0), (0.0, 10.0)):
+        with pytest.raises(ValueError, match="snr_range"):
+            spec_with(snr_range=bad)
+
+
 def test_realistic_precision_run_reports_m_by_misalignment(tmp_path):
     """A small run of the realistic population: the misalignment and the wide Sersic
     breakdowns are in the table, the population in the report."""

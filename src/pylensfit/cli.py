@@ -202,7 +202,10 @@ def _precision(args: argparse.Namespace) -> int:
     spec = spec_with(ngal=args.ngal or 200_000, seed=args.seed, psfs=args.psf, g=args.g,
                      ncal=args.ncal, block_size=args.block_size,
                      noise_twins=args.noise_twins or None,
-                     population=args.population)  # fmt: skip
+                     population=args.population,
+                     snr_range=None if args.snr_range is None else tuple(args.snr_range),
+                     morphology_weights=(None if args.morphologies is None
+                                         else tuple(args.morphologies)))  # fmt: skip
     report = args.report or "precision/report.md"
     prior = population_prior(spec) if args.true_prior else None
     size_prior = None
@@ -503,6 +506,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="galaxies: bulges aligned with their discs and as elongated, Sersic "
                          "0.5-4 (default); or realistic: bulges misaligned (30 degrees rms) "
                          "and rounder than their discs, of their own sizes, Sersic 0.3-6")
+    pv.add_argument("--snr-range", type=float, nargs=2, metavar=("LO", "HI"),
+                    help="the reference S/N range of the fluxes (default PrecisionSpec's, "
+                         "10 200)")
+    pv.add_argument("--morphologies", type=float, nargs=5, metavar="W",
+                    help="fractions of exponential, de Vaucouleurs, bulge+disc, Sersic and "
+                         "knotty galaxies (default PrecisionSpec's)")
     pv.add_argument("--scheduler", help="dask.distributed scheduler address")
     pv.add_argument("--true-prior", action="store_true",
                     help="diagnostic: use the population's true prior instead of estimating "

@@ -274,6 +274,13 @@ class PrecisionSpec:
             raise ValueError(f"g must be in (0, 0.2), got {self.g}")
         if len(self.morphology_weights) != len(MORPHOLOGIES):
             raise ValueError(f"morphology_weights needs {len(MORPHOLOGIES)} values")
+        w = np.asarray(self.morphology_weights, dtype=float)
+        if not (np.all(np.isfinite(w)) and np.all(w >= 0) and w.sum() > 0):
+            raise ValueError(f"morphology_weights must be >= 0 with a positive sum, got "
+                             f"{tuple(self.morphology_weights)}")  # fmt: skip
+        lo, hi = (float(v) for v in self.snr_range)
+        if not 0 < lo <= hi:
+            raise ValueError(f"snr_range must be 0 < lo <= hi, got {tuple(self.snr_range)}")
         if self.population not in POPULATIONS:
             raise ValueError(f"population must be one of {POPULATIONS}, not "
                              f"{self.population!r}")  # fmt: skip
@@ -1531,10 +1538,16 @@ def write_report(res: Table, path: str | Path) -> None:
         "rotated twins leave, not the bias (column cv; groups of galaxies split into fewer "
         "than 20 jackknife groups are not corrected). The breakdown `no controls` gives "
         "the plain estimate.", "",
-        "The breakdowns by true S/N and true size are conditional on the truth: a Bayesian "
-        "estimator with a size prior is biased in opposite directions at the two ends of "
-        "the population (it pulls every galaxy towards the prior's typical size) while "
-        "the whole population is not. Judge m on `all` and per PSF. The group `mean of "
+        "The breakdowns by true S/N, size and morphology are conditional on the truth: "
+        "a Bayesian estimator with a size prior is biased in opposite directions at the "
+        "two ends of the population (it pulls every galaxy towards the prior's typical "
+        "size) while the whole population is not; likewise, with the bulge fraction "
+        "marginalised, a faint galaxy's posterior mixes the fractions as the prior "
+        "weighs them, so that at S/N 10-200 exponentials come out at m ~ +0.04 and de "
+        "Vaucouleurs galaxies at -0.04 while the mix is unbiased (at S/N 100-200, or in "
+        "a population of exponentials alone, each is within 0.01; validate --precision "
+        "--snr-range 100 200, --morphologies 1 0 0 0 0). Judge m on `all` and per PSF. "
+        "The group `mean of "
         "PSFs` averages the PSFs' m and c; its error leaves out the jackknife's noise "
         "from the PSFs' shares of the sample, which the design fixes.", "",
     ]  # fmt: skip
