@@ -1545,7 +1545,7 @@ def write_report(res: Table, path: str | Path) -> None:
         "marginalised, a faint galaxy's posterior mixes the fractions as the prior "
         "weighs them, so that at S/N 10-200 exponentials come out at m ~ +0.04 and de "
         "Vaucouleurs galaxies at -0.04 while the mix is unbiased (at S/N 100-200, or in "
-        "a population of exponentials alone, each is within 0.01; validate --precision "
+        "a population of exponentials alone, each is within about 0.01; validate --precision "
         "--snr-range 100 200, --morphologies 1 0 0 0 0). Judge m on `all` and per PSF. "
         "The group `mean of "
         "PSFs` averages the PSFs' m and c; its error leaves out the jackknife's noise "
