@@ -282,6 +282,9 @@ def _validate(args: argparse.Namespace) -> int:
     res.pprint_all()
     print(f"<m> = {res.meta['mean_m']:+.4f}, sigma_c = {res.meta['sigma_c']:.2e}, "
           f"Q = {res['Q'][-1]:.0f}; prior {res.meta['prior']!r}")  # fmt: skip
+    held = res.meta.get("diagnosis", {}).get("psf_heldout")
+    if held:
+        print(f"PSF model on held-out stars: {held[0]} ({held[1]})")
     if args.report:
         print(f"report: {args.report}")
     return 0
