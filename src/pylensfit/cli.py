@@ -402,6 +402,57 @@ def _add_prior_parser(sub) -> None:
     pr.set_defaults(func=_prior)
 
 
+def _add_precision_args(v) -> None:
+    """``pylensfit validate``'s precision-mode options."""
+    pv = v.add_argument_group("precision mode: paired +-g renderings, no directory needed")
+    pv.add_argument("--precision", action="store_true",
+                    help="measure m and c from GalSim galaxies rendered at +g and -g, each "
+                         "with a 90-degree twin (report to --report, default "
+                         "precision/report.md)")  # fmt: skip
+    pv.add_argument("--ngal", type=int, help="galaxies: x4 renderings with --precision "
+                    "(default 200,000); with --convergence (default 1000)")  # fmt: skip
+    pv.add_argument("--psf", nargs="+", help="PSFs by name: round, e=0.10, kolmogorov, "
+                    "asymmetric (default all)")  # fmt: skip
+    pv.add_argument("--seed", type=int, default=1, help="random seed (also --quick, "
+                    "--convergence)")  # fmt: skip
+    pv.add_argument("--g", type=float, default=0.02, help="shear per component")
+    pv.add_argument("--ncal", type=int,
+                    help="calibration galaxies (priors; default PrecisionSpec's, 80,000)")
+    pv.add_argument("--block-size", type=int, default=500, help="galaxies per block")
+    pv.add_argument("--noise-twins", action="store_true",
+                    help="render every galaxy eight times: the four renderings and the same "
+                         "four with their noise negated (at the same number of renderings "
+                         "c's error 2.9 times smaller, m's the same)")  # fmt: skip
+    pv.add_argument("--population", choices=("aligned", "realistic"), default="aligned",
+                    help="galaxies: bulges aligned with their discs and as elongated, Sersic "
+                         "0.5-4 (default); or realistic: bulges misaligned (30 degrees rms) "
+                         "and rounder than their discs, of their own sizes, Sersic 0.3-6")
+    pv.add_argument("--snr-range", type=float, nargs=2, metavar=("LO", "HI"),
+                    help="the reference S/N range of the fluxes (default PrecisionSpec's, "
+                         "10 200)")
+    pv.add_argument("--morphologies", type=float, nargs=5, metavar="W",
+                    help="fractions of exponential, de Vaucouleurs, bulge+disc, Sersic and "
+                         "knotty galaxies (default PrecisionSpec's)")
+    pv.add_argument("--scheduler", help="dask.distributed scheduler address")
+    pv.add_argument("--true-prior", action="store_true",
+                    help="diagnostic: use the population's true prior instead of estimating "
+                         "it from the calibration sample")  # fmt: skip
+    pv.add_argument("--true-size-prior", action="store_true",
+                    help="diagnostic: use the population's own size prior per PSF "
+                         "(log-uniform over the sizes drawn) instead of estimating it")
+    pv.add_argument("--flux-bounds", action=argparse.BooleanOptionalAction, default=True,
+                    help="bound the flux prior at each PSF's flux range, estimated from the "
+                         "calibration sample's fluxes and their errors (default; "
+                         "--no-flux-bounds: the unbounded power law)")  # fmt: skip
+    pv.add_argument("--e-refine", type=int, default=1, metavar="K",
+                    help="adaptive refinement of the e grid (Config.e_refine): the narrow "
+                         "likelihoods evaluated again on cells K times finer about their "
+                         "peak (1: none; 2 costs about 50 %% more fit time)")  # fmt: skip
+    pv.add_argument("--one-size-prior", action="store_true",
+                    help="diagnostic: one size prior for all PSFs instead of one per PSF "
+                         "(the population's sizes are drawn relative to each PSF's)")  # fmt: skip
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="pylensfit", description=__doc__,
                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
@@ -486,53 +537,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--quick", action="store_true",
                    help="simulate small STEP1 and STEP2 sets and validate both (< 10 min with "
                         "--jobs 2; output in --out, default quick_validation)")  # fmt: skip
-    pv = v.add_argument_group("precision mode: paired +-g renderings, no directory needed")
-    pv.add_argument("--precision", action="store_true",
-                    help="measure m and c from GalSim galaxies rendered at +g and -g, each "
-                         "with a 90-degree twin (report to --report, default "
-                         "precision/report.md)")  # fmt: skip
-    pv.add_argument("--ngal", type=int, help="galaxies: x4 renderings with --precision "
-                    "(default 200,000); with --convergence (default 1000)")  # fmt: skip
-    pv.add_argument("--psf", nargs="+", help="PSFs by name: round, e=0.10, kolmogorov, "
-                    "asymmetric (default all)")  # fmt: skip
-    pv.add_argument("--seed", type=int, default=1, help="random seed (also --quick, "
-                    "--convergence)")  # fmt: skip
-    pv.add_argument("--g", type=float, default=0.02, help="shear per component")
-    pv.add_argument("--ncal", type=int,
-                    help="calibration galaxies (priors; default PrecisionSpec's, 80,000)")
-    pv.add_argument("--block-size", type=int, default=500, help="galaxies per block")
-    pv.add_argument("--noise-twins", action="store_true",
-                    help="render every galaxy eight times: the four renderings and the same "
-                         "four with their noise negated (at the same number of renderings "
-                         "c's error 2.9 times smaller, m's the same)")  # fmt: skip
-    pv.add_argument("--population", choices=("aligned", "realistic"), default="aligned",
-                    help="galaxies: bulges aligned with their discs and as elongated, Sersic "
-                         "0.5-4 (default); or realistic: bulges misaligned (30 degrees rms) "
-                         "and rounder than their discs, of their own sizes, Sersic 0.3-6")
-    pv.add_argument("--snr-range", type=float, nargs=2, metavar=("LO", "HI"),
-                    help="the reference S/N range of the fluxes (default PrecisionSpec's, "
-                         "10 200)")
-    pv.add_argument("--morphologies", type=float, nargs=5, metavar="W",
-                    help="fractions of exponential, de Vaucouleurs, bulge+disc, Sersic and "
-                         "knotty galaxies (default PrecisionSpec's)")
-    pv.add_argument("--scheduler", help="dask.distributed scheduler address")
-    pv.add_argument("--true-prior", action="store_true",
-                    help="diagnostic: use the population's true prior instead of estimating "
-                         "it from the calibration sample")  # fmt: skip
-    pv.add_argument("--true-size-prior", action="store_true",
-                    help="diagnostic: use the population's own size prior per PSF "
-                         "(log-uniform over the sizes drawn) instead of estimating it")
-    pv.add_argument("--flux-bounds", action=argparse.BooleanOptionalAction, default=True,
-                    help="bound the flux prior at each PSF's flux range, estimated from the "
-                         "calibration sample's fluxes and their errors (default; "
-                         "--no-flux-bounds: the unbounded power law)")  # fmt: skip
-    pv.add_argument("--e-refine", type=int, default=1, metavar="K",
-                    help="adaptive refinement of the e grid (Config.e_refine): the narrow "
-                         "likelihoods evaluated again on cells K times finer about their "
-                         "peak (1: none; 2 costs about 50 %% more fit time)")  # fmt: skip
-    pv.add_argument("--one-size-prior", action="store_true",
-                    help="diagnostic: one size prior for all PSFs instead of one per PSF "
-                         "(the population's sizes are drawn relative to each PSF's)")  # fmt: skip
+    _add_precision_args(v)
     cv = v.add_argument_group("convergence study (paper Figure 2), no directory needed")
     cv.add_argument("--convergence", action="store_true",
                     help="<e>, <e^2> and sensitivity against de, dr, r_max and a catalogue "
