@@ -108,20 +108,58 @@ def _render(p: dict, pmap: PSFMap, rng: np.random.Generator):
     return stamps, np.repeat(pe1, 4), np.repeat(pe2, 4), gs
 
 
-def _measure(stamps, psfs, groups, priors, cfg) -> tuple[np.ndarray, np.ndarray, float]:
-    """``e`` (2, n) and ``sens`` (2, n) of every stamp, each group with its PSF; seconds."""
-    e = np.full((2, len(stamps)), np.nan)
-    s = np.full((2, len(stamps)), np.nan)
-    t0 = time.perf_counter()
-    for psf, idx in zip(psfs, groups, strict=True):
+class _Fitter:
+    """Every stamp's posterior mean and sensitivity under fixed priors, as
+    ``pylensfit.measure_stamps`` makes them, from the fits with one PSF or from the
+    fits with several PSFs blended (``pylensfit.likelihood.blend_fits``)."""
+
+    def __init__(self, stamps, priors, cfg):
+        self.stamps, self.priors, self.cfg = stamps, priors, cfg
+        self.run_cfg = priors.apply(cfg)
+        self.seconds = 0.0
+
+    def fits(self, idx, psf):
+        from pylensfit.likelihood import fit_stamps
+
+        t0 = time.perf_counter()
+        c = np.full(idx.size, STAMP // 2, dtype=float)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            t = plf.measure_stamps(stamps[idx], psf, 1.0, priors=priors, config=cfg)
-        ok = (np.asarray(t["flags"]) == 0) & (np.asarray(t["weight"]) > 0)
-        for c, arr in ((0, "e1"), (1, "e2")):
-            e[c, idx] = np.where(ok, t[arr], np.nan)
-            s[c, idx] = np.where(ok, t[f"sens{c + 1}"], np.nan)
-    return e, s, time.perf_counter() - t0
+            f = fit_stamps(self.stamps[idx], psf, 1.0, config=self.run_cfg, centres=(c, c),
+                           size_prior=self.priors.size)  # fmt: skip
+        self.seconds += time.perf_counter() - t0
+        return f
+
+    def shapes(self, f, idx, e, s):
+        from pylensfit.shear import shapes
+
+        t0 = time.perf_counter()
+        sh = shapes(self.priors.mix(f), f.egrid, self.priors.ellipticity,
+                    sensitivity=self.cfg.sensitivity, refine=self.run_cfg.output_refine)
+        ok = (np.asarray(f.flags) == 0) & (np.asarray(sh["flags"]) == 0) & ~f.is_star
+        for c in range(2):
+            e[c, idx] = np.where(ok, sh[f"e{c + 1}"], np.nan)
+            s[c, idx] = np.where(ok, sh[f"sens{c + 1}"], np.nan)
+        self.seconds += time.perf_counter() - t0
+
+
+def _measure(fitter, psfs, groups, corners=None):
+    """``e`` (2, n), ``sens`` (2, n) of every stamp and the seconds: each group with its
+    PSF, or (``corners``: per group the four corner PSFs and the stamps' ``(4, n_g)``
+    bilinear weights) with the corners' fits blended."""
+    from pylensfit.likelihood import blend_fits
+
+    n = fitter.stamps.shape[0]
+    e, s = np.full((2, n), np.nan), np.full((2, n), np.nan)
+    fitter.seconds = 0.0
+    for g, idx in enumerate(groups):
+        if corners is None:
+            f = fitter.fits(idx, psfs[g])
+        else:
+            cps, w = corners[g]
+            f = blend_fits([fitter.fits(idx, cp) for cp in cps], w)
+        fitter.shapes(f, idx, e, s)
+    return e, s, fitter.seconds
 
 
 def _m_alpha(e, s, gs, pe):
@@ -160,40 +198,57 @@ def main(argv=None) -> int:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         priors = plf.calibrate(stamps[::2], _psf_image(pmap, 0.0, 0.0), 1.0, config=cfg)
+    fitter = _Fitter(stamps, priors, cfg)
     # the peer: every galaxy with the PSF at its own position
     own_psfs = [_psf_image(pmap, float(p["u"][i]), float(p["v"][i])) for i in range(a.ngal)]
     own_groups = [np.arange(4 * i, 4 * i + 4) for i in range(a.ngal)]
-    e0, s0, t_own = _measure(stamps, own_psfs, own_groups, priors, cfg)
+    e0, s0, t_own = _measure(fitter, own_psfs, own_groups)
     m0, a0, ok0 = _m_alpha(e0, s0, gs, pe)
-    print(f"{'PSF':>12s} {'rms de':>9s} {'mean de1':>9s} {'mean de2':>9s} {'slope':>7s} "
+    print(f"{'PSF':>16s} {'rms de':>9s} {'mean de1':>9s} {'mean de2':>9s} {'slope':>7s} "
           f"{'dm1':>8s} {'dm2':>8s} {'dalpha1':>8s} {'dalpha2':>8s} {'stamps/s':>9s}")
-    print(f"{'own':>12s} {'-':>9s} {'-':>9s} {'-':>9s} {'-':>7s} {m0[0]:+8.4f} {m0[1]:+8.4f} "
+    print(f"{'own':>16s} {'-':>9s} {'-':>9s} {'-':>9s} {'-':>7s} {m0[0]:+8.4f} {m0[1]:+8.4f} "
           f"{a0[0]:+8.4f} {a0[1]:+8.4f} {stamps.shape[0] / t_own:9.0f}   (m, alpha)")
+
+    def row(label, e, s, t, psf_e):
+        m, al, _ = _m_alpha(e, s, gs, pe)
+        de, dpe = e - e0, psf_e - pe  # the PSF's ellipticity error at each stamp
+        ok = np.all(np.isfinite(de), axis=0)
+        slope = np.polyfit(np.concatenate([dpe[0, ok], dpe[1, ok]]),
+                           np.concatenate([de[0, ok], de[1, ok]]), 1)[0]  # fmt: skip
+        print(f"{label:>16s} {np.sqrt(np.mean(de[:, ok] ** 2)):9.2e} "
+              f"{de[0, ok].mean():+9.1e} {de[1, ok].mean():+9.1e} {slope:+7.3f} "
+              f"{m[0] - m0[0]:+8.4f} {m[1] - m0[1]:+8.4f} {al[0] - a0[0]:+8.4f} "
+              f"{al[1] - a0[1]:+8.4f} {stamps.shape[0] / t:9.0f}")  # fmt: skip
+
     ug, vg = np.repeat(p["u"], 4), np.repeat(p["v"], 4)
     for k in a.cells:
         iu = np.minimum(((ug + 1) / 2 * k).astype(int), k - 1)
         iv = np.minimum(((vg + 1) / 2 * k).astype(int), k - 1)
         cell = iu * k + iv
-        groups = [np.flatnonzero(cell == c) for c in range(k * k) if np.any(cell == c)]
-        cu = [-1 + (2 * (int(cell[g[0]]) // k) + 1) / k for g in groups]
-        cv = [-1 + (2 * (int(cell[g[0]]) % k) + 1) / k for g in groups]
-        psfs = [_psf_image(pmap, x, y) for x, y in zip(cu, cv, strict=True)]
-        e, s, t = _measure(stamps, psfs, groups, priors, cfg)
-        m, al, _ = _m_alpha(e, s, gs, pe)
-        de = e - e0
-        ok = np.all(np.isfinite(de), axis=0)
-        # the PSF's ellipticity error at each stamp: the cell centre's minus its own
-        cpe = np.empty((2, e.shape[1]))
-        for g, x, y in zip(groups, cu, cv, strict=True):
-            _, a1, a2 = pmap.at(x, y)
-            cpe[0, g], cpe[1, g] = a1, a2
-        dpe = cpe - pe
-        slope = np.polyfit(np.concatenate([dpe[0, ok], dpe[1, ok]]),
-                           np.concatenate([de[0, ok], de[1, ok]]), 1)[0]  # fmt: skip
-        print(f"{f'{k} x {k} cells':>12s} {np.sqrt(np.mean(de[:, ok] ** 2)):9.2e} "
-              f"{de[0, ok].mean():+9.1e} {de[1, ok].mean():+9.1e} {slope:+7.3f} "
-              f"{m[0] - m0[0]:+8.4f} {m[1] - m0[1]:+8.4f} {al[0] - a0[0]:+8.4f} "
-              f"{al[1] - a0[1]:+8.4f} {stamps.shape[0] / t:9.0f}")  # fmt: skip
+        groups = [np.flatnonzero(cell == c) for c in np.unique(cell)]
+        node = -1 + 2 * np.arange(k + 1) / k  # the cells' edges
+        # each galaxy with the PSF at its cell's centre
+        cen = [((node[c // k] + node[c // k + 1]) / 2, (node[c % k] + node[c % k + 1]) / 2)
+               for c in np.unique(cell)]  # fmt: skip
+        e, s, t = _measure(fitter, [_psf_image(pmap, *uv) for uv in cen], groups)
+        psf_e = np.empty((2, e.shape[1]))
+        for g, uv in zip(groups, cen, strict=True):
+            psf_e[:, g] = np.array(pmap.at(*uv)[1:])[:, None]
+        row(f"{k} x {k} centres", e, s, t, psf_e)
+        # each galaxy with its cell's four corners' fits blended (bilinear weights)
+        corners, psf_e = [], np.empty((2, e.shape[1]))
+        for c, g in zip(np.unique(cell), groups, strict=True):
+            i, j = c // k, c % k
+            fu = (ug[g] - node[i]) / (2 / k)
+            fv = (vg[g] - node[j]) / (2 / k)
+            w = np.array([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv])
+            uv = [(node[i], node[j]), (node[i + 1], node[j]), (node[i], node[j + 1]),
+                  (node[i + 1], node[j + 1])]  # fmt: skip
+            corners.append(([_psf_image(pmap, *q) for q in uv], w))
+            ce = np.array([pmap.at(*q)[1:] for q in uv])  # (4, 2)
+            psf_e[:, g] = ce.T @ w
+        e, s, t = _measure(fitter, None, groups, corners=corners)
+        row(f"{k} x {k} bilinear", e, s, t, psf_e)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(f"peak RSS {rss:.0f} MiB; usable galaxies {int(ok0.sum())} of {a.ngal}")
     return 0

@@ -794,6 +794,84 @@ def merge_fits(parts: list[tuple[np.ndarray, StampFits]], n_gal: int) -> StampFi
     return StampFits(**out)
 
 
+#: :class:`StampFits` fields that are ``ln L`` shifted by ``lnL_peak``: blended in ``ln L``.
+_SHIFTED = ("lnL", "lnL_bulge", "lnL_star", "lnL_r", "lnL_r_grouped")
+#: Fields blended as weighted means (the best model's numbers).
+_AVERAGED = ("r_best", "flux", "x", "y", "snr", "e1_best", "e2_best")
+
+
+def blend_fits(fits_list: list[StampFits], weights: np.ndarray) -> StampFits:
+    """The fits of the same stamps with several PSFs, blended as with a PSF in between.
+
+    For a galaxy whose PSF is ``P = sum_c w_c P_c`` (weights summing to 1, e.g. the
+    bilinear weights of the PSFs at the corners of the galaxy's cell), the likelihood
+    is, to first order in the differences between the ``P_c``, ``ln L = sum_c w_c ln
+    L_c``: the mean of the corners' ``ln L`` grids, whose peak sits at the weighted mean
+    of the corners' peaks. Every ``ln L`` of the fits (``lnL``, ``lnL_bulge``,
+    ``lnL_star``, ``lnL_r``, ``lnL_r_grouped``) is blended so, with the shifts
+    ``lnL_peak`` restored and the result shifted again to a maximum of 0; the best
+    model's numbers (size, flux, centre, S/N, ellipticity) are the weighted means, the
+    point-source decision and the best bulge fraction those of the heaviest PSF, the
+    flags the union of all.
+
+    Parameters
+    ----------
+    fits_list : list of StampFits
+        Fits of the same ``n`` stamps, one per PSF, on the same ellipticity grid and
+        model bank.
+    weights : numpy.ndarray
+        ``(len(fits_list), n)`` each stamp's weight of each PSF, >= 0, summing to 1 over
+        the PSFs.
+
+    Returns
+    -------
+    StampFits
+        The blended fits; ``meta`` and the grid from the first.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    k = len(fits_list)
+    if k == 0 or w.shape != (k, len(fits_list[0])):
+        raise ValueError(f"weights must have shape ({k}, n_stamps), got {w.shape}")
+    if np.any(w < 0) or not np.allclose(w.sum(0), 1.0):
+        raise ValueError("weights must be >= 0 and sum to 1 over the PSFs")
+    if k == 1:
+        return fits_list[0]
+    first = fits_list[0]
+    peak = np.stack([np.asarray(f.lnL_peak, np.float64) for f in fits_list])
+    out = {f.name: getattr(first, f.name) for f in fields(StampFits)}
+
+    def wsum(name: str, shift: bool) -> np.ndarray:
+        tot = 0.0
+        for c, f in enumerate(fits_list):
+            v = np.asarray(getattr(f, name), np.float64)
+            wc = w[c].reshape((-1,) + (1,) * (v.ndim - 1))
+            pc = peak[c].reshape(wc.shape) if shift else 0.0
+            tot = tot + wc * (v + pc)
+        return tot
+
+    lnL = wsum("lnL", True)
+    new_peak = np.max(lnL, axis=1)
+    out["lnL_peak"] = new_peak.astype(first.lnL_peak.dtype)
+    for name in _SHIFTED:
+        if getattr(first, name) is None:
+            continue
+        v = lnL if name == "lnL" else wsum(name, True)
+        shift = new_peak.reshape((-1,) + (1,) * (v.ndim - 1))
+        out[name] = (v - shift).astype(np.float32)
+    for name in _AVERAGED:
+        out[name] = wsum(name, False).astype(np.asarray(getattr(first, name)).dtype)
+    heavy = np.argmax(w, axis=0)
+    cols = np.arange(w.shape[1])
+    for name in ("is_star", "bulge_best"):
+        if getattr(first, name) is not None:
+            out[name] = np.stack([np.asarray(getattr(f, name)) for f in fits_list])[heavy, cols]
+    flags = np.zeros_like(np.asarray(first.flags))
+    for f in fits_list:
+        flags |= np.asarray(f.flags)
+    out["flags"] = flags
+    return StampFits(**out)
+
+
 def e_annuli(egrid: np.ndarray) -> np.ndarray:
     """The group of every ellipticity cell by its ``|e|`` (``fit_stamps(lnL_r_groups=)``).
 
