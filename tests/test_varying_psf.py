@@ -51,10 +51,12 @@ def test_each_galaxy_is_fitted_with_the_psf_at_its_position(field):
                    prior=Prior(), progress=False)  # fmt: skip
     t, c = _matched(poly, truth)
     assert len(t) > 250
-    # the catalogue's PSF ellipticity follows the true map (cells of 128 px: the map
-    # changes by up to ~0.01 across a cell); the constant one is one number
+    # the catalogue's PSF ellipticity follows the true map: interpolated between the
+    # cells' corners (the default) to 7e-4 rms, where the cells' centres (128 px apart;
+    # the map changes by up to ~0.01 across a cell) give 4e-3; the constant one is one
+    # number
     d = np.concatenate([c["PSF_e1"] - t["psf_e1_obs"], c["PSF_e2"] - t["psf_e2_obs"]])
-    assert np.sqrt(np.mean(d**2)) < 0.006
+    assert np.sqrt(np.mean(d**2)) < 0.0015
     tc, cc = _matched(const, truth)
     assert np.ptp(np.asarray(cc["PSF_e1"])) < 1e-5  # (the sky frame turns by ~1e-3 deg)
     # the shape errors follow the PSF's with the constant PSF, not with the model

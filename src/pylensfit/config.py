@@ -319,10 +319,17 @@ class Config:
     )
     psf_order: int = _f(3, "total degree of the polynomial PSF (lowered for few stars)")
     psf_cells: int = _f(
-        8, "polynomial PSF: the image is cut into psf_cells x psf_cells cells, each fitted "
-        "with the PSF at its centre. A galaxy's shape then takes -0.86 times its cell's "
-        "PSF ellipticity error: rms 4.5e-3 at 8 under the survey map of simulate "
-        "--psf-variation survey, halving with each doubling (benchmarks/psf_cells.py)"
+        8, "a PSF varying over the image (psf_model 'polynomial', a Piff model): the image "
+        "is cut into psf_cells x psf_cells cells whose galaxies are fitted together, with "
+        "the PSF sampled at the cells' corners or centres (psf_interpolation)"
+    )
+    psf_interpolation: str = _f(
+        "bilinear",
+        "a varying PSF in the fits: 'bilinear' (each galaxy fitted with the PSFs at its "
+        "cell's four corners and the fits blended with its position's bilinear weights, "
+        "likelihood.blend_fits: rms shape error 2e-4 at 8 x 8 cells under the survey map, "
+        "at four times the fits) or 'centre' (the PSF at its cell's centre: 4.5e-3; "
+        "benchmarks/psf_cells.py)",
     )
     # --- postage stamps (paper section 2.3) ---
     close_pair_min_snr: float = _f(
@@ -672,6 +679,8 @@ def _validate(c: Config) -> None:
     need(c.star_min_peak_snr > 0, "star_min_peak_snr must be > 0")
     need(0 < c.psf_min_correlation < 1, "psf_min_correlation must be in (0, 1)")
     need(c.psf_min_stars >= 1, "psf_min_stars must be >= 1")
+    need(c.psf_interpolation in ("bilinear", "centre"),
+         f"psf_interpolation must be 'bilinear' or 'centre', got {c.psf_interpolation!r}")
     need(c.psf_model in ("constant", "polynomial"),
          f"psf_model must be 'constant' or 'polynomial', got {c.psf_model!r}")
     need(0 <= c.psf_order <= 6, f"psf_order must be in 0..6, got {c.psf_order}")

@@ -64,7 +64,7 @@ from .detection import (
     select_stars,
 )
 from .grid import ellipticity_grid
-from .likelihood import StampFits, e_annuli, fit_stamps, merge_fits
+from .likelihood import StampFits, blend_fits, e_annuli, fit_stamps, merge_fits
 from .models import model_bank, render_models
 from .prior import (
     Prior,
@@ -376,22 +376,60 @@ def _poly_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star
     return model, stars
 
 
-def _cell_psfs(model: PSFModel, shape: tuple[int, int], cells: int):
-    """The PSF at the centre of each of ``cells x cells`` cells of an image: images
-    ``(cells^2, N, N)``, their ellipticity ``(2, cells^2)`` and the cell of a position."""
+@dataclass
+class _CellPSFs:
+    """A PSF varying over an image, sampled for the fits of its objects.
+
+    With ``Config.psf_interpolation = "centre"`` the PSF at the centre of each of the
+    ``psf_cells x psf_cells`` cells, each object fitted with its cell's; with
+    ``"bilinear"`` the PSF at the cells' corners, each object fitted with its cell's
+    four and the fits blended with the bilinear weights of its position
+    (:func:`pylensfit.likelihood.blend_fits`).
+    """
+
+    images: np.ndarray  # (n_nodes, N, N) the PSF at each node
+    e: np.ndarray  # (2, n_nodes) its ellipticity
+    cell: np.ndarray  # (n,) each object's cell (the objects fitted together)
+    nodes: np.ndarray  # (k, n) the nodes each object is fitted with (the same in a cell)
+    weights: np.ndarray  # (k, n) their weights, summing to 1
+
+    @property
+    def psf_e(self) -> np.ndarray:
+        """``(2, n)`` each object's PSF ellipticity, its nodes' weighted."""
+        return np.einsum("kn,ckn->cn", self.weights, self.e[:, self.nodes])
+
+    @property
+    def nearest(self) -> np.ndarray:
+        """``(n,)`` each object's heaviest node (the PSF its model is rendered with)."""
+        return self.nodes[np.argmax(self.weights, axis=0), np.arange(self.nodes.shape[1])]
+
+
+def _cell_psfs(model: PSFModel, shape: tuple[int, int], cells: int, x: np.ndarray,
+               y: np.ndarray, bilinear: bool) -> _CellPSFs:  # fmt: skip
+    """The PSF model sampled at the centres (or, ``bilinear``, the corners) of ``cells x
+    cells`` cells of an image of ``shape``, for objects at pixels ``x, y``."""
     ny, nx = shape
-    cx = (np.arange(cells) + 0.5) * nx / cells - 0.5
-    cy = (np.arange(cells) + 0.5) * ny / cells - 0.5
+    x, y = np.nan_to_num(np.asarray(x, float)), np.nan_to_num(np.asarray(y, float))
+    i = np.clip(np.floor((x + 0.5) * cells / nx), 0, cells - 1).astype(np.int64)
+    j = np.clip(np.floor((y + 0.5) * cells / ny), 0, cells - 1).astype(np.int64)
+    cell = j * cells + i
+    if not bilinear:
+        cx = (np.arange(cells) + 0.5) * nx / cells - 0.5
+        cy = (np.arange(cells) + 0.5) * ny / cells - 0.5
+        nodes, weights = cell[None], np.ones((1, cell.size))
+    else:  # the cells' corners, from the image's edge to edge
+        cx = np.arange(cells + 1) * nx / cells - 0.5
+        cy = np.arange(cells + 1) * ny / cells - 0.5
+        fu = np.clip((x - cx[i]) / (nx / cells), 0.0, 1.0)
+        fv = np.clip((y - cy[j]) / (ny / cells), 0.0, 1.0)
+        k = cells + 1
+        nodes = np.stack([j * k + i, j * k + i + 1, (j + 1) * k + i, (j + 1) * k + i + 1])
+        weights = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv])
     X, Y = np.meshgrid(cx, cy)
     images = model.draw(X.ravel(), Y.ravel())
     e1, e2, _ = model.shape_at(X.ravel(), Y.ravel())
-
-    def cell_of(x, y):
-        i = np.clip(np.floor((np.nan_to_num(x) + 0.5) * cells / nx), 0, cells - 1)
-        j = np.clip(np.floor((np.nan_to_num(y) + 0.5) * cells / ny), 0, cells - 1)
-        return (j * cells + i).astype(np.int64)
-
-    return images, np.vstack([e1, e2]), cell_of
+    return _CellPSFs(images=images, e=np.vstack([e1, e2]), cell=cell, nodes=nodes,
+                     weights=weights)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -549,8 +587,7 @@ class _ImageFitter:
     noise: np.ndarray  # (n,) per-object noise sigma
     cfg: Config
     psf_image: np.ndarray | None  # the image's PSF (a constant PSF)
-    cell_images: np.ndarray | None  # the PSF of every cell of a varying model
-    cell: np.ndarray  # (n,) each object's cell
+    cells: _CellPSFs | None  # a varying PSF model, sampled for the fits
     size_prior: SizePrior | None
     rings: np.ndarray | None  # fit_stamps' lnL_r_groups
     size_marginal_prior: Any
@@ -558,13 +595,15 @@ class _ImageFitter:
     def __call__(self, idx: np.ndarray, less: np.ndarray | None = None) -> StampFits:
         """Fit the stamps of objects ``idx``, less ``less`` (``(len(idx), n_big, n_big)``:
         the neighbours' light and the sky's change, about each object)."""
-        if self.cell_images is None:
+        cp = self.cells
+        if cp is None:
             return self._fit_with(idx, less, self.psf_image)
         parts = []
-        for c in np.unique(self.cell[idx]):  # one fit per cell of the PSF model
-            sel = np.flatnonzero(self.cell[idx] == c)
-            parts.append((sel, self._fit_with(idx[sel], None if less is None else less[sel],
-                                              self.cell_images[c])))  # fmt: skip
+        for c in np.unique(cp.cell[idx]):  # one fit per cell and node of the PSF model
+            sel = np.flatnonzero(cp.cell[idx] == c)
+            j, lj = idx[sel], None if less is None else less[sel]
+            fits = [self._fit_with(j, lj, cp.images[k]) for k in cp.nodes[:, j[0]]]
+            parts.append((sel, blend_fits(fits, cp.weights[:, j])))
         return parts[0][1] if len(parts) == 1 else merge_fits(parts, idx.size)
 
     def _fit_with(self, idx: np.ndarray, less: np.ndarray | None,
@@ -664,11 +703,10 @@ def _image_task(task: _ImageTask) -> dict[str, Any]:
     x = np.asarray(det["x"], dtype=float)
     y = np.asarray(det["y"], dtype=float)
     noise = np.asarray(det["noise_sigma"], dtype=float)
-    cell_images = cell_e = None
-    cell = np.zeros(n, dtype=np.int64)
+    cells = None
     if field_model is not None:
-        cell_images, cell_e, cell_of = _cell_psfs(field_model, sub.shape, cfg.psf_cells)
-        cell = cell_of(x, y)
+        cells = _cell_psfs(field_model, sub.shape, cfg.psf_cells, x, y,
+                           bilinear=cfg.psf_interpolation == "bilinear")  # fmt: skip
     t_psf = time.perf_counter()
     st = _image_stamps(sub, img, det, cfg, saturated, flags)
     t_stamps = time.perf_counter()
@@ -678,11 +716,11 @@ def _image_task(task: _ImageTask) -> dict[str, Any]:
     res = _ImageResults.empty(x, y, st, flags, bank, egrid, task.keep_lnL_r, rings)
     fit = _ImageFitter(
         st=st, noise=noise, cfg=cfg, psf_image=None if psf is None else psf.image,
-        cell_images=cell_images, cell=cell, size_prior=task.size_prior, rings=rings,
+        cells=cells, size_prior=task.size_prior, rings=rings,
         size_marginal_prior=task.size_marginal_prior)  # fmt: skip
     todo = np.flatnonzero(flags == 0)
-    # the PSF the neighbours are rendered with: each object's cell's, or the image's
-    render_psf = (cell_images, cell) if cell_images is not None else (
+    # the PSF the neighbours are rendered with: each object's heaviest node's, or the image's
+    render_psf = (cells.images, cells.nearest) if cells is not None else (
         psf.image if psf is not None else None)
     if todo.size:
         fits_ = fit(todo)
@@ -715,7 +753,7 @@ def _image_task(task: _ImageTask) -> dict[str, Any]:
                  "(Config.max_reduced_chi2, max_residual_fraction)", path,
                  int(defect.sum()))  # fmt: skip
     t_fit = time.perf_counter()
-    rows = _image_rows(task, img, det, res, back, psf, cell_e, cell, own_stars, redo, lost)
+    rows = _image_rows(task, img, det, res, back, psf, cells, own_stars, redo, lost)
     timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
               "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
     return {
@@ -727,7 +765,7 @@ def _image_task(task: _ImageTask) -> dict[str, Any]:
 
 
 def _image_rows(task: _ImageTask, img: _Image, det: Table, res: _ImageResults,
-                back: np.ndarray, psf: PSFResult | None, cell_e, cell: np.ndarray,
+                back: np.ndarray, psf: PSFResult | None, cells: _CellPSFs | None,
                 own_stars: np.ndarray, redo: np.ndarray, lost: np.ndarray,
                 ) -> dict[str, np.ndarray]:  # fmt: skip
     """The image's catalogue columns; completes the flags (``FIT_FAILED``,
@@ -758,9 +796,9 @@ def _image_rows(task: _ImageTask, img: _Image, det: Table, res: _ImageResults,
         "fitclass": fitclass.astype(np.int16),
         "is_star": res.is_star,
         "psf_star": own_stars,
-        "PSF_e1": (cell_e[0][cell] if cell_e is not None else
+        "PSF_e1": (cells.psf_e[0] if cells is not None else
                    np.full(n, psf.e1 if psf is not None else np.nan)),
-        "PSF_e2": (cell_e[1][cell] if cell_e is not None else
+        "PSF_e2": (cells.psf_e[1] if cells is not None else
                    np.full(n, psf.e2 if psf is not None else np.nan)),
         "sky_angle": frame.angle, "sky_flip": frame.flip,
         "wcs_g1": frame.g1, "wcs_g2": frame.g2,
