@@ -315,7 +315,8 @@ class Config:
     psf_model: str = _f(
         "constant", "'constant': one stacked PSF per image; 'polynomial': every PSF pixel a "
         "polynomial in (x, y) fitted to the stars (lensfit's survey PSF; "
-        "pylensfit.psfmodel.PolynomialPSF), each galaxy fitted with the PSF of its cell"
+        "pylensfit.psfmodel.PolynomialPSF), each galaxy fitted with the PSF at its "
+        "position (psf_cells, psf_interpolation)"
     )
     psf_order: int = _f(3, "total degree of the polynomial PSF (lowered for few stars)")
     psf_cells: int = _f(

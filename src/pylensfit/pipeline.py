@@ -1401,8 +1401,8 @@ def measure(
     psf : PSFResult, PSFModel, numpy.ndarray or str, or a list of them, optional
         The PSF instead of stars: an image (pixel response included, centred on
         ``[n//2, n//2]``) or its file, a :class:`~pylensfit.psfmodel.PSFModel` (a PSF
-        over the field, each galaxy fitted with it at the centre of its cell of
-        ``Config.psf_cells``) or a file :func:`~pylensfit.psfmodel.read_psf_model`
+        over the field, each galaxy fitted with it at its position as
+        ``Config.psf_interpolation`` says) or a file :func:`~pylensfit.psfmodel.read_psf_model`
         reads (a Piff model); one for every image or one per image.
     weights, masks : list of str, optional
         Weight and mask files, one per image (``None`` entries allowed).
