@@ -1139,8 +1139,6 @@ def _psf_summary(psf: PSFResult, model: PSFModel | None = None) -> dict[str, Any
     d["n_used"], d["n_rejected"] = int(psf.n_used), int(psf.n_rejected)
     diag = {} if model is None else model.diagnostics
     d.update({k: float(diag.get(k, math.nan)) for k in _HELDOUT_KEYS})
-    if diag.get("heldout_n", 0) == 0:  # no held-out star survived: nothing measured
-        d.update({k: math.nan for k in _HELDOUT_KEYS[1:]})
     d["image"] = np.asarray(psf.image, dtype=float)
     return d
 

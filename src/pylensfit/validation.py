@@ -2280,7 +2280,7 @@ def _diagnose(res: Table) -> dict[str, Any]:
     if pc is not None and len(pc):
         de = np.hypot(pc["e1_meas"] - pc["e1_true"], pc["e2_meas"] - pc["e2_true"])
         d["psf_worst"] = (str(pc["psf"][int(np.argmax(de))]), float(np.max(de)))
-        held = pc[np.asarray(pc["heldout_n"]) > 0] if "heldout_n" in pc.colnames else pc[:0]
+        held = pc[np.asarray(pc["heldout_n"]) > 0]
         if len(held):  # a PSF model varying over the field: its held-out stars' check
             ex = np.maximum(held["heldout_excess_de1"], held["heldout_excess_de2"])
             j = int(np.argmax(ex))
@@ -2639,8 +2639,7 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
         lines += ["", "Faint lines: each PSF; bold: all PSFs.", "",
                   figure("bins", "m and c per bin"), ""]  # fmt: skip
     pcheck = meta["psf_check"]
-    held = bool(len(pcheck)) and "heldout_n" in pcheck.colnames and bool(
-        np.any(np.asarray(pcheck["heldout_n"]) > 0))
+    held = bool(len(pcheck)) and bool(np.any(np.asarray(pcheck["heldout_n"]) > 0))
     if len(pcheck):
         lines += ["## PSF models", "",
                   "Measured: the pipeline's PSF (stars, pixel included) averaged over the "
@@ -2668,7 +2667,7 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
                       "(pylensfit.psfmodel.PolynomialPSF), star minus model adaptive-moment "
                       "ellipticity over every image of the shear fields; noise: the rms "
                       "their own noise gives; excess: sqrt(rms^2 - noise^2), the model's "
-                      "error (target < 1e-3)."]  # fmt: skip
+                      f"error (target < {PSF_HELDOUT_TARGET:.0e})."]  # fmt: skip
         lines.append("")
     lines += ["## The prior", "",
               f"Recovered {meta['prior']!r} from the prior fields' galaxies against the truth "
