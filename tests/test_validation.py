@@ -668,6 +668,21 @@ def test_validate_with_the_true_psf(tmp_path):
     # the same galaxies, fitted with nearly the same PSF: c agrees far inside its error
     for c in ("c1", "c2"):
         assert abs(res[c][-1] - res_s[c][-1]) < 0.5 * res[c + "_err"][-1]
+    # the same true images given as PSF model files: the same fits, kept apart
+    from pylensfit.psf import psf_from_image
+
+    files = {}
+    for k, p in enumerate(STEP1_PSFS[1:3]):
+        files[k] = tmp_path / f"psf{k}.fits"
+        psf_from_image(true_psf_image(p, cfg.largest_stamp)).write(files[k])
+    res_f = validate(d, config=cfg, psf_models=files, progress=False, bins={})
+    assert res_f.meta["psf_source"] == "models"
+    assert all(Path(v["path"]).parent == Path(d) / "measured_psf_models"
+               for v in res_f.meta["measured"].values())  # fmt: skip
+    for c in ("m1", "c1", "m2", "c2"):
+        np.testing.assert_allclose(res_f[c], res[c], rtol=0, atol=1e-7)
+    with pytest.raises(ValueError, match=r"no file for PSF \[1\]"):
+        validate(d, config=cfg, psf_models={0: files[0]}, progress=False, bins={})
 
 
 @pytest.fixture(scope="module")

@@ -274,8 +274,8 @@ def _validate(args: argparse.Namespace) -> int:
                          "--precision, --convergence)")  # fmt: skip
     res = validate(args.directory, config=cfg, jobs=args.jobs, estimator=args.estimator,
                    report=args.report, progress=not args.quiet, remeasure=args.remeasure,
-                   bins=bins, true_psf=args.true_psf,
-                   truth_control=args.truth_control)  # fmt: skip
+                   bins=bins, true_psf=args.true_psf, truth_control=args.truth_control,
+                   psf_models=dict(enumerate(args.psf_models or [])) or None)  # fmt: skip
     for c in res.colnames[1:-2]:
         res[c].format = "+.5f"
     res["Q"].format = ".0f"
@@ -527,6 +527,10 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--true-psf", action="store_true",
                    help="diagnostic: fit with the set's true PSFs instead of the PSFs stacked "
                         "from its stars (catalogues kept in DIR/measured_true_psf/)")
+    v.add_argument("--psf-models", nargs="+", metavar="FILE",
+                   help="one PSF model file per PSF of the set, in its order (a .piff file, "
+                        "a polynomial model, a PSF image), instead of the models made from "
+                        "its star fields (catalogues kept in DIR/measured_psf_models/)")
     v.add_argument("--truth-control", action="store_true",
                    help="take the truth's shape noise out of each image's or group's shear "
                         "(the true sheared ellipticities' departure from the shear, of "

@@ -34,13 +34,14 @@ Conventions are those of :mod:`pylensfit.simulate`: sizes in pixels, numpy ``(x,
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
 from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any
@@ -1080,7 +1081,7 @@ _MEASURE_VERSION = 4
 def _ident(fields: list[dict], star: dict, cfg, priors=None, psf=None) -> dict:
     """What a kept catalogue was made from: the configuration, the fields' seeds, the
     priors given to the measurement (if any) and the PSF given to it (if any: a
-    digest of its image; otherwise it came from the star field)."""
+    digest of its image or of its model file; otherwise it came from the star field)."""
     ids = []
     for f in [*fields, star]:
         # the manifest's entry, and the file as it is now (a set simulated again in the
@@ -1091,7 +1092,9 @@ def _ident(fields: list[dict], star: dict, cfg, priors=None, psf=None) -> dict:
     ident = {"version": _MEASURE_VERSION, "config": cfg.to_dict(), "fields": ids}
     if priors is not None:
         ident["priors"] = priors.to_dict()
-    if psf is not None:
+    if isinstance(psf, Path):  # a PSF model file: its bytes
+        ident["psf"] = hashlib.sha1(psf.read_bytes()).hexdigest()
+    elif psf is not None:
         ident["psf"] = psf.digest
     return json.loads(json.dumps(ident))
 
@@ -1107,8 +1110,9 @@ def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, job
     (``output=``: written atomically, resumable from its ``.parts`` folder; under
     ``priors``, a :class:`~pylensfit.Priors`, if given, else with the priors estimated
     from the fields by the calibration recipe) and the sidecar
-    written after the catalogue. With ``psf`` (a :class:`~pylensfit.psf.PSFResult`) the
-    fields are measured with it instead of the star field's PSF.
+    written after the catalogue. With ``psf`` (a :class:`~pylensfit.psf.PSFResult` or
+    the path of a PSF model file) the fields are measured with it instead of the star
+    field's PSF.
     """
     cat_path, side = mdir / f"{name}.fits", mdir / f"{name}.json"
     ident = _ident(fields, star, cfg, priors, psf)
@@ -1812,7 +1816,8 @@ def step_config(n_bulge_fractions: int = 5) -> Config:
 def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: str = "fixed-point",
              report: str | Path | None = None, progress: bool = True, remeasure: bool = False,
              bins: dict[str, int | Sequence[float]] | None = None, bin_min_count: int = 300,
-             true_psf: bool = False, truth_control: bool = False):  # fmt: skip
+             true_psf: bool = False, truth_control: bool = False,
+             psf_models: Mapping[int, str | os.PathLike] | None = None):  # fmt: skip
     """Run the pipeline on a simulated set and measure m, c, sigma_c and Q per PSF and bin.
 
     1. **Measure** each PSF's zero-shear (prior) fields and its shear fields with its own
@@ -1905,6 +1910,13 @@ def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: st
         the largest stamp) instead of the PSF stacked from the stars, keeping the
         catalogues in ``DIR/measured_true_psf/``. The difference from a run with the
         modelled PSF is what the PSF model does to m and c, measured on the same noise.
+    psf_models : mapping, optional
+        ``{psf index: file}``: fit that PSF's fields with the PSF model in the file
+        (:func:`pylensfit.psfmodel.read_psf_model`: a Piff model, a polynomial model
+        written by :meth:`~pylensfit.psfmodel.PolynomialPSF.write` or a PSF image)
+        instead of the model made from its star field, keeping the catalogues in
+        ``DIR/measured_psf_models/``; how a PSF model made elsewhere (by Piff from the
+        set's star fields, say) is validated. Every PSF of the set needs one.
     truth_control : bool
         Take the truth's shape noise out of each image's (or group's) estimate with
         :func:`truth_control_variate`: the true sheared ellipticities' departure from
@@ -1949,9 +1961,16 @@ def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: st
         (:func:`pylensfit.simulate.pixel_to_sky_shear`), the fixed point solves for the
         sky-frame shear, and the manifest's shears are the sky frame's.
     """
+    if true_psf and psf_models:
+        raise ValueError("true_psf and psf_models exclude each other")
+    models = {int(k): Path(v) for k, v in (psf_models or {}).items()}
     opts = _Options(estimator=estimator, jobs=jobs, progress=progress, remeasure=remeasure,
-                    min_count=bin_min_count, true_psf=true_psf, truth_control=truth_control)
+                    min_count=bin_min_count, true_psf=true_psf, truth_control=truth_control,
+                    psf_models=models)  # fmt: skip
     man = read_manifest(directory)
+    missing = sorted({int(f["psf"]) for f in man["fields"]} - set(models))
+    if models and missing:
+        raise ValueError(f"psf_models has no file for PSF {missing} of {directory}")
     sky, bins = _set_frame(man), _bin_quantities(man, bins)
     cfg = config if config is not None else Config()
     out = _analyse(man, cfg, sky, bins, opts)
@@ -1971,6 +1990,7 @@ class _Options:
     min_count: int  # bin_min_count
     true_psf: bool
     truth_control: bool
+    psf_models: dict[int, Path] = field(default_factory=dict)  # {PSF index: model file}
 
     def __post_init__(self) -> None:
         """Refuse an unknown estimator."""
@@ -2030,7 +2050,8 @@ def _analyse(man: dict, cfg: Config, sky: tuple[float, bool],
     out.meta["fits"] = Table(rows=fits.fit_rows, names=("psf", "component", "m", "m_err", "c",
                                                         "c_err", "rho"))  # fmt: skip
     out.meta["measured"] = ms.measured
-    out.meta["psf_source"] = "true" if opts.true_psf else "stars"
+    out.meta["psf_source"] = ("true" if opts.true_psf else
+                              "models" if opts.psf_models else "stars")  # fmt: skip
     out.meta["truth_control"] = bool(opts.truth_control)
     out.meta["leakage"] = _leakage_table(ms.sg, e, s, ms.fields, ms.psfs, pairs)
     out.meta["bins"], out.meta["bin_edges"] = _bins(ms, pairs, bins, e_s_of, cfg, sky, opts)
@@ -2046,7 +2067,9 @@ def _measure_set(man: dict, cfg: Config, sky: tuple[float, bool],
     for f in man["fields"]:
         by_psf.setdefault(int(f["psf"]), []).append(f)
     stars = {int(s["psf"]): s for s in man["star_fields"]}
-    mdir = Path(man["dir"]) / ("measured_true_psf" if opts.true_psf else "measured")
+    sub = ("measured_true_psf" if opts.true_psf else
+           "measured_psf_models" if opts.psf_models else "measured")  # fmt: skip
+    mdir = Path(man["dir"]) / sub
     pgs, sgs, measured, psf_rows = [], [], {}, []
     priors_of: dict = {}
     egrid = None
@@ -2054,6 +2077,8 @@ def _measure_set(man: dict, cfg: Config, sky: tuple[float, bool],
         fwhm = float(man["psfs"][k]["fwhm"])
         given = (psf_from_image(true_psf_image(man["psfs"][k], cfg.largest_stamp),
                                 source=f"true PSF {k}") if opts.true_psf else None)  # fmt: skip
+        if k in opts.psf_models:
+            given = opts.psf_models[k]  # read by measure, as a file given to it
         for role, lst in (("prior", pgs), ("shear", sgs)):
             sel = [f for f in fl if f["role"] == role]
             if not sel:
