@@ -73,8 +73,9 @@ def test_each_galaxy_is_fitted_with_the_psf_at_its_position(field):
 
 
 def test_heldout_residuals_are_pooled_over_images():
-    """validate's PSF table pools the images' held-out stars as sqrt(sum n x^2 / sum n)."""
-    from astropy.table import Table
+    """validate's PSF table pools the images' distinct held-out checks as
+    sqrt(sum n x^2 / sum n)."""
+    from astropy.table import Table, vstack
 
     from pylensfit.validation import _heldout_pooled
 
@@ -86,6 +87,8 @@ def test_heldout_residuals_are_pooled_over_images():
     assert r1 == pytest.approx(np.sqrt((10 * 9e-6 + 30 * 1e-6) / 40))
     assert r2 == pytest.approx(2e-3) and noise == pytest.approx(1e-3)
     assert x1 == pytest.approx(np.sqrt(r1**2 - 1e-6)) and x2 == pytest.approx(np.sqrt(3e-6))
+    # images measured with one model repeat its check: counted once
+    assert _heldout_pooled(vstack([p, p[:2], p[1:2]])) == (n, r1, r2, noise, x1, x2)
     assert _heldout_pooled(Table({"psf_n_used": [3]}))[0] == 0  # an older catalogue
 
 

@@ -2125,9 +2125,16 @@ def _heldout_pooled(p: Table) -> tuple:
     table: their number, the rms of star minus model ellipticity per component, the rms
     the stars' noise alone gives, and the excess ``sqrt(rms^2 - noise^2)`` (0 if
     negative), each pooled as ``sqrt(sum n x^2 / sum n)``; NaN without held-out stars
-    (a constant PSF, or a catalogue written before the PSFS table had them)."""
+    (a constant PSF, or a catalogue written before the PSFS table had them). Images
+    measured with one model (a star field's, or one model file for several images)
+    repeat its check: each distinct check is counted once."""
     if "psf_heldout_n" not in p.colnames:
         return (0, *([math.nan] * 5))
+    cols = [f"psf_heldout_{q}" for q in ("n", "mean_de1", "mean_de2", "rms_de1", "rms_de2",
+                                         "noise_de") if f"psf_heldout_{q}" in p.colnames]
+    keys = np.column_stack([np.nan_to_num(np.asarray(p[c], dtype=float), nan=-1.0)
+                            for c in cols])  # fmt: skip
+    p = p[np.sort(np.unique(keys, axis=0, return_index=True)[1])]
     n = np.nan_to_num(np.asarray(p["psf_heldout_n"], dtype=float))
     if n.sum() <= 0:
         return (0, *([math.nan] * 5))
