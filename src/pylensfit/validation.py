@@ -1858,20 +1858,15 @@ def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: st
       SExtractor magnitudes; an observable, independent of the shear.
     - ``"snr"``: the measured matched-filter S/N of the best model (``model_SNratio``):
       the noise regime, where noise bias shows.
-    - ``"size"``: the true size over the PSF FWHM, ``r_true / FWHM`` (``r`` is the
-      simulation's size parameter: the disc scale length for step1, the half-light
-      radius for step2), i.e. how well a galaxy is resolved, which is what drives model
-      and PSF errors, comparable across PSFs. The paper likewise took its radii from the
-      simulations' truth. A measured size would select on the same noisy fit that gives
-      the ellipticity and so add a selection bias that belongs to the cut, not to the
-      method; galaxies without a truth match (spurious detections) drop out of these
-      bins only.
+    - ``"size"``: the true size over the PSF FWHM, ``r_true / FWHM`` (the disc scale
+      length for step1, the half-light radius for step2): how well a galaxy is resolved,
+      from the truth as in the paper (a measured size would add the selection bias of a
+      cut on the noisy fit); unmatched detections drop out of these bins only.
     - ``"morphology"``: a STEP2 galaxy's kind (Sersic, bulge+disc, knotty disc), from
       the truth: where the model family fits worst. Its prior per bin is the kind's own.
 
-    For twins, a pair's bin is that of the mean of its two members' values (the size is
-    the same), so a pair never straddles two bins. Bins partition the usable galaxies
-    with a finite value.
+    A twin pair's bin is that of its members' mean value (it never straddles two bins).
+    Bins partition the usable galaxies with a finite value.
 
     Parameters
     ----------
@@ -1911,12 +1906,9 @@ def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: st
         catalogues in ``DIR/measured_true_psf/``. The difference from a run with the
         modelled PSF is what the PSF model does to m and c, measured on the same noise.
     psf_models : mapping, optional
-        ``{psf index: file}``: fit that PSF's fields with the PSF model in the file
-        (:func:`pylensfit.psfmodel.read_psf_model`: a Piff model, a polynomial model
-        written by :meth:`~pylensfit.psfmodel.PolynomialPSF.write` or a PSF image)
-        instead of the model made from its star field, keeping the catalogues in
-        ``DIR/measured_psf_models/``; how a PSF model made elsewhere (by Piff from the
-        set's star fields, say) is validated. Every PSF of the set needs one.
+        ``{psf index: file}`` for every PSF: its fields fitted with the model in the
+        file (:func:`pylensfit.psfmodel.read_psf_model`: Piff's, a polynomial model, an
+        image), not its star field's; catalogues in ``DIR/measured_psf_models/``.
     truth_control : bool
         Take the truth's shape noise out of each image's (or group's) estimate with
         :func:`truth_control_variate`: the true sheared ellipticities' departure from
@@ -1961,16 +1953,10 @@ def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: st
         (:func:`pylensfit.simulate.pixel_to_sky_shear`), the fixed point solves for the
         sky-frame shear, and the manifest's shears are the sky frame's.
     """
-    if true_psf and psf_models:
-        raise ValueError("true_psf and psf_models exclude each other")
-    models = {int(k): Path(v) for k, v in (psf_models or {}).items()}
     opts = _Options(estimator=estimator, jobs=jobs, progress=progress, remeasure=remeasure,
                     min_count=bin_min_count, true_psf=true_psf, truth_control=truth_control,
-                    psf_models=models)  # fmt: skip
+                    psf_models={int(k): Path(v) for k, v in (psf_models or {}).items()})
     man = read_manifest(directory)
-    missing = sorted({int(f["psf"]) for f in man["fields"]} - set(models))
-    if models and missing:
-        raise ValueError(f"psf_models has no file for PSF {missing} of {directory}")
     sky, bins = _set_frame(man), _bin_quantities(man, bins)
     cfg = config if config is not None else Config()
     out = _analyse(man, cfg, sky, bins, opts)
@@ -1993,11 +1979,13 @@ class _Options:
     psf_models: dict[int, Path] = field(default_factory=dict)  # {PSF index: model file}
 
     def __post_init__(self) -> None:
-        """Refuse an unknown estimator."""
+        """Refuse an unknown estimator, or both the true PSFs and model files."""
         if self.estimator not in ("key2", "fixed-point"):
             raise ValueError(
                 f"estimator must be 'key2' or 'fixed-point', got {self.estimator!r}"
             )
+        if self.true_psf and self.psf_models:
+            raise ValueError("true_psf and psf_models exclude each other")
 
 
 def _bin_quantities(man: dict, bins: dict[str, int | Sequence[float]] | None
@@ -2066,6 +2054,9 @@ def _measure_set(man: dict, cfg: Config, sky: tuple[float, bool],
     by_psf: dict[int, list] = {}
     for f in man["fields"]:
         by_psf.setdefault(int(f["psf"]), []).append(f)
+    missing = sorted(set(by_psf) - set(opts.psf_models))
+    if opts.psf_models and missing:
+        raise ValueError(f"psf_models has no file for PSF {missing} of {man['dir']}")
     stars = {int(s["psf"]): s for s in man["star_fields"]}
     sub = ("measured_true_psf" if opts.true_psf else
            "measured_psf_models" if opts.psf_models else "measured")  # fmt: skip
