@@ -14,7 +14,7 @@ everywhere (``--psf-variation none``). Then:
    adaptive-moment ellipticity at the held-out stars and at the galaxies of one shear
    field is compared with the truth's (the noise-free PSF there): the rms residual per
    component (the stars' own noise does not enter).
-2. **The galaxies** (with ``--measure``), each set through :func:`pylensfit.validate`
+2. **The galaxies** (with ``--measure``), each set through :func:`pylensfit.validation.validate`
    with the defaults otherwise: the constant set with the constant PSF stacked from its
    stars; the varying set with the polynomial model (``psf_model = "polynomial"``,
    ``psf_order = --order``), with the constant stacked PSF (the comparison), and with
@@ -35,7 +35,7 @@ everywhere (``--psf-variation none``). Then:
    * errors by jackknife over 64 blocks of the field (a galaxy's twins share its
      position, so they leave together).
 
-   It also prints :func:`pylensfit.validate`'s own m, c and unpaired leakage of each
+   It also prints :func:`pylensfit.validation.validate`'s own m, c and unpaired leakage of each
    run.
 
 ::
@@ -62,7 +62,7 @@ from scipy.spatial import cKDTree
 import pylensfit as plf
 from pylensfit.psfmodel import PolynomialPSF, read_psf_model
 from pylensfit.simulate import pixel_to_sky_shear
-from pylensfit.validation import psf_leakage, read_manifest, simulate_step
+from pylensfit.validation import psf_leakage, read_manifest, simulate_step, validate
 
 BLOCKS = 8  # jackknife blocks per side of the field
 
@@ -182,11 +182,11 @@ def _galaxy_truth(man: dict, k: int) -> Table:
 
 
 def _validated(d: Path, label: str, jobs: int, **kw) -> Table:
-    """:func:`pylensfit.validate` of one run, its summary printed."""
+    """:func:`pylensfit.validation.validate` of one run, its summary printed."""
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", plf.CalibrationWarning)
-        res = plf.validate(d, jobs=jobs, progress=False, bins={}, **kw)
+        res = validate(d, jobs=jobs, progress=False, bins={}, **kw)
     reused = all(v["reused"] for v in res.meta["measured"].values())
     took = "kept catalogues" if reused else f"{time.perf_counter() - t0:.0f} s"
     lk = res.meta["leakage"]
