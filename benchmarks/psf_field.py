@@ -60,7 +60,7 @@ from astropy.table import Table
 from scipy.spatial import cKDTree
 
 import pylensfit as plf
-from pylensfit.psfmodel import PolynomialPSF, read_psf_model
+from pylensfit.psfmodel import PolynomialPSF, fit_piff, read_psf_model
 from pylensfit.simulate import pixel_to_sky_shear
 from pylensfit.validation import psf_leakage, read_manifest, simulate_step, validate
 
@@ -103,35 +103,6 @@ def _star_field(man: dict, k: int) -> tuple[np.ndarray, Table, float]:
     return image, truth, float(man["noise_sigma"])
 
 
-def _fit_piff(image: np.ndarray, x: np.ndarray, y: np.ndarray, sigma: float, order: int,
-              path: Path) -> Path:  # fmt: skip
-    """A Piff ``PixelGrid`` model, polynomial of ``order`` in the position, fitted by Piff
-    to the stars at 0-based ``(x, y)`` and written to ``path``."""
-    import galsim
-    import piff
-
-    full = galsim.ImageD(image, scale=1.0)  # GalSim's (1, 1) is numpy's [0, 0]
-    wt = galsim.ImageD(np.full(image.shape, 1.0 / sigma**2), scale=1.0)
-    stars = []
-    for xi, yi in zip(x + 1.0, y + 1.0, strict=True):
-        ix, iy = int(round(xi)), int(round(yi))
-        b = galsim.BoundsI(ix - 12, ix + 12, iy - 12, iy + 12)
-        if full.bounds.includes(b):
-            data = piff.StarData(full[b].copy(), galsim.PositionD(xi, yi),
-                                 weight=wt[b].copy(), properties={"chipnum": 0})  # fmt: skip
-            stars.append(piff.Star(data, None))
-    try:
-        interp = piff.BasisPolynomial(order=order, solver="cpp")
-    except (TypeError, ValueError):
-        interp = piff.BasisPolynomial(order=order)
-    model = piff.SimplePSF(piff.PixelGrid(scale=1.0, size=15), interp, max_iter=3)
-    model.set_context({0: galsim.PixelScale(1.0)}, None)
-    model.fit(stars)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    model.write(str(path))
-    return path
-
-
 def _residual(model, x, y, e_true: np.ndarray) -> tuple[float, float, float, float]:
     """rms and mean of the model's ellipticity minus the truth's at ``(x, y)``."""
     e1, e2, _ = model.shape_at(x, y)
@@ -158,8 +129,8 @@ def psf_models(man: dict, orders: list[int], piff_order: int | None, out: Path,
             models.append((f"polynomial {m.order}", m))
         if piff_order is not None:
             t0 = time.perf_counter()
-            path = _fit_piff(image, x[~hold], y[~hold], sigma, piff_order,
-                             out / "piff" / f"psf{k}.piff")  # fmt: skip
+            path = fit_piff(image, x[~hold], y[~hold], out / "piff" / f"psf{k}.piff",
+                            noise_sigma=sigma, order=piff_order, overwrite=True)  # fmt: skip
             piff_files[k] = path
             print(f"  PSF {k}: Piff fitted in {time.perf_counter() - t0:.1f} s")
             models.append((f"piff {piff_order}", read_psf_model(path)))

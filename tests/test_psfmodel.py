@@ -347,25 +347,11 @@ def test_missing_piff_names_the_extra(monkeypatch, tmp_path):
 # Piff
 # ---------------------------------------------------------------------------------------
 def piff_fit(image, x, y, path):
-    """Fit a PixelGrid model with a quadratic BasisPolynomial with Piff's Python API."""
-    piff = pytest.importorskip("piff")
-    full = galsim.ImageD(image, scale=1.0)  # GalSim's (1, 1) is numpy's [0, 0]
-    wt = galsim.ImageD(np.full(image.shape, 1.0 / SIGMA**2), scale=1.0)
-    stars = []
-    for xi, yi in zip(x + 1.0, y + 1.0, strict=True):
-        ix, iy = int(round(xi)), int(round(yi))
-        b = galsim.BoundsI(ix - 12, ix + 12, iy - 12, iy + 12)
-        data = piff.StarData(full[b].copy(), galsim.PositionD(xi, yi), weight=wt[b].copy(),
-                             properties={"chipnum": 0})  # fmt: skip
-        stars.append(piff.Star(data, None))
-    try:
-        interp = piff.BasisPolynomial(order=2, solver="cpp")  # 2-3x faster than scipy
-    except (TypeError, ValueError):
-        interp = piff.BasisPolynomial(order=2)
-    psf = piff.SimplePSF(piff.PixelGrid(scale=1.0, size=15), interp, max_iter=3)
-    psf.set_context({0: galsim.PixelScale(1.0)}, None)
-    psf.fit(stars)
-    psf.write(str(path))
+    """A PixelGrid model, quadratic in the position, fitted by Piff (``fit_piff``)."""
+    pytest.importorskip("piff")
+    from pylensfit.psfmodel import fit_piff
+
+    fit_piff(image, x, y, path, noise_sigma=SIGMA, order=2)
 
 
 def test_piff_model(field, catalogue, probe, tmp_path):

@@ -95,32 +95,16 @@ def test_heldout_residuals_are_pooled_over_images():
 def test_a_piff_model_fitted_to_the_same_stars(field, tmp_path):
     """The same with a Piff model (PixelGrid, quadratic in the position) that Piff fits
     to the field's stars, given to ``measure`` as its file."""
-    piff = pytest.importorskip("piff")
-    import galsim
+    pytest.importorskip("piff")
     from astropy.io import fits
+
+    from pylensfit.psfmodel import fit_piff
 
     path, truth = field
     image = fits.getdata(path).astype(float) - SPEC.sky
-    full = galsim.ImageD(image, scale=1.0)  # GalSim's (1, 1) is numpy's [0, 0]
-    wt = galsim.ImageD(np.full(image.shape, 1.0 / SPEC.noise_sigma**2), scale=1.0)
-    stars = []
     st = truth[np.asarray(truth["is_star"])]
-    for xi, yi in zip(np.asarray(st["x"]) + 1.0, np.asarray(st["y"]) + 1.0, strict=True):
-        ix, iy = int(round(xi)), int(round(yi))
-        b = galsim.BoundsI(ix - 12, ix + 12, iy - 12, iy + 12)
-        if not full.bounds.includes(b):
-            continue
-        data = piff.StarData(full[b].copy(), galsim.PositionD(xi, yi), weight=wt[b].copy(),
-                             properties={"chipnum": 0})  # fmt: skip
-        stars.append(piff.Star(data, None))
-    try:
-        interp = piff.BasisPolynomial(order=2, solver="cpp")
-    except (TypeError, ValueError):
-        interp = piff.BasisPolynomial(order=2)
-    model = piff.SimplePSF(piff.PixelGrid(scale=1.0, size=15), interp, max_iter=3)
-    model.set_context({0: galsim.PixelScale(1.0)}, None)
-    model.fit(stars)
-    model.write(str(tmp_path / "field.piff"))
+    fit_piff(image, np.asarray(st["x"]), np.asarray(st["y"]), tmp_path / "field.piff",
+             noise_sigma=SPEC.noise_sigma, order=2)  # fmt: skip
     cat = measure([path], psf=tmp_path / "field.piff", config=CFG, prior=Prior(),
                   progress=False)  # fmt: skip
     t, c = _matched(cat, truth)

@@ -10,7 +10,8 @@ fitted to the stars, as PSFEx does. This module provides:
 * :class:`ConstantPSF`, one :class:`~pylensfit.psf.PSFResult` everywhere;
 * :class:`PolynomialPSF`, the per-pixel polynomial fitted to the stars
   (:meth:`PolynomialPSF.fit`), with outlier rejection and held-out diagnostics;
-* :class:`PiffPSF`, a model fitted by Piff (optional dependency);
+* :class:`PiffPSF`, a model fitted by Piff (optional dependency), and
+  :func:`fit_piff`, which fits one to an image's stars with Piff;
 * :func:`read_psf_model`, which reads any of them back.
 
 Every drawn image follows the convention of :mod:`pylensfit.psf`: ``(size, size)``,
@@ -59,6 +60,7 @@ __all__ = [
     "PiffNotInstalledError",
     "PiffPSF",
     "PolynomialPSF",
+    "fit_piff",
     "n_terms",
     "read_psf_model",
 ]
@@ -1189,6 +1191,81 @@ class PiffPSF(PSFModel):
 # ---------------------------------------------------------------------------------------
 # Reading
 # ---------------------------------------------------------------------------------------
+def fit_piff(image: np.ndarray, x, y, path: str | Path, *, noise_sigma: float,
+             order: int = 2, pixels: int = 15, half: int = 12, overwrite: bool = False) -> Path:
+    """Fit a Piff PSF model to an image's stars with Piff, and write it.
+
+    The model is Piff's ``SimplePSF`` of a ``PixelGrid`` (``pixels`` square, one pixel
+    per image pixel, the pixel response included) whose every pixel is a
+    ``BasisPolynomial`` of total degree ``order`` in the position, fitted in three
+    outlier-rejection passes to ``(2 half + 1)``-square cutouts about the stars (those
+    not wholly inside the image are skipped), each pixel weighted ``1 / noise_sigma^2``.
+    :class:`PiffPSF` reads the file back (``origin = 1``: the cutouts are placed in
+    GalSim's 1-based image coordinates).
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        2-D background-subtracted image indexed ``[y, x]``.
+    x, y : array_like
+        0-based pixel positions of the stars.
+    path : str or Path
+        Where to write the model (a ``.piff`` file).
+    noise_sigma : float
+        Per-pixel noise standard deviation (image units).
+    order : int
+        Degree of the polynomial in the position.
+    pixels : int
+        Side of the ``PixelGrid`` in pixels.
+    half : int
+        Half-side of the star cutouts in pixels.
+    overwrite : bool
+        Replace an existing file.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+
+    Raises
+    ------
+    PiffNotInstalledError
+        If piff is not installed.
+    FileExistsError
+        If ``path`` exists and ``overwrite`` is False.
+    PSFError
+        If no star's cutout lies inside the image.
+    """
+    piff = _import_piff()
+    import galsim  # galsim: heavy import, only with piff
+
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists (overwrite=False)")
+    full = galsim.ImageD(np.asarray(image, dtype=float), scale=1.0)  # (1, 1) is [0, 0]
+    wt = galsim.ImageD(np.full(full.array.shape, 1.0 / float(noise_sigma) ** 2), scale=1.0)
+    stars = []
+    for xi, yi in zip(np.asarray(x, float) + 1.0, np.asarray(y, float) + 1.0, strict=True):
+        ix, iy = int(round(xi)), int(round(yi))
+        b = galsim.BoundsI(ix - half, ix + half, iy - half, iy + half)
+        if full.bounds.includes(b):
+            data = piff.StarData(full[b].copy(), galsim.PositionD(xi, yi), weight=wt[b].copy(),
+                                 properties={"chipnum": 0})  # fmt: skip
+            stars.append(piff.Star(data, None))
+    if not stars:
+        raise PSFError(f"{path}: no star cutout lies inside the image")
+    try:
+        interp = piff.BasisPolynomial(order=int(order), solver="cpp")  # 2-3x faster
+    except (TypeError, ValueError):
+        interp = piff.BasisPolynomial(order=int(order))
+    model = piff.SimplePSF(piff.PixelGrid(scale=1.0, size=int(pixels)), interp, max_iter=3)
+    model.set_context({0: galsim.PixelScale(1.0)}, None)
+    model.fit(stars)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    model.write(str(path))
+    return path
+
+
 def _is_piff_fits(hdul) -> bool:
     return "PSF" in hdul and "PSF_WCS" in hdul and not hdul[0].header.get("PSFMODEL")
 
