@@ -52,6 +52,7 @@ import os
 import resource
 import time
 import warnings
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -145,7 +146,7 @@ def psf_models(man: dict, orders: list[int], piff_order: int | None, out: Path,
 def _galaxy_truth(man: dict, k: int) -> Table:
     """The galaxies of PSF ``k``'s first shear field (their true PSF shapes)."""
     f = next(f for f in man["fields"] if int(f["psf"]) == k and f["role"] == "shear")
-    t = Table.read(f["path"], hdu="TRUTH")
+    t = _truth(f["path"])
     return t[~np.asarray(t["is_star"], bool)]
 
 
@@ -173,6 +174,12 @@ def _validated(d: Path, label: str, jobs: int, **kw) -> Table:
 # -- 3. paired analysis ---------------------------------------------------------------------
 
 
+@cache
+def _truth(path: str) -> Table:
+    """An image's truth table, read once (every run of a set pairs with the same)."""
+    return Table.read(path, hdu="TRUTH")
+
+
 def _rows(res: Table, k: int, man: dict) -> Table:
     """PSF ``k``'s usable galaxies of a run's shear catalogue, with their image's shear,
     block and true PSF ellipticity (sky frame)."""
@@ -192,7 +199,7 @@ def _rows(res: Table, k: int, man: dict) -> Table:
     pe = np.full((len(cat), 2), np.nan)
     for n in set(names):
         sel = np.flatnonzero(np.asarray(names) == n)
-        t = Table.read(fields[n]["path"], hdu="TRUTH")
+        t = _truth(fields[n]["path"])
         dist, j = cKDTree(np.column_stack([t["x"], t["y"]])).query(
             np.column_stack([cat["x"][sel], cat["y"][sel]]), distance_upper_bound=2.0)
         hit = np.isfinite(dist)
@@ -338,9 +345,9 @@ def main(argv=None) -> int:
                                   psf_models=piff_files)  # fmt: skip
     print("\n3. paired analysis")
     summary = {}
+    const_rows = {k: _rows(rc, k, man_c) for k in range(len(man_c["psfs"]))}
     for label, res in runs.items():
-        per = {k: paired(_rows(res, k, man_v), _rows(rc, k, man_c))
-               for k in range(len(man_v["psfs"]))}  # fmt: skip
+        per = {k: paired(_rows(res, k, man_v), const_rows[k]) for k in const_rows}
         _print_paired(label, per)
         summary[label] = {str(k): v for k, v in per.items()}
     (out / "paired.json").write_text(json.dumps(summary, indent=1, default=float))
