@@ -19,6 +19,7 @@ from pylensfit.simulate import (
     field_psf,
     galaxy_profile,
     lensed_shapes,
+    map_psf_model,
     pixel_to_sky_shear,
     psf_at,
     simulate_field,
@@ -155,6 +156,30 @@ def test_survey_stars_follow_the_map():
     assert abs(e[corner] - e[centre]) > 0.05  # 0.08 (0.88)^2, diluted
     ratio = sig / t["psf_fwhm"]
     assert np.ptp(t["psf_fwhm"]) > 0.5 and np.std(ratio) / np.mean(ratio) < 0.01
+
+
+def test_map_psf_model_is_the_true_psf_over_the_field():
+    # against GalSim's own rendering of the local PSF at random positions, with the
+    # pixel response; PSF 3 of STEP2 (e = 0.12 at the centre, up to 0.2 in a corner)
+    spec = FieldSpec(size=640, psf_variation="survey", psf_e1=0.12, psf_e2=0.0)
+    model = map_psf_model(spec, size=48)
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(0, 639, 20), rng.uniform(0, 639, 20)
+    drawn = model.draw(x, y)
+    for xi, yi, img in zip(x, y, drawn, strict=True):
+        ref = field_psf(spec, xi, yi).drawImage(nx=48, ny=48, scale=1.0,
+                                                use_true_center=False).array  # fmt: skip
+        ref /= ref.sum()
+        assert np.max(np.abs(img - ref)) < 1e-4 * ref.max()
+        a = galsim.hsm.FindAdaptiveMom(galsim.Image(img)).observed_shape
+        b = galsim.hsm.FindAdaptiveMom(galsim.Image(ref)).observed_shape
+        assert abs(a.g1 - b.g1) < 3e-5 and abs(a.g2 - b.g2) < 3e-5
+    assert np.ptp(model.shape_at(x, y)[0]) > 0.05  # it does vary
+    # a constant map is the one PSF everywhere
+    const = map_psf_model(replace(spec, psf_variation="none"), size=48, order=2, grid=4)
+    np.testing.assert_allclose(const.draw(5.0, 600.0), const.draw(320.0, 0.0), atol=1e-12)
+    with pytest.raises(ValueError, match="grid"):
+        map_psf_model(spec, order=5, grid=4)
 
 
 def _local_jacobian(w: WCS, x: float, y: float, h: float = 0.5) -> np.ndarray:

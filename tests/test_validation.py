@@ -685,6 +685,28 @@ def test_validate_with_the_true_psf(tmp_path):
         validate(d, config=cfg, psf_models={0: files[0]}, progress=False, bins={})
 
 
+def test_validate_with_the_true_psf_over_the_field(tmp_path):
+    from pylensfit.validation import STEP1_PSFS, _true_psf, validate
+
+    d = simulate_step("step1", tmp_path / "v", ngal=300, seed=8, psfs=STEP1_PSFS[1:2],
+                      n_shear=1, psf_variation="survey")  # fmt: skip
+    man = read_manifest(d)
+    cfg = _exponential()
+    model = _true_psf(man, 0, cfg.largest_stamp)
+    # the PSF at each object of a shear field is the truth's (its adaptive moments)
+    t = Table.read(next(f["path"] for f in man["fields"] if f["role"] == "shear"),
+                   hdu="TRUTH")  # fmt: skip
+    e1, e2, _ = model.shape_at(t["x"], t["y"])
+    assert np.max(np.abs(e1 - t["psf_e1_obs"])) < 1e-4
+    assert np.max(np.abs(e2 - t["psf_e2_obs"])) < 1e-4
+    assert np.ptp(e1) > 0.05  # and it varies
+    res = validate(d, config=cfg, true_psf=True, progress=False, bins={})
+    assert res.meta["psf_source"] == "true"
+    for name in ("psf0_prior", "psf0_shear"):
+        ident = json.loads((Path(d) / "measured_true_psf" / f"{name}.json").read_text())
+        assert ident["psf"] == model.digest  # the galaxies were fitted with the map
+
+
 @pytest.fixture(scope="module")
 def step2_validated(step2):
     import warnings

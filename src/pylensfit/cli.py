@@ -526,7 +526,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "configuration")  # fmt: skip
     v.add_argument("--true-psf", action="store_true",
                    help="diagnostic: fit with the set's true PSFs instead of the PSFs stacked "
-                        "from its stars (catalogues kept in DIR/measured_true_psf/)")
+                        "from its stars (a PSF varying over the field: each galaxy with its "
+                        "own; catalogues kept in DIR/measured_true_psf/)")
     v.add_argument("--psf-models", nargs="+", metavar="FILE",
                    help="one PSF model file per PSF of the set, in its order (a .piff file, "
                         "a polynomial model, a PSF image), instead of the models made from "

@@ -62,7 +62,8 @@ from .prior import (
     estimate_prior_binned,
     mix_bulge_fractions,
 )
-from .psf import psf_diagnostics, psf_from_image
+from .psf import PSFResult, psf_diagnostics, psf_from_image
+from .psfmodel import PSFModel
 from .runner import run_tasks
 from .shear import ShearEstimate, estimate_shear, shapes, shear_fixed_point
 from .simulate import (
@@ -76,6 +77,7 @@ from .simulate import (
     field_meta,
     lensed_shapes,
     local_psfs,
+    map_psf_model,
     pixel_shear,
     pixel_to_sky_shear,
     simulate_field,
@@ -1110,9 +1112,9 @@ def _measured(name: str, fields: list[dict], star: dict, cfg, mdir: Path, *, job
     (``output=``: written atomically, resumable from its ``.parts`` folder; under
     ``priors``, a :class:`~pylensfit.Priors`, if given, else with the priors estimated
     from the fields by the calibration recipe) and the sidecar
-    written after the catalogue. With ``psf`` (a :class:`~pylensfit.psf.PSFResult` or
-    the path of a PSF model file) the fields are measured with it instead of the star
-    field's PSF.
+    written after the catalogue. With ``psf`` (a :class:`~pylensfit.psf.PSFResult`, a
+    :class:`~pylensfit.psfmodel.PSFModel` or the path of a PSF model file) the fields
+    are measured with it instead of the star field's PSF.
     """
     cat_path, side = mdir / f"{name}.fits", mdir / f"{name}.json"
     ident = _ident(fields, star, cfg, priors, psf)
@@ -1902,7 +1904,9 @@ def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: st
         Fewest prior-field galaxies for a bin to get its own prior.
     true_psf : bool
         Diagnostic: fit with each PSF's true image (:func:`true_psf_image`, as large as
-        the largest stamp) instead of the PSF stacked from the stars, keeping the
+        the largest stamp; on a set whose PSF varies over the field, its map,
+        :func:`pylensfit.simulate.map_psf_model`, so that each galaxy is fitted with its
+        own PSF) instead of the PSF stacked from the stars, keeping the
         catalogues in ``DIR/measured_true_psf/``. The difference from a run with the
         modelled PSF is what the PSF model does to m and c, measured on the same noise.
     psf_models : mapping, optional
@@ -2066,8 +2070,7 @@ def _measure_set(man: dict, cfg: Config, sky: tuple[float, bool],
     egrid = None
     for k, fl in sorted(by_psf.items()):
         fwhm = float(man["psfs"][k]["fwhm"])
-        given = (psf_from_image(true_psf_image(man["psfs"][k], cfg.largest_stamp),
-                                source=f"true PSF {k}") if opts.true_psf else None)  # fmt: skip
+        given = _true_psf(man, k, cfg.largest_stamp) if opts.true_psf else None
         if k in opts.psf_models:
             given = opts.psf_models[k]  # read by measure, as a file given to it
         for role, lst in (("prior", pgs), ("shear", sgs)):
@@ -2320,6 +2323,18 @@ def _diagnose(res: Table) -> dict[str, Any]:
                                 f"{held['heldout_noise_de'][j]:.1e}; 2 sigma below: "
                                 f"{low:.1e}), target < {PSF_HELDOUT_TARGET:.0e}")  # fmt: skip
     return d
+
+
+def _true_psf(man: dict, k: int, n: int) -> PSFResult | PSFModel:
+    """PSF ``k``'s truth as the pipeline takes a given PSF: its image (``n`` square), or
+    on a set whose PSF varies, its map over the field
+    (:func:`pylensfit.simulate.map_psf_model`)."""
+    if man.get("psf_variation", "none") == "none":
+        return psf_from_image(true_psf_image(man["psfs"][k], n), source=f"true PSF {k}")
+    common = {q: tuple(v) if isinstance(v, list) else v for q, v in man["fieldspec"].items()
+              if not q.startswith("psf_") or q == "psf_variation"}
+    spec = _spec_for(man["psfs"][k], **{**common, "size": int(man["field_size"])})
+    return map_psf_model(spec, size=n)
 
 
 def true_psf_image(p: dict, n: int) -> np.ndarray:
