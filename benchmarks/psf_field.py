@@ -17,7 +17,8 @@ everywhere (``--psf-variation none``). Then:
 2. **The galaxies** (with ``--measure``), each set through :func:`pylensfit.validation.validate`
    with the defaults otherwise: the constant set with the constant PSF stacked from its
    stars; the varying set with the polynomial model (``psf_model = "polynomial"``,
-   ``psf_order = --order``), with the constant stacked PSF (the comparison), and with
+   ``psf_order = --order``), with the constant stacked PSF (the comparison), with each
+   galaxy's true PSF (``validate(true_psf=True)``: the PSF map, no model error) and with
    ``--piff`` with the Piff models (``validate(psf_models=...)``). The catalogues are
    kept in the sets' folders and reused.
 3. **Paired analysis.** The usable galaxies of each varying-set run are matched to the
@@ -34,6 +35,11 @@ everywhere (``--psf-variation none``). Then:
      map), with the shape noise taken out;
    * errors by jackknife over 64 blocks of the field (a galaxy's twins share its
      position, so they leave together).
+
+   The true PSF's run, paired with the constant set, is the leakage that the method
+   leaves with a perfect PSF model; each model's run paired with the true PSF's (the
+   same pixels, fitted with two PSFs) is the model's own part, free of the galaxies'
+   noise to first order.
 
    It also prints :func:`pylensfit.validation.validate`'s own m, c and unpaired leakage of each
    run.
@@ -296,8 +302,8 @@ def _combined(rows: list[dict]) -> dict[str, float]:
     return out
 
 
-def _print_paired(label: str, runs: dict[int, dict]) -> None:
-    print(f"\n{label}, paired with the constant set (jackknife errors)")
+def _print_paired(label: str, runs: dict[int, dict], ref: str = "the constant set") -> None:
+    print(f"\n{label}, paired with {ref} (jackknife errors)")
     print(f"{'PSF':>4} {'n':>6} {'dm1':>17} {'dm2':>17} {'alpha1':>17} {'alpha2':>17}")
     for k, r in [*runs.items(), ("all", _combined(list(runs.values())))]:
         print(f"{k!s:>4} {r['n']:6d} " + " ".join(
@@ -340,16 +346,24 @@ def main(argv=None) -> int:
         config=plf.Config(psf_model="polynomial", psf_order=a.order))}
     runs["constant PSF"] = _validated(_linked(var, out / "varying_stacked"),
                                       "varying set, stacked PSF", a.jobs)  # fmt: skip
+    runs["true PSF"] = _validated(var, "varying set, true PSF", a.jobs, true_psf=True)
     if a.piff:
         runs["piff"] = _validated(var, f"varying set, Piff {a.piff_order}", a.jobs,
                                   psf_models=piff_files)  # fmt: skip
     print("\n3. paired analysis")
     summary = {}
     const_rows = {k: _rows(rc, k, man_c) for k in range(len(man_c["psfs"]))}
-    for label, res in runs.items():
-        per = {k: paired(_rows(res, k, man_v), const_rows[k]) for k in const_rows}
+    var_rows = {label: {k: _rows(res, k, man_v) for k in const_rows}
+                for label, res in runs.items()}  # fmt: skip
+    for label, rows in var_rows.items():
+        per = {k: paired(rows[k], const_rows[k]) for k in const_rows}
         _print_paired(label, per)
         summary[label] = {str(k): v for k, v in per.items()}
+    # the PSF models' own part: each model's run against the true PSF's, on the same pixels
+    for label in [q for q in runs if q not in ("true PSF", "constant PSF")]:
+        per = {k: paired(var_rows[label][k], var_rows["true PSF"][k]) for k in const_rows}
+        _print_paired(f"{label} minus true PSF (the varying set)", per, "the true PSF's run")
+        summary[f"{label} - true PSF"] = {str(k): v for k, v in per.items()}
     (out / "paired.json").write_text(json.dumps(summary, indent=1, default=float))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     print(f"\n{time.perf_counter() - t0:.0f} s, peak memory {peak:.2f} GB (this process)")
