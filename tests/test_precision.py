@@ -920,3 +920,25 @@ def test_realistic_precision_run_reports_m_by_misalignment(tmp_path):
     assert "0.3-0.5" in set(res["group"][res["breakdown"] == "sersic_n"]) or "4-6" in set(
         res["group"][res["breakdown"] == "sersic_n"])  # fmt: skip
     assert "realistic population" in (tmp_path / "r.md").read_text()
+
+
+def test_breakdown_by_the_measured_bulge_fraction():
+    """Exponentials and de Vaucouleurs galaxies at S/N 40-80 fitted with the fraction
+    marginalised: the posterior mean bulge fraction puts the discs in the lowest bin and
+    the bulges in the highest (an observed quantity, the breakdown conditional on the
+    data)."""
+    spec = spec_with(ngal=120, block_size=40, ncal=300, seed=13, psfs=["round"],
+                     snr_range=(40.0, 80.0), size_ratio_range=(1.0, 2.5),
+                     morphology_weights=(1, 1, 0, 0, 0))  # fmt: skip
+    cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3)
+    res = precision(spec, config=cfg, progress=False, prior=PRIOR)
+
+    def counts(breakdown):
+        t = res[(res["breakdown"] == breakdown) & (res["estimator"] == "fixed-point")]
+        return {str(g): int(c) for g, c in zip(t["group"], t["n_gal"], strict=True) if c}
+
+    true, meas = counts("morphology"), counts("bulge_frac_meas")
+    assert set(true) == {"exponential", "devaucouleurs"} and sum(meas.values()) == 120
+    # most of each kind in its end bin, and not in the other's
+    assert true["exponential"] * 0.75 <= meas.get("0-0.2", 0) <= true["exponential"] + 5, meas
+    assert true["devaucouleurs"] * 0.75 <= meas.get("0.8-1", 0) <= true["devaucouleurs"] + 5
