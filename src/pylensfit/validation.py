@@ -1904,11 +1904,10 @@ def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: st
         Fewest prior-field galaxies for a bin to get its own prior.
     true_psf : bool
         Diagnostic: fit with each PSF's true image (:func:`true_psf_image`, as large as
-        the largest stamp; on a set whose PSF varies over the field, its map,
-        :func:`pylensfit.simulate.map_psf_model`, so that each galaxy is fitted with its
-        own PSF) instead of the PSF stacked from the stars, keeping the
-        catalogues in ``DIR/measured_true_psf/``. The difference from a run with the
-        modelled PSF is what the PSF model does to m and c, measured on the same noise.
+        the largest stamp; if the PSF varies over the field, its map
+        :func:`pylensfit.simulate.map_psf_model`: each galaxy with its own PSF), not the
+        stars', keeping the catalogues in ``DIR/measured_true_psf/``. The difference from
+        a run with the modelled PSF is what the PSF model does to m and c (same noise).
     psf_models : mapping, optional
         ``{psf index: file}`` for every PSF: its fields fitted with the model in the
         file (:func:`pylensfit.psfmodel.read_psf_model`: Piff's, a polynomial model, an
@@ -1933,8 +1932,7 @@ def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: st
         2008, section 4.2), ``sigma_c``, ``sigma_c_stat`` (what the fits' errors alone
         give), ``sigma_c_hat`` and ``sigma_c_upper`` (the offsets' own spread over PSFs
         with the noise taken out, and its 95 % upper limit: :func:`c_scatter`;
-        ``c1_chi2``, ``c2_chi2``, ``c_dof``, ``c1_p``, ``c2_p`` its chi-squares),
-        ``prior``,
+        ``c1_chi2``, ``c2_chi2``, ``c_dof``, ``c1_p``, ``c2_p`` its chi-squares), ``prior``,
         ``mode`` (``"pairs"`` or ``"images"``), ``estimates`` (the per-image or per-pair
         table the fits used), ``images`` (single-image estimates), ``pairs`` (step2),
         ``single`` (step2: the per-PSF fit table from single images), ``fits`` (per PSF and
