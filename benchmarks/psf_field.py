@@ -48,6 +48,7 @@ everywhere (``--psf-variation none``). Then:
 
     python benchmarks/psf_field.py --out DIR --piff             # PSF models, 4 min
     python benchmarks/psf_field.py --out DIR --piff --measure   # + galaxies
+    python benchmarks/psf_field.py --out DIR --measure --runs polynomial true  # a subset
 """
 
 from __future__ import annotations
@@ -72,6 +73,7 @@ from pylensfit.simulate import pixel_to_sky_shear
 from pylensfit.validation import psf_leakage, read_manifest, simulate_step, validate
 
 BLOCKS = 8  # jackknife blocks per side of the field
+RUNS = ("polynomial", "stacked", "true", "piff")  # the varying set's runs (--runs)
 
 
 # -- the sets -----------------------------------------------------------------------------
@@ -325,6 +327,9 @@ def main(argv=None) -> int:
     ap.add_argument("--piff", action="store_true", help="also Piff models (the piff extra)")
     ap.add_argument("--piff-order", type=int, default=3)
     ap.add_argument("--measure", action="store_true", help="measure the galaxies (steps 2-3)")
+    ap.add_argument("--runs", nargs="+", default=list(RUNS), choices=list(RUNS),
+                    help="the varying set's runs measured in step 2 (default all; piff "
+                         "needs --piff)")  # fmt: skip
     a = ap.parse_args(argv)
     out = Path(a.out)
     t0 = time.perf_counter()
@@ -341,13 +346,17 @@ def main(argv=None) -> int:
         return 0
     print("\n2. the galaxies through validate")
     rc = _validated(const, "constant set, stacked PSF", a.jobs)
-    runs = {"polynomial": _validated(
-        var, f"varying set, polynomial {a.order}", a.jobs,
-        config=plf.Config(psf_model="polynomial", psf_order=a.order))}
-    runs["constant PSF"] = _validated(_linked(var, out / "varying_stacked"),
-                                      "varying set, stacked PSF", a.jobs)  # fmt: skip
-    runs["true PSF"] = _validated(var, "varying set, true PSF", a.jobs, true_psf=True)
-    if a.piff:
+    runs = {}
+    if "polynomial" in a.runs:
+        runs["polynomial"] = _validated(
+            var, f"varying set, polynomial {a.order}", a.jobs,
+            config=plf.Config(psf_model="polynomial", psf_order=a.order))
+    if "stacked" in a.runs:
+        runs["constant PSF"] = _validated(_linked(var, out / "varying_stacked"),
+                                          "varying set, stacked PSF", a.jobs)  # fmt: skip
+    if "true" in a.runs:
+        runs["true PSF"] = _validated(var, "varying set, true PSF", a.jobs, true_psf=True)
+    if a.piff and "piff" in a.runs:
         runs["piff"] = _validated(var, f"varying set, Piff {a.piff_order}", a.jobs,
                                   psf_models=piff_files)  # fmt: skip
     print("\n3. paired analysis")
@@ -360,7 +369,8 @@ def main(argv=None) -> int:
         _print_paired(label, per)
         summary[label] = {str(k): v for k, v in per.items()}
     # the PSF models' own part: each model's run against the true PSF's, on the same pixels
-    for label in [q for q in runs if q not in ("true PSF", "constant PSF")]:
+    models = [q for q in runs if q not in ("true PSF", "constant PSF")]
+    for label in models if "true PSF" in runs else []:
         per = {k: paired(var_rows[label][k], var_rows["true PSF"][k]) for k in const_rows}
         _print_paired(f"{label} minus true PSF (the varying set)", per, "the true PSF's run")
         summary[f"{label} - true PSF"] = {str(k): v for k, v in per.items()}
