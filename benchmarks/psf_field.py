@@ -345,7 +345,8 @@ def main(argv=None) -> int:
     if not a.measure:
         return 0
     print("\n2. the galaxies through validate")
-    rc = _validated(const, "constant set, stacked PSF", a.jobs)
+    stacked = plf.Config(psf_model="constant")  # (the default would find the map)
+    rc = _validated(const, "constant set, stacked PSF", a.jobs, config=stacked)
     runs = {}
     if "polynomial" in a.runs:
         runs["polynomial"] = _validated(
@@ -353,7 +354,8 @@ def main(argv=None) -> int:
             config=plf.Config(psf_model="polynomial", psf_order=a.order))
     if "stacked" in a.runs:
         runs["constant PSF"] = _validated(_linked(var, out / "varying_stacked"),
-                                          "varying set, stacked PSF", a.jobs)  # fmt: skip
+                                          "varying set, stacked PSF", a.jobs,
+                                          config=stacked)  # fmt: skip
     if "true" in a.runs:
         runs["true PSF"] = _validated(var, "varying set, true PSF", a.jobs, true_psf=True)
     if a.piff and "piff" in a.runs:

@@ -269,6 +269,17 @@ def test_order_zero_is_the_stack():
     e1, e2, sig = model.shape_at(100.0, 400.0)
     assert (e1[0], e2[0]) == pytest.approx((stack.e1, stack.e2), abs=1e-6)
     assert sig[0] == pytest.approx(stack.sigma, rel=1e-6)
+    # the stars do not vary: a quadratic's F-test says so; the varying field's does not
+    flat = PolynomialPSF.fit(image, xs, ys, noise_sigma=SIGMA, order=2).variation()
+    assert flat["vary_n"] == 40 and flat["vary_pvalue"] > 1e-3
+    assert model.variation()["vary_pvalue"] == 1.0  # order 0: nothing to test
+
+
+def test_variation_of_the_varying_field(poly):
+    var = poly.variation()
+    assert var["vary_pvalue"] < 1e-10
+    # the map's |e| goes as 0.04 r^2 and its size by +-10 %: the fitted rms variations
+    assert 0.01 < var["vary_rms_de"] < 0.05 and 0.01 < var["vary_rms_dsigma"] < 0.06
 
 
 def test_too_few_stars_lower_the_order(field, caplog):

@@ -1,5 +1,7 @@
 """A PSF that varies over the field: the polynomial model in the pipeline."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -43,12 +45,16 @@ def _leakage(t, c):
     return coef[1], np.sqrt(s2 * np.linalg.inv(A.T @ A)[1, 1])
 
 
-def test_each_galaxy_is_fitted_with_the_psf_at_its_position(field):
+@pytest.fixture(scope="module")
+def poly(field):
+    return measure([field[0]], config=CFG.replace(psf_model="polynomial", psf_order=2,
+                                                  psf_cells=8),
+                   prior=Prior(), progress=False)  # fmt: skip
+
+
+def test_each_galaxy_is_fitted_with_the_psf_at_its_position(field, poly):
     path, truth = field
     const = measure([path], config=CFG, prior=Prior(), progress=False)
-    poly = measure([path], config=CFG.replace(psf_model="polynomial", psf_order=2,
-                                              psf_cells=8),
-                   prior=Prior(), progress=False)  # fmt: skip
     t, c = _matched(poly, truth)
     assert len(t) > 250
     # the catalogue's PSF ellipticity follows the true map: interpolated between the
@@ -70,6 +76,24 @@ def test_each_galaxy_is_fitted_with_the_psf_at_its_position(field):
     rms = np.hypot(held["psf_heldout_rms_de1"], held["psf_heldout_rms_de2"])
     assert 0 < rms < 0.01 and held["psf_heldout_noise_de"] > 0
     assert np.isnan(const.meta["psfs"][0]["psf_heldout_rms_de1"])
+
+
+def test_auto_fits_the_polynomial_only_where_the_stars_vary(field, poly, tmp_path):
+    """``psf_model = "auto"`` (the default): on the varying field the polynomial model's
+    catalogue; on a field of the map's central PSF everywhere, the stacked PSF's."""
+    auto = CFG.replace(psf_model="auto", psf_order=2, psf_cells=8)
+    cat = measure([field[0]], config=auto, prior=Prior(), progress=False)
+    np.testing.assert_array_equal(cat["e1"], poly["e1"])
+    np.testing.assert_array_equal(cat["PSF_e2"], poly["PSF_e2"])
+    assert cat.meta["psfs"][0]["psf_heldout_n"] >= 5
+    spec = replace(SPEC, size=512, psf_variation="none")
+    img, w, truth = simulate_field(spec, seed=12)
+    write_field(tmp_path / "c.fits", img, w, spec, truth=truth)
+    assert int(np.sum(truth["is_star"])) >= 30  # enough for order 2
+    cat = measure([tmp_path / "c.fits"], config=auto, prior=Prior(), progress=False)
+    const = measure([tmp_path / "c.fits"], config=CFG, prior=Prior(), progress=False)
+    np.testing.assert_array_equal(cat["e1"], const["e1"])
+    assert np.isnan(cat.meta["psfs"][0]["psf_heldout_rms_de1"])  # no model over the field
 
 
 def test_heldout_residuals_are_pooled_over_images():

@@ -313,10 +313,16 @@ class Config:
     )
     psf_min_stars: int = _f(3, "fewest usable stars for a PSF from one source")
     psf_model: str = _f(
-        "constant", "'constant': one stacked PSF per image; 'polynomial': every PSF pixel a "
+        "auto", "'constant': one stacked PSF per image; 'polynomial': every PSF pixel a "
         "polynomial in (x, y) fitted to the stars (lensfit's survey PSF; "
         "pylensfit.psfmodel.PolynomialPSF), each galaxy fitted with the PSF at its "
-        "position (psf_cells, psf_interpolation)"
+        "position (psf_cells, psf_interpolation); 'auto': the polynomial where the stars "
+        "show the PSF varying over the image (PolynomialPSF.variation's p-value below "
+        "psf_vary_pvalue), else the constant stack"
+    )
+    psf_vary_pvalue: float = _f(
+        1e-3, "psf_model 'auto': the polynomial model is used where the chance that "
+        "stars of a constant PSF vary as much is below this"
     )
     psf_order: int = _f(3, "total degree of the polynomial PSF (lowered for few stars)")
     psf_cells: int = _f(
@@ -570,9 +576,10 @@ PRESETS: dict[str, tuple[dict[str, Any], str]] = {
         {"model": "devaucouleurs", "n_bulge_fractions": 1, "max_stamp_size": 0,
          "r_step": 0.2, "size_prior": "flat", "size_prior_per_run": False,
          "amplitude_prior": "uniform", "estimate_flux_prior": False,
-         "estimate_position_prior": False, "min_snr": 0.0, "prior_form": "functional"},
+         "estimate_position_prior": False, "min_snr": 0.0, "prior_form": "functional",
+         "psf_model": "constant"},
         "Kitching et al. (2008)'s setup: de Vaucouleurs model, flat size prior, uniform "
-        "amplitude prior, 2-pixel position prior",
+        "amplitude prior, 2-pixel position prior, one stacked PSF per image",
     ),
 }  # fmt: skip
 
@@ -682,8 +689,10 @@ def _validate(c: Config) -> None:
     need(c.psf_min_stars >= 1, "psf_min_stars must be >= 1")
     need(c.psf_interpolation in ("bilinear", "centre"),
          f"psf_interpolation must be 'bilinear' or 'centre', got {c.psf_interpolation!r}")
-    need(c.psf_model in ("constant", "polynomial"),
-         f"psf_model must be 'constant' or 'polynomial', got {c.psf_model!r}")
+    need(c.psf_model in ("auto", "constant", "polynomial"),
+         f"psf_model must be 'auto', 'constant' or 'polynomial', got {c.psf_model!r}")
+    need(0 < c.psf_vary_pvalue < 1, f"psf_vary_pvalue must be in (0, 1), got "
+         f"{c.psf_vary_pvalue}")  # fmt: skip
     need(0 <= c.psf_order <= 6, f"psf_order must be in 0..6, got {c.psf_order}")
     need(c.psf_cells >= 1, f"psf_cells must be >= 1, got {c.psf_cells}")
     need(c.close_pair_min_snr >= 0, "close_pair_min_snr must be >= 0")

@@ -80,7 +80,7 @@ from .psf import (
     psf_from_image,
     stack_psf,
 )
-from .psfmodel import ConstantPSF, PolynomialPSF, PSFModel, read_psf_model
+from .psfmodel import ConstantPSF, PolynomialPSF, PSFModel, n_terms, read_psf_model
 from .runner import run_tasks, single_thread, worker_pool
 from .shear import refine_lnL
 from .shear import shapes as _shapes
@@ -376,6 +376,39 @@ def _poly_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star
     return model, stars
 
 
+def _n_used(psf: PSFResult | PSFModel) -> int:
+    """How many stars a PSF (stacked, or a model over the field) was made from."""
+    if isinstance(psf, PSFModel):
+        return int(psf.diagnostics.get("n_used", 0))
+    return int(psf.n_used)
+
+
+def _varying_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_col):
+    """``Config.psf_model = "auto"``: the stars' polynomial model and star mask where
+    they show the PSF varying over the image (:meth:`PolynomialPSF.variation`'s p-value
+    below ``Config.psf_vary_pvalue``), else None (the constant stack is used)."""
+    n_stars = int(_psf_stars(img, det, cfg, star_col).sum())
+    order = cfg.psf_order  # the fit's own floor, 5 stars a coefficient, said quietly
+    while order > 0 and n_stars < 5 * n_terms(order):
+        order -= 1
+    if order == 0:
+        return None
+    try:
+        model, stars = _poly_from_stars(sub, img, det, cfg.replace(psf_order=order), star_col)
+    except PSFError as err:
+        log.info("%s", err)
+        return None
+    var = model.variation()
+    model.diagnostics.update(var)
+    varies = var["vary_pvalue"] < cfg.psf_vary_pvalue
+    log.info("%s: %d stars; the PSF %s over the image (p = %.2g that a constant PSF "
+             "varies as much; fitted rms variation %.1e in e, %.1e in size): %s", img.path,
+             var["vary_n"], "varies" if varies else "does not vary", var["vary_pvalue"],
+             var["vary_rms_de"], var["vary_rms_dsigma"],
+             "the polynomial model" if varies else "the stacked PSF")  # fmt: skip
+    return (model, stars) if varies else None
+
+
 @dataclass
 class _CellPSFs:
     """A PSF varying over an image, sampled for the fits of its objects.
@@ -474,6 +507,10 @@ def _starfield_task(task: _StarfieldTask) -> PSFResult | PSFModel:
     try:
         if cfg.psf_model == "polynomial":
             return _poly_from_stars(sub, img, det, cfg, None)[0]
+        if cfg.psf_model == "auto":
+            varying = _varying_from_stars(sub, img, det, cfg, None)
+            if varying is not None:
+                return varying[0]
         return _psf_from_stars(sub, img, det, cfg, None)[0]
     except PSFError as err:
         raise InputError(f"{img.path}: no usable star for the PSF ({err})") from None
@@ -482,7 +519,9 @@ def _starfield_task(task: _StarfieldTask) -> PSFResult | PSFModel:
 def _image_psf(task: _ImageTask, cfg: Config, img: _Image, sub: np.ndarray, det: Table,
                ) -> tuple[PSFResult | None, PSFModel | None, np.ndarray, str]:  # fmt: skip
     """The image's PSF: given, this image's stars co-added with the star fields', or the
-    model of the most stars (``Config.psf_model = "polynomial"``).
+    model of the most stars (``Config.psf_model = "polynomial"``; with ``"auto"`` the
+    model of the most stars among those whose stars show the PSF varying, else the
+    co-added stack).
 
     Returns ``(psf, field_model, own_stars, note)``: the PSF at the image's centre (None
     when no star was usable), the model varying over the image (None for a constant
@@ -521,6 +560,19 @@ def _image_psf(task: _ImageTask, cfg: Config, img: _Image, sub: np.ndarray, det:
                 log.info("%s", err)
         if psfs:  # the model of the most stars (the image's own or a star field's)
             field_model = max(psfs, key=lambda m: m.diagnostics.get("n_used", 0))
+            psfs = [field_model.centre]
+    elif cfg.psf_model == "auto" and task.psf is None:
+        # the star fields whose stars showed the PSF varying, and the image's own where
+        # they may beat every star field
+        models = [m for m in task.star_psfs if isinstance(m, PSFModel)]
+        if n and int(_psf_stars(img, det, cfg, task.star_column).sum()) > max(
+                [_n_used(m) for m in task.star_psfs], default=0):  # fmt: skip
+            varying = _varying_from_stars(sub, img, det, cfg, task.star_column)
+            if varying is not None:
+                models.append(varying[0])
+                own_stars = varying[1]
+        if models:
+            field_model = max(models, key=_n_used)
             psfs = [field_model.centre]
     if not psfs:
         return None, field_model, own_stars, psf_note

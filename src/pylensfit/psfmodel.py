@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 from astropy.table import Table
+from scipy.stats import f as f_dist
 
 from ._util import jsonable, newton_peak, per_object, rfft_frequencies
 from .catalogue import atomic_write
@@ -914,6 +915,56 @@ class PolynomialPSF(PSFModel):
         model.diagnostics = _fit_diagnostics(model.stars, fit, int(order), opts, source)
         model.diagnostics.update(_heldout_summary(model.stars, k_e, k_s))
         return model
+
+    def variation(self) -> dict:
+        """Whether the stars show the PSF varying over the field, beyond their noise.
+
+        The used stars' measured adaptive-moment ellipticities ``e1_star``, ``e2_star``
+        and ``ln sigma_star`` are each fitted, weighted by ``snr^2`` (their moments'
+        noise goes as ``1 / snr``), by a constant and by the model's polynomial in
+        ``(u, v)``. Each quantity's chi-square improvement, in units of the polynomial
+        fit's residual variance (so that the noise's scale need not be known), is
+        summed: an F statistic on ``q = 3 (n_terms - 1)`` and ``3 (n - n_terms)``
+        degrees of freedom, ``n`` the stars.
+
+        Returns
+        -------
+        dict
+            ``vary_pvalue`` (the probability of an F at least this large for a PSF
+            constant over the field: small when it varies; 1 for an order-0 model or
+            too few stars to tell), ``vary_rms_de`` (rms over the stars of ``|e|``'s
+            fitted variation about its mean, dimensionless), ``vary_rms_dsigma`` (the
+            same for the size, relative) and ``vary_n`` (the stars).
+        """
+        out = {"vary_pvalue": 1.0, "vary_rms_de": 0.0, "vary_rms_dsigma": 0.0, "vary_n": 0}
+        t, p = self.stars, n_terms(self.order)
+        if t is None or self.order == 0:
+            return out
+        q = [np.asarray(t[c], dtype=float) for c in ("e1_star", "e2_star", "sigma_star")]
+        snr = np.asarray(t["snr"], dtype=float)
+        sel = (np.asarray(t["used"], bool) & np.isfinite(snr) & (snr > 0) & (q[2] > 0)
+               & np.isfinite(q[0]) & np.isfinite(q[1]))  # fmt: skip
+        n = int(sel.sum())
+        out["vary_n"] = n
+        if n < p + 5:
+            return out
+        u, v = self.uv(np.asarray(t["x"], float)[sel], np.asarray(t["y"], float)[sel])
+        A = _design(u, v, self.order)
+        sw = snr[sel]
+        stat, fitted = 0.0, []
+        for y in (q[0][sel], q[1][sel], np.log(q[2][sel])):
+            coef = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
+            model = A @ coef
+            chi_poly = float(np.sum((sw * (y - model)) ** 2))
+            mean = float(np.sum(sw**2 * y) / np.sum(sw**2))
+            chi_const = float(np.sum((sw * (y - mean)) ** 2))
+            stat += (chi_const - chi_poly) / max(chi_poly / (n - p), 1e-300)
+            fitted.append(model - model.mean())
+        dof = 3 * (p - 1)
+        out["vary_pvalue"] = float(f_dist.sf(stat / dof, dof, 3 * (n - p)))
+        out["vary_rms_de"] = float(np.sqrt(np.mean(fitted[0] ** 2 + fitted[1] ** 2)))
+        out["vary_rms_dsigma"] = float(np.sqrt(np.mean(fitted[2] ** 2)))
+        return out
 
     # -- files ----------------------------------------------------------------------------
     def write(self, path: str | Path, overwrite: bool = False) -> None:
