@@ -274,3 +274,12 @@ def test_sersic_ladder_bank_columns_match_galsim_on_the_stamp():
                 {"sersic_ladder": (9.0,)}, {"sersic_ladder": (2.0,), "n_bulge_fractions": 1}):
         with pytest.raises(ValueError, match="sersic_ladder"):
             cfg.replace(**bad)
+
+
+def test_size_grid_floor():
+    """r_floor moves the geometric grid's smallest size and leaves the sizes above it."""
+    base = radius_grid(0.0, 10.0, 0.4, 0.1)
+    low = radius_grid(0.0, 10.0, 0.4, 0.1, r_floor=0.05)
+    assert 0.2 <= base[0] < 0.22 and 0.05 <= low[0] < 0.055
+    np.testing.assert_allclose(low[-base.size:], base)
+    assert np.all(np.diff(low) <= 0.1 * low[1:] + 1e-9)

@@ -46,6 +46,9 @@ def main() -> None:
     ap.add_argument("--snr", type=float, nargs=2, default=(40.0, 200.0))
     ap.add_argument("--size", type=float, nargs=2, default=(0.5, 2.5))
     ap.add_argument("--psf", default="round")
+    ap.add_argument("--psf-fwhm", type=float, default=None,
+                    help="the PSF with this FWHM (pixels) instead of its own: how the bias "
+                         "follows the PSF's sampling")
     ap.add_argument("--stamp", type=int, default=32)
     ap.add_argument("--seed", type=int, default=41)
     ap.add_argument("--model", default=None, help="model family (default: the morphology)")
@@ -77,9 +80,12 @@ def main() -> None:
     weights = tuple(1.0 if m == a.morphology else 0.0 for m in MORPHOLOGIES)
     if a.morphology == "mix":
         weights = spec_with().morphology_weights
+    psf_spec = a.psf
+    if a.psf_fwhm is not None:
+        psf_spec = {**spec_with(psfs=[a.psf]).psfs[0], "fwhm": a.psf_fwhm}
     spec = spec_with(
-        ngal=a.ngal, ncal=a.ngal, block_size=500, seed=a.seed, snr_range=tuple(a.snr), psfs=[a.psf],
-        morphology_weights=weights, size_ratio_range=tuple(a.size),
+        ngal=a.ngal, ncal=a.ngal, block_size=500, seed=a.seed, snr_range=tuple(a.snr),
+        psfs=[psf_spec], morphology_weights=weights, size_ratio_range=tuple(a.size),
     )
     cfg = Config(stamp_size=a.stamp, **over)
     prior = population_prior(spec)

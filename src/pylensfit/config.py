@@ -108,6 +108,10 @@ class Config:
         "galaxies' narrow likelihood in r too coarsely (m ~ +0.2 for exponentials of half "
         "the PSF's size, validate --precision)",
     )
+    r_floor: float = _f(
+        0.0,
+        "smallest model size of the geometric grid (r_rel_step > 0), px; 0: r_step / 2",
+    )
     truncate_models: bool = _f(
         True,
         "cut the models at the stamp's edge as the data are: subtract the wings that a "
@@ -626,6 +630,7 @@ def _validate(c: Config) -> None:
     need(c.refine_lnl > 0, f"refine_lnl must be > 0, got {c.refine_lnl}")
     need(c.r_step > 0, f"r_step must be > 0, got {c.r_step}")
     need(0 <= c.r_rel_step < 1, f"r_rel_step must be in [0, 1), got {c.r_rel_step}")
+    need(c.r_floor >= 0, f"r_floor must be >= 0, got {c.r_floor}")
     need(0 <= c.r_min < c.r_max, f"need 0 <= r_min < r_max, got {c.r_min}, {c.r_max}")
     need(
         c.model in ("exponential", "devaucouleurs", "bulge+disc"),

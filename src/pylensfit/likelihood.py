@@ -323,7 +323,8 @@ def _folded_bank(config: Config, bank) -> _FoldedBank:
            config.r_step, config.model, config.bulge_fraction, config.bulge_size_ratio,
            config.dtype, int(config.n_bulge_fractions), float(config.r_rel_step),
            bool(config.truncate_models), float(config.k_max),
-           float(config.bulge_size_ratio2), tuple(config.sersic_ladder))  # fmt: skip
+           float(config.bulge_size_ratio2), tuple(config.sersic_ladder),
+           float(config.r_floor))  # fmt: skip
     fb = _FOLDED.get(key)
     if fb is not None and fb[0] is bank:
         return fb[1]

@@ -501,17 +501,20 @@ def half_light_radius(
     raise ValueError(f"unknown model {model!r}; choose one of {MODEL_TYPES}")
 
 
-def radius_grid(r_min: float, r_max: float, r_step: float, r_rel_step: float = 0.0) -> np.ndarray:
+def radius_grid(r_min: float, r_max: float, r_step: float, r_rel_step: float = 0.0,
+                r_floor: float = 0.0) -> np.ndarray:
     """Model sizes from ``r_min`` to ``r_max``, excluding 0 (the point source).
 
     With ``r_rel_step = 0`` the paper's uniform grid ``r_min, r_min + dr, ..., r_max``.
     With ``r_rel_step > 0`` no step exceeds ``r_rel_step * r`` either: below
     ``r_c = r_step / r_rel_step`` the sizes are geometric, ``r_c / (1 + r_rel_step)^k``,
-    down to ``max(r_min, r_step / 2)``; above it, uniform with step ``r_step``. A small
+    down to ``max(r_min, r_floor)`` (``r_floor = 0``: ``r_step / 2``); above it, uniform
+    with step ``r_step``. A small
     galaxy's likelihood in ``r`` is as narrow in ``r`` as its size, so a uniform step
     samples it too coarsely (docs: method, eq-radius; ``validate --precision``).
     """
-    if r_step <= 0 or r_max <= 0 or r_min < 0 or r_max < r_min or r_rel_step < 0:
+    if (r_step <= 0 or r_max <= 0 or r_min < 0 or r_max < r_min or r_rel_step < 0
+            or r_floor < 0):
         raise ValueError(f"bad radius grid r_min={r_min}, r_max={r_max}, r_step={r_step}, "
                          f"r_rel_step={r_rel_step}")  # fmt: skip
     if r_rel_step == 0:
@@ -519,7 +522,7 @@ def radius_grid(r_min: float, r_max: float, r_step: float, r_rel_step: float = 0
         r = r_min + r_step * np.arange(n)
         return r[r > 0]
     r_c = r_step / r_rel_step
-    floor = max(r_min, 0.5 * r_step)
+    floor = max(r_min, r_floor if r_floor > 0 else 0.5 * r_step)
     start = max(r_c, r_min)
     n_up = int(np.floor((r_max - start) / r_step + 1e-9)) + 1
     upper = start + r_step * np.arange(max(n_up, 0))
@@ -572,9 +575,10 @@ def _cached_bank(
     k_max: float = 0.0,
     bulge_size_ratio2: float = 0.0,
     sersic_ladder: tuple[float, ...] = (),
+    r_floor: float = 0.0,
 ) -> ModelBank:
     egrid = ellipticity_grid(e_step, emax=e_max)
-    radii = radius_grid(r_min, r_max, r_step, r_rel_step)
+    radii = radius_grid(r_min, r_max, r_step, r_rel_step, r_floor)
     r_w, w_star = radius_weights(radii, r_min)
     runs = bank_runs(model, bulge_fraction, bulge_size_ratio, n_bulge, bulge_size_ratio2,
                      sersic_ladder)  # fmt: skip
@@ -648,4 +652,5 @@ def model_bank(config=None) -> ModelBank:
         float(cfg.k_max),
         float(cfg.bulge_size_ratio2),
         tuple(cfg.sersic_ladder),
+        float(cfg.r_floor),
     )
