@@ -81,12 +81,15 @@ def test_threads_launch_kernels_at_once():
     """Four threads fitting at once (a dask worker's image tasks) on the chosen layer:
     the same fits as one thread, no abort.
 
-    The fluxes are compared to 1e-12, not bit for bit: BLAS may split a matrix product
-    differently when several threads call it at once, which changes the last bits
-    (2e-14 has been seen). A race on a shared buffer would change them by far more."""
+    The fits use float64 products and the fluxes are compared to 1e-12, not bit for bit:
+    BLAS may split a matrix product differently when several threads call it at once,
+    which changes the last bits: 2e-14 of a flux in float64, but up to 1e-6 in the default
+    float32 (6e-7 has been seen; this fit's float32 and float64 fluxes differ by 5e-7),
+    a scale that could hide a race. A race on a shared buffer changes them by far more."""
     res = _run("""
         import threading
 
+        CFG = plf.Config(max_stamp_size=0, dtype="float64")
         ref = fit(3)
         out = []
         threads = [threading.Thread(target=lambda: out.extend(fit(3) for _ in range(3)))
