@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from pylensfit import precision as P
-from pylensfit.pipeline import _pool, _run
+from pylensfit.runner import run_tasks, worker_pool
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
 from precision_ab import _jk_err, _m_jk, _priors  # noqa: E402
@@ -174,8 +174,8 @@ def main() -> None:
              for b in range(nb)]  # fmt: skip
     res = {}
     t0 = time.perf_counter()
-    with _pool(a.jobs) as pool:
-        for t, r in _run(_block, tasks, a.jobs, None, "metacal", True, pool):
+    with worker_pool(a.jobs) as pool:
+        for t, r in run_tasks(_block, tasks, a.jobs, None, "metacal", True, pool):
             res[t["block"]] = r
     cat = [res[b] for b in range(nb)]
     print(f"{nb} blocks in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs); CPU s: fit "

@@ -36,7 +36,7 @@ import numpy as np
 
 from pylensfit import precision as P
 from pylensfit.likelihood import fit_stamps
-from pylensfit.pipeline import _pool, _run
+from pylensfit.runner import run_tasks, worker_pool
 from pylensfit.shear import refine_lnL
 
 _MID = {4: (np.array([-1.0, 9.0, 9.0, -1.0]) / 16.0, np.array([-3, -1, 1, 3])),
@@ -123,8 +123,8 @@ def main() -> None:
              for b in range(nb)]  # fmt: skip
     t0 = time.perf_counter()
     res = []
-    with _pool(a.jobs) as pool:
-        for _, r in _run(_task, tasks, a.jobs, None, "blocks", True, pool):
+    with worker_pool(a.jobs) as pool:
+        for _, r in run_tasks(_task, tasks, a.jobs, None, "blocks", True, pool):
             res.append(r)
     res.sort(key=lambda r: r["block"])
     print(f"{nb} blocks ({spec.ngal} galaxies, PSFs {a.psf}, snr_range {tuple(a.snr)}, seed "

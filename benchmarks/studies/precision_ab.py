@@ -31,8 +31,8 @@ import time
 import numpy as np
 
 from pylensfit import precision as P
-from pylensfit.pipeline import _pool, _run
 from pylensfit.prior import Prior, SizePrior
+from pylensfit.runner import run_tasks, worker_pool
 
 
 def _oracle(spec, cfg) -> list:
@@ -246,8 +246,8 @@ def main() -> None:
              for b in range(nb) for w in "AB"]  # fmt: skip
     res: dict = {"A": {}, "B": {}}
     t0 = time.perf_counter()
-    with _pool(a.jobs) as pool:
-        for t, r in _run(P._block_task, tasks, a.jobs, None, "A/B", True, pool):
+    with worker_pool(a.jobs) as pool:
+        for t, r in run_tasks(P._block_task, tasks, a.jobs, None, "A/B", True, pool):
             res[t["which"]][t["block"]] = r
     print(f"{len(tasks)} block fits in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs)")
     cat = {w: [res[w][b] for b in range(nb)] for w in "AB"}

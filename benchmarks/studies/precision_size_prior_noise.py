@@ -40,7 +40,7 @@ import numpy as np
 import pylensfit.prior as prior_mod
 from pylensfit import precision as P
 from pylensfit.models import model_bank
-from pylensfit.pipeline import _pool, _run
+from pylensfit.runner import run_tasks, worker_pool
 
 
 class _Captured(Exception):
@@ -155,8 +155,8 @@ def main() -> None:
              for b in range(nb) for i, key in enumerate(keys)]  # fmt: skip
     res: dict = {i: {} for i in range(len(keys))}
     t0 = time.perf_counter()
-    with _pool(a.jobs) as pool:
-        for t, r in _run(P._block_task, tasks, a.jobs, None, "size priors", True, pool):
+    with worker_pool(a.jobs) as pool:
+        for t, r in run_tasks(P._block_task, tasks, a.jobs, None, "size priors", True, pool):
             res[t["key"]][t["block"]] = r
     print(f"{len(tasks)} block fits in {time.perf_counter() - t0:.0f} s")
     psf = np.concatenate([np.full(len(res[0][b]["truth"]), b % npsf) for b in range(nb)])
