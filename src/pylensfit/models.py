@@ -509,14 +509,14 @@ def radius_grid(r_min: float, r_max: float, r_step: float, r_rel_step: float = 0
     With ``r_rel_step > 0`` no step exceeds ``r_rel_step * r`` either: below
     ``r_c = r_step / r_rel_step`` the sizes are geometric, ``r_c / (1 + r_rel_step)^k``,
     down to ``max(r_min, r_floor)`` (``r_floor = 0``: ``r_step / 2``); above it, uniform
-    with step ``r_step``. A small
-    galaxy's likelihood in ``r`` is as narrow in ``r`` as its size, so a uniform step
-    samples it too coarsely (docs: method, eq-radius; ``validate --precision``).
+    with step ``r_step``. A small galaxy's likelihood in ``r`` is as narrow in ``r`` as
+    its size, so a uniform step samples it too coarsely (docs: method, eq-radius;
+    ``validate --precision``).
     """
     if (r_step <= 0 or r_max <= 0 or r_min < 0 or r_max < r_min or r_rel_step < 0
             or r_floor < 0):
         raise ValueError(f"bad radius grid r_min={r_min}, r_max={r_max}, r_step={r_step}, "
-                         f"r_rel_step={r_rel_step}")  # fmt: skip
+                         f"r_rel_step={r_rel_step}, r_floor={r_floor}")  # fmt: skip
     if r_rel_step == 0:
         n = int(np.floor((r_max - r_min) / r_step + 1e-9)) + 1
         r = r_min + r_step * np.arange(n)
