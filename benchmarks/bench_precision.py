@@ -130,7 +130,7 @@ def main() -> None:
         flux_err.append((f.flux / f.snr)[ok])
         on.append(np.full(ok.sum(), b % npsf))
         egrid = f.egrid
-    prior = estimate_prior(np.concatenate(lnl), egrid)
+    prior = estimate_prior(np.concatenate(lnl), egrid, form=cfg.prior_form)
     flux, flux_err, on = map(np.concatenate, (flux, flux_err, on))
     beta, beta_err = estimate_flux_slope(flux)
     cfg = cfg.replace(amplitude_prior_power=beta)  # the counts' slope, as precision() does
@@ -139,8 +139,7 @@ def main() -> None:
               for k in range(npsf)]  # fmt: skip
     cfgs = [cfg.replace(amplitude_prior_min=r["lo"], amplitude_prior_max=r["hi"])
             for r in ranges]  # fmt: skip
-    print(f"prior from {spec.ncal} unsheared galaxies: B={prior.B:.3f} C={prior.C:.3f} "
-          f"D={prior.D:.3f}, flux slope {beta:.3f} ± {beta_err:.3f}, flux ranges "
+    print(f"prior from {spec.ncal} unsheared galaxies: {prior!r}, flux slope {beta:.3f} ± {beta_err:.3f}, flux ranges "
           + ", ".join(f"{r['lo']:.4g}-{r['hi']:.4g}" for r in ranges)
           + f"; peak memory so far {maxrss_mib():.0f} MiB")  # fmt: skip
     t_render = t_fit = t_hsm = 0.0

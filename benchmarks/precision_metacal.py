@@ -37,7 +37,7 @@ from pylensfit import precision as P
 from pylensfit.runner import run_tasks, worker_pool
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
-from precision_ab import _jk_err, _m_jk, _priors  # noqa: E402
+from precision_ab import _jk_err, _m_jk, _priors, prior_text  # noqa: E402
 
 _EST = ("lensfit", "lensfit-mc", "metacal")
 
@@ -194,8 +194,8 @@ def main() -> None:
         np.savez(a.save, QA=QA, e=e, s=s, R=R, ok=ok, jk=jk, psf=psf, morph=morph, g=spec.g,
                  snr=np.concatenate([np.asarray(t["snr"]) for t in truth]),
                  r=np.concatenate([np.asarray(t["r"]) for t in truth]))  # fmt: skip
-    print(f"{ok.sum()} of {ok.size} galaxies measured in all 24 fits; prior B C D = "
-          f"{prior.B:.3f} {prior.C:.3f} {prior.D:.3f}; bulge weights {np.round(bw, 3).tolist()}")
+    print(f"{ok.sum()} of {ok.size} galaxies measured in all 24 fits; prior {prior_text(prior)}; "
+          f"bulge weights {np.round(bw, 3).tolist()}")
     R_mean = R[ok].mean((0, 1))
     s_mean = s[ok].mean((0, 1))
     print(f"mean R = [[{R_mean[0, 0]:.4f}, {R_mean[0, 1]:+.4f}], [{R_mean[1, 0]:+.4f}, "

@@ -31,7 +31,7 @@ import time
 import numpy as np
 
 from pylensfit import precision as P
-from pylensfit.prior import Prior, SizePrior
+from pylensfit.prior import Prior, RadialPrior, SizePrior
 from pylensfit.runner import run_tasks, worker_pool
 
 
@@ -58,7 +58,7 @@ def _priors(spec, cfg, estimated: bool, jobs: int, bounds: str):
     out = P.precision(P.spec_with(spec, ngal=2 * npsf), config=cfg, jobs=jobs, progress=False,
                       flux_bounds=bounds == "estimated")  # fmt: skip
     meta = out.meta
-    prior = Prior(**{k: meta["prior"][k] for k in "BCD"})
+    prior = RadialPrior.from_dict({**meta["prior"], "step": cfg.e_step})
     sps = [SizePrior(ln_h=np.asarray(s["ln_h"]), density=np.asarray(s["density"]),
                      star=s["star"]) for s in meta["size_prior"]]  # fmt: skip
     bw = meta["bulge_prior"]["weights"]
@@ -73,9 +73,17 @@ def _priors(spec, cfg, estimated: bool, jobs: int, bounds: str):
     if meta["flux_slope"] is not None:
         print(f"flux prior power {meta['flux_slope']['value']:.3f} ± "
               f"{meta['flux_slope']['error']:.3f}")  # fmt: skip
-    print(f"calibration: {time.perf_counter() - t0:.0f} s; prior B C D = "
-          f"{prior.B:.3f} {prior.C:.3f} {prior.D:.3f}; bulge weights {bw}")  # fmt: skip
+    print(f"calibration: {time.perf_counter() - t0:.0f} s; prior {prior_text(prior)}; "
+          f"bulge weights {bw}")  # fmt: skip
     return prior, sps, bw, cfgs
+
+
+def prior_text(prior: RadialPrior) -> str:
+    """The ellipticity prior's parameters: ``B C D`` or the spline's coefficients."""
+    d = prior.form_dict()
+    if "coef" in d:
+        return "spline coefficients " + " ".join(f"{v:.2f}" for v in d["coef"])
+    return f"B C D = {d['B']:.3f} {d['C']:.3f} {d['D']:.3f}"
 
 
 def _kv(items: list[str]) -> dict:

@@ -36,10 +36,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from precision_ab import prior_text  # the same folder
 
 import pylensfit.prior as prior_mod
 from pylensfit import precision as P
 from pylensfit.models import model_bank
+from pylensfit.prior import RadialPrior
 from pylensfit.runner import run_tasks, worker_pool
 
 
@@ -129,10 +131,10 @@ def main() -> None:
     t0 = time.perf_counter()
     full = P.precision(P.spec_with(spec, seed=a.cal_seeds[0], ngal=2 * npsf), config=cfg,
                        jobs=a.jobs, progress=False)  # fmt: skip
-    prior = P.Prior(**{k: full.meta["prior"][k] for k in "BCD"})
+    prior = RadialPrior.from_dict({**full.meta["prior"], "step": cfg.e_step})
     bw = full.meta["bulge_prior"]["weights"]
-    print(f"fixed priors (seed {a.cal_seeds[0]}): B C D {prior.B:.3f} {prior.C:.3f} "
-          f"{prior.D:.3f}, bulge weights {np.round(bw, 3).tolist()} "
+    print(f"fixed priors (seed {a.cal_seeds[0]}): {prior_text(prior)}, "
+          f"bulge weights {np.round(bw, 3).tolist()} "
           f"({time.perf_counter() - t0:.0f} s)")  # fmt: skip
     samples: list[tuple[str, list]] = [(str(s), [cal[s]["lnL_r"][k] for k in range(npsf)])
                                        for s in a.cal_seeds]  # fmt: skip
