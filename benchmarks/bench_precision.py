@@ -139,7 +139,8 @@ def main() -> None:
               for k in range(npsf)]  # fmt: skip
     cfgs = [cfg.replace(amplitude_prior_min=r["lo"], amplitude_prior_max=r["hi"])
             for r in ranges]  # fmt: skip
-    print(f"prior from {spec.ncal} unsheared galaxies: {prior!r}, flux slope {beta:.3f} ± {beta_err:.3f}, flux ranges "
+    print(f"prior from {spec.ncal} unsheared galaxies: {prior!r}, flux slope {beta:.3f} ± "
+          f"{beta_err:.3f}, flux ranges "
           + ", ".join(f"{r['lo']:.4g}-{r['hi']:.4g}" for r in ranges)
           + f"; peak memory so far {maxrss_mib():.0f} MiB")  # fmt: skip
     t_render = t_fit = t_hsm = 0.0

@@ -21,6 +21,8 @@ groups of 100 galaxies, and the paired differences ``metacal - lensfit``::
     python benchmarks/precision_metacal.py --ngal 8000 --psf e=0.10 --morphology-weights 0 0 0 1 0
     python benchmarks/precision_metacal.py --ngal 8000 --psf e=0.10 --flux-bounds estimated \
         --antithetic
+    python benchmarks/precision_metacal.py --ngal 4000 --psf round --true-priors --antithetic \
+        --morphology-weights 1 0 0 0 0 --set model=exponential   # exact models
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from pylensfit import precision as P
 from pylensfit.runner import run_tasks, worker_pool
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
-from precision_ab import _jk_err, _m_jk, _priors, prior_text  # noqa: E402
+from precision_ab import _jk_err, _kv, _m_jk, _priors, prior_text  # noqa: E402
 
 _EST = ("lensfit", "lensfit-mc", "metacal")
 
@@ -154,6 +156,8 @@ def main() -> None:
                     help="the flux prior's bounds: none (the unbounded power law), estimated "
                          "by the calibration (as the precision mode's default does) or the "
                          "population's")  # fmt: skip
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="changes to the default configuration (model=exponential)")
     a = ap.parse_args()
     kw = {} if a.morphology_weights is None else {"morphology_weights": tuple(a.morphology_weights)}
     if a.g is not None:
@@ -163,7 +167,7 @@ def main() -> None:
     if a.offset is not None:
         kw["offset"] = a.offset
     spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **kw)
-    cfg = P.default_config(spec)
+    cfg = P.default_config(spec).replace(**_kv(a.set))
     prior, sps, bw, cfgs = _priors(spec, cfg, not a.true_priors, a.jobs, a.flux_bounds)
     npsf = len(spec.psfs)
     nb = -(-spec.ngal // spec.block_size)
