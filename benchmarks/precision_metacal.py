@@ -78,6 +78,9 @@ def _block(task: dict) -> dict:
         t1 = time.perf_counter()
         if task["about_stamp"]:  # the stamp's centre as the galaxy's
             fits = replace(fits, x=np.full(4 * n, N // 2.0), y=np.full(4 * n, N // 2.0))
+        elif task["about_true"]:  # the galaxy's true centre (an oracle)
+            fits = replace(fits, x=N // 2 + np.repeat(np.asarray(truth["dx"], float), 4),
+                           y=N // 2 + np.repeat(np.asarray(truth["dy"], float), 4))
         sh = metacal_shapes(imgs, psf, spec.noise_sigma, prior, config=cfg, fits=fits,
                             bulge_weights=bw, step=task["step"],
                             noise_fields=fld if task["noise"] else np.zeros_like(fld),
@@ -148,6 +151,9 @@ def main() -> None:
     ap.add_argument("--about-stamp-centre", action="store_true",
                     help="shear about the stamp's centre (the catalogue position), not the "
                          "galaxy's fitted centre")
+    ap.add_argument("--about-true-centre", action="store_true",
+                    help="shear about the galaxy's true centre (an oracle), not its fitted "
+                         "centre: what the fitted centre's noise does to the response")
     ap.add_argument("--antithetic", action="store_true",
                     help="also measure every rendering with its noise (and the added field) "
                          "negated, and average: the responses' noise cancels to first order")
@@ -174,6 +180,7 @@ def main() -> None:
     tasks = [{"spec": spec, "config": cfgs[b % npsf], "prior": prior, "bulge_weights": bw,
               "size_prior": sps[b % npsf], "psf": b % npsf, "block": b, "step": a.step,
               "noise": not a.noise_free, "about_stamp": a.about_stamp_centre,
+              "about_true": a.about_true_centre,
               "antithetic": a.antithetic}
              for b in range(nb)]  # fmt: skip
     res = {}

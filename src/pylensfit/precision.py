@@ -1043,8 +1043,8 @@ def default_config(spec: PrecisionSpec | None = None) -> Config:
     calibration recipe (:mod:`pylensfit.calibration`: a size prior per bulge fraction,
     a power law in the flux bounded where the fluxes end, the position prior's width
     from the fitted centres' scatter), large galaxies on 64-pixel stamps and the size
-    grid geometric (10 %) up to 4 px in scale length and uniform in 0.4 px above. Each
-    choice's measured effect is in the ``Config`` field's documentation. ``spec`` is
+    grid geometric (10 %) from 0.05 px up to 4 px in scale length and uniform in 0.4 px
+    above. Each choice's measured effect is in the ``Config`` field's documentation. ``spec`` is
     accepted for compatibility and not used: nothing a survey cannot know is set.
     """
     return Config()
