@@ -62,6 +62,7 @@ catalogue; only the ``EstimateShear`` calls are timed.
 from __future__ import annotations
 
 import argparse
+import ast
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
@@ -129,17 +130,18 @@ def simulate(work: Path, args) -> tuple[list[str], str, str]:
 _KEEP: dict = {}
 
 
-def _config(method: str, model: str):
-    """``Config()`` (the recipe: every prior estimated in the run) or ``Config.paper``."""
+def _config(method: str, model: str, changes: dict | None = None):
+    """``Config()`` (the recipe: every prior estimated in the run) or ``Config.paper``,
+    with ``changes`` (``--set``) applied."""
     from pylensfit import Config
 
     if method == "default":
-        return Config()
+        return Config(**(changes or {}))
     fit_model = "devaucouleurs" if model == "mixed" else model
-    return Config.paper(model=fit_model)
+    return Config.paper(model=fit_model, **(changes or {}))
 
 
-def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras, method):
+def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras, method, changes):
     import numba
 
     import pylensfit
@@ -151,7 +153,7 @@ def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras, met
         _KEEP["limits"] = threadpool_limits(threads)  # a reference keeps the limit in force
         numba.set_num_threads(threads)
 
-    cfg = _config(method, model)
+    cfg = _config(method, model, changes)
     prior = Prior() if prior_mode == "fixed" and method == "paper" else None
     pylensfit.measure([warm], stars=[stars], config=cfg, prior=Prior(), output=out + ".warm",
                       overwrite=True, jobs=1, progress=False)  # fmt: skip
@@ -192,10 +194,23 @@ def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras, met
     return res
 
 
+def _changes(items: list[str]) -> dict:
+    """``KEY=VALUE`` strings as a dict of Config changes (values as Python literals)."""
+    out = {}
+    for item in items:
+        key, _, val = item.partition("=")
+        try:
+            out[key] = ast.literal_eval(val)
+        except (ValueError, SyntaxError):
+            out[key] = val
+    return out
+
+
 def timed_run(images, stars, warm, out, jobs, args, extras) -> dict:
     with cf.ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as ex:
         return ex.submit(_run, images, stars, warm, out, jobs, args.model, args.prior,
-                         args.threads, extras, args.method).result()  # fmt: skip
+                         args.threads, extras, args.method,
+                         _changes(args.set)).result()  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------
@@ -326,6 +341,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="with --method paper: prior=Prior() (fixed) or estimated by measure "
                         "(estimate)")  # fmt: skip
     p.add_argument("--no-hsm", action="store_true", help="skip the HSM REGAUSS peer")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="changes to the method's configuration (r_floor=0)")
     p.add_argument("--keep", metavar="DIR", help="keep the simulated fields and catalogues here")
     args = p.parse_args(argv)
     jobs = [int(j) for j in args.jobs.split(",") if j.strip()]
@@ -336,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     import sep
 
     import pylensfit
-    cfg = _config(args.method, args.model)
+    cfg = _config(args.method, args.model, _changes(args.set))
     print(f"pylensfit {pylensfit.__version__} ({os.path.dirname(pylensfit.__file__)})")
     print(f"GalSim {galsim.__version__}, sep {sep.__version__}, astropy {astropy.__version__}, "
           f"numpy {np.__version__}, numba {numba.__version__} ({numba.get_num_threads()} "

@@ -64,3 +64,33 @@ def test_default_compact_end_keeps_bright_exact_models_unbiased(renderings):
     assert old["c1"] < -2.5e-4
     assert old["c1"] - new["c1"] < -2.5e-4
     assert new["m1_err"] < 0.5 * old["m1_err"] and new["m2_err"] < 0.5 * old["m2_err"]
+
+
+def test_stars_stay_stars_with_the_fine_compact_end():
+    """Models below 0.1 px are indistinguishable from the point source: the point source
+    alone as the star criterion would call a star a galaxy nearly half the time on the
+    default grid (``Config.star_max_size``). Noisy Moffat stars at S/N 200 and compact
+    exponential galaxies (half-light radius 0.8 px, a third of the PSF's) beside them."""
+    import galsim
+
+    rng = np.random.default_rng(3)
+    psf = galsim.Moffat(beta=3.5, fwhm=3.0).shear(e1=0.03, e2=0.0)
+    pimg = psf.drawImage(nx=32, ny=32, scale=1.0, offset=(0.5, 0.5)).array
+    gal = galsim.Convolve(galsim.Exponential(half_light_radius=0.8), psf)
+
+    def stamps(obj, n):
+        out = np.empty((n, 32, 32), np.float32)
+        for i in range(n):
+            dx, dy = rng.uniform(-0.5, 0.5, 2)
+            im = obj.drawImage(nx=32, ny=32, scale=1.0, offset=(0.5 + dx, 0.5 + dy)).array
+            out[i] = im / np.sqrt((im**2).sum()) * 200.0 + rng.standard_normal((32, 32))
+        return out
+
+    stars, gals = stamps(psf, 150), stamps(gal, 100)
+    cfg = Config(stamp_size=32, max_stamp_size=0)
+    assert cfg.star_max_size == 0.1
+    assert fit_stamps(stars, pimg, 1.0, config=cfg).is_star.mean() > 0.85  # 0.92 measured
+    assert fit_stamps(gals, pimg, 1.0, config=cfg).is_star.mean() < 0.02
+    # the point source alone: 0.59 measured
+    only_zero = fit_stamps(stars, pimg, 1.0, config=cfg.replace(star_max_size=0.0))
+    assert only_zero.is_star.mean() < 0.75
