@@ -84,7 +84,8 @@ def _block(task: dict) -> dict:
         sh = metacal_shapes(imgs, psf, spec.noise_sigma, prior, config=cfg, fits=fits,
                             bulge_weights=bw, step=task["step"],
                             noise_fields=fld if task["noise"] else np.zeros_like(fld),
-                            size_prior=task["size_prior"])  # fmt: skip
+                            size_prior=task["size_prior"],
+                            position_prior_sigma=task["mc_position_prior"])  # fmt: skip
         ok &= okA.reshape(-1) & (np.asarray(sh["flag"]) == 0)
         w = 1.0 / len(sets)
         out["QA"] = out["QA"] + w * np.nan_to_num(QA)
@@ -154,6 +155,9 @@ def main() -> None:
     ap.add_argument("--about-true-centre", action="store_true",
                     help="shear about the galaxy's true centre (an oracle), not its fitted "
                          "centre: what the fitted centre's noise does to the response")
+    ap.add_argument("--metacal-position-prior", type=float, default=2.0, metavar="SIGMA",
+                    help="the metacalibration images' fits' position prior width, px "
+                         "(metacal_shapes' position_prior_sigma; 0: the fits' own)")
     ap.add_argument("--antithetic", action="store_true",
                     help="also measure every rendering with its noise (and the added field) "
                          "negated, and average: the responses' noise cancels to first order")
@@ -181,6 +185,7 @@ def main() -> None:
               "size_prior": sps[b % npsf], "psf": b % npsf, "block": b, "step": a.step,
               "noise": not a.noise_free, "about_stamp": a.about_stamp_centre,
               "about_true": a.about_true_centre,
+              "mc_position_prior": a.metacal_position_prior or None,
               "antithetic": a.antithetic}
              for b in range(nb)]  # fmt: skip
     res = {}

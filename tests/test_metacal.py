@@ -151,12 +151,13 @@ def test_metacal_response_is_the_fit_s_response_to_a_real_shear():
     stamps = np.stack([_draw(galsim.Convolve(g.shift(*shift), psf)) for g in gals])
     sigma = np.sqrt((stamps[0] ** 2).sum()) / 15.0  # S/N 15: the position prior matters
     zeros = np.zeros_like(stamps)
-    out = metacal_shapes(stamps, _draw(psf), sigma, prior, config=cfg, noise_fields=zeros)
+    out = metacal_shapes(stamps, _draw(psf), sigma, prior, config=cfg, noise_fields=zeros,
+                         position_prior_sigma=None)  # the fits' own prior, as below
     assert (out["flag"] == 0).all()
     dil = galsim.Convolve(psf, galsim.Pixel(1.0)).dilate(1.02)
     mc = metacal_images(stamps[0], _draw(psf), 0.0, types=("noshear",))
 
-    def emean(imgs):
+    def emean(imgs, cfg=cfg):
         f = fit_stamps(imgs, mc.psf, np.sqrt(2) * sigma, config=cfg)
         m = posterior_moments(f.lnL, f.egrid, prior, refine=cfg.output_refine)
         return np.column_stack([m["e1"], m["e2"]])
@@ -174,9 +175,14 @@ def test_metacal_response_is_the_fit_s_response_to_a_real_shear():
     R_sc = (e_sc["1p"][:, 0] - e_sc["1m"][:, 0]) / 0.02
     assert np.abs(R_sc - R_true[:, 0, 0]).max() > 0.02
     e = np.column_stack([out["e1"], out["e2"]])
-    np.testing.assert_allclose(e, emean(np.stack([_draw(galsim.Convolve(g.shift(*shift), dil),
-                                                        "no_pixel") for g in gals])),
+    unsheared = np.stack([_draw(galsim.Convolve(g.shift(*shift), dil), "no_pixel") for g in gals])
+    np.testing.assert_allclose(e, emean(unsheared), atol=1e-3)
+    # by default the metacalibration images are fitted under a 2-pixel position prior
+    wide = metacal_shapes(stamps, _draw(psf), sigma, prior, config=cfg, noise_fields=zeros)
+    e_wide = np.column_stack([wide["e1"], wide["e2"]])
+    np.testing.assert_allclose(e_wide, emean(unsheared, cfg.replace(position_prior_sigma=2.0)),
                                atol=1e-3)  # fmt: skip
+    assert np.abs(e_wide - e).max() > 2e-3  # the prior matters at S/N 15
 
 
 def test_metacal_shear_inverts_the_mean_response():
