@@ -69,7 +69,7 @@ def test_default_compact_end_keeps_bright_exact_models_unbiased(renderings):
 def test_stars_stay_stars_with_the_fine_compact_end():
     """Models below 0.1 px are indistinguishable from the point source: the point source
     alone as the star criterion would call a star a galaxy nearly half the time on the
-    default grid (``Config.star_max_size``). Noisy Moffat stars at S/N 200 and compact
+    default grid (``Config.point_source_size``). Noisy Moffat stars at S/N 200 and compact
     exponential galaxies (half-light radius 0.8 px, a third of the PSF's) beside them."""
     import galsim
 
@@ -88,9 +88,9 @@ def test_stars_stay_stars_with_the_fine_compact_end():
 
     stars, gals = stamps(psf, 150), stamps(gal, 100)
     cfg = Config(stamp_size=32, max_stamp_size=0)
-    assert cfg.star_max_size == 0.1
+    assert cfg.point_source_size == 0.1
     assert fit_stamps(stars, pimg, 1.0, config=cfg).is_star.mean() > 0.85  # 0.92 measured
     assert fit_stamps(gals, pimg, 1.0, config=cfg).is_star.mean() < 0.02
     # the point source alone: 0.59 measured
-    only_zero = fit_stamps(stars, pimg, 1.0, config=cfg.replace(star_max_size=0.0))
+    only_zero = fit_stamps(stars, pimg, 1.0, config=cfg.replace(point_source_size=0.0))
     assert only_zero.is_star.mean() < 0.75

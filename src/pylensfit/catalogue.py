@@ -90,7 +90,7 @@ COLUMNS: dict[str, tuple[str, str]] = {
                "every other row"),
     "fitclass": ("", "0 galaxy measured, 1 star (most likely r = 0), -1 not measured "
                  "(see flags)"),
-    "is_star": ("", "most likely model size below Config.star_max_size (a point source)"),
+    "is_star": ("", "most likely model size below Config.point_source_size (a point source)"),
     "e1_best": ("", "e1 of the single most likely model (grid cell), pixel frame"),
     "e2_best": ("", "e2 of the single most likely model (grid cell), pixel frame"),
     "psf_star": ("", "selected on the stellar locus as a PSF star of its image"),

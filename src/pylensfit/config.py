@@ -316,7 +316,7 @@ class Config:
     detect_min_area: int = _f(5, "minimum number of connected pixels of a detection")
     background_box: int = _f(64, "mesh size (px) of the background and rms maps")
     # --- stars and PSF (paper section 2.4) ---
-    star_max_size: float = _f(
+    point_source_size: float = _f(
         0.1,
         "an object whose most likely model size is below this (px), or the point source, "
         "is a star (flag STAR). 0.1: the classification of a grid whose smallest size is "
@@ -643,7 +643,7 @@ def _validate(c: Config) -> None:
     need(c.r_step > 0, f"r_step must be > 0, got {c.r_step}")
     need(0 <= c.r_rel_step < 1, f"r_rel_step must be in [0, 1), got {c.r_rel_step}")
     need(c.r_floor >= 0, f"r_floor must be >= 0, got {c.r_floor}")
-    need(c.star_max_size >= 0, f"star_max_size must be >= 0, got {c.star_max_size}")
+    need(c.point_source_size >= 0, f"point_source_size must be >= 0, got {c.point_source_size}")
     need(0 <= c.r_min < c.r_max, f"need 0 <= r_min < r_max, got {c.r_min}, {c.r_max}")
     need(
         c.model in ("exponential", "devaucouleurs", "bulge+disc"),

@@ -13,7 +13,7 @@ __all__ = ["FLAGS", "describe", "flag_value"]
 
 #: name -> (bit value, description)
 FLAGS: dict[str, tuple[int, str]] = {
-    "STAR": (1, "most likely model size is 0 or below Config.star_max_size: a point source"),
+    "STAR": (1, "most likely model size is 0 or below Config.point_source_size: a point source"),
     "FIT_FAILED": (2, "likelihood not finite on the whole grid (NaN, or a range beyond "
                    "float32's: a stamp of absurd values), or no finite shape from it"),
     "BAD_PIXELS": (4, "non-finite pixels in the stamp"),

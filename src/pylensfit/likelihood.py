@@ -120,7 +120,7 @@ class StampFits:
     snr : numpy.ndarray
         Matched-filter signal-to-noise ``h* / (sigma sqrt S)`` of the most likely model.
     is_star : numpy.ndarray
-        Boolean, most likely size is 0 or below ``Config.star_max_size``.
+        Boolean, most likely size is 0 or below ``Config.point_source_size``.
     flags : numpy.ndarray
         Bit mask, see :data:`pylensfit.flags.FLAGS`.
     e1_best, e2_best : numpy.ndarray
@@ -1299,7 +1299,7 @@ def _assemble_fits(win: _Window, wts: _Weights, grid: _Grid, egrid: np.ndarray,
     ir_best = lnlr.argmax(axis=1)
     radii = np.append(bank.radii, 0.0)
     r_best = radii[ir_best]
-    is_star = ((ir_best == n_r) | (r_best < cfg.star_max_size)) & ~dead
+    is_star = ((ir_best == n_r) | (r_best < cfg.point_source_size)) & ~dead
     flags[is_star] |= _flags.flag_value("STAR")
     S_best = pb.S[best]
     ie_best = np.where(best == bank.n_models - 1, -1, best // max(n_r, 1))
