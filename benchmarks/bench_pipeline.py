@@ -62,7 +62,6 @@ catalogue; only the ``EstimateShear`` calls are timed.
 from __future__ import annotations
 
 import argparse
-import ast
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
@@ -74,6 +73,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
+from precision_ab import _kv  # noqa: E402  (KEY=VALUE strings as Config changes)
 
 STAGES = ("read+detect", "psf", "stamps", "fit")
 STAR_SIZE = 1024
@@ -194,23 +196,11 @@ def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras, met
     return res
 
 
-def _changes(items: list[str]) -> dict:
-    """``KEY=VALUE`` strings as a dict of Config changes (values as Python literals)."""
-    out = {}
-    for item in items:
-        key, _, val = item.partition("=")
-        try:
-            out[key] = ast.literal_eval(val)
-        except (ValueError, SyntaxError):
-            out[key] = val
-    return out
-
-
 def timed_run(images, stars, warm, out, jobs, args, extras) -> dict:
     with cf.ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as ex:
         return ex.submit(_run, images, stars, warm, out, jobs, args.model, args.prior,
                          args.threads, extras, args.method,
-                         _changes(args.set)).result()  # fmt: skip
+                         _kv(args.set)).result()  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------
@@ -353,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     import sep
 
     import pylensfit
-    cfg = _config(args.method, args.model, _changes(args.set))
+    cfg = _config(args.method, args.model, _kv(args.set))
     print(f"pylensfit {pylensfit.__version__} ({os.path.dirname(pylensfit.__file__)})")
     print(f"GalSim {galsim.__version__}, sep {sep.__version__}, astropy {astropy.__version__}, "
           f"numpy {np.__version__}, numba {numba.__version__} ({numba.get_num_threads()} "

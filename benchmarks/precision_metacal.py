@@ -39,7 +39,7 @@ from pylensfit import precision as P
 from pylensfit.runner import run_tasks, worker_pool
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
-from precision_ab import _jk_err, _kv, _m_jk, _priors, prior_text  # noqa: E402
+from precision_ab import _jk_err, _kv, _m_jk, _priors  # noqa: E402
 
 _EST = ("lensfit", "lensfit-mc", "metacal")
 
@@ -210,7 +210,7 @@ def main() -> None:
         np.savez(a.save, QA=QA, e=e, s=s, R=R, ok=ok, jk=jk, psf=psf, morph=morph, g=spec.g,
                  snr=np.concatenate([np.asarray(t["snr"]) for t in truth]),
                  r=np.concatenate([np.asarray(t["r"]) for t in truth]))  # fmt: skip
-    print(f"{ok.sum()} of {ok.size} galaxies measured in all 24 fits; prior {prior_text(prior)}; "
+    print(f"{ok.sum()} of {ok.size} galaxies measured in all 24 fits; prior {prior!r}; "
           f"bulge weights {np.round(bw, 3).tolist()}")
     R_mean = R[ok].mean((0, 1))
     s_mean = s[ok].mean((0, 1))

@@ -73,17 +73,9 @@ def _priors(spec, cfg, estimated: bool, jobs: int, bounds: str):
     if meta["flux_slope"] is not None:
         print(f"flux prior power {meta['flux_slope']['value']:.3f} ± "
               f"{meta['flux_slope']['error']:.3f}")  # fmt: skip
-    print(f"calibration: {time.perf_counter() - t0:.0f} s; prior {prior_text(prior)}; "
+    print(f"calibration: {time.perf_counter() - t0:.0f} s; prior {prior!r}; "
           f"bulge weights {bw}")  # fmt: skip
     return prior, sps, bw, cfgs
-
-
-def prior_text(prior: RadialPrior) -> str:
-    """The ellipticity prior's parameters: ``B C D`` or the spline's coefficients."""
-    d = prior.form_dict()
-    if "coef" in d:
-        return "spline coefficients " + " ".join(f"{v:.2f}" for v in d["coef"])
-    return f"B C D = {d['B']:.3f} {d['C']:.3f} {d['D']:.3f}"
 
 
 def _kv(items: list[str]) -> dict:

@@ -36,7 +36,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from precision_ab import prior_text  # the same folder
 
 import pylensfit.prior as prior_mod
 from pylensfit import precision as P
@@ -133,7 +132,7 @@ def main() -> None:
                        jobs=a.jobs, progress=False)  # fmt: skip
     prior = RadialPrior.from_dict({**full.meta["prior"], "step": cfg.e_step})
     bw = full.meta["bulge_prior"]["weights"]
-    print(f"fixed priors (seed {a.cal_seeds[0]}): {prior_text(prior)}, "
+    print(f"fixed priors (seed {a.cal_seeds[0]}): {prior!r}, "
           f"bulge weights {np.round(bw, 3).tolist()} "
           f"({time.perf_counter() - t0:.0f} s)")  # fmt: skip
     samples: list[tuple[str, list]] = [(str(s), [cal[s]["lnL_r"][k] for k in range(npsf)])
