@@ -37,6 +37,7 @@ import numpy as np
 
 from pylensfit import precision as P
 from pylensfit.runner import run_tasks, worker_pool
+from pylensfit.simulate import POPULATIONS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
 from precision_ab import _jk_err, _kv, _m_jk, _priors  # noqa: E402
@@ -138,6 +139,9 @@ def main() -> None:
     ap.add_argument("--psf", nargs="*", default=None, help="PSF names or indices (default all)")
     ap.add_argument("--morphology-weights", nargs=5, type=float, default=None, metavar="W",
                     help="exponential, de Vaucouleurs, bulge+disc, Sersic, knots")
+    ap.add_argument("--population", choices=list(POPULATIONS), default="aligned",
+                    help="PrecisionSpec.population: the galaxies (realistic: misaligned and "
+                         "rounder bulges, Sersic 0.3-6)")  # fmt: skip
     ap.add_argument("--g", type=float, default=None, help="the applied shear per component")
     ap.add_argument("--offset", type=float, default=None,
                     help="PrecisionSpec.offset (0: centred galaxies, position prior 0.01 px)")
@@ -176,7 +180,8 @@ def main() -> None:
         kw["ncal"] = a.ncal
     if a.offset is not None:
         kw["offset"] = a.offset
-    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed), psfs=a.psf, **kw)
+    spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed, population=a.population),
+                       psfs=a.psf, **kw)
     cfg = P.default_config(spec).replace(**_kv(a.set))
     prior, sps, bw, cfgs = _priors(spec, cfg, not a.true_priors, a.jobs, a.flux_bounds)
     npsf = len(spec.psfs)
