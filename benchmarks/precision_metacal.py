@@ -12,7 +12,12 @@ default configuration, or the population's with ``--true-priors``):
   added): what the doubled noise and the wider PSF do alone;
 - ``metacal``: ``R^-1 sum <e>`` on that image, with ``R`` from the posterior means of
   the four images sheared by +-delta (:mod:`pylensfit.metacal`): the response of the
-  posterior mean measured on the galaxy instead of assumed from the models.
+  posterior mean measured on the galaxy instead of assumed from the models;
+- ``corrected``: lensfit's ``<e>`` on the renderings themselves over their exact
+  sensitivity ``s0`` plus metacalibration's measure of the model bias,
+  ``sum <e> / sum (s0 + R - s_mc)`` (``s_mc`` the sensitivity on the unsheared
+  metacalibration image): the model bias measured on the galaxy, the measurement
+  without the metacalibration images' doubled noise.
 
 m per PSF, per morphology and for the mean of PSFs, each with the jackknife error over
 groups of 100 galaxies, and the paired differences ``metacal - lensfit``::
@@ -42,14 +47,16 @@ from pylensfit.simulate import POPULATIONS
 sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
 from precision_ab import _jk_err, _kv, _m_jk, _priors  # noqa: E402
 
-_EST = ("lensfit", "lensfit-mc", "metacal")
+_EST = ("lensfit", "lensfit-mc", "metacal", "corrected")
 
 
 def _block(task: dict) -> dict:
     """Render, fit and metacalibrate one block (runs in a worker)."""
     from pylensfit.likelihood import fit_stamps
     from pylensfit.metacal import metacal_shapes
+    from pylensfit.prior import mix_bulge_fractions, usable_rows
     from pylensfit.runner import single_thread
+    from pylensfit.shear import posterior_moments, shear_sensitivity
 
     single_thread(task.get("single_thread", False))
     spec, cfg, prior, bw = task["spec"], task["config"], task["prior"], task["bulge_weights"]
@@ -68,7 +75,7 @@ def _block(task: dict) -> dict:
                                noise=False)[0].reshape(4 * n, N, N)  # fmt: skip
         sets.append((2 * clean - flat, -fields))
     kw = {"config": cfg, "size_prior": task["size_prior"]}
-    out = {"QA": 0.0, "e": 0.0, "s": 0.0, "R": 0.0}
+    out = {"QA": 0.0, "e": 0.0, "s": 0.0, "R": 0.0, "e0": 0.0, "s0": 0.0}
     ok = np.ones(4 * n, bool)
     times = np.zeros(2)
     for imgs, fld in sets:
@@ -76,6 +83,12 @@ def _block(task: dict) -> dict:
         fits = fit_stamps(imgs, psf, spec.noise_sigma, **kw)
         QA, okA = P.reduce_renderings(fits, prior, spec.g, refine=cfg.output_refine,
                                       bulge_weights=bw)  # fmt: skip
+        # lensfit's own <e> and exact sensitivity on the renderings themselves
+        lnL = fits.lnL if fits.lnL_bulge is None else mix_bulge_fractions(
+            fits.lnL_bulge, fits.lnL_star, bw)
+        lnL = np.where(usable_rows(lnL)[:, None], lnL, 0.0)
+        mom = posterior_moments(lnL, fits.egrid, prior, refine=cfg.output_refine)
+        s0 = shear_sensitivity(lnL, fits.egrid, prior, refine=cfg.output_refine)
         t1 = time.perf_counter()
         if task["about_stamp"]:  # the stamp's centre as the galaxy's
             fits = replace(fits, x=np.full(4 * n, N // 2.0), y=np.full(4 * n, N // 2.0))
@@ -92,12 +105,15 @@ def _block(task: dict) -> dict:
         out["QA"] = out["QA"] + w * np.nan_to_num(QA)
         out["e"] = out["e"] + w * np.nan_to_num(np.column_stack([sh["e1"], sh["e2"]]))
         out["s"] = out["s"] + w * np.nan_to_num(np.column_stack([sh["s1"], sh["s2"]]))
+        out["e0"] = out["e0"] + w * np.nan_to_num(np.column_stack([mom["e1"], mom["e2"]]))
+        out["s0"] = out["s0"] + w * np.nan_to_num(np.column_stack([s0[0], s0[1]]))
         out["R"] = out["R"] + w * np.nan_to_num(
             np.stack([np.column_stack([sh["R11"], sh["R12"]]),
                       np.column_stack([sh["R21"], sh["R22"]])], 1))  # fmt: skip
         times += [t1 - t0, time.perf_counter() - t1]
     out = {"QA": out["QA"], "e": out["e"].reshape(n, 4, 2), "s": out["s"].reshape(n, 4, 2),
-           "R": out["R"].reshape(n, 4, 2, 2)}  # fmt: skip
+           "R": out["R"].reshape(n, 4, 2, 2), "e0": out["e0"].reshape(n, 4, 2),
+           "s0": out["s0"].reshape(n, 4, 2)}  # fmt: skip
     return {"block": task["block"], "psf": task["psf"], "truth": truth,
             "ok": ok.reshape(n, 4).all(1), **out, "fit_s": times[0], "mc_s": times[1]}
 
@@ -203,7 +219,8 @@ def main() -> None:
           f"{sum(r['fit_s'] for r in cat):.0f}, metacal images and their fits "
           f"{sum(r['mc_s'] for r in cat):.0f}")
     QA = np.concatenate([r["QA"] for r in cat]).astype(float)
-    e, s, R = (np.concatenate([r[k] for r in cat]).astype(float) for k in ("e", "s", "R"))
+    e, s, R, e0, s0 = (np.concatenate([r[k] for r in cat]).astype(float)
+                       for k in ("e", "s", "R", "e0", "s0"))
     ok = np.concatenate([r["ok"] for r in cat])
     truth = [r["truth"] for r in cat]
     psf = np.concatenate([np.full(len(t), r["psf"]) for t, r in zip(truth, cat, strict=True)])
@@ -212,8 +229,8 @@ def main() -> None:
     jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P._JACKKNIFE_GALAXIES
                          for t, r in zip(truth, cat, strict=True)])  # fmt: skip
     if a.save:
-        np.savez(a.save, QA=QA, e=e, s=s, R=R, ok=ok, jk=jk, psf=psf, morph=morph, g=spec.g,
-                 snr=np.concatenate([np.asarray(t["snr"]) for t in truth]),
+        np.savez(a.save, QA=QA, e=e, s=s, R=R, e0=e0, s0=s0, ok=ok, jk=jk, psf=psf,
+                 morph=morph, g=spec.g, snr=np.concatenate([np.asarray(t["snr"]) for t in truth]),
                  r=np.concatenate([np.asarray(t["r"]) for t in truth]))  # fmt: skip
     print(f"{ok.sum()} of {ok.size} galaxies measured in all 24 fits; prior {prior!r}; "
           f"bulge weights {np.round(bw, 3).tolist()}")
@@ -227,14 +244,19 @@ def main() -> None:
           f"{(R11 - s1).std():.3f}; R22 {R22.std():.3f}, s2 {s2.std():.3f}, R22 - s2 "
           f"{(R22 - s2).std():.3f}")
 
+    Rc = R.copy()  # s0 + R - s_mc
+    for i in range(2):
+        Rc[..., i, i] += s0[..., i] - s[..., i]
+
     def row(name, sel):
         if sel.sum() < 200:
             return
         okk = ok & sel
         ms = {"lensfit": _m_jk(QA[okk], np.ones(okk.sum(), bool), jk[okk], spec.g)}
-        for est in _EST[1:]:
-            ms[est] = _m_metacal(e[okk], s[okk], R[okk], np.ones(okk.sum(), bool), jk[okk],
-                                 spec.g, est)  # fmt: skip
+        one = np.ones(okk.sum(), bool)
+        for est in _EST[1:3]:
+            ms[est] = _m_metacal(e[okk], s[okk], R[okk], one, jk[okk], spec.g, est)
+        ms["corrected"] = _m_metacal(e0[okk], s[okk], Rc[okk], one, jk[okk], spec.g, "metacal")
         def cell(v):  # m1 / m2 with their jackknife errors
             err = _jk_err(v)
             return f"{v[0, 0]:+.4f} ± {err[0]:.4f} / {v[0, 1]:+.4f} ± {err[1]:.4f}"
@@ -243,14 +265,17 @@ def main() -> None:
         cells += [cell(ms["metacal"] - ms[y]) for y in ("lensfit", "lensfit-mc")]
         print(f"| {name} | {okk.sum()} | " + " | ".join(cells) + " |")
 
-    print("\n| sample | galaxies | lensfit m1 / m2 | lensfit-mc | metacal | metacal - lensfit "
-          "| metacal - lensfit-mc |")
-    print("|---|---|---|---|---|---|---|")
+    print("\n| sample | galaxies | lensfit m1 / m2 | lensfit-mc | metacal | corrected "
+          "| metacal - lensfit | metacal - lensfit-mc |")
+    print("|---|---|---|---|---|---|---|---|")
     for i, p in enumerate(spec.psfs):
         row(p["name"], psf == i)
     row("all", np.ones_like(ok))
     for j, mname in enumerate(P.MORPHOLOGIES):
         row(mname, morph == j)
+    snr = np.concatenate([np.asarray(t["snr"]) for t in truth])
+    for lo, hi in ((0, 20), (20, 40), (40, np.inf)):
+        row(f"S/N {lo}-{hi:g}", (snr >= lo) & (snr < hi))
 
 
 if __name__ == "__main__":

@@ -216,3 +216,44 @@ def test_one_noise_level_per_stamp_is_each_stamp_s_own():
         np.testing.assert_allclose(both.images["2m"][k], one.images["2m"], atol=1e-5)
     with pytest.raises(ValueError, match="one per stamp"):
         metacal_images(stamps, psf, sig[:2], noise_fields=fields)
+
+
+def test_measure_stamps_metacal_columns_are_the_galaxies_metacalibration():
+    """``measure_stamps(response="metacal")`` adds the metacalibration of each stamp about
+    its fitted centre (a PSF smaller than the stamps put on their grid), with its seeded
+    noise fields: the columns are :func:`metacal_shapes`' for the same fields, and the
+    corrected sensitivity is lensfit's plus the measured model bias."""
+    import pylensfit as plf
+    from pylensfit.psf import centre_on_stamp
+
+    psf = galsim.Moffat(beta=3.5, fwhm=3.0)
+    gals = [galsim.Sersic(n=0.6, half_light_radius=2.0).shear(g1=0.2, g2=-0.1),
+            galsim.Exponential(half_light_radius=1.5).shear(g1=-0.1, g2=0.3),
+            galsim.DeVaucouleurs(half_light_radius=1.2)]  # fmt: skip
+    stamps = np.stack([_draw(galsim.Convolve(g, psf)) for g in gals])
+    sigma = np.sqrt((stamps[0] ** 2).sum()) / 40.0
+    stamps += np.random.default_rng(2).standard_normal(stamps.shape) * sigma
+    psf_img = _draw(psf, n=25)
+    priors = plf.Priors()
+    cfg = plf.Config(max_stamp_size=0)
+    t = plf.measure_stamps(stamps, psf_img, sigma, priors=priors, config=cfg,
+                           response="metacal", seed=7)  # fmt: skip
+    mc = metacal_shapes(stamps, centre_on_stamp(psf_img, N), sigma, priors.ellipticity,
+                        config=priors.apply(cfg), step=0.01, centres=(t["x"], t["y"]),
+                        noise_fields=np.random.default_rng([7, 0]).standard_normal(stamps.shape))
+    assert (mc["flag"] == 0).all()
+    for c in ("R11", "R12", "R21", "R22"):
+        np.testing.assert_allclose(t[c], mc[c], rtol=1e-6)
+    for i in (1, 2):
+        np.testing.assert_allclose(t[f"e{i}_mcal"], mc[f"e{i}"], rtol=1e-6)
+        np.testing.assert_allclose(t[f"sens{i}_mcal"], t[f"sens{i}"] + mc[f"R{i}{i}"] - mc[f"s{i}"],
+                                   rtol=1e-6)  # fmt: skip
+    assert t.meta["metacal_step"] == 0.01
+    again = plf.measure_stamps(stamps, psf_img, sigma, priors=priors, config=cfg,
+                               response="metacal", seed=7)  # fmt: skip
+    np.testing.assert_array_equal(again["R11"], t["R11"])
+    other = plf.measure_stamps(stamps, psf_img, sigma, priors=priors, config=cfg,
+                               response="metacal", seed=8)  # fmt: skip
+    assert not np.allclose(other["R11"], t["R11"])
+    with pytest.raises(ValueError, match="response must be"):
+        plf.measure_stamps(stamps, psf_img, sigma, priors=priors, response="moments")

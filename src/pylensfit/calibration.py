@@ -729,6 +729,9 @@ def measure_stamps(
     priors: Priors | str | Path | None = None,
     config: Config | None = None,
     centres: tuple[np.ndarray, np.ndarray] | None = None,
+    response: str = "model",
+    metacal_step: float = 0.01,
+    seed: int = 0,
 ) -> Table:
     """Shapes, errors, sensitivities and weights of galaxies on postage stamps.
 
@@ -746,6 +749,20 @@ def measure_stamps(
         them from ``stamps`` themselves.
     config : Config, optional
         Settings (default ``Config()``); the one the priors were estimated with.
+    response : {"model", "metacal"}
+        ``"model"``: the sensitivities are lensfit's exact response of the posterior
+        mean if the galaxy is one of the models. ``"metacal"``: the response is also
+        measured on each galaxy itself (:func:`pylensfit.metacal.metacal_shapes`: the
+        stamp deconvolved, sheared by ``+-metacal_step``, reconvolved with a PSF
+        ``1 + 2 metacal_step`` times wider and fitted again, with a rotated noise field
+        added), for galaxies the model family does not hold (Sersic profiles far from
+        1 and 4, knotty discs, bulges misaligned with their discs), at about 7.5 times
+        the cost. It adds the columns below.
+    metacal_step : float
+        The metacalibration shear ``delta`` (dimensionless).
+    seed : int
+        Seed of the metacalibration's added noise fields (the same input and seed give
+        the same table).
 
     Returns
     -------
@@ -760,7 +777,20 @@ def measure_stamps(
         it was fitted on) and ``lnL`` (the ``(n, n_e)`` likelihood grid, for
         :func:`~pylensfit.estimate_shear`'s fixed point). ``meta``: ``egrid``, ``prior``
         (the ellipticity prior), ``priors``, ``refine``, ``sensitivity``.
+
+        With ``response="metacal"`` also ``e1_mcal, e2_mcal`` (the posterior means on
+        the unsheared metacalibration image), ``R11, R12, R21, R22`` (their measured
+        response ``R_ij = d<e_i>/dg_j``), and ``sens1_mcal, sens2_mcal``: ``sens_i``
+        plus the model bias measured on the galaxy, ``R_ii`` less lensfit's own
+        sensitivity on the unsheared metacalibration image (NaN where a
+        metacalibration fit failed); ``meta["metacal_step"]``. The shear of a sample
+        is then ``estimate_shear(t, estimator="key2", e1_col="e1_mcal",
+        e2_col="e2_mcal", sens1_col="R11", sens2_col="R22")`` (metacalibration's
+        ``<e> / <R>``) or ``estimate_shear(t, estimator="key2", sens1_col="sens1_mcal",
+        sens2_col="sens2_mcal")`` (lensfit's ``<e>`` over the corrected sensitivity).
     """
+    if response not in ("model", "metacal"):
+        raise ValueError(f"response must be 'model' or 'metacal', got {response!r}")
     cfg = config if config is not None else Config()
     stamps = _as_stamps(stamps)
     if isinstance(priors, (str, Path)):
@@ -796,4 +826,44 @@ def measure_stamps(
     t["lnL"] = np.asarray(lnL, dtype=np.float32)
     t.meta.update(egrid=np.asarray(fits.egrid), prior=priors.ellipticity, priors=priors,
                   refine=int(run_cfg.output_refine), sensitivity=cfg.sensitivity)  # fmt: skip
+    if response == "metacal":
+        _add_metacal(t, stamps, psf, noise_sigma, priors, run_cfg, fits, metacal_step, seed)
     return t
+
+
+#: stamps metacalibrated at a time by :func:`measure_stamps`
+_METACAL_BLOCK = 1024
+
+
+def _add_metacal(t: Table, stamps: np.ndarray, psf: np.ndarray, noise_sigma, priors: Priors,
+                 run_cfg: Config, fits, step: float, seed: int) -> None:
+    """``measure_stamps``' metacalibration columns, in place, about the fitted centres
+    (NaN on the rows not fitted)."""
+    from .metacal import metacal_shapes
+    from .psf import centre_on_stamp
+
+    psf = centre_on_stamp(psf, stamps.shape[-1])  # on the stamps' grid
+    x, y = np.asarray(fits.x, float), np.asarray(fits.y, float)
+    sig = per_object(noise_sigma, len(t), "noise_sigma")
+    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(sig) & (sig > 0)
+    cols = {c: np.full(len(t), np.nan) for c in ("e1_mcal", "e2_mcal", "R11", "R12", "R21",
+                                                 "R22", "sens1_mcal", "sens2_mcal")}  # fmt: skip
+    for start in range(0, len(t), _METACAL_BLOCK):  # bounded memory; a seed per block
+        rows = np.arange(start, min(start + _METACAL_BLOCK, len(t)))
+        fields = np.random.default_rng([seed, start]).standard_normal(
+            (rows.size,) + stamps.shape[1:])[ok[rows]]
+        idx = rows[ok[rows]]
+        if not idx.size:
+            continue
+        mc = metacal_shapes(stamps[idx], psf, sig[idx], priors.ellipticity, config=run_cfg,
+                            size_prior=priors.size, bulge_weights=priors.bulge_weights,
+                            step=step, noise_fields=fields, centres=(x[idx], y[idx]))  # fmt: skip
+        for c in ("R11", "R12", "R21", "R22"):
+            cols[c][idx] = mc[c]
+        for i in (1, 2):
+            cols[f"e{i}_mcal"][idx] = mc[f"e{i}"]
+            cols[f"sens{i}_mcal"][idx] = (np.asarray(t[f"sens{i}"], float)[idx]
+                                          + mc[f"R{i}{i}"] - mc[f"s{i}"])  # fmt: skip
+    for c, v in cols.items():
+        t[c] = v
+    t.meta["metacal_step"] = float(step)

@@ -279,6 +279,7 @@ def metacal_shapes(
     noise_fields: np.ndarray | None = None,
     seed: int | None = None,
     fits=None,
+    centres: tuple[np.ndarray, np.ndarray] | None = None,
     position_prior_sigma: float | None = 2.0,
 ) -> Table:
     """lensfit's posterior mean ellipticity of each stamp with its metacalibrated response.
@@ -313,6 +314,9 @@ def metacal_shapes(
         As :func:`metacal_images`.
     fits : StampFits, optional
         Fits of ``stamps`` already made (their ``x``, ``y`` are the centres).
+    centres : tuple of numpy.ndarray, optional
+        ``(x, y)``: the galaxies' fitted centres (stamp pixels, element ``[y, x]``),
+        instead of ``fits``.
     position_prior_sigma : float or None
         Width (px) of the position prior of the five metacalibration images' fits (None:
         the configuration's). The images are sheared about the fitted centre, whose
@@ -340,9 +344,12 @@ def metacal_shapes(
     st = np.asarray(stamps, dtype=np.float32)
     st = st[None] if st.ndim == 2 else st
     kw = {"config": config, "size_prior": size_prior}
-    if fits is None:
-        fits = fit_stamps(st, psf, noise_sigma, **kw)
-    cx, cy = np.asarray(fits.x, float), np.asarray(fits.y, float)
+    if centres is not None:
+        cx, cy = (np.broadcast_to(np.asarray(c, float), st.shape[:1]) for c in centres)
+    else:
+        if fits is None:
+            fits = fit_stamps(st, psf, noise_sigma, **kw)
+        cx, cy = np.asarray(fits.x, float), np.asarray(fits.y, float)
     n = st.shape[-1]
     ok = np.isfinite(cx) & np.isfinite(cy)
     mc = metacal_images(st, psf, noise_sigma, step=step, noise_fields=noise_fields, seed=seed,
