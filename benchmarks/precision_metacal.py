@@ -44,8 +44,11 @@ from pylensfit import precision as P
 from pylensfit.runner import run_tasks, worker_pool
 from pylensfit.simulate import POPULATIONS
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
 from precision_ab import _jk_err, _kv, _m_jk, _priors  # noqa: E402
+
+from bench_precision import hsm_shapes  # noqa: E402
 
 _EST = ("lensfit", "lensfit-mc", "metacal", "corrected")
 
@@ -77,7 +80,7 @@ def _block(task: dict) -> dict:
     kw = {"config": cfg, "size_prior": task["size_prior"]}
     out = {"QA": 0.0, "e": 0.0, "s": 0.0, "R": 0.0, "e0": 0.0, "s0": 0.0}
     ok = np.ones(4 * n, bool)
-    times = np.zeros(2)
+    times = np.zeros(3)
     for imgs, fld in sets:
         t0 = time.perf_counter()
         fits = fit_stamps(imgs, psf, spec.noise_sigma, **kw)
@@ -110,12 +113,15 @@ def _block(task: dict) -> dict:
         out["R"] = out["R"] + w * np.nan_to_num(
             np.stack([np.column_stack([sh["R11"], sh["R12"]]),
                       np.column_stack([sh["R21"], sh["R22"]])], 1))  # fmt: skip
-        times += [t1 - t0, time.perf_counter() - t1]
+        t2 = time.perf_counter()
+        hsm_shapes(imgs, psf)  # GalSim HSM REGAUSS on the same renderings, timed only
+        times += [t1 - t0, t2 - t1, time.perf_counter() - t2]
     out = {"QA": out["QA"], "e": out["e"].reshape(n, 4, 2), "s": out["s"].reshape(n, 4, 2),
            "R": out["R"].reshape(n, 4, 2, 2), "e0": out["e0"].reshape(n, 4, 2),
            "s0": out["s0"].reshape(n, 4, 2)}  # fmt: skip
     return {"block": task["block"], "psf": task["psf"], "truth": truth,
-            "ok": ok.reshape(n, 4).all(1), **out, "fit_s": times[0], "mc_s": times[1]}
+            "ok": ok.reshape(n, 4).all(1), **out, "fit_s": times[0], "mc_s": times[1],
+            "hsm_s": times[2]}
 
 
 def _m_metacal(e, s, R, ok, jk, g, est):
@@ -215,9 +221,12 @@ def main() -> None:
         for t, r in run_tasks(_block, tasks, a.jobs, None, "metacal", True, pool):
             res[t["block"]] = r
     cat = [res[b] for b in range(nb)]
-    print(f"{nb} blocks in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs); CPU s: fit "
-          f"{sum(r['fit_s'] for r in cat):.0f}, metacal images and their fits "
-          f"{sum(r['mc_s'] for r in cat):.0f}")
+    cpu = {k: sum(r[k] for r in cat) for k in ("fit_s", "mc_s", "hsm_s")}
+    nr = sum(4 * len(r["ok"]) for r in cat) * (2 if a.antithetic and not a.noise_free else 1)
+    print(f"{nb} blocks in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs); renderings per "
+          f"CPU second: lensfit's fit {nr / cpu['fit_s']:.1f}, with metacalibration "
+          f"{nr / (cpu['fit_s'] + cpu['mc_s']):.1f}, GalSim HSM REGAUSS "
+          f"{nr / cpu['hsm_s']:.1f} (same process)")
     QA = np.concatenate([r["QA"] for r in cat]).astype(float)
     e, s, R, e0, s0 = (np.concatenate([r[k] for r in cat]).astype(float)
                        for k in ("e", "s", "R", "e0", "s0"))

@@ -779,15 +779,15 @@ def measure_stamps(
         (the ellipticity prior), ``priors``, ``refine``, ``sensitivity``.
 
         With ``response="metacal"`` also ``e1_mcal, e2_mcal`` (the posterior means on
-        the unsheared metacalibration image), ``R11, R12, R21, R22`` (their measured
-        response ``R_ij = d<e_i>/dg_j``), and ``sens1_mcal, sens2_mcal``: ``sens_i``
-        plus the model bias measured on the galaxy, ``R_ii`` less lensfit's own
-        sensitivity on the unsheared metacalibration image (NaN where a
-        metacalibration fit failed); ``meta["metacal_step"]``. The shear of a sample
-        is then ``estimate_shear(t, estimator="key2", e1_col="e1_mcal",
-        e2_col="e2_mcal", sens1_col="R11", sens2_col="R22")`` (metacalibration's
-        ``<e> / <R>``) or ``estimate_shear(t, estimator="key2", sens1_col="sens1_mcal",
-        sens2_col="sens2_mcal")`` (lensfit's ``<e>`` over the corrected sensitivity).
+        the unsheared metacalibration image) and ``R11, R12, R21, R22`` (their measured
+        response ``R_ij = d<e_i>/dg_j``), NaN where a metacalibration fit failed, and
+        ``meta["metacal_step"]``. The shear of a sample is then metacalibration's
+        ``<e> / <R>``: ``estimate_shear(t, estimator="key2", e1_col="e1_mcal",
+        e2_col="e2_mcal", sens1_col="R11", sens2_col="R22")`` (the off-diagonal
+        responses average to zero). The metacalibration images carry twice the pixel
+        noise variance: on a realistic mix of kinds (Sersic, bulge+disc, knotty discs)
+        every kind's m is within 5e-3 above S/N 20, where lensfit's own sensitivity
+        leaves -0.028 to +0.010, but a noise bias of about +0.01 is left below S/N 20.
     """
     if response not in ("model", "metacal"):
         raise ValueError(f"response must be 'model' or 'metacal', got {response!r}")
@@ -847,7 +847,7 @@ def _add_metacal(t: Table, stamps: np.ndarray, psf: np.ndarray, noise_sigma, pri
     sig = per_object(noise_sigma, len(t), "noise_sigma")
     ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(sig) & (sig > 0)
     cols = {c: np.full(len(t), np.nan) for c in ("e1_mcal", "e2_mcal", "R11", "R12", "R21",
-                                                 "R22", "sens1_mcal", "sens2_mcal")}  # fmt: skip
+                                                 "R22")}  # fmt: skip
     for start in range(0, len(t), _METACAL_BLOCK):  # bounded memory; a seed per block
         rows = np.arange(start, min(start + _METACAL_BLOCK, len(t)))
         fields = np.random.default_rng([seed, start]).standard_normal(
@@ -862,8 +862,6 @@ def _add_metacal(t: Table, stamps: np.ndarray, psf: np.ndarray, noise_sigma, pri
             cols[c][idx] = mc[c]
         for i in (1, 2):
             cols[f"e{i}_mcal"][idx] = mc[f"e{i}"]
-            cols[f"sens{i}_mcal"][idx] = (np.asarray(t[f"sens{i}"], float)[idx]
-                                          + mc[f"R{i}{i}"] - mc[f"s{i}"])  # fmt: skip
     for c, v in cols.items():
         t[c] = v
     t.meta["metacal_step"] = float(step)
