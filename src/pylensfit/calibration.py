@@ -57,6 +57,7 @@ from ._util import json_kind, jsonable, per_object, read_json_entry
 from .config import Config
 from .flags import FLAGS
 from .likelihood import e_annuli, fit_stamps, reweight_lnL_r
+from .metacal import metacal_shapes
 from .models import model_bank
 from .prior import (
     MIN_FLUX_RANGE_SAMPLE,
@@ -71,7 +72,7 @@ from .prior import (
     estimate_size_prior,
     mix_bulge_fractions,
 )
-from .psf import psf_diagnostics
+from .psf import centre_on_stamp, psf_diagnostics
 from .shear import shapes
 from .weights import inverse_variance_weights
 
@@ -756,7 +757,7 @@ def measure_stamps(
         stamp deconvolved, sheared by ``+-metacal_step``, reconvolved with a PSF
         ``1 + 2 metacal_step`` times wider and fitted again, with a rotated noise field
         added), for galaxies the model family does not hold (Sersic profiles far from
-        1 and 4, knotty discs, bulges misaligned with their discs), at about 7.5 times
+        1 and 4, knotty discs, bulges misaligned with their discs), at about five times
         the cost. It adds the columns below.
     metacal_step : float
         The metacalibration shear ``delta`` (dimensionless).
@@ -839,9 +840,6 @@ def _add_metacal(t: Table, stamps: np.ndarray, psf: np.ndarray, noise_sigma, pri
                  run_cfg: Config, fits, step: float, seed: int) -> None:
     """``measure_stamps``' metacalibration columns, in place, about the fitted centres
     (NaN on the rows not fitted)."""
-    from .metacal import metacal_shapes
-    from .psf import centre_on_stamp
-
     psf = centre_on_stamp(psf, stamps.shape[-1])  # on the stamps' grid
     x, y = np.asarray(fits.x, float), np.asarray(fits.y, float)
     sig = per_object(noise_sigma, len(t), "noise_sigma")
