@@ -19,7 +19,8 @@ default configuration, or the population's with ``--true-priors``):
   metacalibration image): the model bias measured on the galaxy, the measurement
   without the metacalibration images' doubled noise.
 
-m per PSF, per morphology and for the mean of PSFs, each with the jackknife error over
+m per PSF, per morphology, per true S/N (and per morphology above S/N 20) and for the
+mean of PSFs, each with the jackknife error over
 groups of 100 galaxies, and the paired differences ``metacal - lensfit``::
 
     python benchmarks/precision_metacal.py --ngal 4000 --psf e=0.10 --jobs 2
@@ -285,6 +286,8 @@ def main() -> None:
     snr = np.concatenate([np.asarray(t["snr"]) for t in truth])
     for lo, hi in ((0, 20), (20, 40), (40, np.inf)):
         row(f"S/N {lo}-{hi:g}", (snr >= lo) & (snr < hi))
+    for j, mname in enumerate(P.MORPHOLOGIES):  # the kinds above the faint end
+        row(f"{mname}, S/N >= 20", (morph == j) & (snr >= 20))
 
 
 if __name__ == "__main__":

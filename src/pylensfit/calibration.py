@@ -757,7 +757,7 @@ def measure_stamps(
         stamp deconvolved, sheared by ``+-metacal_step``, reconvolved with a PSF
         ``1 + 2 metacal_step`` times wider and fitted again, with a rotated noise field
         added), for galaxies the model family does not hold (Sersic profiles far from
-        1 and 4, knotty discs, bulges misaligned with their discs), at about five times
+        1 and 4, knotty discs, bulges misaligned with their discs), at 5 to 7.5 times
         the cost. It adds the columns below.
     metacal_step : float
         The metacalibration shear ``delta`` (dimensionless).
