@@ -1016,8 +1016,8 @@ def test_lower_flux_bound_evaluation_matches_the_direct_integral(beta):
 # --- the tiled kernel against the per-model reference ---------------------------------
 @pytest.mark.parametrize("n_chi", [1, 4])
 @pytest.mark.parametrize("cubic", [False, True])
-@pytest.mark.parametrize("amp", [(-1.0, 0.0, 0.0, np.inf), (2.0, 1.0, 0.0, np.inf),
-                                 (1.8, 0.8, 12.0, 80.0)])  # fmt: skip
+@pytest.mark.parametrize("amp", [(-np.inf, 0.0, 0.0, np.inf), (2.0, 1.0, 0.0, np.inf),
+                                 (1.8, 0.8, 12.0, 80.0), (-0.7, -1.7, 12.0, 80.0)])  # fmt: skip
 def test_tiled_kernel_matches_per_model_laplace(n_chi, cubic, amp):
     """``laplace_grid`` evaluates the Laplace terms a tile of models at a time, without
     branches; ``_laplace_lnl`` is the same arithmetic one model at a time, with them.
@@ -1101,7 +1101,7 @@ def test_tiled_kernel_matches_per_model_laplace(n_chi, cubic, amp):
     assert bad.mean() < 0.05
     want = np.where(bad, -np.inf, lnl[:, :n_e])
     # the power law's table (read by the models inside any flux bounds too), or rounding
-    tol = 5e-8 if amp_pow >= 0 else 1e-9
+    tol = 5e-8 if np.isfinite(amp_pow) else 1e-9
     np.testing.assert_allclose(lnlb[:, :, 0] - np.log(node_w[0]), want, rtol=1e-12, atol=tol)
     np.testing.assert_allclose(lnlr[:, 1], lnl[:, n_e], rtol=1e-12, atol=tol)
     jb = np.where(np.isfinite(lnl), lnl, -np.inf).argmax(axis=1)

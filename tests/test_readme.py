@@ -81,3 +81,66 @@ def test_cli_quick_start_runs_as_written(tmp_path, monkeypatch, capsys):
         assert main(shlex.split(cmd)[1:]) == 0, cmd
     out = capsys.readouterr().out
     assert "g1" in out and (tmp_path / "catalog.fits").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# The README's catalogue section: its tables are the catalogue's schema
+# ---------------------------------------------------------------------------------------
+def _generated(marker: str) -> list[list[str]]:
+    """The cells of the README's table between ``<!-- marker:start/end -->``, unescaped,
+    without the header and separator rows."""
+    text = README.read_text()
+    m = re.search(rf"<!-- {marker}:start -->\n(.*?)<!-- {marker}:end -->", text, flags=re.S)
+    assert m, f"README.md has no <!-- {marker}:start --> ... <!-- {marker}:end --> table"
+    rows = []
+    for line in m.group(1).strip().splitlines()[2:]:
+        cells = re.split(r"(?<!\\)\|", line.strip())[1:-1]
+        rows.append([re.sub(r"\\(.)", r"\1", c.strip()) for c in cells])
+    return rows
+
+
+def test_readme_tables_are_the_generated_ones():
+    """The committed README carries the tables that the schema generates (after a change to
+    COLUMNS, FLAGS or HDUS: bash .ci/readme-tables)."""
+    from pylensfit.catalogue import update_readme
+
+    text = README.read_text()
+    assert update_readme(text) == text, "README.md's tables are stale: bash .ci/readme-tables"
+
+
+def test_readme_columns_flags_and_hdus_are_the_schema():
+    from pylensfit.catalogue import COLUMNS, HDUS
+    from pylensfit.flags import FLAGS
+
+    cols = {n.strip("`"): (u, d) for n, u, d in _generated("columns")}
+    assert list(cols) == list(COLUMNS)
+    assert cols == {n: (u, " ".join(d.split())) for n, (u, d) in COLUMNS.items()}
+    bits = {n.strip("`"): (int(b), d) for b, n, d in _generated("flags")}
+    assert bits == {n: (v, " ".join(d.split())) for n, (v, d) in FLAGS.items()}
+    hdus = {n.strip("`"): d for n, d in _generated("hdus")}
+    assert list(hdus) == list(HDUS)
+    assert hdus == {n: " ".join(d.split()) for n, d in HDUS.items()}
+    # the one definition of the weight: the README's prose defers to its row
+    assert "`weight` (its row below)" in README.read_text()
+
+
+def test_catalogue_docstring_lists_every_hdu_as_the_schema():
+    """pylensfit.catalogue's module docstring lists the HDUs of HDUS, in order, each with
+    the description of HDUS."""
+    from pylensfit import catalogue
+
+    doc = " ".join(catalogue.__doc__.split())
+    listed = re.findall(r"\* ``([A-Z]+)``: ", doc)
+    assert listed == list(catalogue.HDUS)
+    for name, desc in catalogue.HDUS.items():
+        assert f"* ``{name}``: {' '.join(desc.split())}" in doc, name
+
+
+def test_readme_states_fit_piffs_default_order():
+    import inspect
+
+    from pylensfit.psfmodel import fit_piff
+
+    order = inspect.signature(fit_piff).parameters["order"].default
+    text = " ".join(README.read_text().split())
+    assert f"where the function's default is `order={order}`" in text

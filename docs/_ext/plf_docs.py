@@ -8,6 +8,8 @@ Directives (each reads the package at build time, so that the pages never go sta
     grouped under the ``# --- group ---`` comments of the class body.
 ``.. plf-presets::``
     The named configurations of :data:`pylensfit.config.PRESETS`.
+``.. plf-hdus::``
+    The catalogue's HDUs, :data:`pylensfit.catalogue.HDUS`.
 ``.. plf-columns::``
     The catalogue's columns, :data:`pylensfit.catalogue.COLUMNS`.
 ``.. plf-flags::``
@@ -196,6 +198,21 @@ class PresetsTable(Directive):
                        [10, 40, 50])]
 
 
+class HdusTable(Directive):
+    """The catalogue's HDUs, :data:`pylensfit.catalogue.HDUS`."""
+
+    has_content = False
+
+    def run(self):
+        from pylensfit import catalogue
+        from pylensfit.catalogue import HDUS
+
+        _depend(self, catalogue)
+        rows = [[_lit(name), _text_nodes(desc)] for name, desc in HDUS.items()]
+        return [_table(["HDU", "contents"], rows, [12, 88],
+                       ids=[f"hdu-{n.lower()}" for n in HDUS])]
+
+
 class ColumnsTable(Directive):
     """The catalogue's columns, :data:`pylensfit.catalogue.COLUMNS`."""
 
@@ -334,6 +351,7 @@ def _check_pages(app, exception):
 def setup(app):
     app.add_directive("plf-config-table", ConfigTable)
     app.add_directive("plf-presets", PresetsTable)
+    app.add_directive("plf-hdus", HdusTable)
     app.add_directive("plf-columns", ColumnsTable)
     app.add_directive("plf-flags", FlagsTable)
     app.add_directive("plf-cli-help", CliHelp)

@@ -144,6 +144,9 @@ def _bounded_mass(a, b):
     return lpa + math.log1p(-r), (la - (db - b) * r) / (1.0 - r)
 
 
+#: the amplitude prior's power that stands for the uniform prior (any finite power is a
+#: power law, a negative one included: counts that rise with flux)
+AMP_UNIFORM = -math.inf
 #: where no lower bound is given, a power-law amplitude prior starts at this S/N (the
 #: law diverges at 0 for ``beta >= 1``)
 _AMP_FLOOR = 1.0
@@ -158,8 +161,10 @@ def _amplitude_integral(t, s, lns, iss, amp_pow, amp_lns, amp_lo, amp_hi):
     units (see :func:`_laplace_lnl`), for the model's S/N ``t``, ``S = sum m^2``, ``ln
     S`` and ``iss = 1 / (sigma sqrt S)``.
 
-    Uniform prior (``amp_pow < 0``): ``0.5 t^2 + ln Phi(t)``, exact, and ``t + phi(t) /
-    Phi(t)``. Power law ``u^-beta`` in the S/N ``u`` between bounds ``lo < hi`` (the flux
+    Uniform prior (``amp_pow = -inf``, :data:`AMP_UNIFORM`): ``0.5 t^2 + ln Phi(t)``,
+    exact, and ``t + phi(t) / Phi(t)``. Power law ``u^-beta`` (any finite ``beta``; a
+    negative one for counts that rise with flux) in the S/N ``u`` between bounds ``lo <
+    hi`` (the flux
     bounds ``amp_lo``, ``amp_hi`` in the model's S/N units, ``lo`` at least
     ``_AMP_FLOOR``): ``0.5 t^2 + ln int_lo^hi u^-beta phi(u - t) du``, with the log of the
     integrand ``g(u) = -beta ln u - (u - t)^2 / 2`` expanded to second order about its
@@ -174,7 +179,7 @@ def _amplitude_integral(t, s, lns, iss, amp_pow, amp_lns, amp_lo, amp_hi):
     mean of that Gaussian truncated to the bounds (the posterior mean of ``u``; within
     5e-3 of it for ``t >= 8``).
     """
-    if amp_pow < 0.0:
+    if amp_pow == AMP_UNIFORM:
         val, dl = _amplitude_terms(t)
         return val - 0.5 * lns, dl
     beta = amp_pow
@@ -246,9 +251,9 @@ def _laplace_lnl(h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy, cubic, s, sq
     """ln L of one model, marginalised over amplitude (> 0) and position (Laplace).
 
     ``s``, ``sqs``, ``lns`` are ``S = sum m^2``, its square root and its log. With
-    ``amp_pow < 0`` the amplitude prior is uniform (the paper's): ``0.5 t^2 + ln Phi(t) -
-    0.5 ln S`` for the model's S/N ``t = h / (sigma sqrt S)``. With ``amp_pow = beta >=
-    0`` it is a power law in the model's S/N, ``p(A | model) ~ t^-beta dt/dA``, between
+    ``amp_pow = -inf`` the amplitude prior is uniform (the paper's): ``0.5 t^2 + ln Phi(t) -
+    0.5 ln S`` for the model's S/N ``t = h / (sigma sqrt S)``. With a finite ``amp_pow =
+    beta`` it is a power law in the model's S/N, ``p(A | model) ~ t^-beta dt/dA``, between
     bounds ``amp_lo``, ``amp_hi`` on the flux (:func:`_amplitude_integral`; the ``sqrt
     S`` of the Gaussian's width in ``A`` cancels that of ``dt/dA``), plus ``amp_lns * 0.5
     ln S``: ``amp_lns = beta - 1`` makes it a power law ``A^-beta`` in the amplitude (the
@@ -631,7 +636,7 @@ def amplitude_table(amp_pow):
     """The power-law table that :func:`laplace_grid` needs for an amplitude prior (computed
     once for many calls of :func:`laplace_grid_tab`). With flux bounds too: the models
     whose S/N is ``_PT_BOUND_MARGIN`` or more inside both read it."""
-    if amp_pow >= 0.0:
+    if amp_pow != AMP_UNIFORM:
         return _power_law_table(amp_pow)
     return 0.0, np.empty((4, 0))
 
@@ -644,7 +649,7 @@ def _laplace_grid_nb(
     out_lnlb, out_lnlr, out_best, out_h, out_x, out_y,
 ):  # fmt: skip
     """:func:`laplace_grid_tab` with the amplitude prior's table computed here."""
-    if amp_pow >= 0.0:
+    if amp_pow != AMP_UNIFORM:
         pt0, ptab = _power_law_table(amp_pow)
     else:
         pt0, ptab = 0.0, np.empty((4, 0))
@@ -873,8 +878,8 @@ def _laplace_grid_tab_nb(
         L_k(e) + w_star L_star``, where ``L_k(e)`` is the weighted sum over the sizes of
         run ``k`` and the point source, common to all fractions, is counted once.
     amp_pow : float
-        The amplitude prior (:func:`_laplace_lnl`): uniform if negative, else the power
-        of a power law in the model's S/N.
+        The amplitude prior (:func:`_laplace_lnl`): uniform if :data:`AMP_UNIFORM`
+        (``-inf``), else the power of a power law in the model's S/N.
     amp_lns : float
         Coefficient of ``0.5 ln S`` added to a power-law amplitude prior: 0 for a power
         law in the model's S/N, ``amp_pow - 1`` for one in the flux.

@@ -4,7 +4,8 @@ Array checks (:func:`per_object`, :func:`check_egrid`, :func:`check_lnL`), the
 ``rfft2`` frequency grid and a Fourier-series peak finder shared by the PSF and
 likelihood stages (:func:`rfft_frequencies`, :func:`newton_peak`), and the reading and
 writing of the package's JSON files (:func:`read_json`, :func:`jsonable`,
-:func:`json_kind`, :func:`other_file_hint`).
+:func:`json_kind`, :func:`other_file_hint`), and the atomic write of every file the
+package writes (:func:`atomic_write_with`).
 """
 
 from __future__ import annotations
@@ -12,12 +13,16 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 __all__ = [
+    "atomic_write_with",
     "check_egrid",
     "check_lnL",
     "json_kind",
@@ -321,3 +326,53 @@ def pyplot_or_none(what: str):
     import matplotlib.pyplot as plt  # the optional [plots] extra
 
     return plt
+
+
+# ----------------------------------------------------------------------------------------
+# Files
+# ----------------------------------------------------------------------------------------
+def new_file_mode() -> int:
+    """The permissions a new file gets under the process's umask (``0o666 & ~umask``).
+
+    Read from ``/proc/self/status`` where the kernel reports it (no change of the
+    process-wide umask, so safe under threads), else by setting and restoring it.
+    """
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def atomic_write_with(write: Callable[[str], None], path: str | Path, *,
+                      overwrite: bool = False) -> None:  # fmt: skip
+    """Write ``path`` through a temporary file beside it, renamed when complete.
+
+    ``write(tmp)`` writes the content to the temporary file's name. A run killed while
+    writing leaves no partial file under ``path``; the file gets the permissions of the
+    user's umask (a temporary file is created readable by its owner only).
+
+    Raises
+    ------
+    FileExistsError
+        If ``path`` exists and ``overwrite`` is false.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: output exists (pass overwrite=True to replace it)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.chmod(tmp, new_file_mode())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise

@@ -12,9 +12,11 @@ prior:
    prior, the flux prior's Euclidean power 2 unbounded, the configuration's position
    prior), keeping each galaxy's likelihood of size ``L(r)`` per ring of ``|e|``;
 2. the flux prior's power (the number counts' slope,
-   :func:`~pylensfit.prior.estimate_flux_slope`) and its limits, deconvolved from the
-   flux errors (:func:`~pylensfit.prior.estimate_flux_range`), come from the measured
-   fluxes; the position prior's width from the scatter of the fitted centres about the
+   :func:`~pylensfit.prior.estimate_flux_slope`; negative where the counts rise with
+   flux, flat at 0 where they rise with flux and the prior has no upper limit) and its
+   limits, deconvolved from the flux errors
+   (:func:`~pylensfit.prior.estimate_flux_range`), come from the measured fluxes; the
+   position prior's width from the scatter of the fitted centres about the
    catalogue positions, less its part that falls as ``1 / S/N`` (:func:`estimate_position_sigma`);
 3. the first pass again under those priors; the ellipticity prior and the prior over
    the bulge fractions from it (:func:`~pylensfit.prior.estimate_prior_and_bulge`);
@@ -123,7 +125,8 @@ class Priors:
         The prior of the half-light radius in the sum over sizes; ``None``: flat.
     flux_power : float or None
         The power ``beta`` of the flux prior ``A^-beta`` (``Config.amplitude_prior_power``
-        with ``amplitude_prior="flux"``); ``None``: the configuration's.
+        with ``amplitude_prior="flux"``); ``None``: the configuration's. Negative for
+        counts that rise with flux (a bright selection), between the flux limits.
     flux_range : tuple of float or None
         The flux prior's limits ``(lo, hi)`` in data units; ``None``: unbounded (or the
         configuration's).
@@ -133,8 +136,10 @@ class Priors:
     n_galaxies : int
         Usable galaxies the priors were estimated from.
     info : dict
-        Errors of the estimates and notes (``flux_power_err``, ``flux_lo_err``,
-        ``flux_hi_err``, ``flux_error_scale``, ``position_snr_term``, ``fallbacks``: the
+        Errors of the estimates and notes (``flux_power_err``, ``flux_counts``: the
+        counts' shape that the power estimates, ``"falling with flux"``, ``"flat"`` or
+        ``"rising with flux"`` (a negative power), ``flux_power_estimated``: the estimate
+        where it fell back, ``flux_range``, ``position_snr_term``, ``fallbacks``: the
         priors that fell back to their defaults, and why).
     """
 
@@ -423,10 +428,43 @@ def estimate_position_sigma(dx, dy, snr, *, n_bins: int = 8) -> tuple[float | No
 FitPass = Callable[[list, list, bool, str], CalibrationSample]
 
 
-def _fallback(info: dict, what: str, why: str) -> None:
+def _fallback(info: dict, what: str, why: str, default: str = "its default") -> None:
     info.setdefault("fallbacks", {})[what] = why
-    warnings.warn(f"{why}: the {what} prior falls back to its default", CalibrationWarning,
+    warnings.warn(f"{why}: the {what} prior falls back to {default}", CalibrationWarning,
                   stacklevel=3)
+
+
+#: the flux prior's power is read as flat (``info["flux_counts"]``) within this many of
+#: its errors of 0
+_FLAT_COUNTS_SIGMA = 2.0
+
+
+def _flux_power(flux: np.ndarray, info: dict[str, Any]) -> float | None:
+    """The flux prior's power ``beta`` (``p(A) ~ A^-beta``) from a pass's fluxes, or None
+    where it cannot be estimated (a fallback to the configured power, with a warning).
+
+    Any finite estimate is kept: a negative power is a population whose counts rise with
+    flux (a bright selection, a cluster field), a proper prior between the flux limits.
+    ``info`` records the error (``flux_power_err``) and the counts' shape
+    (``flux_counts``: ``"falling with flux"``, ``"flat"`` within
+    :data:`_FLAT_COUNTS_SIGMA` errors of 0, ``"rising with flux"``).
+    """
+    try:
+        beta, beta_err = estimate_flux_slope(flux)
+    except ValueError as err:
+        _fallback(info, "flux power", str(err))
+        return None
+    if not (math.isfinite(beta) and math.isfinite(beta_err)):
+        _fallback(info, "flux power", f"the counts' power estimated as {beta} +- {beta_err}")
+        return None
+    info["flux_power_err"] = float(beta_err)
+    if abs(beta) <= _FLAT_COUNTS_SIGMA * beta_err:
+        info["flux_counts"] = "flat"
+    else:
+        info["flux_counts"] = "falling with flux" if beta > 0 else "rising with flux"
+    if beta < 0:
+        log.info("flux prior: counts rising with flux, power %.3f +- %.3f", beta, beta_err)
+    return float(beta)
 
 
 def run_recipe(
@@ -510,16 +548,25 @@ def run_recipe(
     n_used = len(cal)
     if fit_flux:
         if len(cal) >= MIN_GALAXIES:
-            beta, beta_err = estimate_flux_slope(cal.flux)
-            cfg = cfg.replace(amplitude_prior_power=float(beta))
-            out_power = float(beta)
-            info["flux_power_err"] = float(beta_err)
+            beta = _flux_power(cal.flux, info)
+            if beta is not None:
+                cfg = cfg.replace(amplitude_prior_power=beta)
+                out_power = beta
         else:
             _fallback(info, "flux power", f"{len(cal)} usable galaxies (fewer than "
                       f"{MIN_GALAXIES})")  # fmt: skip
     cfgs = [cfg] * n_groups
     if fit_bounds:
         cfgs, ranges = _flux_ranges(cal, cfg, names, info)
+    if fit_flux and out_power is not None and out_power < 0:
+        unbounded = [k for k in range(n_groups) if not math.isfinite(cfgs[k].amplitude_prior_max)]
+        if unbounded:  # counts that rise with flux need the prior's upper limit
+            _fallback(info, "flux power", f"counts rising with flux (power {out_power:.3f}) "
+                      f"and no upper flux limit", default="the flat power 0")
+            info["flux_power_estimated"] = out_power
+            out_power = 0.0
+            cfg = cfg.replace(amplitude_prior_power=0.0)
+            cfgs = [c.replace(amplitude_prior_power=0.0) for c in cfgs]
     if fit_pos:
         try:
             pos_sigma, a = estimate_position_sigma(cal.dx, cal.dy, cal.snr)

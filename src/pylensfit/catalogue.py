@@ -1,25 +1,20 @@
-"""Catalogue input and output: the shear catalogue's columns, FITS written atomically.
+"""The shear catalogue's schema, its generated tables, and FITS written atomically.
 
-The output catalogue is a FITS file:
+The catalogue is defined in one place: :data:`HDUS` (the file's HDUs), :data:`COLUMNS`
+(the columns of its ``CATALOG`` HDU) and :data:`pylensfit.flags.FLAGS` (the bits of its
+``flags`` column). :func:`pylensfit.write_catalogue` copies :data:`COLUMNS` into the
+file's ``COLUMNS`` HDU (:func:`column_table`) and the flag bits into the primary
+header's ``FLAGn`` cards (:func:`flag_cards`; :func:`header_flags` reads them back).
+The README's tables are generated from the same definitions (:func:`markdown_hdus`,
+:func:`markdown_columns`, :func:`markdown_flags`; :func:`update_readme` rewrites them,
+``bash .ci/readme-tables`` runs it on README.md) and the documentation's at build time.
 
-* HDU ``CATALOG``: one row per object that entered the pipeline (:data:`COLUMNS`);
-* HDU ``LNL``: ``(n_objects, n_e)`` float32 ``ln L(e)`` grids, row ``i`` for catalogue row
-  ``i`` (each row's maximum is 0; NaN rows for objects not measured), so that the prior
-  can be re-estimated, or estimated per bin, without refitting;
-* HDU ``LNLB`` (bulge fraction marginalised): ``(n_objects, n_b, n_e)`` float32, each
-  fraction's ``ln L(e)`` on the scale of the ``lnL_star`` column, so that the prior over
-  the fractions can be (re-)estimated; header ``BULGEFR`` (the fractions) and ``BULGEW``
-  (their weights in ``LNL``, when estimated);
-* HDU ``EGRID``: the ``(n_e, 2)`` ellipticity cell centres;
-* HDU ``PSFS``: one row per input image with its PSF diagnostics (``psf_n_used``,
-  ``psf_fwhm``, ``psf_e1``, ... of the PSF at the image's centre and, for a PSF model
-  fitted over the image, its held-out stars' ellipticity residuals ``psf_heldout_n``,
-  ``psf_heldout_mean_de1/2``, ``psf_heldout_rms_de1/2``, ``psf_heldout_noise_de`` (the rms
-  the stars' noise alone gives) and ``psf_heldout_excess_de1/2``, NaN for a constant
-  PSF), and ``PSFIMG``, the ``(n_images, N, N)`` PSF images;
-* HDU ``CONFIG``: the configuration (``key``, ``value`` as YAML text);
-* the primary header: provenance (``PLFVERS``, date, number of images and objects, the
-  prior's parameters).
+The output catalogue is a FITS file of the HDUs of :data:`HDUS`, in that order.
+An HDU is written where the catalogue has its content (a catalogue of
+:func:`pylensfit.measure` has every one but ``LNLB`` and ``SIZEPRI``, which depend on
+the configuration). :func:`pylensfit.read_catalogue` reads them back. astropy's
+``Table.read(path, hdu="CATALOG")`` reads the columns alone; without ``hdu=`` astropy
+reads the same table, the first, and warns, as it does for every file of several tables.
 
 Column names follow the KiDS lensfit catalogues where those have one (``e1``, ``e2``,
 ``weight``, ``fitclass``, ``model_SNratio``, ``pixel_SNratio``, ``PSF_e1``, ``PSF_e2``,
@@ -28,15 +23,77 @@ Column names follow the KiDS lensfit catalogues where those have one (``e1``, ``
 
 from __future__ import annotations
 
-import os
-import tempfile
+import argparse
+import re
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from astropy.io import fits
 from astropy.table import Table
 
-__all__ = ["COLUMNS", "FITCLASS", "atomic_write", "column_table"]
+from ._util import atomic_write_with
+from .flags import FLAGS
+
+__all__ = [
+    "COLUMNS",
+    "FITCLASS",
+    "HDUS",
+    "atomic_write",
+    "column_table",
+    "flag_cards",
+    "header_flags",
+    "markdown_columns",
+    "markdown_flags",
+    "markdown_hdus",
+    "README_TABLES",
+    "update_readme",
+]
+
+#: name -> contents of every HDU of the output catalogue, in the file's order (the module
+#: docstring's list; an HDU is written where the catalogue has its content)
+HDUS: dict[str, str] = {
+    "PRIMARY": "no data; the header holds the provenance (PLFVERS, DATE, NOBJ), the "
+               "ellipticity prior (PRIORFRM and its parameters, PRIORMTH), SENSTVTY, MODEL, "
+               "EFRAME (the frame of e1, e2: sky, pixel or mixed) and one card per flag bit, "
+               "FLAGn = its name for the bit of value n (FLAG1 = 'STAR'; a HIERARCH card from "
+               "16384 on), the card's comment its meaning",
+    "CATALOG": "one row per object that entered the pipeline, measured or flagged, with the "
+               "columns of COLUMNS; the file's first table (extension 1)",
+    "LNL": "(n_objects, n_e) float32 ln L(e) grids, row i for catalogue row i (each row's "
+           "maximum 0, NaN for an object not measured), so that the prior can be estimated "
+           "again, or per bin, without refitting",
+    "EGRID": "the (n_e, 2) ellipticity cell centres of the LNL grids",
+    "LNLB": "with the bulge fraction marginalised, (n_objects, n_b, n_e) float32, each "
+            "fraction's ln L(e) on the scale of the lnL_star column, so that the prior over "
+            "the fractions can be estimated again; header BULGEFR (the fractions), BULGEW "
+            "(their weights in LNL, when estimated), BULGESZ and RUNS (each plane's profile) "
+            "where the planes differ in size or profile",
+    "SIZEPRI": "with a size prior, one row per knot (ln_h, and density, one per plane of "
+               "LNLB); header STAR (the prior probability of a point source) and SMOOTH",
+    "PRIORS": "every prior of the measurement, as JSON (the text of pylensfit.Priors.save)",
+    "PSFS": "one row per input image: where its PSF came from (psf_source: given, a star "
+            "field's or the image's stars, stacked or a polynomial model; note: why the "
+            "image's own stars gave none), its PSF diagnostics (psf_n_used, psf_fwhm, "
+            "psf_e1, ... of the PSF at the image's centre) and, for a PSF model fitted over "
+            "the image, its check on held-out stars (the psf_heldout_* columns: the number "
+            "of stars, the mean and rms of their residuals, the rms that their noise alone "
+            "gives, their mean square over the noise's and its chi-square p-value, and "
+            "psf_heldout_suspect, 1 where the check failed and the image's rows are flagged "
+            "PSF_SUSPECT; NaN for a constant PSF)",
+    "PSFIMG": "the (n_images, N, N) float32 PSF images, row for row of PSFS (zeros where the "
+              "PSF failed)",
+    "CONFIG": "the configuration, one row per setting (key, value as JSON)",
+    "COLUMNS": "name, unit and description of every column of CATALOG (the table of COLUMNS)",
+}
 
 #: name -> (unit, description) of every column of the output catalogue.
+# the module's documentation lists the HDUs from the same table
+__doc__ = __doc__.replace(
+    "in that order.\n",
+    "in that order:\n\n" + "".join(f"* ``{k}``: {v}\n" for k, v in HDUS.items()),
+    1,
+)
+
 COLUMNS: dict[str, tuple[str, str]] = {
     "id": ("", "running object number in the catalogue (1-based)"),
     "image": ("", "input image file name (base name)"),
@@ -56,6 +113,12 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "sep_flag": ("", "sep extraction flags (deblended, blended, truncated, ...; see "
                  "pylensfit.detection.SEP_FLAGS)"),
     "pixel_SNratio": ("", "detection S/N: aperture flux over its error"),
+    "forced_SNratio": ("", "input catalogue rows: the best matched-filter S/N at the "
+                       "catalogue position itself (round exponentials of half-light radius "
+                       "0-4 px convolved with the PSF, no search over position: "
+                       "pylensfit.forced.position_snr); below the threshold of "
+                       "Config.forced_false_alarm the row is flagged LOW_SNR. NaN for "
+                       "detected objects"),
     "noise_sigma": ("adu", "per-pixel noise standard deviation used in the fit"),
     "background": ("adu", "sky background subtracted at the object's position (measured "
                           "again less the fitted models: Config.model_background)"),
@@ -84,10 +147,12 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "sky_flip": ("", "the WCS is a mirror image at the object (e2 changes sign first)"),
     "wcs_g1": ("", "the WCS's local distortion as a reduced shear g1 (flipped pixel frame)"),
     "wcs_g2": ("", "the WCS's local distortion g2"),
-    "weight": ("", "inverse-variance weight 1/(sigma_pop^2 + sigma_e^2) of a galaxy usable "
-               "for shear (Miller et al. 2013's form, sigma_e^2 the median measurement "
-               "variance of galaxies of its round S/N and size: pylensfit.weights), 0 for "
-               "every other row"),
+    "weight": ("", "shear weight <sens> / Var(<e>) of a galaxy usable for shear (flags 0, "
+               "fitclass 0): the mean of (sens1 + sens2) / 2 over the per-component variance "
+               "of the posterior means e1, e2, both over the galaxies of its class of round "
+               "S/N and size relative to the PSF (quantile bins, up to 10 x 4), leaving the "
+               "galaxy itself out, so that it does not depend on the galaxy's own shape "
+               "(pylensfit.weights.class_weights); 0 for every other row"),
     "fitclass": ("", "0 galaxy measured, 1 star (most likely r = 0), -1 not measured "
                  "(see flags)"),
     "is_star": ("", "most likely model size below Config.point_source_size (a point source)"),
@@ -109,11 +174,201 @@ COLUMNS: dict[str, tuple[str, str]] = {
 FITCLASS = {"galaxy": 0, "star": 1, "not_measured": -1}
 
 
-def column_table():
-    """The documentation of :data:`COLUMNS` as an astropy Table (name, unit, description)."""
+def column_table() -> Table:
+    """:data:`COLUMNS` as a table: the catalogue's ``COLUMNS`` HDU.
+
+    Returns
+    -------
+    astropy.table.Table
+        One row per column of the ``CATALOG`` HDU, in its order: ``name``, ``unit``
+        (empty for a number without a unit, a count or a label) and ``description``.
+    """
     return Table(
         rows=[(k, u, d) for k, (u, d) in COLUMNS.items()], names=("name", "unit", "description")
     )
+
+
+def _flag_keyword(value: int) -> str:
+    """``FLAGn`` for the bit of value ``n``; a ``HIERARCH`` card beyond FITS' 8 characters."""
+    key = f"FLAG{value}"
+    return key if len(key) <= 8 else f"HIERARCH {key}"
+
+
+def _fit(text: str, room: int) -> str:
+    """``text`` on one line, cut after a word to at most ``room`` characters (a cut text
+    ends in "...")."""
+    text = " ".join(text.split())
+    if len(text) <= room:
+        return text
+    return text[: room - 3].rsplit(" ", 1)[0].rstrip(" ,;:(") + "..."
+
+
+def flag_cards() -> list[fits.Card]:
+    """The primary header's cards of the flag bits, one per bit of
+    :data:`pylensfit.flags.FLAGS`.
+
+    ``FLAGn = 'NAME'`` names the bit of value ``n`` (``FLAG1 = 'STAR'``); the card's
+    comment is the bit's description, cut after a word to fit the 80-character card. A
+    keyword longer than FITS' 8 characters (a bit of value 16384 or more) is written as a
+    ``HIERARCH`` card, read back under the same name (``header["FLAG16384"]``).
+
+    Returns
+    -------
+    list of astropy.io.fits.Card
+        In the order of :data:`~pylensfit.flags.FLAGS`.
+    """
+    cards = []
+    for name, (value, desc) in FLAGS.items():
+        key = _flag_keyword(value)
+        head = len(fits.Card(key, name, "x").image.rstrip()) - 1  # where the comment starts
+        cards.append(fits.Card(key, name, _fit(desc, fits.Card.length - head)))
+    return cards
+
+
+def header_flags(header: fits.Header) -> dict[int, str]:
+    """The flag bits that a catalogue's primary header names (its ``FLAGn`` cards).
+
+    Parameters
+    ----------
+    header : astropy.io.fits.Header
+        The primary header of a catalogue written by :func:`pylensfit.write_catalogue`.
+
+    Returns
+    -------
+    dict of int to str
+        Bit value -> flag name, by increasing value.
+    """
+    found = {}
+    for key in header:
+        m = re.fullmatch(r"FLAG(\d+)", key)
+        if m:
+            found[int(m.group(1))] = str(header[key])
+    return dict(sorted(found.items()))
+
+
+#: characters that Markdown would read as markup in a table cell, and their escapes
+_MARKDOWN_ESCAPES = {"\\": "\\\\", "|": "\\|", "<": "\\<", "*": "\\*"}
+
+
+def _cell(text: str) -> str:
+    """A Markdown table cell: one line, its markup characters escaped (``<e1>`` would be
+    read as an HTML tag)."""
+    return "".join(_MARKDOWN_ESCAPES.get(c, c) for c in " ".join(str(text).split()))
+
+
+def _markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def markdown_hdus() -> str:
+    """The Markdown table of the catalogue's HDUs (:data:`HDUS`): ``HDU``, ``contents``.
+
+    Returns
+    -------
+    str
+        The table's lines, without a final newline.
+    """
+    return _markdown_table(["HDU", "contents"], [(f"`{n}`", d) for n, d in HDUS.items()])
+
+
+def markdown_columns() -> str:
+    """The Markdown table of the catalogue's columns (:data:`COLUMNS`): ``column``,
+    ``unit``, ``meaning``.
+
+    Returns
+    -------
+    str
+        The table's lines, without a final newline.
+    """
+    return _markdown_table(["column", "unit", "meaning"],
+                           [(f"`{n}`", u, d) for n, (u, d) in COLUMNS.items()])  # fmt: skip
+
+
+def markdown_flags() -> str:
+    """The Markdown table of the flag bits (:data:`pylensfit.flags.FLAGS`): ``bit`` (its
+    value), ``name``, ``meaning``.
+
+    Returns
+    -------
+    str
+        The table's lines, without a final newline.
+    """
+    return _markdown_table(["bit", "name", "meaning"],
+                           [(str(v), f"`{n}`", d) for n, (v, d) in FLAGS.items()])  # fmt: skip
+
+
+#: marker -> generator of each table that the README carries between the lines
+#: ``<!-- marker:start -->`` and ``<!-- marker:end -->``
+README_TABLES: dict[str, Callable[[], str]] = {
+    "hdus": markdown_hdus,
+    "columns": markdown_columns,
+    "flags": markdown_flags,
+}
+
+
+def update_readme(text: str) -> str:
+    """A README's text with each generated table (:data:`README_TABLES`) made anew.
+
+    Parameters
+    ----------
+    text : str
+        The README's Markdown.
+
+    Returns
+    -------
+    str
+        ``text`` with what lies between each pair of markers replaced by its table.
+
+    Raises
+    ------
+    ValueError
+        If a pair of markers is missing or appears more than once.
+    """
+    for marker, make in README_TABLES.items():
+        pattern = re.compile(rf"(<!-- {marker}:start -->\n)(?:.*?\n)?(<!-- {marker}:end -->)",
+                             re.S)  # fmt: skip
+        text, n = pattern.subn(lambda m, make=make: f"{m.group(1)}{make()}\n{m.group(2)}", text)
+        if n != 1:
+            raise ValueError(f"the README needs one '<!-- {marker}:start -->' line and one "
+                             f"'<!-- {marker}:end -->' line below it; found {n} pairs")
+    return text
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Rewrite the generated tables of README files from the schema (``bash
+    .ci/readme-tables``).
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        ``[--check] README...`` (default: the command line). With ``--check`` nothing is
+        written.
+
+    Returns
+    -------
+    int
+        The exit status: 1 under ``--check`` if a README's tables are out of date, else 0.
+    """
+    ap = argparse.ArgumentParser(prog="readme-tables", description="Rewrite the README's "
+                                 "tables of the catalogue's HDUs, columns and flags.")
+    ap.add_argument("readme", nargs="+", type=Path, help="README.md files")
+    ap.add_argument("--check", action="store_true",
+                    help="write nothing; exit 1 if a README's tables are out of date")
+    args = ap.parse_args(argv)
+    stale = False
+    for path in args.readme:
+        text = path.read_text(encoding="utf-8")
+        new = update_readme(text)
+        if new != text:
+            stale = True
+            if args.check:
+                print(f"{path}: its tables are out of date (bash .ci/readme-tables)")
+            else:
+                path.write_text(new, encoding="utf-8")
+                print(f"{path}: tables rewritten")
+    return int(stale and args.check)
 
 
 def atomic_write(hdulist, path: str | Path, *, overwrite: bool = False) -> None:
@@ -121,16 +376,5 @@ def atomic_write(hdulist, path: str | Path, *, overwrite: bool = False) -> None:
 
     A run killed while writing leaves no partial file under ``path``.
     """
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path}: output exists (pass overwrite=True to replace it)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        hdulist.writeto(tmp, overwrite=True)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_with(lambda tmp: hdulist.writeto(tmp, overwrite=True), path,
+                      overwrite=overwrite)  # fmt: skip

@@ -32,6 +32,7 @@ from astropy.table import vstack
 from .config import PRESETS, Config
 from .pipeline import InputError, catalogue_frame, measure, read_catalogue
 from .prior import RadialPrior, estimate_prior
+from .runner import available_cores
 from .shear import shapes, shear_table
 from .skyframe import sensitivity_to_sky, to_sky
 
@@ -175,7 +176,9 @@ def _shear(args: argparse.Namespace) -> int:
                       column=args.bin_column, edges=args.bin_edges, estimator=args.estimator,
                       prior=prior, egrid=cat.meta["egrid"], refine=refine,
                       weighted=args.weighted)  # fmt: skip
-    for c in ("g1", "g1_err", "g2", "g2_err"):
+    for c in ("g1", "g2"):
+        tab[c].format = "+.5f"
+    for c in ("g1_err", "g2_err"):
         tab[c].format = ".5f"
     tab.pprint_all()
     if args.output:
@@ -280,6 +283,10 @@ def _validate(args: argparse.Namespace) -> int:
         res[c].format = "+.5f"
     res["Q"].format = ".0f"
     res.pprint_all()
+    from .validation import nan_note  # start-up cost: only for this command
+
+    if nan_note(res):
+        print(nan_note(res))
     print(f"<m> = {res.meta['mean_m']:+.4f}, sigma_c = {res.meta['sigma_c']:.2e}, "
           f"Q = {res['Q'][-1]:.0f}; prior {res.meta['prior']!r}")  # fmt: skip
     held = res.meta.get("diagnosis", {}).get("psf_heldout")
@@ -304,12 +311,20 @@ def _dump_config(args: argparse.Namespace) -> int:
 
 def _demo(args: argparse.Namespace) -> int:
     """Simulate a small field with GalSim, measure it, estimate the prior and the shear."""
+    if args.outdir:
+        Path(args.outdir).mkdir(parents=True, exist_ok=True)
+        return _run_demo(args, Path(args.outdir))
+    with tempfile.TemporaryDirectory(prefix="pylensfit-demo-") as tmp:
+        return _run_demo(args, Path(tmp))
+
+
+def _run_demo(args: argparse.Namespace, work: Path) -> int:
+    """The demo's work in the folder ``work`` (removed afterwards unless ``--outdir``)."""
     from .simulate import FieldSpec, simulate_field, write_field  # start-up cost: only the demo
 
     g1, g2 = args.g1, args.g2
     cfg = Config()
-    work = Path(args.outdir) if args.outdir else Path(tempfile.mkdtemp(prefix="pylensfit-demo-"))
-    work.mkdir(parents=True, exist_ok=True)
+    jobs = args.jobs or min(available_cores(), 2)  # two images: more workers wait
     t0 = time.perf_counter()
     spec = FieldSpec(size=args.size, g1=g1, g2=g2, model="mixed")
     paths = []
@@ -328,14 +343,15 @@ def _demo(args: argparse.Namespace) -> int:
           f"field, in {time.perf_counter() - t0:.1f} s -> {work}")  # fmt: skip
     t1 = time.perf_counter()
     cat = measure(paths, stars=[work / "stars.fits"], config=cfg, output=work / "catalog.fits",
-                  overwrite=True, jobs=args.jobs, progress=False)  # fmt: skip
+                  overwrite=True, jobs=jobs, progress=True)  # fmt: skip
     dt = time.perf_counter() - t1
     ngal = int(np.sum(cat["weight"] > 0))
     nstar = int(np.sum(cat["fitclass"] == 1))
     nflag = int(np.sum(cat["fitclass"] == -1))
     print(f"measured {len(cat)} objects ({ngal} galaxies, {nstar} stars, {nflag} flagged) in "
-          f"{dt:.1f} s ({ngal / dt:.0f} galaxies/s from FITS to catalogue) -> "
-          f"{work / 'catalog.fits'}")  # fmt: skip
+          f"{dt:.1f} s with {jobs} worker(s) ({ngal / dt:.0f} galaxies/s from FITS to "
+          f"catalogue) -> {work / 'catalog.fits'}"
+          f"{'' if args.outdir else ' (a temporary folder: --outdir DIR keeps the files)'}")
     print(f"priors estimated from the galaxies (Config() defaults, the calibration recipe): "
           f"{cat.meta['priors']!r}")
     tab = shear_table(cat, by="image")
@@ -454,7 +470,7 @@ def _add_precision_args(v) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="pylensfit", description=__doc__,
+    p = _Parser(prog="pylensfit", description=__doc__.replace("\n::\n", "", 1),
                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
     sub = p.add_subparsers(dest="command", required=True)
@@ -563,8 +579,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--g1", type=float, default=0.04, help="true shear g1")
     d.add_argument("--g2", type=float, default=-0.02, help="true shear g2")
     d.add_argument("--seed", type=int, default=1, help="random seed")
-    d.add_argument("--jobs", type=_jobs, default=1, help="local worker processes")
-    d.add_argument("--outdir", help="keep the files here (default: a temporary folder)")
+    d.add_argument("--jobs", type=_jobs, help="local worker processes (default: the "
+                   "machine's cores, at most 2: one per image)")
+    d.add_argument("--outdir", help="keep the files here (default: a temporary folder, "
+                   "removed at the end)")
     d.set_defaults(func=_demo)
     return p
 

@@ -24,8 +24,10 @@ FLAGS: dict[str, tuple[int, str]] = {
     "MASKED": (128, "masked or zero-weight pixels in the stamp"),
     "PSF_FAILED": (256, "no usable PSF for this object"),
     "NOT_MEASURED": (512, "not attempted"),
-    "LOW_SNR": (1024, "measured, but the best model's S/N is below Config.min_snr: most such "
-                "detections are noise"),
+    "LOW_SNR": (1024, "measured, but the best model's S/N is below Config.min_snr, or (an "
+                "input catalogue's row) the S/N at the catalogue position itself is below "
+                "the threshold of false-alarm probability Config.forced_false_alarm: most "
+                "such rows are noise"),
     "BAD_POSITION": (2048, "the input catalogue's position is not finite (NaN or inf): the "
                      "row is kept, with NaN positions, and not measured"),
     "DEFECT": (4096, "the best model does not fit the stamp (a residual of reduced "
@@ -38,6 +40,11 @@ FLAGS: dict[str, tuple[int, str]] = {
                   "(Config.saturation, else the image's SATURATE card) or within "
                   "Config.saturation_grow px of one: they are masked (MASKED is set too) "
                   "and the object is not fitted"),
+    "PSF_SUSPECT": (16384, "the image's PSF model fails its check on held-out stars: their "
+                    "ellipticities differ from the model's by a mean square above "
+                    "pipeline.PSF_SUSPECT_CHI2 times their noise's, beyond chance "
+                    "(pipeline.PSF_SUSPECT_PVALUE; most often galaxies taken for stars); "
+                    "the object is measured with it all the same"),
 }
 
 #: flags that make a row unusable for shear

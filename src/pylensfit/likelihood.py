@@ -52,7 +52,7 @@ from astropy.table import Table
 from threadpoolctl import ThreadpoolController
 
 from . import flags as _flags
-from ._kernels_nb import amplitude_table, laplace_grid, laplace_grid_tab
+from ._kernels_nb import AMP_UNIFORM, amplitude_table, laplace_grid, laplace_grid_tab
 from ._util import newton_peak, per_object
 from .catalogue import atomic_write
 from .config import Config
@@ -593,11 +593,14 @@ def fit_stamps(
 ) -> StampFits:
     """Likelihood ``L(e)`` of every stamp on the ellipticity grid, and the best model.
 
-    With ``config.max_stamp_size`` larger than ``config.stamp_size`` (and stamps that
-    large), each galaxy is fitted on the smallest stamp ``j * stamp_size`` that is
-    ``stamp_hlr_ratio`` of its PSF-convolved half-light radii wide (measured with round
-    exponentials first), with the Fourier terms ``|k| <= pi / j`` only: as many as on
-    the base stamp, and all that a galaxy that large has signal in. On one stamp, the
+    With ``config.max_stamp_size`` larger than ``config.stamp_size`` (and stamps larger
+    than the base stamp), each galaxy is fitted on the smallest stamp ``j * stamp_size``
+    that is ``stamp_hlr_ratio`` of its PSF-convolved half-light radii wide (measured
+    with round exponentials first), with the Fourier terms ``|k| <= pi / j`` only: as
+    many as on the base stamp, and all that a galaxy that large has signal in. Stamps
+    smaller than ``max_stamp_size`` give their own side as the largest tier
+    (:func:`tier_sizes`: 48-pixel stamps fit the galaxies that need more than 32 pixels
+    on 48, ``j = 1.5``). On one stamp, the
     light that the PSF scatters across the edge makes large galaxies respond to shear
     differently along the pixel axes and the diagonals (``benchmarks/studies/stamp_edge.py``).
 
@@ -682,39 +685,90 @@ def _fit_stamps(stamps, psf, noise_sigma, config, centres, size_prior, size_marg
     else:
         cx = per_object(centres[0], n_gal, "centres[0]")
         cy = per_object(centres[1], n_gal, "centres[1]")
-    n_tiers = min(cfg.largest_stamp, *stamps.shape[1:]) // cfg.stamp_size
-    if n_gal and cfg.largest_stamp > n_tiers * cfg.stamp_size:
-        logging.getLogger(__name__).warning(
-            "stamps of %dx%d px: max_stamp_size=%d cannot act, the largest galaxies are "
-            "fitted on %d-pixel stamps (give stamps of %d px)", stamps.shape[1],
-            stamps.shape[2], cfg.largest_stamp, n_tiers * cfg.stamp_size, cfg.largest_stamp)
-    if n_tiers <= 1 or n_gal == 0:
+    sizes = tier_sizes(cfg, stamps.shape[1:])
+    if len(sizes) <= 1 or n_gal == 0:
+        if n_gal and cfg.largest_stamp > sizes[-1]:
+            _warn_small_stamps(stamps.shape, cfg, sizes[-1], None)
         return _fit_window(stamps, psf, sigma, cfg, cx, cy, size_prior, size_marginal_prior,
                            lnL_r_groups)  # fmt: skip
-    tier = _stamp_tiers(stamps, psf, sigma, cfg, cx, cy, n_tiers)
+    size, wanted = _stamp_tiers(stamps, psf, sigma, cfg, cx, cy, sizes)
+    if cfg.largest_stamp > sizes[-1]:
+        short = int(np.count_nonzero(wanted > sizes[-1]))
+        if short:
+            _warn_small_stamps(stamps.shape, cfg, sizes[-1], short)
     parts = []
-    for t in np.unique(tier):
-        idx = np.flatnonzero(tier == t)
-        sub = cfg if t == 1 else cfg.replace(stamp_size=int(t) * cfg.stamp_size,
-                                             max_stamp_size=0, k_max=np.pi / t)  # fmt: skip
+    for t in np.unique(size):
+        idx = np.flatnonzero(size == t)
+        sub = cfg if t == cfg.stamp_size else cfg.replace(
+            stamp_size=int(t), max_stamp_size=0, k_max=np.pi * cfg.stamp_size / t)  # fmt: skip
         parts.append((idx, _fit_window(stamps[idx], psf, sigma[idx], sub, cx[idx], cy[idx],
                                        size_prior, size_marginal_prior,
                                        lnL_r_groups)))  # fmt: skip
     return merge_fits(parts, n_gal)
 
 
-def _stamp_tiers(stamps, psf, sigma, cfg: Config, cx, cy, n_tiers: int) -> np.ndarray:
-    """The stamp tier ``j`` (stamp side ``j * cfg.stamp_size``) of every stamp.
+def tier_sizes(config: Config, shape: tuple[int, ...]) -> list[int]:
+    """The stamp sides of the tiers that stamps of ``shape`` (``(ny, nx)``) allow.
+
+    The multiples of ``config.stamp_size`` up to ``config.largest_stamp`` that the
+    stamps hold, and above them the stamps' own side (rounded down to an even number)
+    where it is smaller than ``largest_stamp``: 48-pixel stamps give ``[32, 48]`` under
+    the default ``max_stamp_size=64``, 64-pixel ones ``[32, 64]``.
+
+    Parameters
+    ----------
+    config : Config
+        ``stamp_size`` (the base tier) and ``max_stamp_size`` (the largest).
+    shape : tuple of int
+        The given stamps' sides.
+
+    Returns
+    -------
+    list of int
+        Increasing stamp sides; ``[config.stamp_size]`` alone where there are no tiers or
+        the stamps hold no more than the base stamp.
+    """
+    n0 = config.stamp_size
+    top = min(config.largest_stamp, *(int(v) for v in shape))
+    sizes = list(range(n0, top + 1, n0)) or [n0]
+    top -= top % 2
+    if top > sizes[-1]:
+        sizes.append(top)
+    return sizes
+
+
+def _warn_small_stamps(shape: tuple[int, ...], cfg: Config, top: int,
+                       n_short: int | None) -> None:  # fmt: skip
+    """Log that the given stamps are smaller than ``cfg.largest_stamp``: ``n_short``
+    galaxies wanted a larger stamp than ``top``, the largest side they allow (None: the
+    stamps allow no tier above the base stamp)."""
+    log = logging.getLogger(__name__)
+    if n_short is None:
+        log.warning("stamps of %dx%d px: max_stamp_size=%d cannot act, the largest galaxies "
+                    "are fitted on %d-pixel stamps (give stamps of %d px)", shape[1],
+                    shape[2], cfg.largest_stamp, top, cfg.largest_stamp)  # fmt: skip
+    else:
+        log.warning("stamps of %dx%d px: %d galaxies need stamps larger than %d px and are "
+                    "fitted on %d (max_stamp_size=%d: give stamps of %d px)", shape[1],
+                    shape[2], n_short, top, top, cfg.largest_stamp,
+                    cfg.largest_stamp)  # fmt: skip
+
+
+def _stamp_tiers(stamps, psf, sigma, cfg: Config, cx, cy,
+                 sizes: list[int]) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The stamp side of every stamp, one of ``sizes`` (:func:`tier_sizes`), and the side
+    each galaxy needs (pixels, at least ``stamp_size``).
 
     Each galaxy's size is that of the round exponential of largest matched-filter S/N
     on the largest tier's window (half-light radii 0.1-12 px, about the centre that a
-    fit on the base stamp starts from), its PSF-convolved half-light radius ``R`` measured on the
-    convolved model's image. The tier is the smallest ``j`` with ``j * stamp_size >=
-    stamp_hlr_ratio * R``, at most ``n_tiers`` and at most what the given stamp holds
-    about the galaxy; stamps without a positive peak get tier 1.
+    fit on the base stamp starts from), its PSF-convolved half-light radius ``R``
+    measured on the convolved model's image. It needs ``stamp_hlr_ratio * R``; its side
+    is the smallest of ``sizes`` at least that (the largest where none is), at most what
+    the given stamp holds about the galaxy; stamps without a positive peak get the base
+    side.
     """
     n0 = cfg.stamp_size
-    nw = n_tiers * n0
+    nw = sizes[-1]
     kx, ky, w = rfft_frequencies(nw)
     c = nw // 2
     P = psf_transform(psf, nw)
@@ -735,7 +789,7 @@ def _stamp_tiers(stamps, psf, sigma, cfg: Config, cx, cy, n_tiers: int) -> np.nd
     order = np.argsort(rad)
     cum = np.cumsum(img[:, order], axis=1)
     hlr = rad[order][np.argmax(cum >= 0.5 * cum[:, -1:], axis=1)]
-    tier = np.ones(len(stamps), dtype=int)
+    wanted = np.full(len(stamps), n0, dtype=int)
     step = 4 * cfg.block_size
     for s0 in range(0, len(stamps), step):
         sl = slice(s0, min(s0 + step, len(stamps)))
@@ -751,13 +805,16 @@ def _stamp_tiers(stamps, psf, sigma, cfg: Config, cx, cy, n_tiers: int) -> np.nd
         ph = ph.reshape(len(D), -1)
         h = ((D.reshape(len(D), -1) * ph * wt) @ np.conj(M)).real
         best = np.argmax(h / np.sqrt(S), axis=1)
-        j = np.ceil(cfg.stamp_hlr_ratio * hlr[best] / n0).astype(int)
+        need = np.ceil(cfg.stamp_hlr_ratio * hlr[best]).astype(int)
         ok = ~no_peak & (h[np.arange(len(D)), best] > 0) & np.isfinite(sigma[sl])
-        tier[sl] = np.where(ok, j, 1)
+        wanted[sl] = np.where(ok, np.maximum(need, n0), n0)
+    side = np.asarray(sizes)
+    size = side[np.minimum(np.searchsorted(side, wanted), side.size - 1)]
     # no window beyond the given stamps: n <= 2 min(ic, N - ic) along both axes
     ix, iy = np.rint(cx).astype(int), np.rint(cy).astype(int)
     room = np.minimum.reduce([ix, stamps.shape[2] - ix, iy, stamps.shape[1] - iy])
-    return np.clip(tier, 1, np.clip(2 * room // n0, 1, n_tiers))
+    fits_in = side[np.maximum(np.searchsorted(side, 2 * room, side="right") - 1, 0)]
+    return np.minimum(size, fits_in), wanted
 
 
 def merge_fits(parts: list[tuple[np.ndarray, StampFits]], n_gal: int) -> StampFits:
@@ -1105,8 +1162,11 @@ def _e_groups(lnL_r_groups: np.ndarray | None, n_e: int) -> np.ndarray:
 
 
 def _amplitude_prior(cfg: Config) -> tuple[float, float, float, float]:
-    """The kernel's amplitude prior: its power, the power of ``S`` in ``ln L``, its limits."""
-    amp_pow = -1.0 if cfg.amplitude_prior == "uniform" else float(cfg.amplitude_prior_power)
+    """The kernel's amplitude prior: its power (:data:`~pylensfit._kernels_nb.AMP_UNIFORM`
+    for the uniform prior; any finite power is a power law), the power of ``S`` in ``ln
+    L``, its limits."""
+    uniform = cfg.amplitude_prior == "uniform"
+    amp_pow = AMP_UNIFORM if uniform else float(cfg.amplitude_prior_power)
     amp_lns = amp_pow - 1.0 if cfg.amplitude_prior == "flux" else 0.0
     flux_prior = cfg.amplitude_prior == "flux"
     amp_lo = float(cfg.amplitude_prior_min) if flux_prior else 0.0

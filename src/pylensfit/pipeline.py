@@ -52,7 +52,7 @@ from astropy.table import Table, vstack
 from . import flags as _flags
 from ._version import __version__
 from .calibration import CalibrationSample, Priors, flag_low_snr, run_recipe, usable_galaxies
-from .catalogue import COLUMNS, FITCLASS, atomic_write, column_table
+from .catalogue import COLUMNS, FITCLASS, atomic_write, column_table, flag_cards
 from .config import Config
 from .detection import (
     close_pairs,
@@ -63,6 +63,7 @@ from .detection import (
     saturation_mask,
     select_stars,
 )
+from .forced import forced_threshold, position_snr
 from .grid import ellipticity_grid
 from .likelihood import StampFits, blend_fits, e_annuli, fit_stamps, merge_fits
 from .models import model_bank, render_models
@@ -81,7 +82,7 @@ from .psf import (
     stack_psf,
 )
 from .psfmodel import ConstantPSF, PolynomialPSF, PSFModel, n_terms, read_psf_model
-from .runner import run_tasks, single_thread, worker_pool
+from .runner import report_progress, run_tasks, single_thread, worker_pool
 from .shear import refine_lnL
 from .shear import shapes as _shapes
 from .skyframe import (
@@ -132,6 +133,8 @@ def _open(path: str, what: str) -> Iterator[fits.HDUList]:
             # on one line: a verification report spans several, between boilerplate lines
             why = " ".join(ln.strip() for ln in str(err).splitlines() if ln.strip() and not
                            ln.startswith(("Verification reported errors", "Note: astropy")))
+            if "SIMPLE" in why:  # astropy's hint is for its API, not for a user of ours
+                why = "no SIMPLE card at its start: not a FITS file, or a damaged one"
             raise InputError(f"{path}: not a readable FITS file ({why})") from None
         with hdul:
             yield hdul
@@ -332,6 +335,41 @@ def _box_any(mask: np.ndarray, x: np.ndarray, y: np.ndarray, size: int) -> np.nd
     return sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0] > 0
 
 
+#: A PSF model fitted to an image's stars is suspect (a warning, the flag PSF_SUSPECT on
+#: the rows fitted with it, ``psf_heldout_suspect`` in the PSFS HDU) where its held-out
+#: stars' ellipticity residuals have a mean square (``heldout_chi2_de``) above this many
+#: times their noise's: the model's error at least twice the stars' own noise (an excess
+#: of 2e-3 to 1e-2 at their S/N of 50 to 300, against a goal of 1e-3). A model as good as
+#: the stars can tell gives 1 (+- 1 / sqrt(heldout_n) by the noise); one made partly of
+#: compact galaxies their intrinsic ellipticities, 0.2 to 0.3: hundreds to thousands.
+PSF_SUSPECT_CHI2 = 5.0
+#: ... and where that mean square is that improbable from the noise alone (its chi-square
+#: p-value ``heldout_pvalue_de``): a model of few held-out stars is not judged on chance.
+PSF_SUSPECT_PVALUE = 1e-3
+
+
+def _heldout_suspect(model: PolynomialPSF, path: str) -> bool:
+    """Whether ``model``'s held-out check fails (:data:`PSF_SUSPECT_CHI2`,
+    :data:`PSF_SUSPECT_PVALUE`); sets ``heldout_suspect`` (1.0 or 0.0; NaN where no star
+    was held out) in its diagnostics and logs a warning where it fails."""
+    d = model.diagnostics
+    chi2, pvalue = d.get("heldout_chi2_de", math.nan), d.get("heldout_pvalue_de", math.nan)
+    if not (d.get("heldout_n", 0) > 0 and math.isfinite(chi2) and math.isfinite(pvalue)):
+        d["heldout_suspect"] = math.nan
+        return False
+    suspect = chi2 > PSF_SUSPECT_CHI2 and pvalue < PSF_SUSPECT_PVALUE
+    d["heldout_suspect"] = float(suspect)
+    if suspect:
+        log.warning("%s: the PSF model fails its check on %d held-out stars: ellipticity "
+                    "residual rms %.1e / %.1e (e1 / e2) against %.1e from their noise, mean "
+                    "square %.3g times the noise's (p = %.1e); its %d stars are likely in "
+                    "part galaxies: the rows fitted with it are flagged PSF_SUSPECT", path,
+                    int(d["heldout_n"]), d.get("heldout_rms_de1", math.nan),
+                    d.get("heldout_rms_de2", math.nan), d.get("heldout_noise_de", math.nan),
+                    chi2, pvalue, int(d.get("n_used", 0)))  # fmt: skip
+    return suspect
+
+
 def _psf_stars(img: _Image, det: Table, cfg: Config, star_col) -> np.ndarray:
     """The detections selected as PSF stars; ``PSFError`` if fewer than psf_min_stars."""
     stars = select_stars(det, min_peak_snr=cfg.star_min_peak_snr, column=star_col)
@@ -373,7 +411,16 @@ def _poly_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star
         raise PSFError(f"{img.path}: only {model.diagnostics.get('n_used', 0)} star(s) "
                        f"survive the PSF fit, fewer than psf_min_stars = "
                        f"{cfg.psf_min_stars}")  # fmt: skip
+    _heldout_suspect(model, img.path)
     return model, stars
+
+
+def _n_selected(img: _Image, det: Table, cfg: Config, star_col) -> int:
+    """How many detections pass the star selection (0 where fewer than psf_min_stars)."""
+    try:
+        return int(_psf_stars(img, det, cfg, star_col).sum())
+    except PSFError:
+        return 0
 
 
 def _n_used(psf: PSFResult | PSFModel) -> int:
@@ -386,8 +433,10 @@ def _n_used(psf: PSFResult | PSFModel) -> int:
 def _varying_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, star_col):
     """``Config.psf_model = "auto"``: the stars' polynomial model and star mask where
     they show the PSF varying over the image (:meth:`PolynomialPSF.variation`'s p-value
-    below ``Config.psf_vary_pvalue``), else None (the constant stack is used)."""
-    n_stars = int(_psf_stars(img, det, cfg, star_col).sum())
+    below ``Config.psf_vary_pvalue``) or where its held-out check fails (the stack of the
+    same stars would be as wrong: the model is kept so that the check is recorded and its
+    rows flagged PSF_SUSPECT), else None (the constant stack is used)."""
+    n_stars = _n_selected(img, det, cfg, star_col)
     order = cfg.psf_order  # the fit's own floor, 5 stars a coefficient, said quietly
     while order > 0 and n_stars < 5 * n_terms(order):
         order -= 1
@@ -401,12 +450,13 @@ def _varying_from_stars(sub: np.ndarray, img: _Image, det: Table, cfg: Config, s
     var = model.variation()
     model.diagnostics.update(var)
     varies = var["vary_pvalue"] < cfg.psf_vary_pvalue
+    suspect = model.diagnostics.get("heldout_suspect") == 1.0
     log.info("%s: %d stars; the PSF %s over the image (p = %.2g that a constant PSF "
              "varies as much; fitted rms variation %.1e in e, %.1e in size): %s", img.path,
              var["vary_n"], "varies" if varies else "does not vary", var["vary_pvalue"],
              var["vary_rms_de"], var["vary_rms_dsigma"],
-             "the polynomial model" if varies else "the stacked PSF")  # fmt: skip
-    return (model, stars) if varies else None
+             "the polynomial model" if varies or suspect else "the stacked PSF")  # fmt: skip
+    return (model, stars) if varies or suspect else None
 
 
 @dataclass
@@ -565,7 +615,7 @@ def _image_psf(task: _ImageTask, cfg: Config, img: _Image, sub: np.ndarray, det:
         # the star fields whose stars showed the PSF varying, and the image's own where
         # they may beat every star field
         models = [m for m in task.star_psfs if isinstance(m, PSFModel)]
-        if n and int(_psf_stars(img, det, cfg, task.star_column).sum()) > max(
+        if n and _n_selected(img, det, cfg, task.star_column) > max(
                 [_n_used(m) for m in task.star_psfs], default=0):  # fmt: skip
             varying = _varying_from_stars(sub, img, det, cfg, task.star_column)
             if varying is not None:
@@ -631,6 +681,23 @@ def _image_stamps(sub: np.ndarray, img: _Image, det: Table, cfg: Config,
                         base_cfg=base_cfg, offset=n_big // 2 - cfg.stamp_size // 2)
 
 
+def _forced_snr(st: _ImageStamps, noise: np.ndarray, psf: PSFResult | None,
+                cells: _CellPSFs | None) -> np.ndarray:  # fmt: skip
+    """The matched-filter S/N of every object at its catalogue position on its base
+    stamp (:func:`pylensfit.forced.position_snr`), with its heaviest PSF node's image
+    where the PSF varies; NaN without a PSF."""
+    out = np.full(st.cx.size, np.nan)
+    if psf is None or not st.cx.size:
+        return out
+    if cells is None:
+        return position_snr(st.stamps, psf.image, noise, (st.cx, st.cy))
+    node = cells.nearest
+    for k in np.unique(node):
+        i = np.flatnonzero(node == k)
+        out[i] = position_snr(st.stamps[i], cells.images[k], noise[i], (st.cx[i], st.cy[i]))
+    return out
+
+
 @dataclass
 class _ImageFitter:
     """Fits an image's objects on their stamps, each with the PSF of its cell."""
@@ -648,36 +715,44 @@ class _ImageFitter:
         """Fit the stamps of objects ``idx``, less ``less`` (``(len(idx), n_big, n_big)``:
         the neighbours' light and the sky's change, about each object)."""
         cp = self.cells
+        if less is None:  # a first fit: the run's object bar (a refit is not counted)
+            report_progress("planned", idx.size)
         if cp is None:
-            return self._fit_with(idx, less, self.psf_image)
+            return self._fit_with(idx, less, self.psf_image, 1.0 if less is None else 0.0)
         parts = []
         for c in np.unique(cp.cell[idx]):  # one fit per cell and node of the PSF model
             sel = np.flatnonzero(cp.cell[idx] == c)
             j, lj = idx[sel], None if less is None else less[sel]
-            fits = [self._fit_with(j, lj, cp.images[k]) for k in cp.nodes[:, j[0]]]
+            share = 0.0 if less is not None else 1.0 / cp.nodes.shape[0]
+            fits = [self._fit_with(j, lj, cp.images[k], share) for k in cp.nodes[:, j[0]]]
             parts.append((sel, blend_fits(fits, cp.weights[:, j])))
         return parts[0][1] if len(parts) == 1 else merge_fits(parts, idx.size)
 
-    def _fit_with(self, idx: np.ndarray, less: np.ndarray | None,
-                  psf_image: np.ndarray) -> StampFits:  # fmt: skip
-        """Fit objects ``idx`` with one PSF image, each on its stamp tier."""
+    def _fit_with(self, idx: np.ndarray, less: np.ndarray | None, psf_image: np.ndarray,
+                  share: float = 0.0) -> StampFits:  # fmt: skip
+        """Fit objects ``idx`` with one PSF image, each on its stamp tier, in chunks of
+        ``4 * Config.block_size`` objects (a whole number of :func:`fit_stamps`' own
+        blocks, so that the chunks change no result), each chunk's objects reported to
+        the run's progress bar as ``share`` of an object each."""
         st, cfg, o = self.st, self.cfg, self.st.offset
         n_big = st.bstamps.shape[1]
         parts = []
+        step = 4 * cfg.block_size
         for sel, stamps, c in ((~st.use_big[idx], st.stamps, st.base_cfg),
                                (st.use_big[idx], st.bstamps, cfg)):  # fmt: skip
-            if not sel.any():
-                continue
-            j = idx[sel]
-            data = stamps[j]
-            if less is not None:
-                lj = less[sel]
-                data = data - (lj if stamps.shape[1] == n_big else
-                               lj[:, o : o + cfg.stamp_size, o : o + cfg.stamp_size])  # fmt: skip
-            parts.append((np.flatnonzero(sel), fit_stamps(
-                data, psf_image, self.noise[j], config=c, centres=(st.fcx[j], st.fcy[j]),
-                size_prior=self.size_prior, lnL_r_groups=self.rings,
-                size_marginal_prior=self.size_marginal_prior)))  # fmt: skip
+            where = np.flatnonzero(sel)
+            for k0 in range(0, where.size, step):
+                ws = where[k0 : k0 + step]
+                j = idx[ws]
+                data = stamps[j]
+                if less is not None:
+                    lj, m = less[ws], cfg.stamp_size
+                    data = data - (lj if stamps.shape[1] == n_big else lj[:, o : o + m, o : o + m])
+                parts.append((ws, fit_stamps(
+                    data, psf_image, self.noise[j], config=c, centres=(st.fcx[j], st.fcy[j]),
+                    size_prior=self.size_prior, lnL_r_groups=self.rings,
+                    size_marginal_prior=self.size_marginal_prior)))  # fmt: skip
+                report_progress("done", share * j.size)
         return parts[0][1] if len(parts) == 1 else merge_fits(parts, idx.size)
 
 
@@ -761,6 +836,8 @@ def _image_task(task: _ImageTask) -> dict[str, Any]:
                            bilinear=cfg.psf_interpolation == "bilinear")  # fmt: skip
     t_psf = time.perf_counter()
     st = _image_stamps(sub, img, det, cfg, saturated, flags)
+    if positions is not None:  # an input catalogue: the evidence at each position itself
+        det["forced_SNratio"] = _forced_snr(st, noise, psf, cells)
     t_stamps = time.perf_counter()
     bank = model_bank(cfg)
     egrid = ellipticity_grid(cfg.output_e_step, emax=cfg.e_max)  # fit_stamps' grid
@@ -806,14 +883,32 @@ def _image_task(task: _ImageTask) -> dict[str, Any]:
                  int(defect.sum()))  # fmt: skip
     t_fit = time.perf_counter()
     rows = _image_rows(task, img, det, res, back, psf, cells, own_stars, redo, lost)
+    if field_model is not None and field_model.diagnostics.get("heldout_suspect") == 1.0:
+        rows["flags"] = rows["flags"] | _flags.flag_value("PSF_SUSPECT")
     timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
               "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
     return {
         "index": task.index, "path": path, "rows": rows, "lnL": res.lnL,
         "lnL_bulge": res.lnL_bulge, "lnL_r": res.lnL_r, "egrid": egrid,
         "psf": None if psf is None else _psf_summary(psf, field_model), "psf_note": psf_note,
-        "timing": timing,
+        "psf_source": _psf_source(task, psf, field_model, own_stars), "timing": timing,
     }  # fmt: skip
+
+
+def _psf_source(task: _ImageTask, psf: PSFResult | None, field_model: PSFModel | None,
+                own_stars: np.ndarray) -> str:  # fmt: skip
+    """Where an image's PSF came from, in words (the PSFS HDU's ``psf_source``)."""
+    if psf is None:
+        return "none"
+    if task.psf is not None:
+        return "given model" if isinstance(task.psf, PSFModel) else "given"
+    n_fields = sum(isinstance(p, PSFResult) for p in task.star_psfs)
+    if field_model is not None:
+        whose = "star field" if any(field_model is m for m in task.star_psfs) else "image"
+        return f"polynomial model of the {whose}'s stars"
+    parts = (["image's stars"] if own_stars.any() else []) + (
+        [f"{n_fields} star field(s)"] if n_fields else [])
+    return "stacked: " + " + ".join(parts) if parts else "stacked"
 
 
 def _image_rows(task: _ImageTask, img: _Image, det: Table, res: _ImageResults,
@@ -842,6 +937,8 @@ def _image_rows(task: _ImageTask, img: _Image, det: Table, res: _ImageResults,
         "r_half": np.asarray(det["r_half"], dtype=float),
         "sep_flag": np.asarray(det["sep_flag"], dtype=np.int32),
         "pixel_SNratio": np.asarray(det["snr"], dtype=float),
+        "forced_SNratio": (np.asarray(det["forced_SNratio"], dtype=float)
+                           if "forced_SNratio" in det.colnames else np.full(n, np.nan)),
         "noise_sigma": np.asarray(det["noise_sigma"], dtype=float),
         "background": _value_at(back, x, y),
         **res.cols,
@@ -864,7 +961,25 @@ def _image_rows(task: _ImageTask, img: _Image, det: Table, res: _ImageResults,
               "noise_sigma"):  # an input catalogue's rows without a position: kept as NaN
         rows[c][lost] = np.nan
     flags[lost] = _flags.flag_value("BAD_POSITION")
+    _flag_weak_positions(task, flags, measured & ~lost, rows["forced_SNratio"])
     return rows
+
+
+def _flag_weak_positions(task: _ImageTask, flags: np.ndarray, measured: np.ndarray,
+                         forced_snr: np.ndarray) -> None:  # fmt: skip
+    """Flag ``LOW_SNR`` (in place) the measured rows of an input catalogue, usable so far
+    (or stars), whose S/N at the catalogue position is below the threshold of false-alarm
+    probability ``Config.forced_false_alarm`` (:func:`pylensfit.forced.forced_threshold`):
+    the fit's own S/N is the best of the noise peaks within ``Config.max_offset``."""
+    u = forced_threshold(task.config)
+    if task.catalogue is None or u is None:
+        return
+    weak = measured & ((flags & ~_flags.flag_value("STAR")) == 0) & ~(forced_snr >= u)
+    flags[weak] |= _flags.flag_value("LOW_SNR")
+    if weak.any():
+        log.info("%s: %d input position(s) with S/N below %.2f at the position itself "
+                 "(false-alarm probability %g) flagged LOW_SNR", task.path, int(weak.sum()),
+                 u, task.config.forced_false_alarm)  # fmt: skip
 
 
 def _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, cols, xf, yf,
@@ -1181,7 +1296,8 @@ _PSF_KEYS = ("n_used", "n_rejected", "fwhm", "sigma", "e1", "e2")
 #: ``diagnostics``), kept per image in the catalogue's ``PSFS`` HDU (NaN otherwise).
 _HELDOUT_KEYS = ("heldout_n", "heldout_mean_de1", "heldout_mean_de2", "heldout_rms_de1",
                  "heldout_rms_de2", "heldout_noise_de", "heldout_excess_de1",
-                 "heldout_excess_de2")  # fmt: skip
+                 "heldout_excess_de2", "heldout_chi2_de", "heldout_pvalue_de",
+                 "heldout_suspect")  # fmt: skip
 
 
 def _psf_summary(psf: PSFResult, model: PSFModel | None = None) -> dict[str, Any]:
@@ -1243,7 +1359,8 @@ def _write_part(path: Path, res: dict[str, Any]) -> None:
     t = Table(res["rows"])
     psf = None if res["psf"] is None else {k: res["psf"][k] for k in _PSF_KEYS + _HELDOUT_KEYS}
     info = {"index": int(res["index"]), "path": res["path"], "psf": psf,
-            "psf_note": res["psf_note"], "timing": res["timing"]}  # fmt: skip
+            "psf_note": res["psf_note"], "psf_source": res["psf_source"],
+            "timing": res["timing"]}  # fmt: skip
     hdr = fits.Header()
     hdr["INDEX"] = int(res["index"])
     hdus = [fits.PrimaryHDU(header=hdr), fits.table_to_hdu(t),
@@ -1276,7 +1393,8 @@ def _read_part(path: Path) -> dict[str, Any]:
             "lnL": np.array(h["LNL"].data, dtype=np.float32),
             "lnL_bulge": np.array(h["LNLB"].data, dtype=np.float32) if "LNLB" in h else None,
             "egrid": np.array(h["EGRID"].data, dtype=float), "psf": psf,
-            "psf_note": info["psf_note"], "timing": info["timing"],
+            "psf_note": info["psf_note"], "psf_source": info.get("psf_source", ""),
+            "timing": info["timing"],
         }  # fmt: skip
 
 
@@ -1406,10 +1524,16 @@ def _remove_stale_temporaries(out: Path, parts: Path) -> None:
 
 @contextmanager
 def _parts_dropped_if_unused(parts: Path | None) -> Iterator[None]:
-    """A run's context: if it fails, ``parts`` is removed when it holds nothing that a
-    later run could resume from (no part file, no priors: at most temporaries)."""
+    """A run's context: a run that fails (an error in its input or its work) leaves no
+    ``parts`` behind; a run that is interrupted (``KeyboardInterrupt``, a signal) keeps
+    them for a later run to resume from, unless they hold nothing to resume (no part
+    file, no priors: at most temporaries)."""
     try:
         yield
+    except Exception:
+        if parts is not None and parts.is_dir():
+            shutil.rmtree(parts, ignore_errors=True)
+        raise
     except BaseException:
         if parts is not None and parts.is_dir() and all(_is_temporary(p)
                                                         for p in parts.iterdir()):
@@ -1623,7 +1747,8 @@ def _measure_pass(tasks: list[_ImageTask], cfg: Config, priors: Priors, last: di
             if not pp.exists():
                 _write_part(pp, results[t.index])
     todo = _resumed([t for t in final if t.index not in results], parts, results)
-    for t, res in run_tasks(_image_task, todo, jobs, scheduler, "images", progress, pool):
+    for t, res in run_tasks(_image_task, todo, jobs, scheduler, "images", progress, pool,
+                            objects=True):
         if parts is not None:
             _write_part(_part_path(parts, t), res)
         results[t.index] = res
@@ -1697,7 +1822,8 @@ def _calibrate_images(tasks: list[_ImageTask], cfg: Config, prior: Prior | None,
         if parts is not None and not keep:
             parts.mkdir(parents=True, exist_ok=True)
             todo = _resumed(run, parts, results)
-        for t, res in run_tasks(_image_task, todo, jobs, scheduler, label, progress, pool):
+        for t, res in run_tasks(_image_task, todo, jobs, scheduler, label, progress, pool,
+                            objects=True):
             if parts is not None and not keep:
                 _write_part(_part_path(parts, t), res)
             results[t.index] = res
@@ -1820,6 +1946,7 @@ def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
     for k in _PSF_KEYS + _HELDOUT_KEYS:
         psfs[f"psf_{k}"] = [np.nan if r["psf"] is None else r["psf"].get(k, np.nan)
                             for r in results]  # fmt: skip
+    psfs["psf_source"] = [r.get("psf_source", "") for r in results]
     psfs["note"] = [r["psf_note"] for r in results]
     cat.meta["egrid"] = egrid
     cat.meta["prior"] = prior
@@ -1903,7 +2030,8 @@ def write_catalogue(cat: Table, path: str | os.PathLike, *, overwrite: bool = Fa
         hdr["MODEL"] = (cfg.model, "galaxy model")
     frame = cat.meta.get("frame", "pixel")
     hdr["EFRAME"] = (frame, "frame of e1,e2: sky (W,N), pixel, mixed")
-    hdr["FLAGS"] = ("; ".join(f"{v}={k}" for k, (v, _) in _flags.FLAGS.items())[:68])
+    hdr.extend(flag_cards())  # one card per bit (pylensfit.catalogue)
+    hdr.add_comment("FLAGn: the name of the flags column's bit of value n")
     tab = fits.table_to_hdu(plain)
     tab.name = "CATALOG"
     hdus = [fits.PrimaryHDU(header=hdr), tab, fits.ImageHDU(lnL, name="LNL"),

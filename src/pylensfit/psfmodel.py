@@ -26,8 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
-import tempfile
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,9 +33,10 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 from astropy.table import Table
+from scipy.stats import chi2 as chi2_dist
 from scipy.stats import f as f_dist
 
-from ._util import jsonable, newton_peak, per_object, rfft_frequencies
+from ._util import atomic_write_with, jsonable, newton_peak, per_object, rfft_frequencies
 from .catalogue import atomic_write
 from .psf import (
     REASONS,
@@ -205,18 +204,7 @@ def _sha1(*parts) -> str:
 
 def _atomic_write_bytes(data: bytes, path: Path, overwrite: bool) -> None:
     """Write ``data`` through a temporary file renamed when complete."""
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path}: output exists (pass overwrite=True to replace it)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_with(lambda tmp: Path(tmp).write_bytes(data), path, overwrite=overwrite)
 
 
 # ---------------------------------------------------------------------------------------
@@ -612,6 +600,7 @@ def _heldout_summary(tab: Table, k_e: float, k_s: float) -> dict:
     noise_e = float(np.sqrt(np.mean(sig_e**2)))
     noise_s = float(np.sqrt(np.mean((k_s / snr) ** 2)))
     rms = {k: float(np.sqrt(np.mean(d**2))) for k, d in (("e1", de1), ("e2", de2), ("s", ds))}
+    chi2 = float(np.mean(np.concatenate([de1, de2]) ** 2 / np.concatenate([sig_e, sig_e]) ** 2))
     return {
         "heldout_n": int(de1.size),
         "heldout_mean_de1": float(de1.mean()),
@@ -621,9 +610,8 @@ def _heldout_summary(tab: Table, k_e: float, k_s: float) -> dict:
         "heldout_noise_de": noise_e,
         "heldout_excess_de1": float(np.sqrt(max(rms["e1"] ** 2 - noise_e**2, 0.0))),
         "heldout_excess_de2": float(np.sqrt(max(rms["e2"] ** 2 - noise_e**2, 0.0))),
-        "heldout_chi2_de": float(
-            np.mean(np.concatenate([de1, de2]) ** 2 / np.concatenate([sig_e, sig_e]) ** 2)
-        ),  # fmt: skip
+        "heldout_chi2_de": chi2,
+        "heldout_pvalue_de": float(chi2_dist.sf(2 * de1.size * chi2, 2 * de1.size)),
         "heldout_mean_dsigma": float(ds.mean()),
         "heldout_rms_dsigma": rms["s"],
         "heldout_noise_dsigma": noise_s,
@@ -687,8 +675,11 @@ class PolynomialPSF(PSFModel):
         ``moment_noise_k_e``), ``heldout_excess_de1/2`` (``sqrt(rms^2 - noise^2)``, 0
         if negative: the model's error), ``heldout_chi2_de`` (mean squared residual in
         units of the expected noise, about 1 for a model as good as the noise can
-        tell), and the same for the relative size ``sigma_star / sigma_model - 1``
-        (``heldout_*_dsigma``). The noise of the held-out model itself is not counted.
+        tell), ``heldout_pvalue_de`` (the chance of a mean at least as large from the
+        noise alone: the chi-square distribution of ``2 heldout_n`` degrees of
+        freedom, the two components of each star), and the same for the relative size
+        ``sigma_star / sigma_model - 1`` (``heldout_*_dsigma``). The noise of the
+        held-out model itself is not counted.
     """
 
     def __init__(self, coefs, order: int, bounds, *, cov=None, stars: Table | None = None,

@@ -26,18 +26,102 @@ from __future__ import annotations
 import dataclasses
 import multiprocessing as mp
 import os
+import queue
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from typing import Any
 
 import numba
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
-__all__ = ["run_tasks", "single_thread", "worker_pool"]
+__all__ = ["available_cores", "report_progress", "run_tasks", "single_thread", "worker_pool"]
+
+#: this process's channel to the object bar of the :func:`run_tasks` call whose task runs
+#: here (a queue, or None: no bar)
+_TICKS: Any = None
+
+
+def report_progress(kind: str, n: float) -> None:
+    """Tell the progress bar of the :func:`run_tasks` call running this task about objects.
+
+    Parameters
+    ----------
+    kind : {"planned", "done"}
+        ``n`` more objects are to be worked on, or ``n`` of them are done.
+    n : float
+        How many (a fraction where an object's work is shared among several steps).
+    """
+    if _TICKS is None or not n:
+        return
+    try:
+        _TICKS.put((kind, float(n)))
+    except Exception:  # a bar is a courtesy: its channel's failure never fails the work
+        pass
+
+
+def _ticked(fn: Callable[[Any], Any], task: Any, ticks: Any) -> Any:
+    """``fn(task)`` with :func:`report_progress` sending to ``ticks``."""
+    global _TICKS
+    _TICKS = ticks
+    try:
+        return fn(task)
+    finally:
+        _TICKS = None
+
+
+@contextmanager
+def _object_bar(bar: tqdm, desc: str, local: bool, wanted: bool) -> Iterator[Any]:
+    """A second bar, of objects, under the bar of images ``bar``, fed by the tasks'
+    :func:`report_progress` through the channel yielded (None where ``bar`` is off: not
+    a terminal, no progress asked, or not ``wanted``). ``local``: the tasks run in this
+    process."""
+    if bar.disable or not wanted:
+        yield None
+        return
+    manager = None if local else mp.get_context("spawn").Manager()
+    ticks = queue.SimpleQueue() if local else manager.Queue()
+    objects = tqdm(total=0, desc=f"{desc}: objects", unit="obj", leave=False, position=1,
+                   bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} [{elapsed}<{remaining}]")
+    stop = threading.Event()
+
+    def drain() -> None:
+        while True:
+            try:
+                kind, n = ticks.get(timeout=0.1)
+            except queue.Empty:
+                if stop.is_set():
+                    return
+                continue
+            except (EOFError, OSError):  # the manager has gone
+                return
+            if kind == "planned":
+                objects.total += n
+                objects.refresh()
+            else:
+                objects.update(n)
+
+    th = threading.Thread(target=drain, daemon=True, name="pylensfit-progress")
+    th.start()
+    try:
+        yield ticks
+    finally:
+        stop.set()
+        th.join(timeout=5.0)
+        objects.close()
+        if manager is not None:
+            manager.shutdown()
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the system reports it)."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:  # not on Linux
+        return max(os.cpu_count() or 1, 1)
 
 
 def _on_a_worker(task):
@@ -111,7 +195,7 @@ def worker_pool(jobs: int, scheduler: str | None = None,
 def run_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any],
               jobs: int = 1, scheduler: str | None = None, desc: str = "tasks",
               progress: bool = False, pool: ProcessPoolExecutor | None = None,
-              ) -> Iterator[tuple[Any, Any]]:  # fmt: skip
+              objects: bool = False) -> Iterator[tuple[Any, Any]]:  # fmt: skip
     """Run ``fn`` on every task and yield ``(task, result)`` as the tasks finish.
 
     Parameters
@@ -131,6 +215,10 @@ def run_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any],
         Show a tqdm progress bar.
     pool : concurrent.futures.ProcessPoolExecutor, optional
         A pool from :func:`worker_pool` to run the tasks on.
+    objects : bool
+        With ``progress`` on a terminal, a second bar counts the objects that the tasks
+        report (:func:`report_progress`), so that it moves within a task (not with a
+        scheduler).
 
     Yields
     ------
@@ -138,8 +226,9 @@ def run_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any],
         ``(task, result)``; with workers, in the order the tasks finish. An exception
         raised by a task propagates, and the call's remaining tasks are cancelled.
     """
-    bar = tqdm(total=len(tasks), desc=desc, unit="image", disable=not progress or not tasks,
-               leave=False)  # fmt: skip
+    bar = tqdm(total=len(tasks), desc=desc, unit="image", leave=False,
+               disable=None if progress and tasks else True)  # None: on a terminal only
+    local = pool is None and not scheduler and (jobs <= 1 or len(tasks) == 1)
     try:
         if not tasks:
             return
@@ -153,27 +242,25 @@ def run_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any],
                 for f in dask_completed(futs):
                     yield futs.pop(f), f.result()  # the cluster's copy freed with it
                     bar.update()
-        elif pool is not None:
-            futs = {pool.submit(fn, _on_a_worker(t)): t for t in tasks}
-            try:
-                for f in as_completed(futs):
-                    # a finished future is dropped as its result is handed on: kept, every
-                    # result would be held twice until the call ends (a calibration pass
-                    # keeps its blocks' likelihood grids)
-                    yield futs.pop(f), f.result()
+            return
+        with _object_bar(bar, desc, local, objects) as ticks:
+            if local:
+                for t in tasks:
+                    yield t, _ticked(fn, t, ticks)
                     bar.update()
-            finally:  # a failed task: the rest of this call's tasks are not wanted
-                for f in futs:
-                    f.cancel()
-        elif jobs <= 1 or len(tasks) == 1:
-            for t in tasks:
-                yield t, fn(t)
-                bar.update()
-        else:
-            with _executor(min(jobs, len(tasks))) as ex:
-                futs = {ex.submit(fn, _on_a_worker(t)): t for t in tasks}
-                for f in as_completed(futs):
-                    yield futs.pop(f), f.result()
-                    bar.update()
+                return
+            with (nullcontext(pool) if pool is not None else
+                  _executor(min(jobs, len(tasks)))) as ex:  # fmt: skip
+                futs = {ex.submit(_ticked, fn, _on_a_worker(t), ticks): t for t in tasks}
+                try:
+                    for f in as_completed(futs):
+                        # a finished future is dropped as its result is handed on: kept,
+                        # every result would be held twice until the call ends (a
+                        # calibration pass keeps its blocks' likelihood grids)
+                        yield futs.pop(f), f.result()
+                        bar.update()
+                finally:  # a failed task: the rest of this call's tasks are not wanted
+                    for f in futs:
+                        f.cancel()
     finally:
         bar.close()

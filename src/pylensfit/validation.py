@@ -783,9 +783,13 @@ def main(argv: list[str] | None = None) -> int:
         progress=not a.quiet,
     )
     man = read_manifest(d)
+    n_shear = sum(f["role"] == "shear" for f in man["fields"])
+    got = man["ngal_shear_fields"]
+    why = ("" if got == a.ngal else f" (--ngal {a.ngal} rounded to {n_shear} fields of a "
+           f"whole square lattice of objects each)")  # fmt: skip
     print(
         f"{a.kind}: {len(man['fields'])} fields of {man['field_size']} px, "
-        f"{man['ngal_shear_fields']} galaxies in shear fields, "
+        f"{got} galaxies in shear fields{why}, "
         f"{len(man['star_fields'])} star fields -> {d}"
     )
     return 0
@@ -2502,6 +2506,18 @@ def _fmt_row(r) -> str:
 _MC_HEAD = ["| PSF | m1 | c1 | m2 | c2 | Q | galaxies |", "|---|---|---|---|---|---|---|"]
 
 
+def nan_note(res: Table) -> str:
+    """Why a column of :func:`validate`'s table is NaN, in one line ("" if none is)."""
+    notes = []
+    for i in (1, 2):
+        m = np.asarray(res[f"m{i}"], float)
+        if m.size and np.all(np.isnan(m)):
+            notes.append(f"m{i} = nan: every shear field of the set has the same g{i} (STEP1's "
+                         f"are sheared along g1 only), so m{i} cannot be fitted; c{i} is the "
+                         f"mean g{i} measured")  # fmt: skip
+    return "; ".join(notes)
+
+
 def _group_words(man: dict) -> str:
     """How a set's renderings are grouped for the estimates, in words."""
     rot = any(f["twin"] for f in man["fields"])
@@ -2644,6 +2660,8 @@ def write_report(res: Table, man: dict, path: str | Path) -> list[Path]:
              f"{meta.get('sigma_c_upper', math.nan):.1e} at 95 %), Q = {res['Q'][-1]:.0f}", "",
              *_MC_HEAD]  # fmt: skip
     lines += [_fmt_row(r) for r in res]
+    if nan_note(res):
+        lines += ["", nan_note(res) + "."]
     lines += _leakage_lines(meta.get("leakage"))
     lines += ["", figure("resid", "g_meas - g_true"), "",
               "## Diagnosis", ""]  # fmt: skip

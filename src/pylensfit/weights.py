@@ -1,11 +1,12 @@
 """Inverse-variance weights for the shear.
 
-The catalogue's ``weight`` is, for each usable galaxy, the weight that minimises the
-variance of the estimators ``sum w <e> / sum w sens`` (and of the fixed point):
-``<sens> / Var(<e>)``, the mean sensitivity over the variance of the posterior means
-(shape noise and measurement noise together), both taken over the galaxies of its
-**class** of round signal-to-noise ``flux / (sigma sqrt(4 pi (r^2 + s_psf^2)))`` and
-size relative to the PSF, without the galaxy itself (:func:`class_weights`).
+The catalogue's ``weight`` (its definition: :data:`pylensfit.catalogue.COLUMNS`) is,
+for each usable galaxy, the weight that minimises the variance of the estimators
+``sum w <e> / sum w sens`` (and of the fixed point): ``<sens> / Var(<e>)``, the mean
+sensitivity over the variance of the posterior means (shape noise and measurement noise
+together), both taken over the galaxies of its **class** of round signal-to-noise
+``flux / (sigma sqrt(4 pi (r^2 + s_psf^2)))`` and size relative to the PSF, without the
+galaxy itself (:func:`inverse_variance_weights`, :func:`class_weights`).
 
 Why not the galaxy's own variance. A weight that depends on the galaxy's own
 ellipticity biases the shear: the measurement variance of an elongated galaxy differs
@@ -177,9 +178,14 @@ def lensfit_weights(variance, snr0, size_ratio, sigma_pop2: float, usable,
     mean measurement variance (:func:`likelihood_variance`) of the galaxy's class
     (:func:`shape_classes`) without the galaxy itself; 0 where not ``usable``.
 
-    The weight for likelihood-based ellipticities. For posterior means with their
-    sensitivities it gains little over equal weights (their noise is shrunk by the
-    prior): :func:`class_weights` is the weight for those.
+    The weight for likelihood-based ellipticities, not the catalogue's ``weight``. For
+    posterior means with their sensitivities it gains little over equal weights (their
+    noise is shrunk by the prior): :func:`class_weights` is the weight for those.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n,)`` weights (units ``1 / e^2``), 0 where not ``usable``.
     """
     usable = np.asarray(usable, dtype=bool)
     variance, snr0, size_ratio = (np.asarray(v, dtype=float) for v in
@@ -209,6 +215,15 @@ def inverse_variance_weights(e1, e2, sens1, sens2, flux, noise_sigma, size, psf_
         (pixels).
     usable : numpy.ndarray
         Bool, the galaxies usable for shear.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n,)`` weights ``<sens> / Var(<e>)`` of each row's class (units ``1 / e^2``), 0
+        where not ``usable``; 1 for every usable row where fewer than 3 can be classed,
+        and the median weight for a usable row without a weight of its own (no finite
+        shape, no positive flux or size, or a class without a positive variance and
+        sensitivity).
     """
     usable = np.asarray(usable, dtype=bool)
     size = np.asarray(size, dtype=float)
