@@ -1723,7 +1723,7 @@ def measure(
                                                  inp.catalogues, strict=True))
         ]  # fmt: skip
         pr_file = parts / "priors.json" if parts is not None else None
-        last: dict[str, Any] = {}
+        last = _LastPass()
         priors = inp.priors
         if priors is None and pr_file is not None and pr_file.exists():
             priors = Priors.load(pr_file)  # a resumed run keeps its priors
@@ -1790,7 +1790,20 @@ def _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_
                           size_prior=size_prior, priors=priors, out=out, parts=parts)
 
 
-def _measure_pass(tasks: list[_ImageTask], cfg: Config, priors: Priors, last: dict[str, Any],
+@dataclass
+class _LastPass:
+    """The calibration recipe's last pass over the images (:func:`_calibrate_images`),
+    kept for :func:`_measure_pass`: its key (:func:`_pass_key`) and its results."""
+
+    key: str | None = None
+    results: dict[int, ImageResult] = field(default_factory=dict)
+
+    def clear(self) -> None:
+        """Forget the pass (its results' memory freed)."""
+        self.key, self.results = None, {}
+
+
+def _measure_pass(tasks: list[_ImageTask], cfg: Config, priors: Priors, last: _LastPass,
                   parts: Path | None, pr_file: Path | None, jobs: int, scheduler: str | None,
                   progress: bool, pool) -> dict[int, ImageResult]:  # fmt: skip
     """The measurement: every image under ``priors``, the recipe's last pass reused where
@@ -1799,8 +1812,8 @@ def _measure_pass(tasks: list[_ImageTask], cfg: Config, priors: Priors, last: di
     results: dict[int, ImageResult] = {}
     run_cfg = priors.apply(cfg)
     final = [replace(t, config=run_cfg, size_prior=priors.size) for t in tasks]
-    if last.get("key") == _pass_key(run_cfg, priors.size, False):
-        results = dict(last["results"])  # the recipe's last pass is the measurement
+    if last.key == _pass_key(run_cfg, priors.size, False):
+        results = dict(last.results)  # the recipe's last pass is the measurement
     last.clear()
     if parts is not None:
         parts.mkdir(parents=True, exist_ok=True)
@@ -1864,7 +1877,7 @@ def _pass_key(cfg: Config, size_prior: SizePrior | None, keep) -> str:
 
 def _calibrate_images(tasks: list[_ImageTask], cfg: Config, prior: Prior | None,
                       size_prior: SizePrior | None, jobs: int, scheduler: str | None,
-                      progress: bool, pool, last: dict,
+                      progress: bool, pool, last: _LastPass,
                       parts: Path | None = None) -> Priors:  # fmt: skip
     """The calibration recipe (:func:`pylensfit.calibration.run_recipe`) on the images.
 
@@ -1911,7 +1924,7 @@ def _calibrate_images(tasks: list[_ImageTask], cfg: Config, prior: Prior | None,
                 results[i] = replace(res, lnL_r=None)
         last.clear()
         if not keep:
-            last.update(key=_pass_key(cfgs[0], sps[0], False), results=results)
+            last.key, last.results = _pass_key(cfgs[0], sps[0], False), results
         sample = CalibrationSample.concatenate(samples)
         log.info("%s: %d usable galaxies", label, len(sample))
         return sample
