@@ -93,5 +93,5 @@ def test_measure_stamps_records_the_tier(caplog):
     pr = plf.Priors()
     with caplog.at_level(logging.WARNING, logger="pylensfit"):
         t = plf.measure_stamps(stamps, _draw(MOFFAT, 48), 1.0, priors=pr)
-    assert list(t["stamp"]) == [32] * 4 + [48] * 4
+    assert list(t["stamp_size"]) == [32] * 4 + [48] * 4
     assert "cannot act" not in caplog.text and "larger than" not in caplog.text

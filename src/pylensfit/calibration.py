@@ -56,8 +56,9 @@ import numpy as np
 from astropy.table import Table
 
 from ._util import json_kind, jsonable, per_object, read_json_entry
+from .assemble import ObjectContext, assemble, fit_columns, flag_low_snr, mix_lnL, usable_galaxies
+from .catalogue import COLUMNS, FITCLASS
 from .config import Config
-from .flags import FLAGS
 from .likelihood import e_annuli, fit_stamps, reweight_lnL_r
 from .metacal import metacal_shapes
 from .models import model_bank
@@ -75,8 +76,6 @@ from .prior import (
     mix_bulge_fractions,
 )
 from .psf import centre_on_stamp, psf_diagnostics
-from .shear import shapes
-from .weights import inverse_variance_weights
 
 __all__ = [
     "MIN_GALAXIES",
@@ -167,13 +166,7 @@ class Priors:
         """``ln L(e)`` of :class:`~pylensfit.StampFits` with the bulge fractions mixed
         under :attr:`bulge_weights` (the fits' own ``lnL`` without marginalised
         fractions or weights)."""
-        if fits.lnL_bulge is None or self.bulge_weights is None:
-            return np.asarray(fits.lnL)
-        if len(self.bulge_weights) != fits.lnL_bulge.shape[1]:
-            raise ValueError(f"the priors hold {len(self.bulge_weights)} bulge weights, the "
-                             f"fits {fits.lnL_bulge.shape[1]} runs of the model family")
-        mixed = mix_bulge_fractions(fits.lnL_bulge, fits.lnL_star, self.bulge_weights)
-        return np.where(np.isfinite(fits.lnL).all(axis=1)[:, None], mixed, np.nan)
+        return mix_lnL(fits.lnL, fits.lnL_bulge, fits.lnL_star, self.bulge_weights)
 
     # -- persistence ---------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -333,23 +326,6 @@ class CalibrationSample:
                    group=cat("group"), lnL_bulge=cat("lnL_bulge"), lnL_star=cat("lnL_star"),
                    lnL_r_grouped=None if any(v is None for v in lr)
                    else [b for v in lr for b in v])  # fmt: skip
-
-
-def usable_galaxies(flags, is_star, snr, min_snr: float) -> np.ndarray:
-    """The rows that are galaxies to measure: no flag, not a point source, and a model
-    S/N of at least ``min_snr`` (``Config.min_snr``: below it detections are mostly
-    noise)."""
-    snr = np.asarray(snr, dtype=float)
-    return ((np.asarray(flags) == 0) & ~np.asarray(is_star, dtype=bool)
-            & np.isfinite(snr) & (snr >= min_snr))  # fmt: skip
-
-
-def flag_low_snr(flags, is_star, snr, min_snr: float) -> np.ndarray:
-    """``flags`` with ``LOW_SNR`` set on the unflagged galaxies whose model S/N is below
-    ``min_snr`` (or not finite)."""
-    flags = np.asarray(flags, dtype=np.int32)
-    low = (flags == 0) & ~np.asarray(is_star, dtype=bool) & ~(np.asarray(snr, float) >= min_snr)
-    return flags | np.where(low, FLAGS["LOW_SNR"][0], 0).astype(np.int32)
 
 
 # ----------------------------------------------------------------------------------------
@@ -763,10 +739,49 @@ def calibrate(
     return run_recipe(fit_pass, cfg, 1, prior=prior)[0]
 
 
-#: catalogue columns of :func:`measure_stamps`
-STAMP_COLUMNS = ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2", "weight",
-                 "flags", "snr", "flux", "r_best", "x", "y", "e1_best", "e2_best",
-                 "bulge_best", "stamp")  # fmt: skip
+#: the columns of :func:`measure_stamps` (every one a column of the catalogue,
+#: :data:`pylensfit.catalogue.COLUMNS`, with its meaning; ``lnL`` beside them as in the
+#: catalogue, and the metacalibration's with ``response="metacal"``)
+STAMP_COLUMNS = ("x", "y", "x_detect", "y_detect", "noise_sigma", "model_flux",
+                 "model_SNratio", "scalelength", "stamp_size", "e1", "e2", "e1_var",
+                 "e2_var", "e12_cov", "sens1", "sens2", "weight", "fitclass", "is_star",
+                 "e1_best", "e2_best", "bulge_best", "flags")  # fmt: skip
+
+
+def stamps_table(fits, priors: Priors, run_cfg: Config, cx, cy, noise_sigma,
+                 psf_sigma) -> Table:  # fmt: skip
+    """:func:`measure_stamps`' table of ``fits`` (about the catalogue positions ``cx,
+    cy``) under ``priors``: :func:`pylensfit.assemble.assemble`, the path the catalogue
+    of :func:`pylensfit.measure` takes, every fitted row's shapes kept."""
+    n = len(fits)
+    cols = fit_columns(fits, run_cfg.stamp_size)
+    measured = np.isfinite(np.asarray(fits.lnL)).all(axis=1)
+    is_star = np.asarray(fits.is_star, dtype=bool)
+    ctx = ObjectContext(flags=np.asarray(fits.flags, dtype=np.int32), not_galaxy=is_star,
+                        model_SNratio=cols["model_SNratio"], model_flux=cols["model_flux"],
+                        scalelength=cols["scalelength"], noise_sigma=noise_sigma,
+                        psf_sigma=psf_sigma)  # fmt: skip
+    out = assemble(fits.lnL, fits.egrid, priors, run_cfg, ctx, lnL_bulge=fits.lnL_bulge,
+                   lnL_star=fits.lnL_star, flagged="keep")  # fmt: skip
+    x, y = np.asarray(fits.x, dtype=float), np.asarray(fits.y, dtype=float)
+    cols.update(out.columns)
+    cols.update(
+        x=np.where(np.isfinite(x), x, cx), y=np.where(np.isfinite(y), y, cy),
+        x_detect=np.asarray(cx, dtype=float), y_detect=np.asarray(cy, dtype=float),
+        noise_sigma=np.broadcast_to(np.asarray(noise_sigma, dtype=float), (n,)).copy(),
+        fitclass=np.where(measured, np.where(is_star, FITCLASS["star"], FITCLASS["galaxy"]),
+                          FITCLASS["not_measured"]).astype(np.int16),
+        is_star=is_star)  # fmt: skip
+    t = Table({c: cols[c] for c in STAMP_COLUMNS})
+    for c in t.colnames:
+        unit, desc = COLUMNS[c]
+        t[c].description = desc
+        if unit:
+            t[c].unit = unit
+    t["lnL"] = np.asarray(out.lnL, dtype=np.float32)
+    t.meta.update(egrid=np.asarray(fits.egrid), prior=priors.ellipticity, priors=priors,
+                  refine=int(run_cfg.output_refine), sensitivity=run_cfg.sensitivity)  # fmt: skip
+    return t
 
 
 def measure_stamps(
@@ -815,16 +830,22 @@ def measure_stamps(
     Returns
     -------
     astropy.table.Table
-        One row per stamp: ``e1, e2`` (posterior means), ``e1_var, e2_var, e12_cov``,
-        ``sens1, sens2`` (the shear responses, dimensionless), ``weight`` (the
-        inverse-variance weight of a galaxy to use, :mod:`pylensfit.weights`; 0
-        otherwise), ``flags`` (:data:`pylensfit.flags.FLAGS`; usable
-        rows have ``flags == 0`` and ``weight > 0``), ``snr`` (the best model's
-        matched-filter S/N), ``flux`` (data units), ``r_best`` (pixels), ``x, y`` (fitted
-        centre, stamp pixels), ``e1_best, e2_best``, ``bulge_best``, ``stamp`` (the side
-        it was fitted on) and ``lnL`` (the ``(n, n_e)`` likelihood grid, for
-        :func:`~pylensfit.estimate_shear`'s fixed point). ``meta``: ``egrid``, ``prior``
-        (the ellipticity prior), ``priors``, ``refine``, ``sensitivity``.
+        One row per stamp, with the catalogue's columns of the same names and meanings
+        (:data:`pylensfit.catalogue.COLUMNS`; :data:`STAMP_COLUMNS`): ``x, y`` (fitted
+        centre, stamp pixels; the catalogue position where not fitted), ``x_detect,
+        y_detect`` (the catalogue position, ``centres``), ``noise_sigma``,
+        ``model_flux`` (data units), ``model_SNratio`` (the best model's matched-filter
+        S/N), ``scalelength`` (pixels), ``stamp_size`` (the side it was fitted on),
+        ``e1, e2`` (posterior means), ``e1_var, e2_var, e12_cov``, ``sens1, sens2`` (the
+        shear responses, dimensionless), ``weight`` (the inverse-variance weight of a
+        galaxy to use, :mod:`pylensfit.weights`; 0 otherwise), ``fitclass``,
+        ``is_star``, ``e1_best, e2_best``, ``bulge_best``, ``flags``
+        (:data:`pylensfit.flags.FLAGS`; usable rows have ``flags == 0`` and ``weight >
+        0``) and ``lnL`` (the ``(n, n_e)`` likelihood grid, for
+        :func:`~pylensfit.estimate_shear`'s fixed point). They are assembled as the
+        catalogue's (:func:`pylensfit.assemble.assemble`); a flagged row that was fitted
+        keeps its shapes here, where the catalogue has NaN. ``meta``: ``egrid``,
+        ``prior`` (the ellipticity prior), ``priors``, ``refine``, ``sensitivity``.
 
         With ``response="metacal"`` also ``e1_mcal, e2_mcal`` (the posterior means on
         the unsheared metacalibration image) and ``R11, R12, R21, R22`` (their measured
@@ -851,29 +872,9 @@ def measure_stamps(
     run_cfg = priors.apply(cfg)
     fits = fit_stamps(stamps, psf, noise_sigma, config=run_cfg, centres=(cx, cy),
                       size_prior=priors.size)  # fmt: skip
-    lnL = priors.mix(fits)
-    sh = shapes(lnL, fits.egrid, priors.ellipticity, sensitivity=cfg.sensitivity,
-                refine=run_cfg.output_refine)  # fmt: skip
-    flags = np.asarray(fits.flags, dtype=np.int32) | np.asarray(sh["flags"], dtype=np.int32)
-    flags = flag_low_snr(flags, fits.is_star, fits.snr, cfg.min_snr)
-    usable = usable_galaxies(flags, fits.is_star, fits.snr, cfg.min_snr)
-    t = Table()
-    for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
-        t[c] = np.asarray(sh[c], dtype=float)
-    psf_sigma = psf_diagnostics(np.asarray(psf, dtype=float))["sigma"]
-    t["weight"] = inverse_variance_weights(t["e1"], t["e2"], t["sens1"], t["sens2"], fits.flux,
-                                           per_object(noise_sigma, len(t), "noise_sigma"),
-                                           fits.r_best, psf_sigma, usable)  # fmt: skip
-    t["flags"] = flags
-    for c in ("snr", "flux", "r_best", "x", "y", "e1_best", "e2_best"):
-        t[c] = np.asarray(getattr(fits, c), dtype=float)
-    t["bulge_best"] = (np.full(len(t), np.nan) if fits.bulge_best is None
-                       else np.asarray(fits.bulge_best, dtype=float))  # fmt: skip
-    t["stamp"] = (np.full(len(t), cfg.stamp_size, dtype=np.int16) if fits.stamp is None
-                  else np.asarray(fits.stamp))  # fmt: skip
-    t["lnL"] = np.asarray(lnL, dtype=np.float32)
-    t.meta.update(egrid=np.asarray(fits.egrid), prior=priors.ellipticity, priors=priors,
-                  refine=int(run_cfg.output_refine), sensitivity=cfg.sensitivity)  # fmt: skip
+    t = stamps_table(fits, priors, run_cfg, cx, cy,
+                     per_object(noise_sigma, len(stamps), "noise_sigma"),
+                     psf_diagnostics(np.asarray(psf, dtype=float))["sigma"])  # fmt: skip
     if response == "metacal":
         _add_metacal(t, stamps, psf, noise_sigma, priors, run_cfg, fits, metacal_step, seed)
     return t

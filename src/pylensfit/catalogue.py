@@ -158,6 +158,9 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "is_star": ("", "most likely model size below Config.point_source_size (a point source)"),
     "e1_best": ("", "e1 of the single most likely model (grid cell), pixel frame"),
     "e2_best": ("", "e2 of the single most likely model (grid cell), pixel frame"),
+    "bulge_best": ("", "bulge fraction of the single most likely model, with the bulge "
+                   "fraction marginalised (Config.n_bulge_fractions > 1); NaN for a model "
+                   "family of one fraction or an object not measured"),
     "psf_star": ("", "selected on the stellar locus as a PSF star of its image"),
     "refit_neighbours": ("", "measured in a second fit, with the neighbours' best-fit models "
                          "subtracted from its stamp (Config.subtract_neighbours)"),

@@ -40,7 +40,7 @@ import time
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -51,7 +51,8 @@ from astropy.table import Table, vstack
 
 from . import flags as _flags
 from ._version import __version__
-from .calibration import CalibrationSample, Priors, flag_low_snr, run_recipe, usable_galaxies
+from .assemble import FIT_COLUMNS, ObjectContext, assemble, fit_columns, usable_galaxies
+from .calibration import CalibrationSample, Priors, run_recipe
 from .catalogue import COLUMNS, FITCLASS, atomic_write, column_table, flag_cards
 from .config import Config
 from .detection import (
@@ -71,7 +72,6 @@ from .prior import (
     Prior,
     SizePrior,
     SplinePrior,
-    mix_bulge_fractions,
 )
 from .psf import (
     PSFError,
@@ -84,19 +84,15 @@ from .psf import (
 from .psfmodel import ConstantPSF, PolynomialPSF, PSFModel, n_terms, read_psf_model
 from .runner import report_progress, run_tasks, single_thread, worker_pool
 from .shear import refine_lnL
-from .shear import shapes as _shapes
 from .skyframe import (
     SkyFrame,
-    covariance_to_sky,
     frame_of_table,
     local_frame,
     pixel_frame,
-    sensitivity_to_sky,
     to_sky,
     wcs_from_header,
 )
 from .stamps import add_patches, cut_stamps, patch_origins
-from .weights import inverse_variance_weights
 
 __all__ = ["InputError", "measure", "read_catalogue", "write_catalogue"]
 
@@ -787,8 +783,7 @@ class _ImageResults:
         else:
             lnL_r = (np.full((n, bank.n_r + 1), np.nan, dtype=np.float32) if keep_lnL_r
                      else None)  # fmt: skip
-        cols = {k: np.full(n, np.nan) for k in ("model_flux", "model_SNratio", "scalelength",
-                                                "e1_best", "e2_best")}  # fmt: skip
+        cols = {k: np.full(n, np.nan) for k in FIT_COLUMNS}  # the catalogue's names
         cols["stamp_size"] = np.zeros(n, dtype=np.int32)
         return cls(x=x, y=y, st=st, lnL=np.full((n, egrid.shape[0]), np.nan, dtype=np.float32),
                    lnL_r=lnL_r,
@@ -804,7 +799,82 @@ class _ImageResults:
                    self.is_star)  # fmt: skip
 
 
-def _image_task(task: _ImageTask) -> dict[str, Any]:
+@dataclass(frozen=True)
+class PSFSummary:
+    """An image's PSF as the catalogue keeps it (its ``PSFS`` and ``PSFIMG`` HDUs).
+
+    Attributes
+    ----------
+    numbers : dict of float
+        The PSF's diagnostics at the image's centre (``_PSF_KEYS``: ``n_used``,
+        ``fwhm``, ``sigma``, ...) and a varying model's held-out check
+        (``_HELDOUT_KEYS``, NaN for a constant PSF).
+    image : numpy.ndarray
+        The PSF image at the image's centre.
+    """
+
+    numbers: dict[str, float]
+    image: np.ndarray
+
+    def get(self, key: str) -> float:
+        """The number ``key`` (NaN if not kept)."""
+        return self.numbers.get(key, math.nan)
+
+    @property
+    def sigma(self) -> float:
+        """The PSF's size (pixels, adaptive moments)."""
+        return self.get("sigma")
+
+
+@dataclass(frozen=True)
+class ImageResult:
+    """One image measured: what :func:`_image_task` hands the run, a part file keeps
+    (:func:`_write_part`, :func:`_read_part`) and :func:`_assemble` reads.
+
+    Attributes
+    ----------
+    index : int
+        The image's index in the run.
+    path : str
+        The image file.
+    rows : dict of numpy.ndarray
+        The image's catalogue columns before the shapes (:func:`_image_rows`), one
+        entry per object, under the names of :data:`pylensfit.catalogue.COLUMNS`.
+    lnL : numpy.ndarray
+        ``(n, n_e)`` float32 ``ln L(e)`` of each object (NaN: not measured).
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` the ellipticity grid of ``lnL``.
+    lnL_bulge : numpy.ndarray or None
+        ``(n, n_b, n_e)`` each bulge fraction's ``ln L(e)`` (marginalised fractions).
+    lnL_r : numpy.ndarray or None
+        ``L(r)`` (per ring of ``|e|``) where a calibration pass keeps it.
+    psf : PSFSummary or None
+        The image's PSF (None: it failed).
+    psf_note : str
+        Why the image's own stars gave no PSF ("" if they did).
+    psf_source : str
+        Where the PSF came from, in words.
+    timing : dict of float
+        Seconds per stage (``read+detect``, ``psf``, ``stamps``, ``fit``).
+    """
+
+    index: int
+    path: str
+    rows: dict[str, np.ndarray]
+    lnL: np.ndarray
+    egrid: np.ndarray
+    lnL_bulge: np.ndarray | None = None
+    lnL_r: np.ndarray | None = None
+    psf: PSFSummary | None = None
+    psf_note: str = ""
+    psf_source: str = ""
+    timing: dict[str, float] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.lnL.shape[0])
+
+
+def _image_task(task: _ImageTask) -> ImageResult:
     """Measure one image: every detected object gets a row, measured or flagged."""
     t0 = time.perf_counter()
     single_thread(task.single_thread)
@@ -887,12 +957,11 @@ def _image_task(task: _ImageTask) -> dict[str, Any]:
         rows["flags"] = rows["flags"] | _flags.flag_value("PSF_SUSPECT")
     timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
               "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
-    return {
-        "index": task.index, "path": path, "rows": rows, "lnL": res.lnL,
-        "lnL_bulge": res.lnL_bulge, "lnL_r": res.lnL_r, "egrid": egrid,
-        "psf": None if psf is None else _psf_summary(psf, field_model), "psf_note": psf_note,
-        "psf_source": _psf_source(task, psf, field_model, own_stars), "timing": timing,
-    }  # fmt: skip
+    return ImageResult(
+        index=task.index, path=path, rows=rows, lnL=res.lnL, lnL_bulge=res.lnL_bulge,
+        lnL_r=res.lnL_r, egrid=egrid,
+        psf=None if psf is None else _psf_summary(psf, field_model), psf_note=psf_note,
+        psf_source=_psf_source(task, psf, field_model, own_stars), timing=timing)  # fmt: skip
 
 
 def _psf_source(task: _ImageTask, psf: PSFResult | None, field_model: PSFModel | None,
@@ -992,12 +1061,8 @@ def _store_fit(f, idx, x, y, cx, cy, lnL, lnL_r, lnL_bulge, lnL_star, flags, col
     if lnL_bulge is not None:
         lnL_bulge[idx] = f.lnL_bulge
         lnL_star[idx] = f.lnL_star
-    cols["model_flux"][idx] = f.flux
-    cols["model_SNratio"][idx] = f.snr
-    cols["scalelength"][idx] = f.r_best
-    cols["e1_best"][idx] = f.e1_best
-    cols["e2_best"][idx] = f.e2_best
-    cols["stamp_size"][idx] = f.stamp
+    for k, v in fit_columns(f).items():  # the catalogue's names, as measure_stamps'
+        cols[k][idx] = v
     ok = np.isfinite(f.x)
     xf[idx[ok]] = f.x[ok] + (x[idx[ok]] - cx[idx[ok]])
     yf[idx[ok]] = f.y[ok] + (y[idx[ok]] - cy[idx[ok]])
@@ -1300,15 +1365,14 @@ _HELDOUT_KEYS = ("heldout_n", "heldout_mean_de1", "heldout_mean_de2", "heldout_r
                  "heldout_suspect")  # fmt: skip
 
 
-def _psf_summary(psf: PSFResult, model: PSFModel | None = None) -> dict[str, Any]:
+def _psf_summary(psf: PSFResult, model: PSFModel | None = None) -> PSFSummary:
     """The PSF's numbers for the catalogue: the PSF at the image's centre and, for a
     model fitted over the image, its held-out stars' residuals (NaN if it has none)."""
     d = {k: float(getattr(psf, k)) for k in _PSF_KEYS}
     d["n_used"], d["n_rejected"] = int(psf.n_used), int(psf.n_rejected)
     diag = {} if model is None else model.diagnostics
     d.update({k: float(diag.get(k, math.nan)) for k in _HELDOUT_KEYS})
-    d["image"] = np.asarray(psf.image, dtype=float)
-    return d
+    return PSFSummary(numbers=d, image=np.asarray(psf.image, dtype=float))
 
 
 def _sky(header: fits.Header, x: np.ndarray, y: np.ndarray):
@@ -1348,7 +1412,7 @@ def _part_path(parts: Path, task: _ImageTask) -> Path:
     return parts / f"{task.index:05d}_{Path(task.path).stem}_{_task_key(task)}.fits"
 
 
-def _write_part(path: Path, res: dict[str, Any]) -> None:
+def _write_part(path: Path, res: ImageResult) -> None:
     """One finished image as a part file, which :func:`_read_part` reads back as it was.
 
     The arrays go in HDUs of their own dtypes; the rest (index, path, PSF summary, PSF
@@ -1356,29 +1420,29 @@ def _write_part(path: Path, res: dict[str, Any]) -> None:
     any length and characters, so that a resumed run writes the catalogue of a run never
     stopped (header cards round floats to 16 digits; the PSF HDU's are for reading).
     """
-    t = Table(res["rows"])
-    psf = None if res["psf"] is None else {k: res["psf"][k] for k in _PSF_KEYS + _HELDOUT_KEYS}
-    info = {"index": int(res["index"]), "path": res["path"], "psf": psf,
-            "psf_note": res["psf_note"], "psf_source": res["psf_source"],
-            "timing": res["timing"]}  # fmt: skip
+    t = Table(res.rows)
+    psf = None if res.psf is None else {k: res.psf.numbers[k] for k in _PSF_KEYS + _HELDOUT_KEYS}
+    info = {"index": int(res.index), "path": res.path, "psf": psf,
+            "psf_note": res.psf_note, "psf_source": res.psf_source,
+            "timing": res.timing}  # fmt: skip
     hdr = fits.Header()
-    hdr["INDEX"] = int(res["index"])
+    hdr["INDEX"] = int(res.index)
     hdus = [fits.PrimaryHDU(header=hdr), fits.table_to_hdu(t),
-            fits.ImageHDU(res["lnL"], name="LNL"),
-            fits.ImageHDU(res["egrid"], name="EGRID"),
+            fits.ImageHDU(res.lnL, name="LNL"),
+            fits.ImageHDU(res.egrid, name="EGRID"),
             fits.BinTableHDU(Table({"json": [json.dumps(info)]}), name="INFO")]  # fmt: skip
     hdus[1].name = "ROWS"
-    if res.get("lnL_bulge") is not None:
-        hdus.append(fits.ImageHDU(res["lnL_bulge"], name="LNLB"))
-    if res["psf"] is not None:
-        ph = fits.ImageHDU(res["psf"]["image"], name="PSF")
+    if res.lnL_bulge is not None:
+        hdus.append(fits.ImageHDU(res.lnL_bulge, name="LNLB"))
+    if res.psf is not None:
+        ph = fits.ImageHDU(res.psf.image, name="PSF")
         for k in _PSF_KEYS:
-            ph.header[k.upper()[:8]] = res["psf"][k]
+            ph.header[k.upper()[:8]] = res.psf.numbers[k]
         hdus.append(ph)
     atomic_write(fits.HDUList(hdus), path, overwrite=True)
 
 
-def _read_part(path: Path) -> dict[str, Any]:
+def _read_part(path: Path) -> ImageResult:
     """An image's result from its part file (:func:`_write_part`); a file without the
     ``INFO`` table (an older format) raises, and the image is redone."""
     with fits.open(path, memmap=False) as h:
@@ -1386,16 +1450,16 @@ def _read_part(path: Path) -> dict[str, Any]:
         rows = Table(h["ROWS"].data)
         psf = None
         if info["psf"] is not None:
-            psf = dict(info["psf"], image=np.array(h["PSF"].data, dtype=float))
-        return {
-            "index": int(info["index"]), "path": info["path"],
-            "rows": {c: np.asarray(rows[c]) for c in rows.colnames},
-            "lnL": np.array(h["LNL"].data, dtype=np.float32),
-            "lnL_bulge": np.array(h["LNLB"].data, dtype=np.float32) if "LNLB" in h else None,
-            "egrid": np.array(h["EGRID"].data, dtype=float), "psf": psf,
-            "psf_note": info["psf_note"], "psf_source": info.get("psf_source", ""),
-            "timing": info["timing"],
-        }  # fmt: skip
+            psf = PSFSummary(numbers=dict(info["psf"]),
+                             image=np.array(h["PSF"].data, dtype=float))  # fmt: skip
+        return ImageResult(
+            index=int(info["index"]), path=info["path"],
+            rows={c: np.asarray(rows[c]) for c in rows.colnames},
+            lnL=np.array(h["LNL"].data, dtype=np.float32),
+            lnL_bulge=np.array(h["LNLB"].data, dtype=np.float32) if "LNLB" in h else None,
+            egrid=np.array(h["EGRID"].data, dtype=float), psf=psf,
+            psf_note=info["psf_note"], psf_source=info.get("psf_source", ""),
+            timing=info["timing"])  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------
@@ -1659,7 +1723,7 @@ def measure(
                                                  inp.catalogues, strict=True))
         ]  # fmt: skip
         pr_file = parts / "priors.json" if parts is not None else None
-        last: dict[str, Any] = {}
+        last = _LastPass()
         priors = inp.priors
         if priors is None and pr_file is not None and pr_file.exists():
             priors = Priors.load(pr_file)  # a resumed run keeps its priors
@@ -1726,17 +1790,30 @@ def _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_
                           size_prior=size_prior, priors=priors, out=out, parts=parts)
 
 
-def _measure_pass(tasks: list[_ImageTask], cfg: Config, priors: Priors, last: dict[str, Any],
+@dataclass
+class _LastPass:
+    """The calibration recipe's last pass over the images (:func:`_calibrate_images`),
+    kept for :func:`_measure_pass`: its key (:func:`_pass_key`) and its results."""
+
+    key: str | None = None
+    results: dict[int, ImageResult] = field(default_factory=dict)
+
+    def clear(self) -> None:
+        """Forget the pass (its results' memory freed)."""
+        self.key, self.results = None, {}
+
+
+def _measure_pass(tasks: list[_ImageTask], cfg: Config, priors: Priors, last: _LastPass,
                   parts: Path | None, pr_file: Path | None, jobs: int, scheduler: str | None,
-                  progress: bool, pool) -> dict[int, dict]:  # fmt: skip
+                  progress: bool, pool) -> dict[int, ImageResult]:  # fmt: skip
     """The measurement: every image under ``priors``, the recipe's last pass reused where
     it was made under them, finished images kept in ``parts`` (a resumed run reads them).
     """
-    results: dict[int, dict] = {}
+    results: dict[int, ImageResult] = {}
     run_cfg = priors.apply(cfg)
     final = [replace(t, config=run_cfg, size_prior=priors.size) for t in tasks]
-    if last.get("key") == _pass_key(run_cfg, priors.size, False):
-        results = dict(last["results"])  # the recipe's last pass is the measurement
+    if last.key == _pass_key(run_cfg, priors.size, False):
+        results = dict(last.results)  # the recipe's last pass is the measurement
     last.clear()
     if parts is not None:
         parts.mkdir(parents=True, exist_ok=True)
@@ -1752,8 +1829,8 @@ def _measure_pass(tasks: list[_ImageTask], cfg: Config, priors: Priors, last: di
         if parts is not None:
             _write_part(_part_path(parts, t), res)
         results[t.index] = res
-        log.info("%s: %d objects, %s", t.path, len(res["rows"]["x"]),
-                 ", ".join(f"{k} {v:.2f} s" for k, v in res["timing"].items()))  # fmt: skip
+        log.info("%s: %d objects, %s", t.path, len(res),
+                 ", ".join(f"{k} {v:.2f} s" for k, v in res.timing.items()))  # fmt: skip
     return results
 
 
@@ -1800,7 +1877,7 @@ def _pass_key(cfg: Config, size_prior: SizePrior | None, keep) -> str:
 
 def _calibrate_images(tasks: list[_ImageTask], cfg: Config, prior: Prior | None,
                       size_prior: SizePrior | None, jobs: int, scheduler: str | None,
-                      progress: bool, pool, last: dict,
+                      progress: bool, pool, last: _LastPass,
                       parts: Path | None = None) -> Priors:  # fmt: skip
     """The calibration recipe (:func:`pylensfit.calibration.run_recipe`) on the images.
 
@@ -1829,25 +1906,25 @@ def _calibrate_images(tasks: list[_ImageTask], cfg: Config, prior: Prior | None,
             results[t.index] = res
         for i in range(len(tasks)):
             res = results[i]
-            rows = res["rows"]
+            rows = res.rows
             ok = (usable_galaxies(rows["flags"], rows["fitclass"] != FITCLASS["galaxy"],
                                   rows["model_SNratio"], cfgs[0].min_snr)
-                  & np.isfinite(res["lnL"]).all(axis=1))  # fmt: skip
+                  & np.isfinite(res.lnL).all(axis=1))  # fmt: skip
             flux = np.asarray(rows["model_flux"], dtype=float)
             samples.append(CalibrationSample(
-                egrid=res["egrid"], lnL=res["lnL"][ok], flux=flux[ok],
+                egrid=res.egrid, lnL=res.lnL[ok], flux=flux[ok],
                 flux_err=(flux / np.asarray(rows["model_SNratio"], dtype=float))[ok],
                 snr=np.asarray(rows["model_SNratio"], dtype=float)[ok],
                 dx=(rows["x"] - rows["x_detect"])[ok], dy=(rows["y"] - rows["y_detect"])[ok],
                 group=np.zeros(int(ok.sum()), dtype=int),
-                lnL_bulge=None if res["lnL_bulge"] is None else res["lnL_bulge"][ok],
+                lnL_bulge=None if res.lnL_bulge is None else res.lnL_bulge[ok],
                 lnL_star=rows["lnL_star"][ok] if "lnL_star" in rows else None,
-                lnL_r_grouped=[res["lnL_r"][ok]] if keep else None))  # fmt: skip
-            if keep:
-                res["lnL_r"] = None  # the sample holds what the recipe needs
+                lnL_r_grouped=[res.lnL_r[ok]] if keep else None))  # fmt: skip
+            if keep:  # the sample holds what the recipe needs
+                results[i] = replace(res, lnL_r=None)
         last.clear()
         if not keep:
-            last.update(key=_pass_key(cfgs[0], sps[0], False), results=results)
+            last.key, last.results = _pass_key(cfgs[0], sps[0], False), results
         sample = CalibrationSample.concatenate(samples)
         log.info("%s: %d usable galaxies", label, len(sample))
         return sample
@@ -1890,47 +1967,35 @@ def _given_psfs(psf, images: list[str]) -> list[PSFResult | PSFModel] | None:
     return out
 
 
-def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
-    """Concatenate the images, add the Bayesian shapes under the priors."""
-    egrid = results[0]["egrid"]
-    tabs = [Table(r["rows"]) for r in results]
+def _assemble(results: list[ImageResult], cfg: Config, priors: Priors) -> Table:
+    """Concatenate the images, add the Bayesian shapes under the priors
+    (:func:`pylensfit.assemble.assemble`, as :func:`pylensfit.measure_stamps` does)."""
+    egrid = results[0].egrid
+    tabs = [Table(r.rows) for r in results]
     cat = vstack(tabs, metadata_conflicts="silent") if tabs else Table()
-    lnL = np.concatenate([r["lnL"] for r in results], axis=0)
+    lnL = np.concatenate([r.lnL for r in results], axis=0)
     lnL_bulge = None
-    if all(r.get("lnL_bulge") is not None for r in results):
-        lnL_bulge = np.concatenate([r["lnL_bulge"] for r in results], axis=0)
+    if all(r.lnL_bulge is not None for r in results):
+        lnL_bulge = np.concatenate([r.lnL_bulge for r in results], axis=0)
     n = len(cat)
     cat.add_column(np.arange(1, n + 1, dtype=np.int64), name="id", index=0)
-    usable = (np.asarray(cat["flags"]) == 0) & np.isfinite(lnL).all(axis=1)
-    galaxy = np.asarray(cat["fitclass"]) == FITCLASS["galaxy"]
-    f0 = np.asarray(cat["flags"])
-    cat["flags"] = np.where(usable, flag_low_snr(f0, ~galaxy, cat["model_SNratio"],
-                                                 cfg.min_snr), f0)  # fmt: skip
-    gal = usable & galaxy & (np.asarray(cat["flags"]) == 0)
-    prior, bulge_weights = priors.ellipticity, priors.bulge_weights
-    if lnL_bulge is not None and bulge_weights is not None:
-        lnL_star = np.asarray(cat["lnL_star"], dtype=float)
-        lnL = np.where(usable[:, None], mix_bulge_fractions(lnL_bulge, lnL_star,
-                                                            bulge_weights), np.nan)  # fmt: skip
-    sh = _shapes(lnL, egrid, prior, sensitivity=cfg.sensitivity, refine=cfg.output_refine)
-    # a usable row without a finite shape is a failed fit, never a row of flags 0
-    no_shape = usable & ~(np.isfinite(np.asarray(sh["e1"])) & np.isfinite(np.asarray(sh["e2"])))
-    if no_shape.any():
-        f1 = np.array(cat["flags"])
-        f1[no_shape] |= _flags.flag_value("FIT_FAILED")
-        cat["flags"] = f1
-        gal &= ~no_shape
-        usable &= ~no_shape
-    for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
-        cat[c] = np.where(usable, np.asarray(sh[c]), np.nan)
-    _to_sky_frame(cat)
-    psf_sigma = np.concatenate([np.full(len(r["rows"]["x"]), np.nan if r["psf"] is None
-                                        else r["psf"].get("sigma", np.nan))
+    psf_sigma = np.concatenate([np.full(len(r), np.nan if r.psf is None else r.psf.sigma)
                                 for r in results]) if results else np.zeros(0)  # fmt: skip
-    cat["weight"] = inverse_variance_weights(cat["e1"], cat["e2"], cat["sens1"], cat["sens2"],
-                                             cat["model_flux"], cat["noise_sigma"],
-                                             cat["scalelength"], psf_sigma, gal)  # fmt: skip
-    cat["lnL"] = lnL
+    ctx = ObjectContext(
+        flags=np.asarray(cat["flags"], dtype=np.int32),
+        not_galaxy=np.asarray(cat["fitclass"]) != FITCLASS["galaxy"],
+        model_SNratio=np.asarray(cat["model_SNratio"], dtype=float),
+        model_flux=np.asarray(cat["model_flux"], dtype=float),
+        scalelength=np.asarray(cat["scalelength"], dtype=float),
+        noise_sigma=np.asarray(cat["noise_sigma"], dtype=float), psf_sigma=psf_sigma,
+        frame=catalogue_frame(cat))  # fmt: skip
+    out = assemble(lnL, egrid, priors, cfg, ctx, lnL_bulge=lnL_bulge,
+                   lnL_star=cat["lnL_star"] if lnL_bulge is not None else None,
+                   flagged="blank")  # fmt: skip
+    for c, v in out.columns.items():
+        cat[c] = v
+    _psf_to_sky(cat, ctx.frame)
+    cat["lnL"] = out.lnL
     if lnL_bulge is not None:
         cat["lnL_bulge"] = lnL_bulge
     order = [c for c in COLUMNS if c in cat.colnames]
@@ -1942,14 +2007,13 @@ def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
             if unit:
                 cat[c].unit = unit
     psfs = Table()
-    psfs["image"] = [os.path.basename(r["path"]) for r in results]
+    psfs["image"] = [os.path.basename(r.path) for r in results]
     for k in _PSF_KEYS + _HELDOUT_KEYS:
-        psfs[f"psf_{k}"] = [np.nan if r["psf"] is None else r["psf"].get(k, np.nan)
-                            for r in results]  # fmt: skip
-    psfs["psf_source"] = [r.get("psf_source", "") for r in results]
-    psfs["note"] = [r["psf_note"] for r in results]
+        psfs[f"psf_{k}"] = [np.nan if r.psf is None else r.psf.get(k) for r in results]
+    psfs["psf_source"] = [r.psf_source for r in results]
+    psfs["note"] = [r.psf_note for r in results]
     cat.meta["egrid"] = egrid
-    cat.meta["prior"] = prior
+    cat.meta["prior"] = priors.ellipticity
     cat.meta["priors"] = priors
     cat.meta["size_prior"] = priors.size
     cat.meta["refine"] = int(cfg.output_refine)
@@ -1958,17 +2022,17 @@ def _assemble(results: list[dict], cfg: Config, priors: Priors) -> Table:
         if cfg.bulge_size_ratio2 > 0 or cfg.sersic_ladder:
             cat.meta["bulge_sizes"] = np.array([run.size for run in cfg.bulge_runs])
             cat.meta["runs"] = cfg.run_labels
-        cat.meta["bulge_weights"] = bulge_weights
+        cat.meta["bulge_weights"] = priors.bulge_weights
     cat.meta["psfs"] = psfs
     # each image's PSF (zeros where it failed), on the largest PSF image's side
-    side = max([cfg.stamp_size, *(max(np.shape(r["psf"]["image"])) for r in results
-                                  if r["psf"] is not None)])  # fmt: skip
+    side = max([cfg.stamp_size, *(max(np.shape(r.psf.image)) for r in results
+                                  if r.psf is not None)])  # fmt: skip
     cat.meta["psf_images"] = np.array([
-        np.zeros((side, side)) if r["psf"] is None
-        else centre_on_stamp(r["psf"]["image"], side) for r in results])  # fmt: skip
+        np.zeros((side, side)) if r.psf is None
+        else centre_on_stamp(r.psf.image, side) for r in results])  # fmt: skip
     cat.meta["config"] = cfg
-    cat.meta["timing"] = {k: float(sum(r["timing"][k] for r in results))
-                          for k in results[0]["timing"]}  # fmt: skip
+    cat.meta["timing"] = {k: float(sum(r.timing[k] for r in results))
+                          for k in results[0].timing}  # fmt: skip
     return cat
 
 
@@ -1978,16 +2042,10 @@ def catalogue_frame(cat: Table) -> SkyFrame:
     return frame_of_table(cat)
 
 
-def _to_sky_frame(cat: Table) -> None:
-    """``e1, e2`` (and their covariance, the sensitivities and the PSF's ellipticity)
-    from the pixel frame to the sky frame, the pixel values kept as ``e1_pix, e2_pix``."""
-    frame = catalogue_frame(cat)
-    e1, e2 = np.asarray(cat["e1"], dtype=float), np.asarray(cat["e2"], dtype=float)
-    cat["e1_pix"], cat["e2_pix"] = e1, e2
-    cat["e1"], cat["e2"] = to_sky(e1, e2, frame)
-    v = covariance_to_sky(cat["e1_var"], cat["e2_var"], cat["e12_cov"], frame)
-    cat["e1_var"], cat["e2_var"], cat["e12_cov"] = v
-    cat["sens1"], cat["sens2"] = sensitivity_to_sky(cat["sens1"], cat["sens2"], frame)
+def _psf_to_sky(cat: Table, frame: SkyFrame) -> None:
+    """The PSF's ellipticity from the pixel frame to the sky frame (where
+    :func:`pylensfit.assemble.assemble` turned the shapes), and the catalogue's frame in
+    ``meta["frame"]``."""
     cat["PSF_e1"], cat["PSF_e2"] = to_sky(cat["PSF_e1"], cat["PSF_e2"], frame)
     cat.meta["frame"] = ("sky" if frame.has_wcs.all() and frame.n else
                          "pixel" if not frame.has_wcs.any() else "mixed")  # fmt: skip
