@@ -1,6 +1,6 @@
 """Throughput and bias of the precision mode, next to GalSim HSM REGAUSS on the same renderings.
 
-Renders ``--ngal`` galaxies of the precision population (``pylensfit.precision``: four
+Renders ``--ngal`` galaxies of the precision population (``pylensfit_validation.precision``: four
 renderings each, +-g with shared noise and 90-degree twins, morphologies from
 exponential to knotty discs, fluxes of reference S/N 10-200) for every PSF, then
 measures every rendering
@@ -90,7 +90,8 @@ def main() -> None:
     from threadpoolctl import threadpool_limits
 
     from pylensfit.likelihood import fit_stamps
-    from pylensfit.precision import (
+    from pylensfit.prior import estimate_flux_range, estimate_flux_slope, estimate_prior
+    from pylensfit_validation.precision import (
         _usable,
         bias_table,
         default_config,
@@ -98,7 +99,6 @@ def main() -> None:
         render_block,
         spec_with,
     )
-    from pylensfit.prior import estimate_flux_range, estimate_flux_slope, estimate_prior
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ngal", type=int, default=400, help="galaxies per PSF (x4 renderings)")

@@ -13,7 +13,7 @@ catalogue's prior), and per shear field:
 - ``truth``: c2 of the twin-summed *true* sheared ellipticities of the same galaxies,
   ``(e(e_s) + e(-e_s)) / 2 - g`` (the rotation leaves ``-2 g e_s^2``, zero on average
   but not in one field), and c2 with it taken out as a control variate
-  (``pylensfit.validation.truth_control_variate``, as ``validate --truth-control``).
+  (``pylensfit_validation.validation.truth_control_variate``, as ``validate --truth-control``).
 
 Then the chi-square of c2 about each PSF's mean, with and without the control variate.
 
@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
-from pylensfit.validation import _truth, _truth_terms, truth_control_variate
+from pylensfit_validation.validation import _truth, _truth_terms, truth_control_variate
 from step1_true_psf import MEMBERS, sums
 
 N_SIDE = 8  # spatial blocks per side

@@ -8,7 +8,8 @@ import pytest
 from pylensfit import Config, ellipticity_grid, shear_fixed_point
 from pylensfit.likelihood import fit_stamps
 from pylensfit.models import model_bank
-from pylensfit.precision import (
+from pylensfit.prior import Prior, estimate_size_prior
+from pylensfit_validation.precision import (
     PrecisionSpec,
     _population,
     _shear_from_sums,
@@ -23,7 +24,6 @@ from pylensfit.precision import (
     shape_controls,
     spec_with,
 )
-from pylensfit.prior import Prior, estimate_size_prior
 
 galsim = pytest.importorskip("galsim")
 
@@ -101,7 +101,7 @@ def test_rotated_twin_of_a_round_psf_is_the_rotated_image():
     """
     spec = PrecisionSpec(ngal=8, block_size=8, seed=2, morphology_weights=(1, 0, 0, 0, 0))
     clean, _, t = render_block(spec, 0, 0, stamp_size=33, noise=False)
-    import pylensfit.precision as pp
+    import pylensfit_validation.precision as pp
 
     psf = pp._galsim_psf(spec.psfs[0])
     for a in range(len(t)):
@@ -337,7 +337,7 @@ def test_fixed_point_is_unbiased_for_narrow_gaussian_likelihoods():
     estimator's or the grid's).
     """
     from pylensfit.shear import apply_shear
-    from pylensfit.simulate import draw_shapes
+    from pylensfit_validation.simulate import draw_shapes
 
     rng = np.random.default_rng(3)
     n, g = 10000, 0.02
@@ -555,7 +555,7 @@ def test_two_bulge_sizes_in_the_precision_mode(tmp_path):
     assert len(bp["weights"]) == 5 and abs(sum(bp["weights"]) - 1) < 1e-9
     assert bp["weights"][0] > 0.8, bp
     assert res.meta["config"]["bulge_size_ratio2"] == 1.2
-    from pylensfit.precision import write_report
+    from pylensfit_validation.precision import write_report
 
     write_report(res, tmp_path / "report.md")
     text = (tmp_path / "report.md").read_text()
@@ -581,7 +581,7 @@ def test_sersic_ladder_in_the_precision_mode(tmp_path):
     assert len(bp["weights"]) == 9 and abs(sum(bp["weights"]) - 1) < 1e-9
     assert bp["weights"][0] == max(bp["weights"]) and bp["weights"][0] > 0.5, bp
     assert res.meta["config"]["sersic_ladder"] == [0.5, 2.0, 4.0]
-    from pylensfit.precision import write_report
+    from pylensfit_validation.precision import write_report
 
     write_report(res, tmp_path / "report.md")
     assert "Sersic 2+4: " in (tmp_path / "report.md").read_text()
@@ -593,7 +593,7 @@ def test_flux_prior_bounds_are_estimated_from_the_calibration_fluxes(tmp_path):
     10 %) of the population's limits for exponentials fitted as such, the faint one
     measured from galaxies at S/N 5-20, and the report says so; with
     ``flux_bounds=False`` the prior is unbounded."""
-    from pylensfit.precision import reference_norm, write_report
+    from pylensfit_validation.precision import reference_norm, write_report
 
     spec = spec_with(ngal=20, block_size=20, ncal=1000, seed=4, psfs=["round"],
                      snr_range=(10.0, 200.0), size_ratio_range=(0.5, 1.5),
@@ -768,7 +768,7 @@ def test_given_size_and_bulge_priors_replace_the_estimates(monkeypatch):
     """``precision(size_prior=, bulge_weights=)``: the population's own size prior
     covers exactly the sizes that ``render_block`` draws, and given priors are used
     as they are (no calibration pass), recorded as given, and change the result."""
-    from pylensfit.precision import population_size_prior
+    from pylensfit_validation.precision import population_size_prior
 
     spec = spec_with(ngal=40, block_size=20, ncal=400, seed=3, psfs=["round"],
                      snr_range=(20.0, 40.0), morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
@@ -816,7 +816,7 @@ def test_given_size_and_bulge_priors_replace_the_estimates(monkeypatch):
 def test_cli_precision_e_refine_reaches_the_configuration(monkeypatch):
     """``validate --precision --e-refine 2`` fits with the precision mode's own configuration
     refined (and a given one refined alike); ``--noise-twins`` reaches the spec."""
-    import pylensfit.precision as prec
+    import pylensfit_validation.precision as prec
     from pylensfit.cli import main
 
     seen = {}
@@ -846,7 +846,7 @@ def test_breakdowns_take_a_table_or_a_dict_and_bin_sersic_indices():
     each once; without Sersic galaxies there is no such breakdown."""
     from astropy.table import Table
 
-    from pylensfit.precision import PRECISION_PSFS, SERSIC_EDGES, _breakdowns
+    from pylensfit_validation.precision import PRECISION_PSFS, SERSIC_EDGES, _breakdowns
 
     n = 7
     cols = {"snr": np.full(n, 20.0), "size_ratio": np.full(n, 1.2),

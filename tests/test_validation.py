@@ -14,7 +14,7 @@ from astropy.table import Table
 from astropy.wcs import WCS
 from astropy.wcs.utils import proj_plane_pixel_scales
 
-from pylensfit.validation import (
+from pylensfit_validation.validation import (
     STEP1_SHEARS,
     main,
     read_manifest,
@@ -142,7 +142,7 @@ def test_noise_twins(tmp_path):
     """``noise_twins=True``: every shear field has a twin with the same objects and the
     same noise field negated; nothing else changes, and the seeds of the other fields are
     those of the set without them, rendered in parallel or not."""
-    from pylensfit.validation import STEP2_PSFS
+    from pylensfit_validation.validation import STEP2_PSFS
 
     kw = dict(ngal=240, seed=6, n_shear=1, psfs=STEP2_PSFS[:1], field_size=200)
     d = simulate_step("step2", tmp_path / "n", noise_twins=True, jobs=2, **kw)
@@ -247,7 +247,7 @@ def test_pylensfit_simulate_command(tmp_path):
 
 
 def test_fit_m_c_and_quality_factor():
-    from pylensfit.validation import fit_m_c, quality_factor
+    from pylensfit_validation.validation import fit_m_c, quality_factor
 
     rng = np.random.default_rng(3)
     gt = np.repeat([0.0, 0.005, 0.01, 0.05, 0.1], 40)
@@ -276,7 +276,7 @@ def test_fit_m_c_and_quality_factor():
 
 def test_validate_end_to_end(tmp_path):
     from pylensfit import CalibrationWarning
-    from pylensfit.validation import STEP1_PSFS, simulate_step, validate
+    from pylensfit_validation.validation import STEP1_PSFS, simulate_step, validate
 
     # three of the five PSFs (round, elliptical along e1 and along e2), with the fields of
     # a 1500-galaxy set
@@ -342,7 +342,7 @@ def test_validate_end_to_end(tmp_path):
 # Twins, bins, kept catalogues, report (issue: per-bin m/c, twins, quick tier)
 # ----------------------------------------------------------------------------------------
 def test_twin_shear_cancels_shape_noise():
-    from pylensfit.validation import twin_shear
+    from pylensfit_validation.validation import twin_shear
 
     rng = np.random.default_rng(11)
     n, g = 500, np.array([0.031, -0.017])
@@ -385,7 +385,7 @@ def test_group_shear_cancels_shape_and_noise():
     measured galaxies by truth index keeps only galaxies measured in every member."""
     from astropy.table import Table
 
-    from pylensfit.validation import _group_members, _groups, group_shear
+    from pylensfit_validation.validation import _group_members, _groups, group_shear
 
     rng = np.random.default_rng(12)
     n, g = 400, np.array([-0.022, 0.041])
@@ -406,7 +406,7 @@ def test_group_shear_cancels_shape_and_noise():
     assert est.g1_err > 1e-4
     # the pair estimate is the group estimate of two members
     p = twin_shear_pair = group_shear(e[:, [0, 2]], s[:, [0, 2]])
-    from pylensfit.validation import twin_shear
+    from pylensfit_validation.validation import twin_shear
 
     q = twin_shear(e[:, 0], e[:, 2], s[:, 0], s[:, 2])
     assert (p.g1, p.g2, p.g1_err, p.g2_err) == (q.g1, q.g2, q.g1_err, q.g2_err)
@@ -443,7 +443,7 @@ def test_group_error_is_the_ratio_estimators():
     """The group error is the scatter of ``e - g s``: galaxies whose summed ellipticity
     is exactly their sensitivity times the shear carry no error however much their
     sensitivities differ (``std(e)`` would give ``g std(s) sqrt(N) / sum s``)."""
-    from pylensfit.validation import group_shear
+    from pylensfit_validation.validation import group_shear
 
     rng = np.random.default_rng(5)
     n, g = 300, np.array([0.1, -0.05])
@@ -464,7 +464,7 @@ def _controlled_trials(rng, n_trials, select):
     """Plain and truth-controlled key2 estimates of single images of a population with
     shape noise and measurement noise."""
     from pylensfit.shear import apply_shear
-    from pylensfit.validation import truth_control_variate
+    from pylensfit_validation.validation import truth_control_variate
 
     n_pop, g = 3000, np.array([0.04, -0.02])
     out = []
@@ -494,7 +494,7 @@ def test_truth_control_variate_takes_out_the_shape_noise():
     """The control variate keeps the estimate's expectation and takes the shape noise
     out of it, with errors that match the scatter over independent images; a twin
     group at g = 0 (``t`` zero) is left as it is."""
-    from pylensfit.validation import truth_control_variate
+    from pylensfit_validation.validation import truth_control_variate
 
     rng = np.random.default_rng(21)
     a, g = _controlled_trials(rng, 150, lambda e, rng: rng.random(len(e)) < 0.7)
@@ -539,7 +539,7 @@ def test_truth_control_variate_keeps_what_a_selection_does():
 
 
 def test_bins_partition():
-    from pylensfit.validation import _bin_edges, bin_index
+    from pylensfit_validation.validation import _bin_edges, bin_index
 
     rng = np.random.default_rng(2)
     v = rng.normal(size=1001)
@@ -565,7 +565,7 @@ def test_bins_partition():
 def test_diagnosis_states():
     from astropy.table import Table
 
-    from pylensfit.validation import _diagnose, _summary
+    from pylensfit_validation.validation import _diagnose, _summary
 
     def res(m, m_err, c, c_err, q):
         rows = [(str(k), m, m_err, c[k], c_err, m, m_err, -c[k], c_err, q, 100) for k in range(3)]
@@ -594,7 +594,7 @@ def test_c_scatter_coverage():
     """The spread of c over PSFs beyond its errors: the upper limit covers the true spread
     at its confidence, the estimate converges on many PSFs, and without a spread the
     chi-square's p is uniform."""
-    from pylensfit.validation import c_scatter
+    from pylensfit_validation.validation import c_scatter
 
     rng = np.random.default_rng(5)
     err = np.array([1.5e-4, 2e-4, 2e-4, 2.5e-4, 3e-4])  # five PSFs, unequal errors
@@ -635,7 +635,7 @@ def _exponential():
 
 
 def test_validate_with_the_true_psf(tmp_path):
-    from pylensfit.validation import STEP1_PSFS, true_psf_image, validate
+    from pylensfit_validation.validation import STEP1_PSFS, true_psf_image, validate
 
     d = simulate_step("step1", tmp_path / "s1", ngal=300, seed=6, psfs=STEP1_PSFS[1:3],
                       n_shear=2)  # fmt: skip
@@ -686,7 +686,7 @@ def test_validate_with_the_true_psf(tmp_path):
 
 
 def test_validate_with_the_true_psf_over_the_field(tmp_path):
-    from pylensfit.validation import STEP1_PSFS, _true_psf, validate
+    from pylensfit_validation.validation import STEP1_PSFS, _true_psf, validate
 
     d = simulate_step("step1", tmp_path / "v", ngal=300, seed=8, psfs=STEP1_PSFS[1:2],
                       n_shear=1, psf_variation="survey")  # fmt: skip
@@ -712,7 +712,7 @@ def step2_validated(step2):
     import warnings
 
     from pylensfit import CalibrationWarning
-    from pylensfit.validation import validate
+    from pylensfit_validation.validation import validate
 
     # on a STEP2 set validate adds a bin per galaxy kind to these; its zero-shear fields
     # hold ~15 galaxies per PSF, too few for the recipe's priors (their defaults are used,
@@ -773,7 +773,7 @@ def test_validate_step2_twins_and_bins(step2, step2_validated):
 def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
     from pylensfit import pipeline
     from pylensfit.config import Config
-    from pylensfit.validation import validate
+    from pylensfit_validation.validation import validate
 
     def boom(*a, **k):
         raise AssertionError("measure called")
@@ -791,7 +791,7 @@ def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
     with pytest.raises(AssertionError, match="measure called"):
         validate(step2["dir"], config=_exponential(), progress=False, bins={}, remeasure=True)
     # so does a catalogue kept by a version of the code that measured differently
-    from pylensfit import validation
+    from pylensfit_validation import validation
 
     monkeypatch.setattr(validation, "_MEASURE_VERSION", validation._MEASURE_VERSION + 1)
     with pytest.raises(AssertionError, match="measure called"):
@@ -817,7 +817,7 @@ def test_validate_takes_the_size_prior_from_the_zero_shear_field(tmp_path, monke
     from pylensfit import pipeline
     from pylensfit.config import Config
     from pylensfit.prior import SizePrior
-    from pylensfit.validation import STEP2_PSFS, simulate_step, validate
+    from pylensfit_validation.validation import STEP2_PSFS, simulate_step, validate
 
     # two PSFs (the round one and the diagonal, highly elliptical one) with the fields of
     # a 1500-galaxy five-PSF set, about 150 galaxies each; one model, one bulge fraction:
@@ -861,7 +861,7 @@ def test_validate_groups_noise_twins(tmp_path):
     rotated twin, and both with the noise negated), so that the shape noise and the
     noise's first order cancel: the group errors are a small fraction of the single
     images', and the report says how the renderings were grouped."""
-    from pylensfit.validation import STEP2_PSFS, validate
+    from pylensfit_validation.validation import STEP2_PSFS, validate
 
     d = simulate_step("step2", tmp_path / "s2n", ngal=800, seed=9, n_shear=1,
                       psfs=STEP2_PSFS[:1], noise_twins=True, jobs=2)  # fmt: skip
@@ -894,8 +894,8 @@ def test_step2_flux_does_not_follow_the_shear():
     shears gives the same fluxes (the image differs), and the twin's too. When the flux
     came from the S/N of the lensed galaxy, galaxies sheared longer got brighter (by up
     to 0.6 % at g = 0.06: with the uniform amplitude prior, too little to move m)."""
-    from pylensfit.simulate import FieldSpec
-    from pylensfit.validation import render_step2_field
+    from pylensfit_validation.simulate import FieldSpec
+    from pylensfit_validation.validation import render_step2_field
 
     base = FieldSpec(size=160, spacing=40.0, star_fraction=0.0)
     runs = [render_step2_field(replace(base, g1=g, g2=-g, rotate=rot), seed=7)
@@ -910,7 +910,7 @@ def test_step2_flux_does_not_follow_the_shear():
 def test_truth_tables_are_read_once_per_file_version(tmp_path):
     """validate reads each field's TRUTH for the matching and the truth control: once,
     unless the file changes."""
-    from pylensfit import validation as V
+    from pylensfit_validation import validation as V
 
     path = tmp_path / "f.fits"
 

@@ -1,7 +1,7 @@
 """What the e-grid's interpolation costs in m: exact ``ln L`` on a grid of 0.05 against
 ``ln L`` interpolated from a grid of 0.1, on the same precision renderings.
 
-Every block of the precision set (``pylensfit.precision``: four renderings per galaxy,
+Every block of the precision set (``pylensfit_validation.precision``: four renderings per galaxy,
 +-g, unrotated and rotated by 90 degrees, the population's priors) is fitted twice, with
 ``e_step`` 0.1 (the default) and 0.05. On the 0.05 grid (integration refined by 2, the
 same 0.025 cells as the default's refinement by 4 of the 0.1 grid), m is computed from:
@@ -34,10 +34,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from pylensfit import precision as P
 from pylensfit.likelihood import fit_stamps
 from pylensfit.runner import run_tasks, worker_pool
 from pylensfit.shear import refine_lnL
+from pylensfit_validation import precision as P
 
 _MID = {4: (np.array([-1.0, 9.0, 9.0, -1.0]) / 16.0, np.array([-3, -1, 1, 3])),
         6: (np.array([3.0, -25.0, 150.0, 150.0, -25.0, 3.0]) / 256.0,

@@ -1,7 +1,7 @@
 """How exactly the engine's models reproduce GalSim's renderings, and their shear signal.
 
 For an exponential galaxy of ``r`` PSF half-light radii and ellipticity ``z`` under a
-precision-mode PSF, rendered by GalSim (:func:`pylensfit.precision._draw`, as the
+precision-mode PSF, rendered by GalSim (:func:`pylensfit_validation.precision._draw`, as the
 precision mode draws its data) at shears ``+g`` and ``-g`` along e1, and by
 :func:`pylensfit.models.render_models` at the same parameters (on a 192-pixel canvas cut
 to the stamp), it prints:
@@ -23,7 +23,7 @@ import argparse
 
 import numpy as np
 
-import pylensfit.precision as PR
+import pylensfit_validation.precision as PR
 from pylensfit.models import half_light_radius, render_models
 
 

@@ -40,7 +40,9 @@ from precision_ab import _kv
 import pylensfit.pipeline as pl
 from pylensfit.config import Config
 from pylensfit.likelihood import fit_stamps
-from pylensfit.precision import (
+from pylensfit.prior import Prior, SizePrior
+from pylensfit.stamps import cut_stamps
+from pylensfit_validation.precision import (
     PRECISION_PSFS,
     _draw,
     _galsim_psf,
@@ -49,9 +51,7 @@ from pylensfit.precision import (
     reduce_renderings,
     shape_controls,
 )
-from pylensfit.prior import Prior, SizePrior
-from pylensfit.simulate import draw_shapes, galaxy_profile
-from pylensfit.stamps import cut_stamps
+from pylensfit_validation.simulate import draw_shapes, galaxy_profile
 
 #: Half-light radius over disc scale length of the galaxy drawn here (bulge fraction 0.5,
 #: bulge half-light radius 0.6 scale lengths), measured on its GalSim profile.

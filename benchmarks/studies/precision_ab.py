@@ -1,12 +1,12 @@
 """Two configurations on the same precision renderings: m of each, B - A paired, fit time.
 
-The precision mode's blocks (``pylensfit.precision``: four renderings per galaxy, +-g,
+The precision mode's blocks (``pylensfit_validation.precision``: four renderings per galaxy, +-g,
 unrotated and rotated by 90 degrees) are fitted and reduced twice, once with the
 default configuration (``precision.default_config``, changed by ``--a KEY=VALUE``) and
 once with ``--b KEY=VALUE`` on top of it, with the same priors: the population's own
 (its ellipticity prior, its log-uniform size prior per PSF, equal bulge-fraction
 weights), or with ``--estimated`` those a calibration of config A estimates
-(:func:`pylensfit.precision.precision` on the same seed; with ``--own-priors`` B gets
+(:func:`pylensfit_validation.precision.precision` on the same seed; with ``--own-priors`` B gets
 its own, as a change of the bulge fractions needs). The renderings and their noise
 are the same, so the difference B - A is measured far better than either m: its error
 is the jackknife (groups of 100 galaxies) of the paired difference of the fixed-point
@@ -30,9 +30,9 @@ import time
 
 import numpy as np
 
-from pylensfit import precision as P
 from pylensfit.prior import Prior, RadialPrior, SizePrior
 from pylensfit.runner import run_tasks, worker_pool
+from pylensfit_validation import precision as P
 
 
 def _oracle(spec, cfg) -> list:
@@ -121,7 +121,8 @@ def _paired(QA, QB, ok, jk, g):
 
 
 def _fp(tab, name: str):
-    """The fixed-point row of group ``name`` in a :func:`pylensfit.precision.bias_table`."""
+    """The fixed-point row of group ``name`` in a
+    :func:`pylensfit_validation.precision.bias_table`."""
     return tab[(tab["group"] == name) & (tab["estimator"] == "fixed-point")][0]
 
 

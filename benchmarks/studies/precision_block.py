@@ -25,7 +25,7 @@ import argparse
 import time
 
 import pylensfit
-from pylensfit import precision as P
+from pylensfit_validation import precision as P
 
 
 def main() -> None:

@@ -8,7 +8,7 @@ PSF, an error the jackknife of the main sample does not see. This measures that 
 several estimators of the size prior at once, on the same main sample:
 
 1. For each calibration seed, the calibration's first pass (flat size prior) is run as
-   :func:`pylensfit.precision.precision` runs it, and each PSF's ``L(r)`` (marginalised
+   :func:`pylensfit_validation.precision.precision` runs it, and each PSF's ``L(r)`` (marginalised
    over e with the first pass's ellipticity prior) is kept, with the configuration and
    bulge weights the size prior would be estimated with. ``--cache DIR`` keeps them.
 2. Each setting (``--smooth``, ``--knot-step``; the knots' spacing in ln h and the EMS
@@ -38,10 +38,10 @@ from pathlib import Path
 import numpy as np
 
 import pylensfit.prior as prior_mod
-from pylensfit import precision as P
 from pylensfit.models import model_bank
 from pylensfit.prior import RadialPrior
 from pylensfit.runner import run_tasks, worker_pool
+from pylensfit_validation import precision as P
 
 
 class _Captured(Exception):

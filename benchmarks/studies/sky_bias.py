@@ -63,10 +63,10 @@ def _measure(args):
 
 
 def main(argv=None) -> int:
-    from pylensfit import validation as V
     from pylensfit.config import Config
     from pylensfit.prior import estimate_prior
     from pylensfit.shear import shapes
+    from pylensfit_validation import validation as V
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("directory")

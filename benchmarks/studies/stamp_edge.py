@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-import pylensfit.precision as PR
+import pylensfit_validation.precision as PR
 from pylensfit import Config, Prior, fit_stamps
 from pylensfit.models import half_light_radius, render_models
 from pylensfit.shear import posterior_moments

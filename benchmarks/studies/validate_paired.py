@@ -26,7 +26,7 @@ import numpy as np
 
 
 def main(argv=None) -> int:
-    import pylensfit.validation as V
+    import pylensfit_validation.validation as V
     from pylensfit import pipeline
     from pylensfit.config import Config
 

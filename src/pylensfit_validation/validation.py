@@ -14,26 +14,25 @@ five PSFs of which two are highly elliptical, pixel 0.2 arcsec.
 Both sets have a zero-shear field per PSF (role ``"prior"``) from which the ellipticity
 prior is estimated, as in the paper, and a star-only field per PSF from which the PSF is
 modelled. Every field carries its truth table in a ``TRUTH`` extension (columns as in
-:func:`pylensfit.simulate.simulate_field`); ``manifest.json`` lists the fields.
+:func:`pylensfit_validation.simulate.simulate_field`); ``manifest.json`` lists the fields.
 
 Either set can have its PSFs vary over the fields (``psf_variation="survey"``: FWHM
 +-10 % and ``|e|`` up to 0.08 corner to corner about each PSF's centre values, the star
 fields following the same map) and a rotated or flipped WCS (``wcs_rotation_deg``,
-``wcs_flip``), the shears being the sky frame's (:mod:`pylensfit.simulate`).
+``wcs_flip``), the shears being the sky frame's (:mod:`pylensfit_validation.simulate`).
 
 A STEP2-like set's galaxies are by default the aligned population, every bulge aligned
 with its disc and as elongated; ``population="realistic"`` gives them the bulges of real
 galaxies, of their own size, elongation and misalignment, and Sersic indices 0.3-6
-(:data:`pylensfit.galaxies.REALISTIC`, :func:`render_step2_field`).
+(:data:`pylensfit_validation.galaxies.REALISTIC`, :func:`render_step2_field`).
 
-Conventions are those of :mod:`pylensfit.simulate`: sizes in pixels, numpy ``(x, y)``
+Conventions are those of :mod:`pylensfit_validation.simulate`: sizes in pixels, numpy ``(x, y)``
 0-based is GalSim ``(x + 1, y + 1)``, ``e = (a - b) / (a + b)`` and a shear ``g`` maps
 ``e_s`` to ``(e_s + g) / (1 + g* e_s)``.
 """
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import logging
@@ -51,21 +50,23 @@ from astropy.table import Table, vstack
 from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
-from . import pipeline
-from ._util import pyplot_or_none
-from .config import Config
-from .galaxies import GalaxyProfile, PSFProfile, draw_bulge_shapes, draw_sersic_indices
-from .prior import (
+from pylensfit import pipeline
+from pylensfit.config import Config
+from pylensfit.prior import (
     Prior,
     estimate_prior,
     estimate_prior_and_bulge,
     estimate_prior_binned,
     mix_bulge_fractions,
 )
-from .psf import PSFResult, psf_diagnostics, psf_from_image
-from .psfmodel import PSFModel
-from .runner import run_tasks
-from .shear import ShearEstimate, estimate_shear, shapes, shear_fixed_point
+from pylensfit.psf import PSFResult, psf_diagnostics, psf_from_image
+from pylensfit.psfmodel import PSFModel
+from pylensfit.runner import run_tasks
+from pylensfit.shear import ShearEstimate, estimate_shear, shapes, shear_fixed_point
+from pylensfit.skyframe import SkyFrame, sensitivity_to_sky
+
+from .figures import pyplot_or_none
+from .galaxies import GalaxyProfile, PSFProfile, draw_bulge_shapes, draw_sersic_indices
 from .simulate import (
     POPULATIONS,
     PSF_VARIATIONS,
@@ -86,7 +87,6 @@ from .simulate import (
     truth_table,
     write_field,
 )
-from .skyframe import SkyFrame, sensitivity_to_sky
 
 __all__ = [
     "STEP1_PSFS",
@@ -95,7 +95,6 @@ __all__ = [
     "simulate_step",
     "read_manifest",
     "render_step2_field",
-    "main",
     "TARGETS",
     "DEFAULT_BINS",
     "QUICK_NGAL",
@@ -159,7 +158,7 @@ def _step2_galaxy(
 ):  # fmt: skip
     """Unit-flux STEP2-like galaxy of half-light radius r (px), before its intrinsic shear.
 
-    :class:`~pylensfit.galaxies.GalaxyProfile` with STEP2's bulge by default: half-light
+    :class:`~pylensfit_validation.galaxies.GalaxyProfile` with STEP2's bulge by default: half-light
     radius ``0.5 r`` (``r`` the disc's half-light radius), flux ``bulge_frac``, round (the
     aligned population). The realistic population's bulge has a half-light radius of
     ``bulge_size_ratio r`` and its own shear ``bulge_shear`` (``(g1, g2)``, applied to
@@ -179,12 +178,12 @@ def render_step2_field(
     """Render a STEP2-like field: complex morphologies, sheared, with stars and noise.
 
     The lattice, stars, fluxes, intrinsic ellipticities, local PSFs, frames and noise
-    follow :func:`pylensfit.simulate.simulate_field`; the galaxies are a mix of Sersic
+    follow :func:`pylensfit_validation.simulate.simulate_field`; the galaxies are a mix of Sersic
     profiles, bulge + disc (de Vaucouleurs bulge, exponential disc, bulge fraction
     0-0.5), and discs with star-forming knots (``galsim.RandomKnots``) and a bulge.
     ``spec.size_range`` is the range of the discs' half-light radii (px). Each galaxy is
     built in the sky frame and drawn in the pixel frame of the WCS
-    (:func:`pylensfit.simulate.to_pixel_frame`), knots included: a seed gives the same
+    (:func:`pylensfit_validation.simulate.to_pixel_frame`), knots included: a seed gives the same
     galaxies on the sky whatever ``spec.wcs_rotation_deg`` and ``spec.wcs_flip``.
 
     ``spec.population`` chooses the Sersic indices and the bulges:
@@ -192,10 +191,10 @@ def render_step2_field(
     - ``"aligned"``: Sersic indices uniform in 0.5-4, every bulge of half its disc's
       half-light radius, aligned with its disc and as elongated (the intrinsic shear
       applied to the whole galaxy).
-    - ``"realistic"`` (:data:`pylensfit.galaxies.REALISTIC`, as
-      :class:`pylensfit.precision.PrecisionSpec`'s): Sersic indices log-uniform in
+    - ``"realistic"`` (:data:`pylensfit_validation.galaxies.REALISTIC`, as
+      :class:`pylensfit_validation.precision.PrecisionSpec`'s): Sersic indices log-uniform in
       0.3-6, bulges of 0.25-0.8 of their disc's half-light radius with shapes of their
-      own (:func:`pylensfit.galaxies.draw_bulge_shapes`): on the sky the bulge+disc
+      own (:func:`pylensfit_validation.galaxies.draw_bulge_shapes`): on the sky the bulge+disc
       galaxies' bulges are 0.2-1 times as elongated as their discs and misaligned by a
       Gaussian angle of 30 degrees rms, the knotty discs' 0-0.6 times (10 degrees rms).
       These are drawn after every parameter of the aligned population, so the two share
@@ -221,7 +220,7 @@ def render_step2_field(
     weight : numpy.ndarray
         Inverse-variance map.
     truth : astropy.table.Table
-        As :func:`pylensfit.simulate.simulate_field`, plus ``kind`` (galaxy type),
+        As :func:`pylensfit_validation.simulate.simulate_field`, plus ``kind`` (galaxy type),
         ``sersic_n``, ``bulge_frac``, ``n_knots``; ``r`` is the disc's half-light
         radius. ``e1_int, e2_int`` are the (rotated, for a twin) intrinsic shears,
         applied to the whole galaxy: the disc's shape. A realistic population adds
@@ -412,12 +411,13 @@ def simulate_step(
         (a set from a given seed is the same as before the option existed).
     psf_variation : {"none", "survey"}
         How each PSF of ``psfs`` varies over the fields, about its parameters at the
-        centre (:data:`pylensfit.simulate.PSF_VARIATIONS`, :func:`pylensfit.simulate.psf_at`).
+        centre (:data:`pylensfit_validation.simulate.PSF_VARIATIONS`,
+        :func:`pylensfit_validation.simulate.psf_at`).
         The star fields follow the same map on the same geometry, so a varying PSF needs
         the star and zero-shear fields of the shear fields' size.
     wcs_rotation_deg : float
         Rotation ``theta`` (degrees) of every field's WCS, pixel to sky frame
-        (:mod:`pylensfit.simulate`); the shears and intrinsic shapes are the sky frame's.
+        (:mod:`pylensfit_validation.simulate`); the shears and intrinsic shapes are the sky frame's.
     wcs_flip : bool
         Flip every field's WCS (``dy -> -dy`` before the rotation).
     population : {"aligned", "realistic"}
@@ -425,7 +425,7 @@ def simulate_step(
         bulges of half their disc's half-light radius aligned with their discs and as
         elongated, Sersic indices 0.5-4; ``"realistic"``, Sersic indices 0.3-6 and
         bulges of their own size, elongation and misalignment
-        (:data:`pylensfit.galaxies.REALISTIC`), the same seed giving the same objects
+        (:data:`pylensfit_validation.galaxies.REALISTIC`), the same seed giving the same objects
         otherwise. A step1 set's galaxies are the model bank's bulge+disc family by
         design: only ``"aligned"``.
     jobs : int
@@ -710,93 +710,6 @@ def read_manifest(directory: str | Path) -> dict:
         f["path"] = str(directory / f["file"])
     return man
 
-
-def main(argv: list[str] | None = None) -> int:
-    """``pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S] [--noise SIGMA] ...``.
-
-    Among the options, ``--psf-variation {none,survey}``, ``--wcs-rotation DEG``,
-    ``--wcs-flip`` and ``--population {aligned,realistic}`` (:func:`simulate_step`'s
-    ``psf_variation``, ``wcs_rotation_deg``, ``wcs_flip``, ``population``).
-
-    Standalone entry point (``python -m pylensfit.validation ...``), for the CLI to wire in.
-
-    Parameters
-    ----------
-    argv : list of str, optional
-        Arguments (default ``sys.argv[1:]``).
-
-    Returns
-    -------
-    int
-        Exit status.
-    """
-    p = argparse.ArgumentParser(
-        prog="pylensfit simulate", description="simulate a STEP1/STEP2-like validation set"
-    )
-    p.add_argument("kind", choices=["step1", "step2"])
-    p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--ngal", type=int, default=20000, help="galaxies over the shear fields")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--noise", type=float, default=1.0, help="noise sigma per pixel")
-    p.add_argument("--size", type=int, default=None, help="field size (px)")
-    p.add_argument("--nshear", type=int, default=None, help="shear values per PSF")
-    p.add_argument("--star-field-size", type=int, default=None,
-                   help="side of the star fields (px; default the shear fields')")
-    p.add_argument("--twins", action=argparse.BooleanOptionalAction, default=None,
-                   help="a 90-degree-rotated twin of every shear field (default: step2 "
-                        "yes, step1 no); with twins the shape noise cancels in validate")
-    p.add_argument("--jobs", type=int, default=1, help="fields rendered in parallel")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--noise-twins", action="store_true",
-                   help="a noise twin of every shear field (the same noise negated): the "
-                        "noise's first-order effect cancels in validate, resolving c per "
-                        "PSF to ~1e-4; --ngal counts the renderings")
-    p.add_argument("--psf-variation", choices=sorted(PSF_VARIATIONS), default="none",
-                   help="PSF variation over every field, star fields included (survey: "
-                        "FWHM +-10%% and |e| up to 0.08 corner to corner)")
-    p.add_argument("--wcs-rotation", type=float, default=0.0, metavar="DEG",
-                   help="rotation of every field's WCS, pixel to sky (degrees); the "
-                        "shears are the sky frame's")
-    p.add_argument("--wcs-flip", action="store_true",
-                   help="flip every field's WCS (dy -> -dy before the rotation)")
-    p.add_argument("--population", choices=POPULATIONS, default="aligned",
-                   help="step2 galaxies: aligned (bulges aligned with their discs, Sersic "
-                        "n 0.5-4) or realistic (bulges of their own size, shape and "
-                        "misalignment, Sersic n 0.3-6; step1: aligned only)")
-    a = p.parse_args(argv)
-    d = simulate_step(
-        a.kind,
-        a.out,
-        ngal=a.ngal,
-        seed=a.seed,
-        noise_sigma=a.noise,
-        field_size=a.size,
-        n_shear=a.nshear,
-        star_field_size=a.star_field_size,
-        twins=a.twins,
-        noise_twins=a.noise_twins,
-        psf_variation=a.psf_variation,
-        wcs_rotation_deg=a.wcs_rotation,
-        wcs_flip=a.wcs_flip,
-        population=a.population,
-        jobs=a.jobs,
-        progress=not a.quiet,
-    )
-    man = read_manifest(d)
-    n_shear = sum(f["role"] == "shear" for f in man["fields"])
-    got = man["ngal_shear_fields"]
-    why = ("" if got == a.ngal else f" (--ngal {a.ngal} rounded to {n_shear} fields of a "
-           f"whole square lattice of objects each)")  # fmt: skip
-    print(
-        f"{a.kind}: {len(man['fields'])} fields of {man['field_size']} px, "
-        f"{got} galaxies in shear fields{why}, "
-        f"{len(man['star_fields'])} star fields -> {d}"
-    )
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
 
 # ----------------------------------------------------------------------------------------
 # Validation: m, c, sigma_c and Q (Kitching et al. 2008, sections 4 and 5.1; docs: method,
@@ -1310,7 +1223,7 @@ def _frame_of(n: int, sky: tuple[float, bool]) -> SkyFrame | None:
 
 def _to_sky(e: np.ndarray, s: np.ndarray, sky: tuple[float, bool]) -> tuple[np.ndarray, ...]:
     """Pixel-frame ``(n, 2)`` ellipticities and sensitivities in the set's sky frame, as
-    the truth's ``e1_sky, e2_sky`` (:func:`pylensfit.simulate.pixel_to_sky_shear`; the
+    the truth's ``e1_sky, e2_sky`` (:func:`pylensfit_validation.simulate.pixel_to_sky_shear`; the
     sensitivities as :func:`pylensfit.skyframe.sensitivity_to_sky`)."""
     fr = _frame_of(e.shape[0], sky)
     if fr is None:
@@ -1909,7 +1822,7 @@ def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: st
     true_psf : bool
         Diagnostic: fit with each PSF's true image (:func:`true_psf_image`, as large as
         the largest stamp; if the PSF varies over the field, its map
-        :func:`pylensfit.simulate.map_psf_model`: each galaxy with its own PSF), not the
+        :func:`pylensfit_validation.simulate.map_psf_model`: each galaxy with its own PSF), not the
         stars', keeping the catalogues in ``DIR/measured_true_psf/``. The difference from
         a run with the modelled PSF is what the PSF model does to m and c (same noise).
     psf_models : mapping, optional
@@ -1956,7 +1869,7 @@ def validate(directory: str | Path, *, config=None, jobs: int = 1, estimator: st
         Shapes, shears and the truth are compared in the sky frame of the set's WCS
         (its manifest's ``wcs_rotation_deg`` and ``wcs_flip``): the shapes from the
         ``lnL`` grids are taken to it with the truth's ``e1_sky, e2_sky``
-        (:func:`pylensfit.simulate.pixel_to_sky_shear`), the fixed point solves for the
+        (:func:`pylensfit_validation.simulate.pixel_to_sky_shear`), the fixed point solves for the
         sky-frame shear, and the manifest's shears are the sky frame's.
     """
     opts = _Options(estimator=estimator, jobs=jobs, progress=progress, remeasure=remeasure,
@@ -2330,7 +2243,7 @@ def _diagnose(res: Table) -> dict[str, Any]:
 def _true_psf(man: dict, k: int, n: int) -> PSFResult | PSFModel:
     """PSF ``k``'s truth as the pipeline takes a given PSF: its image (``n`` square), or
     on a set whose PSF varies, its map over the field
-    (:func:`pylensfit.simulate.map_psf_model`)."""
+    (:func:`pylensfit_validation.simulate.map_psf_model`)."""
     if man.get("psf_variation", "none") == "none":
         return psf_from_image(true_psf_image(man["psfs"][k], n), source=f"true PSF {k}")
     common = {q: tuple(v) if isinstance(v, list) else v for q, v in man["fieldspec"].items()
@@ -2346,7 +2259,7 @@ def true_psf_image(p: dict, n: int) -> np.ndarray:
     ----------
     p : dict
         ``{"fwhm", "beta", "e1", "e2"}`` (a manifest's ``psfs`` entry): a Moffat profile
-        sheared to ``(e1, e2)``, as :func:`pylensfit.simulate.simulate_field` draws it.
+        sheared to ``(e1, e2)``, as :func:`pylensfit_validation.simulate.simulate_field` draws it.
     n : int
         Image side in pixels.
 

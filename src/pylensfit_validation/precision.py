@@ -92,15 +92,13 @@ import numpy as np
 from astropy.table import Table, vstack
 from scipy.special import logsumexp
 
-from ._util import pyplot_or_none
-from .calibration import MIN_FLUX_RANGE_GALAXIES, CalibrationSample, run_recipe
-from .config import Config
-from .galaxies import GalaxyProfile, PSFProfile, draw_bulge_shapes, draw_sersic_indices
-from .likelihood import e_annuli, fit_stamps
-from .models import model_bank
-from .prior import Prior, SizePrior, mix_bulge_fractions
-from .runner import run_tasks, single_thread, worker_pool
-from .shear import (
+from pylensfit.calibration import MIN_FLUX_RANGE_GALAXIES, CalibrationSample, run_recipe
+from pylensfit.config import Config
+from pylensfit.likelihood import e_annuli, fit_stamps
+from pylensfit.models import model_bank
+from pylensfit.prior import Prior, SizePrior, mix_bulge_fractions
+from pylensfit.runner import run_tasks, single_thread, worker_pool
+from pylensfit.shear import (
     DEFAULT_STENCIL,
     kernel_columns,
     moments_from_sums,
@@ -109,6 +107,9 @@ from .shear import (
     sheared_prior_columns,
     sums_with,
 )
+
+from .figures import pyplot_or_none
+from .galaxies import GalaxyProfile, PSFProfile, draw_bulge_shapes, draw_sersic_indices
 from .simulate import POPULATIONS, draw_shapes
 
 __all__ = [
@@ -235,7 +236,7 @@ class PrecisionSpec:
         ``"aligned"``: every bulge aligned with its disc and as elongated, a bulge of half
         its disc's half-light radius, Sersic indices 0.5-4. ``"realistic"``: what real
         galaxies have and no model of the bulge+disc family holds
-        (:data:`pylensfit.galaxies.REALISTIC`):
+        (:data:`pylensfit_validation.galaxies.REALISTIC`):
         Sersic indices 0.3-6 (log-uniform), bulges of 0.25-0.8 of their disc's
         half-light radius, the bulge+disc galaxies' bulges 0.2-1 times as elongated as
         their discs and misaligned by a Gaussian angle of 30 degrees rms, and the knotty
@@ -316,7 +317,7 @@ def _psf_image(p: dict, n: int) -> tuple[np.ndarray, float]:
 def _profile(row) -> Any:
     """The unit-flux galaxy of one row of :func:`_population` (pixels).
 
-    :class:`~pylensfit.galaxies.GalaxyProfile`, every size a half-light radius, with a
+    :class:`~pylensfit_validation.galaxies.GalaxyProfile`, every size a half-light radius, with a
     bulge of half-light radius ``bulge_size_ratio r`` (``r`` the disc's; 0.5, the
     STEP2-like sets' bulge, in the aligned population), flux ``bulge_frac`` and its own
     shear ``bulge_g1/2``: round unless the bulge has a shape of its own.
