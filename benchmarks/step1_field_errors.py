@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
-from pylensfit_validation.validation import _truth, _truth_terms, truth_control_variate
+from pylensfit_validation.validation import read_truth, truth_control_variate, truth_terms
 from step1_true_psf import MEMBERS, sums
 
 N_SIDE = 8  # spatial blocks per side
@@ -46,8 +46,8 @@ def field_rows(d: Path, run: str, k: int, fl: list[dict], rng) -> list[tuple]:
         g = np.array([f["g1"], f["g2"]])
         # sum over the group's renderings of e_true - g per truth object (NaN: stars)
         names = [f["file"].replace(".fits", f"{m}.fits") for m in MEMBERS]
-        t_all = _truth_terms({n: {"path": d / n, "g1": g[0], "g2": g[1]} for n in names}, names)
-        t = _truth(d / names[0])
+        t_all = truth_terms({n: {"path": d / n, "g1": g[0], "g2": g[1]} for n in names}, names)
+        t = read_truth(d / names[0])
         gal = ~np.asarray(t["is_star"], bool)
         x = S[f["file"]]
         ok = np.isfinite(x).all(1)

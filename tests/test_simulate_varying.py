@@ -27,9 +27,9 @@ from pylensfit_validation.simulate import (
     sky_to_pixel_shear,
     write_field,
 )
+from pylensfit_validation.step import _step2_galaxy
 from pylensfit_validation.validation import (
     STEP2_KINDS,
-    _step2_galaxy,
     read_manifest,
     render_step2_field,
 )

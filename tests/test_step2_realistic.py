@@ -10,6 +10,7 @@ from astropy.io import fits
 from astropy.table import Table
 
 from pylensfit import cli
+from pylensfit_validation.cli import simulate_main as main
 from pylensfit_validation.galaxies import REALISTIC, draw_bulge_shapes
 from pylensfit_validation.simulate import (
     FieldSpec,
@@ -17,9 +18,8 @@ from pylensfit_validation.simulate import (
     sky_to_pixel_shear,
     to_pixel_frame,
 )
+from pylensfit_validation.step import _step2_galaxy
 from pylensfit_validation.validation import (
-    _step2_galaxy,
-    main,
     read_manifest,
     render_step2_field,
     simulate_step,

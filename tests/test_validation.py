@@ -14,9 +14,9 @@ from astropy.table import Table
 from astropy.wcs import WCS
 from astropy.wcs.utils import proj_plane_pixel_scales
 
+from pylensfit_validation.cli import simulate_main as main
 from pylensfit_validation.validation import (
     STEP1_SHEARS,
-    main,
     read_manifest,
     simulate_step,
 )
@@ -385,7 +385,7 @@ def test_group_shear_cancels_shape_and_noise():
     measured galaxies by truth index keeps only galaxies measured in every member."""
     from astropy.table import Table
 
-    from pylensfit_validation.validation import _group_members, _groups, group_shear
+    from pylensfit_validation.validation import group_members, group_shear, shear_groups
 
     rng = np.random.default_rng(12)
     n, g = 400, np.array([-0.022, 0.041])
@@ -427,12 +427,12 @@ def test_group_shear_cancels_shape_and_noise():
             if not (name == "psf0_g0_rot_neg" and t == 3)]
     rows = [rows[i] for i in rng.permutation(len(rows))]
     gal = Table(rows=rows, names=("image", "truth_index"))
-    gid, base = _groups(gal, fields)
+    gid, base = shear_groups(gal, fields)
     img, tix = np.asarray(gal["image"]), np.asarray(gal["truth_index"])
     assert np.all(gid[img == "psf0_prior"] == -1)
     assert np.all(gid[(tix == 3) & np.char.startswith(img.astype(str), "psf0")] == -1)
     assert np.sum(gid >= 0) == 4 * 4 + 4 * 5
-    mem = _group_members(gid)
+    mem = group_members(gid)
     assert mem.shape == (9, 4)
     for r in mem:  # one galaxy, four renderings of one key, one base
         assert len(set(tix[r])) == 1 and len(set(img[r])) == 4 and len(set(base[r])) == 1
@@ -539,12 +539,12 @@ def test_truth_control_variate_keeps_what_a_selection_does():
 
 
 def test_bins_partition():
-    from pylensfit_validation.validation import _bin_edges, bin_index
+    from pylensfit_validation.validation import bin_index, quantile_edges
 
     rng = np.random.default_rng(2)
     v = rng.normal(size=1001)
     extra = rng.normal(size=300) * 2  # the prior fields' values widen the outer edges
-    edges = _bin_edges(v, 4, extra)
+    edges = quantile_edges(v, 4, extra)
     assert edges.size == 5 and np.all(np.diff(edges) > 0)
     assert edges[0] <= min(v.min(), extra.min()) and edges[-1] >= max(v.max(), extra.max())
     for x in (v, extra):
@@ -559,20 +559,21 @@ def test_bins_partition():
         0, 0, 1, 1, -1, -1, -1,
     ]  # fmt: skip
     with pytest.raises(ValueError):
-        _bin_edges(v, [0.0, 0.0, 1.0], extra)
+        quantile_edges(v, [0.0, 0.0, 1.0], extra)
 
 
 def test_diagnosis_states():
     from astropy.table import Table
 
-    from pylensfit_validation.validation import _diagnose, _summary
+    from pylensfit_validation.validate import _diagnose
+    from pylensfit_validation.validation import mc_summary
 
     def res(m, m_err, c, c_err, q):
         rows = [(str(k), m, m_err, c[k], c_err, m, m_err, -c[k], c_err, q, 100) for k in range(3)]
         rows.append(("all", m, m_err, 0.0, c_err, m, m_err, 0.0, c_err, q, 300))
         t = Table(rows=rows, names=("psf", "m1", "m1_err", "c1", "c1_err", "m2", "m2_err",
                                     "c2", "c2_err", "Q", "n_gal"))  # fmt: skip
-        t.meta.update(_summary(t[:-1]))
+        t.meta.update(mc_summary(t[:-1]))
         return t
 
     d = _diagnose(res(0.002, 0.001, [1e-5, -1e-5, 0.0], 1e-5, 500))
@@ -686,7 +687,8 @@ def test_validate_with_the_true_psf(tmp_path):
 
 
 def test_validate_with_the_true_psf_over_the_field(tmp_path):
-    from pylensfit_validation.validation import STEP1_PSFS, _true_psf, validate
+    from pylensfit_validation.validate import _true_psf
+    from pylensfit_validation.validation import STEP1_PSFS, validate
 
     d = simulate_step("step1", tmp_path / "v", ngal=300, seed=8, psfs=STEP1_PSFS[1:2],
                       n_shear=1, psf_variation="survey")  # fmt: skip
@@ -791,9 +793,9 @@ def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
     with pytest.raises(AssertionError, match="measure called"):
         validate(step2["dir"], config=_exponential(), progress=False, bins={}, remeasure=True)
     # so does a catalogue kept by a version of the code that measured differently
-    from pylensfit_validation import validation
+    from pylensfit_validation import estimates
 
-    monkeypatch.setattr(validation, "_MEASURE_VERSION", validation._MEASURE_VERSION + 1)
+    monkeypatch.setattr(estimates, "_MEASURE_VERSION", estimates._MEASURE_VERSION + 1)
     with pytest.raises(AssertionError, match="measure called"):
         validate(step2["dir"], config=_exponential(), progress=False, bins={})
     monkeypatch.undo()
@@ -921,10 +923,10 @@ def test_truth_tables_are_read_once_per_file_version(tmp_path):
             h[1].name = "TRUTH"
 
     write(0.1)
-    a = V._truth(path)
-    assert V._truth(str(path)) is a and a["e1"][0] == pytest.approx(0.1)
+    a = V.read_truth(path)
+    assert V.read_truth(str(path)) is a and a["e1"][0] == pytest.approx(0.1)
     write(0.25)  # a new version of the file (its size or time differs): read again
     st = os.stat(path)
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
-    b = V._truth(path)
+    b = V.read_truth(path)
     assert b is not a and b["e1"][0] == pytest.approx(0.25)

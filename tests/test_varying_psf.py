@@ -101,7 +101,7 @@ def test_heldout_residuals_are_pooled_over_images():
     sqrt(sum n x^2 / sum n)."""
     from astropy.table import Table, vstack
 
-    from pylensfit_validation.validation import _heldout_pooled
+    from pylensfit_validation.validate import _heldout_pooled
 
     p = Table({"psf_heldout_n": [10, 30, 0], "psf_heldout_rms_de1": [3e-3, 1e-3, np.nan],
                "psf_heldout_rms_de2": [2e-3, 2e-3, np.nan],

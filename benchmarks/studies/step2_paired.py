@@ -59,9 +59,9 @@ KINDS = ("sersic", "bulge+disc", "knots")
 
 
 def _spec(psf: int, size: int, spacing: float, snr, g: float, rotate: bool):
-    from pylensfit_validation.validation import STEP2_PSFS, _spec_for
+    from pylensfit_validation.validation import STEP2_PSFS, spec_for
 
-    return _spec_for(STEP2_PSFS[psf], size=size, spacing=spacing, noise_sigma=1.0,
+    return spec_for(STEP2_PSFS[psf], size=size, spacing=spacing, noise_sigma=1.0,
                      snr_range=tuple(snr), size_range=(1.5, 4.5), star_fraction=0.05,
                      pixel_scale_arcsec=0.2, model="bulge+disc", g1=g, g2=g,
                      rotate=rotate)  # fmt: skip
@@ -151,13 +151,13 @@ def _shapes(cfg, mdir: Path, base: Path, quads, psf: int) -> dict:
     from pylensfit import pipeline
     from pylensfit.prior import estimate_prior_and_bulge, mix_bulge_fractions
     from pylensfit.shear import shapes, shear_fixed_point
-    from pylensfit_validation.validation import STEP2_PSFS, _galaxies
+    from pylensfit_validation.validation import STEP2_PSFS, matched_galaxies
 
     fwhm = STEP2_PSFS[psf]["fwhm"]
     fields = {n: {"path": str(base / n)} for q in quads for n in q}
     fields["prior.fits"] = {"path": str(base / "prior.fits")}
     pcat = pipeline.read_catalogue(mdir / "prior.fits")
-    pg = _galaxies(pcat, fields, psf, fwhm)
+    pg = matched_galaxies(pcat, fields, psf, fwhm)
     egrid = np.asarray(pcat.meta["egrid"])
     prior, bw = estimate_prior_and_bulge(np.asarray(pg["lnL_bulge"]), np.asarray(pg["lnL_star"]),
                                          egrid, method=cfg.prior_method)  # fmt: skip
@@ -165,7 +165,7 @@ def _shapes(cfg, mdir: Path, base: Path, quads, psf: int) -> dict:
     for j, q in enumerate(quads):
         per = []
         for n in q:
-            g = _galaxies(pipeline.read_catalogue(mdir / n), fields, psf, fwhm)
+            g = matched_galaxies(pipeline.read_catalogue(mdir / n), fields, psf, fwhm)
             per.append(g[(np.asarray(g["truth_index"]) >= 0) & ~np.asarray(g["truth_star"])])
         ti = np.array(sorted(set.intersection(*(set(np.asarray(g["truth_index"]).tolist())
                                                 for g in per))), dtype=np.int64)  # fmt: skip

@@ -93,7 +93,7 @@ def _convergence(args: argparse.Namespace) -> int:
 
 
 def _validate(args: argparse.Namespace) -> int:
-    from .validation import validate  # start-up cost: only for this command
+    from .validate import validate  # start-up cost: only for this command
 
     if args.precision:
         return _precision(args)
@@ -102,7 +102,7 @@ def _validate(args: argparse.Namespace) -> int:
     cfg = _config(args) if args.config else None
     bins = {k: args.bins for k in ("mag", "snr", "size")} if args.bins > 0 else {}
     if args.quick:
-        from .validation import quick_validation  # start-up cost: only for this command
+        from .quick import quick_validation  # start-up cost: only for this command
 
         out_dir = args.out or "quick_validation"
         out = quick_validation(out_dir, jobs=args.jobs, seed=args.seed, progress=not args.quiet,
@@ -124,7 +124,7 @@ def _validate(args: argparse.Namespace) -> int:
         res[c].format = "+.5f"
     res["Q"].format = ".0f"
     res.pprint_all()
-    from .validation import nan_note  # start-up cost: only for this command
+    from .reports import nan_note  # start-up cost: only for this command
 
     if nan_note(res):
         print(nan_note(res))
@@ -336,7 +336,7 @@ def simulate_main(argv: list[str] | None = None) -> int:
     """
     # start-up cost: the simulation modules load only for this command
     from .simulate import POPULATIONS, PSF_VARIATIONS
-    from .validation import read_manifest, simulate_step
+    from .step import read_manifest, simulate_step
 
     p = argparse.ArgumentParser(
         prog="pylensfit simulate", description="simulate a STEP1/STEP2-like validation set"
