@@ -92,12 +92,12 @@ def main() -> None:
     from pylensfit.likelihood import fit_stamps
     from pylensfit.prior import estimate_flux_range, estimate_flux_slope, estimate_prior
     from pylensfit_validation.precision import (
-        _usable,
         bias_table,
         default_config,
         reduce_renderings,
         render_block,
         spec_with,
+        usable_fits,
     )
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -124,7 +124,7 @@ def main() -> None:
     for b in range(-(-spec.ncal // bs)):
         st, psf, _ = render_block(spec, b % npsf, b, stamp_size=ns, calibration=True)
         f = fit_stamps(st[:, 0], psf, spec.noise_sigma, config=cfg)
-        ok = _usable(f)
+        ok = usable_fits(f)
         lnl.append(f.lnL[ok])
         flux.append(f.flux[ok])
         flux_err.append((f.flux / f.snr)[ok])

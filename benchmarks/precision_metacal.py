@@ -235,8 +235,8 @@ def main() -> None:
     truth = [r["truth"] for r in cat]
     psf = np.concatenate([np.full(len(t), r["psf"]) for t, r in zip(truth, cat, strict=True)])
     morph = np.concatenate([np.asarray(t["morph"]) for t in truth])
-    per = -(-spec.block_size // P._JACKKNIFE_GALAXIES)
-    jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P._JACKKNIFE_GALAXIES
+    per = -(-spec.block_size // P.JACKKNIFE_GALAXIES)
+    jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P.JACKKNIFE_GALAXIES
                          for t, r in zip(truth, cat, strict=True)])  # fmt: skip
     if a.save:
         np.savez(a.save, QA=QA, e=e, s=s, R=R, e0=e0, s0=s0, ok=ok, jk=jk, psf=psf,

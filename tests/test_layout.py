@@ -211,6 +211,31 @@ def unexported_uses(modules, exports: dict[str, set[str]], method: str = "pylens
     return sorted(set(found))
 
 
+def harness_private_uses(modules, harness: str = "pylensfit_validation") -> list[str]:
+    """Every private name (``_x``) of the harness's modules that a module of ``modules``
+    imports or reads as an attribute of a harness module."""
+    found = []
+    for name, _, tree in modules:
+        alias = {}
+        for node, mod in _absolute_imports(tree):
+            if mod.split(".")[0] != harness:
+                continue
+            for a in node.names:
+                if isinstance(node, ast.Import):
+                    alias[a.asname or a.name.split(".")[0]] = a.name
+                elif a.name.startswith("_") and not a.name.startswith("__"):
+                    found.append(f"{name}:{node.lineno}: from {mod} import {a.name}")
+                else:
+                    alias[a.asname or a.name] = f"{mod}.{a.name}"
+        for node in ast.walk(tree):
+            chain = _dotted(node) if isinstance(node, ast.Attribute) else None
+            if chain and chain[0] in alias:
+                private = [c for c in chain[1:] if c.startswith("_") and not c.startswith("__")]
+                if private:
+                    found.append(f"{name}:{node.lineno}: {'.'.join(chain)}")
+    return sorted(set(found))
+
+
 @pytest.mark.parametrize("package", PACKAGES)
 def test_no_import_cycles(package):
     assert import_cycles(_package(PACKAGES[package])) == []
@@ -241,6 +266,10 @@ def test_the_harness_uses_only_what_the_method_exports():
 
 def test_the_benchmarks_use_only_what_the_method_exports():
     assert unexported_uses(_scripts(), _exports()) == []
+
+
+def test_the_benchmarks_use_no_private_name_of_the_harness():
+    assert harness_private_uses(_scripts()) == []
 
 
 def test_the_public_modules_are_documented():
@@ -287,4 +316,13 @@ def test_the_layer_checks_find_what_they_are_for():
         "h:9: pylensfit.prior.x",
         "h:9: pylensfit.shear.kernel_columns",
         "h:9: pylensfit.shear.sums_with",
+    ]
+    script = [_module("b", "import pylensfit_validation.precision as P\n"
+                           "from pylensfit_validation import validation as V\n"
+                           "from pylensfit_validation.stats import _hidden, shown\n"
+                           "P._draw(V.read_truth, V._truth)\n")]  # fmt: skip
+    assert harness_private_uses(script) == [
+        "b:3: from pylensfit_validation.stats import _hidden",
+        "b:4: P._draw",
+        "b:4: V._truth",
     ]

@@ -146,13 +146,13 @@ def precision_ab():
 def paired_table(res: list, spec, bins: list, title: str, min_n: int = 100) -> None:
     """Print each variant's m minus the ``exact`` one's per bin of true S/N (the blocks'
     results ``res``: ``Q`` per variant, ``snr``, ``block``), paired jackknife over groups of
-    ``P._JACKKNIFE_GALAXIES`` galaxies; bins with fewer than ``min_n`` galaxies left empty."""
+    ``P.JACKKNIFE_GALAXIES`` galaxies; bins with fewer than ``min_n`` galaxies left empty."""
     ab = precision_ab()
     names = list(res[0]["Q"])
     Q = {k: np.concatenate([r["Q"][k] for r in res]).astype(float) for k in names}
     snr = np.concatenate([r["snr"] for r in res])
-    per = -(-spec.block_size // P._JACKKNIFE_GALAXIES)
-    jk = np.concatenate([r["block"] * per + np.arange(len(r["snr"])) // P._JACKKNIFE_GALAXIES
+    per = -(-spec.block_size // P.JACKKNIFE_GALAXIES)
+    jk = np.concatenate([r["block"] * per + np.arange(len(r["snr"])) // P.JACKKNIFE_GALAXIES
                          for r in res])  # fmt: skip
     ok = np.ones(snr.size, bool)
     print(title)

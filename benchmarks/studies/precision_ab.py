@@ -103,8 +103,8 @@ def _m_jk(Q, ok, jk, g):
     T = np.concatenate([tot[None], tot[None] - sums])  # full, then leave one out
     N = np.concatenate([[ntot], ntot - n])
     gv = np.array([g, g])
-    gp = P._shear_from_sums(T[:, 0] + T[:, 1], 2 * N, gv, "fixed-point")
-    gm = P._shear_from_sums(T[:, 2] + T[:, 3], 2 * N, -gv, "fixed-point")
+    gp = P.shear_from_sums(T[:, 0] + T[:, 1], 2 * N, gv, "fixed-point")
+    gm = P.shear_from_sums(T[:, 2] + T[:, 3], 2 * N, -gv, "fixed-point")
     return (gp - gm) / (2 * g) - 1.0
 
 
@@ -248,7 +248,7 @@ def main() -> None:
     res: dict = {"A": {}, "B": {}}
     t0 = time.perf_counter()
     with worker_pool(a.jobs) as pool:
-        for t, r in run_tasks(P._block_task, tasks, a.jobs, None, "A/B", True, pool):
+        for t, r in run_tasks(P.block_task, tasks, a.jobs, None, "A/B", True, pool):
             res[t["which"]][t["block"]] = r
     print(f"{len(tasks)} block fits in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs)")
     cat = {w: [res[w][b] for b in range(nb)] for w in "AB"}
@@ -257,8 +257,8 @@ def main() -> None:
         [r["usable"] for r in cat["B"]]).all(1)
     truth = [r["truth"] for r in cat["A"]]
     psf = np.concatenate([np.full(len(t), r["psf"]) for t, r in zip(truth, cat["A"], strict=True)])
-    per = -(-spec.block_size // P._JACKKNIFE_GALAXIES)
-    jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P._JACKKNIFE_GALAXIES
+    per = -(-spec.block_size // P.JACKKNIFE_GALAXIES)
+    jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P.JACKKNIFE_GALAXIES
                          for t, r in zip(truth, cat["A"], strict=True)])  # fmt: skip
     X = P.shape_controls(np.concatenate([t["e1_int"] for t in truth]),
                          np.concatenate([t["e2_int"] for t in truth]))  # fmt: skip
@@ -320,7 +320,7 @@ def main() -> None:
     gal = {c: np.concatenate([np.asarray(t[c]) for t in truth])
            for c in ("snr", "size_ratio", "bulge_frac", "morph")}  # fmt: skip
     gal["psf"] = psf
-    bins = P._breakdowns(gal, spec.psfs)  # the precision report's bins
+    bins = P.breakdowns(gal, spec.psfs)  # the precision report's bins
     for by in a.by:  # bins of true S/N or size, all PSFs together
         print(f"by {by}:\n| bin | galaxies | m2 - m1, A | m2 - m1, B | B - A, m1 | B - A, m2 |"
               f"\n|{'---|' * 6}")  # fmt: skip

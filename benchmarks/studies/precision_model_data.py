@@ -44,11 +44,11 @@ def render_block_model(spec, psf_index, block, *, stamp_size=32, calibration=Fal
                        noise=True):  # fmt: skip
     """:func:`pylensfit_validation.precision.render_block` with the engine's exponential models."""
     n_stamp = int(stamp_size)
-    psf_img, psf_hlr = PR._psf_image(spec.psfs[psf_index], n_stamp)
+    psf_img, psf_hlr = PR.psf_image(spec.psfs[psf_index], n_stamp)
     ntot = spec.ncal if calibration else spec.ngal
     n = min(spec.block_size, ntot - block * spec.block_size)
     rng = np.random.default_rng([spec.seed, int(calibration), block])
-    t = PR._population(spec, n, psf_hlr, rng)
+    t = PR.population_table(spec, n, psf_hlr, rng)
     if np.any(np.asarray(t["morph"]) != 0):
         raise ValueError("only the exponential population (--morphology-weights 1 0 0 0 0)")
     z = np.asarray(t["e1_int"]) + 1j * np.asarray(t["e2_int"])
@@ -62,7 +62,7 @@ def render_block_model(spec, psf_index, block, *, stamp_size=32, calibration=Fal
         img = render_models(_CANVAS, psf_img, c + np.asarray(t["dx"]), c + np.asarray(t["dy"]),
                             e.real, e.imag, scale, np.ones(n), model="exponential")  # fmt: skip
         out[:, k] = img[:, c - h : c + h, c - h : c + h]
-    PR._flux_and_noise(out, t, spec, block, PR.reference_norm(spec, psf_index, n_stamp),
+    PR.flux_and_noise(out, t, spec, block, PR.reference_norm(spec, psf_index, n_stamp),
                        calibration=calibration, noise=noise)  # fmt: skip
     return out, psf_img, t
 

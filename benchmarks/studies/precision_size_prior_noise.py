@@ -92,8 +92,8 @@ def _m(Q: np.ndarray, ok: np.ndarray, g: float) -> np.ndarray:
     T = Q[ok].sum(0)
     N = np.asarray(2.0 * ok.sum())
     gv = np.array([g, g])
-    gp = P._shear_from_sums(T[0] + T[1], N, gv, "fixed-point")
-    gm = P._shear_from_sums(T[2] + T[3], N, -gv, "fixed-point")
+    gp = P.shear_from_sums(T[0] + T[1], N, gv, "fixed-point")
+    gm = P.shear_from_sums(T[2] + T[3], N, -gv, "fixed-point")
     return (gp - gm) / (2 * g) - 1.0
 
 
@@ -157,7 +157,7 @@ def main() -> None:
     res: dict = {i: {} for i in range(len(keys))}
     t0 = time.perf_counter()
     with worker_pool(a.jobs) as pool:
-        for t, r in run_tasks(P._block_task, tasks, a.jobs, None, "size priors", True, pool):
+        for t, r in run_tasks(P.block_task, tasks, a.jobs, None, "size priors", True, pool):
             res[t["key"]][t["block"]] = r
     print(f"{len(tasks)} block fits in {time.perf_counter() - t0:.0f} s")
     psf = np.concatenate([np.full(len(res[0][b]["truth"]), b % npsf) for b in range(nb)])

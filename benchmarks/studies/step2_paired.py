@@ -107,10 +107,10 @@ def _measure(task) -> str:
 
 def _true_psf_image(psf: int, n: int) -> np.ndarray:
     """The rendering's own PSF (`simulate.field_psf`) with the pixel, centred as a stacked one."""
-    from pylensfit_validation.precision import _draw
+    from pylensfit_validation.precision import draw_image
     from pylensfit_validation.simulate import field_psf
 
-    img = _draw(field_psf(_spec(psf, n, 40.0, (15.0, 150.0), 0.0, False)), n).astype(float)
+    img = draw_image(field_psf(_spec(psf, n, 40.0, (15.0, 150.0), 0.0, False)), n).astype(float)
     return img / img.sum()
 
 
