@@ -17,7 +17,7 @@ The fields
 ----------
 ``--nimages`` independent fields of ``--size`` x ``--size`` pixels (default two 4096^2
 fields, ~10,200 objects each at the default ``--spacing`` of 40 px, 8% of them stars),
-rendered with GalSim (:func:`pylensfit.simulate.simulate_field`, not timed), plus one
+rendered with GalSim (:func:`pylensfit_validation.simulate.simulate_field`, not timed), plus one
 1024^2 star field (``star_fraction=1``) passed as ``stars=``. Two whole fields rather
 than one field cut into quadrants: ``measure`` parallelises over images, so 2 jobs need
 at least 2 images, and whole fields keep the per-image costs (background, detection,
@@ -97,7 +97,7 @@ def load() -> str:
 
 
 def _simulate(path: str, size: int, spacing: float, model: str, seed: int, stars: bool) -> int:
-    from pylensfit.simulate import FieldSpec, simulate_field, write_field
+    from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
     extra = {"star_fraction": 1.0} if stars else {}
     spec = FieldSpec(size=size, spacing=spacing, model=model, **extra)

@@ -1,6 +1,6 @@
 """Throughput and bias of the precision mode, next to GalSim HSM REGAUSS on the same renderings.
 
-Renders ``--ngal`` galaxies of the precision population (``pylensfit.precision``: four
+Renders ``--ngal`` galaxies of the precision population (``pylensfit_validation.precision``: four
 renderings each, +-g with shared noise and 90-degree twins, morphologies from
 exponential to knotty discs, fluxes of reference S/N 10-200) for every PSF, then
 measures every rendering
@@ -90,15 +90,15 @@ def main() -> None:
     from threadpoolctl import threadpool_limits
 
     from pylensfit.likelihood import fit_stamps
-    from pylensfit.precision import (
-        _usable,
+    from pylensfit.prior import estimate_flux_range, estimate_flux_slope, estimate_prior
+    from pylensfit_validation.precision import (
         bias_table,
         default_config,
         reduce_renderings,
         render_block,
         spec_with,
+        usable_fits,
     )
-    from pylensfit.prior import estimate_flux_range, estimate_flux_slope, estimate_prior
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ngal", type=int, default=400, help="galaxies per PSF (x4 renderings)")
@@ -124,7 +124,7 @@ def main() -> None:
     for b in range(-(-spec.ncal // bs)):
         st, psf, _ = render_block(spec, b % npsf, b, stamp_size=ns, calibration=True)
         f = fit_stamps(st[:, 0], psf, spec.noise_sigma, config=cfg)
-        ok = _usable(f)
+        ok = usable_fits(f)
         lnl.append(f.lnL[ok])
         flux.append(f.flux[ok])
         flux_err.append((f.flux / f.snr)[ok])

@@ -42,7 +42,7 @@ def field_with_blanks(work: Path, size: int, seed: int, spacing: float, jitter: 
 
     Returns the image's path, the catalogue's path, whether each row is blank and each
     row's true S/N (NaN for a blank)."""
-    from pylensfit.simulate import FieldSpec, simulate_field, write_field
+    from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
     spec = FieldSpec(size=size, spacing=spacing, jitter=jitter, star_fraction=0.0,
                      psf_e1=0.0, psf_e2=0.0, snr_range=(6.0, 60.0))  # fmt: skip

@@ -40,7 +40,7 @@ def _noise_image(path: Path, size: int, seed: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     import pylensfit as plf
-    from pylensfit.simulate import FieldSpec, simulate_field, write_field
+    from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--images", type=int, default=4, help="pure-noise images")

@@ -1,6 +1,6 @@
 """m and c of the precision population measured through the public stamps API.
 
-``pylensfit validate --precision`` (:func:`pylensfit.precision.precision`) measures its
+``pylensfit validate --precision`` (:func:`pylensfit_validation.precision.precision`) measures its
 population with its own fitting passes: the calibration recipe run over the blocks of
 the calibration sample (:func:`pylensfit.calibration.run_recipe`), then ``fit_stamps``
 and the per-rendering reduction on every block of renderings. A user measures with
@@ -18,9 +18,9 @@ in turn, so each must exceed ``500 (n_psf - 1)``).
 
 The renderings
 --------------
-The spec is ``pylensfit.precision.spec_with(ngal=..., ncal=..., seed=..., psfs=...,
+The spec is ``pylensfit_validation.precision.spec_with(ngal=..., ncal=..., seed=..., psfs=...,
 g=..., noise_twins=...)``, what ``validate --precision`` builds from the same options.
-Every block of it is rendered by :func:`pylensfit.precision.render_block`, the function
+Every block of it is rendered by :func:`pylensfit_validation.precision.render_block`, the function
 the precision mode's workers call, on stamps of ``Config().largest_stamp`` (64) pixels,
 as the precision mode renders them for ``Config()`` (galaxies larger than the 32-pixel
 base stamp are fitted on 64 pixels, the others on the central 32: ``fit_stamps`` chooses
@@ -59,19 +59,19 @@ estimators, both from the table alone:
 - ``fixed-point`` (what ``validate --precision`` prints): the sheared-prior fixed point
   of :func:`pylensfit.estimate_shear`, from the table's ``lnL`` grids and its
   ``meta["prior"]``, linearised about the nominal shear as the precision mode does it
-  (:func:`pylensfit.precision.reduce_likelihoods` on the table's ``lnL``; one Newton
+  (:func:`pylensfit_validation.precision.reduce_likelihoods` on the table's ``lnL``; one Newton
   step, within 1e-6 of the iterated estimate).
 
 Errors and control variates are those of the precision mode, through its public
-:func:`pylensfit.precision.bias_table`: delete-one-group jackknife over groups of 100
+:func:`pylensfit_validation.precision.bias_table`: delete-one-group jackknife over groups of 100
 galaxies (each block of 500 cut into five), m and c corrected with the intrinsic shapes'
-spin-4 parts (:func:`pylensfit.precision.shape_controls`) where a PSF has at least 20
+spin-4 parts (:func:`pylensfit_validation.precision.shape_controls`) where a PSF has at least 20
 groups (column ``cv``). The errors hold the priors fixed, as the precision mode's. The
 script also prints the largest difference between the table's ``e`` and ``sens`` and
 the same quantities recomputed from its ``lnL`` by the precision mode's reduction (it
 should be at float rounding).
 
-``--compare`` then runs :func:`pylensfit.precision.precision` on the same spec in the
+``--compare`` then runs :func:`pylensfit_validation.precision.precision` on the same spec in the
 same process (``config=None``, the same ``--jobs``) and prints its per-PSF rows of the
 same two estimators beside, with the differences API - precision. Both measure the same
 renderings, so the difference is not limited by the errors printed (which are mostly the
@@ -111,8 +111,8 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 import numpy as np
 
 import pylensfit as plf
-from pylensfit import precision as pm
 from pylensfit.config import Config
+from pylensfit_validation import precision as pm
 
 #: the estimators reported (names as in the precision mode's table)
 ESTIMATORS = ("fixed-point", "exact")
@@ -269,7 +269,7 @@ def run_api(spec: pm.PrecisionSpec, jobs: int) -> dict:
 
 
 def run_precision(spec: pm.PrecisionSpec, jobs: int) -> dict:
-    """``pylensfit.precision.precision`` on the spec: its per-PSF rows and timing."""
+    """``pylensfit_validation.precision.precision`` on the spec: its per-PSF rows and timing."""
     res = pm.precision(spec, jobs=jobs, progress=False)
     names = [p["name"] for p in spec.psfs]
     sel = (((res["breakdown"] == "psf") | ((res["breakdown"] == "all")

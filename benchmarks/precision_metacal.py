@@ -1,6 +1,6 @@
 """lensfit's sensitivity against a metacalibrated response, on the same precision renderings.
 
-The precision mode's blocks (``pylensfit.precision``: four renderings per galaxy, +-g,
+The precision mode's blocks (``pylensfit_validation.precision``: four renderings per galaxy, +-g,
 unrotated and rotated by 90 degrees, the same noise at +g and -g) are measured three
 ways, with the same priors (estimated by the precision mode's calibration of the
 default configuration, or the population's with ``--true-priors``):
@@ -41,9 +41,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pylensfit import precision as P
 from pylensfit.runner import run_tasks, worker_pool
-from pylensfit.simulate import POPULATIONS
+from pylensfit_validation import precision as P
+from pylensfit_validation.simulate import POPULATIONS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
@@ -235,8 +235,8 @@ def main() -> None:
     truth = [r["truth"] for r in cat]
     psf = np.concatenate([np.full(len(t), r["psf"]) for t, r in zip(truth, cat, strict=True)])
     morph = np.concatenate([np.asarray(t["morph"]) for t in truth])
-    per = -(-spec.block_size // P._JACKKNIFE_GALAXIES)
-    jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P._JACKKNIFE_GALAXIES
+    per = -(-spec.block_size // P.JACKKNIFE_GALAXIES)
+    jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P.JACKKNIFE_GALAXIES
                          for t, r in zip(truth, cat, strict=True)])  # fmt: skip
     if a.save:
         np.savez(a.save, QA=QA, e=e, s=s, R=R, e0=e0, s0=s0, ok=ok, jk=jk, psf=psf,

@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from pylensfit.precision import precision, spec_with
+from pylensfit_validation.precision import precision, spec_with
 
 
 def main() -> None:

@@ -43,7 +43,7 @@ import galsim
 import numpy as np
 
 import pylensfit as plf
-from pylensfit.simulate import PSF_VARIATIONS, PSFMap
+from pylensfit_validation.simulate import PSF_VARIATIONS, PSFMap
 
 STAMP = 32
 G = 0.02

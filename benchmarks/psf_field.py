@@ -14,9 +14,10 @@ everywhere (``--psf-variation none``). Then:
    adaptive-moment ellipticity at the held-out stars and at the galaxies of one shear
    field is compared with the truth's (the noise-free PSF there): the rms residual per
    component (the stars' own noise does not enter).
-2. **The galaxies** (with ``--measure``), each set through :func:`pylensfit.validation.validate`
-   with the defaults otherwise: the constant set with the constant PSF stacked from its
-   stars; the varying set with the polynomial model (``psf_model = "polynomial"``,
+2. **The galaxies** (with ``--measure``), each set through
+   :func:`pylensfit_validation.validation.validate` with the defaults otherwise: the
+   constant set with the constant PSF stacked from its stars; the varying set with the
+   polynomial model (``psf_model = "polynomial"``,
    ``psf_order = --order``), with the constant stacked PSF (the comparison), with each
    galaxy's true PSF (``validate(true_psf=True)``: the PSF map, no model error) and with
    ``--piff`` with the Piff models (``validate(psf_models=...)``). The catalogues are
@@ -28,7 +29,7 @@ everywhere (``--psf-variation none``). Then:
      the matched galaxies of each image (the catalogue's ``e`` and ``sens``; sky frame),
      fitted against the input shears; the same galaxies and noise in both, so that
      shape noise cancels in ``dm``;
-   * the PSF leakage ``alpha`` (:func:`pylensfit.validation.psf_leakage`) of the
+   * the PSF leakage ``alpha`` (:func:`pylensfit_validation.validation.psf_leakage`) of the
      paired residuals ``(e - s g)_varying - (e - s g)_constant`` against the true PSF
      ellipticity at each galaxy: the same slope as the varying set's own leakage, whose
      expectation the constant set's term does not change (its PSF does not follow the
@@ -41,8 +42,8 @@ everywhere (``--psf-variation none``). Then:
    same pixels, fitted with two PSFs) is the model's own part, free of the galaxies'
    noise to first order.
 
-   It also prints :func:`pylensfit.validation.validate`'s own m, c and unpaired leakage of each
-   run.
+   It also prints :func:`pylensfit_validation.validation.validate`'s own m, c and unpaired
+   leakage of each run.
 
 ::
 
@@ -69,8 +70,8 @@ from scipy.spatial import cKDTree
 
 import pylensfit as plf
 from pylensfit.psfmodel import PolynomialPSF, fit_piff, read_psf_model
-from pylensfit.simulate import pixel_to_sky_shear
-from pylensfit.validation import psf_leakage, read_manifest, simulate_step, validate
+from pylensfit_validation.simulate import pixel_to_sky_shear
+from pylensfit_validation.validation import psf_leakage, read_manifest, simulate_step, validate
 
 BLOCKS = 8  # jackknife blocks per side of the field
 RUNS = ("polynomial", "stacked", "true", "piff")  # the varying set's runs (--runs)
@@ -162,7 +163,7 @@ def _galaxy_truth(man: dict, k: int) -> Table:
 
 
 def _validated(d: Path, label: str, jobs: int, **kw) -> Table:
-    """:func:`pylensfit.validation.validate` of one run, its summary printed."""
+    """:func:`pylensfit_validation.validation.validate` of one run, its summary printed."""
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", plf.CalibrationWarning)

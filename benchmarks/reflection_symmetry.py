@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from pylensfit.likelihood import fit_stamps
-from pylensfit.precision import (
+from pylensfit_validation.precision import (
     default_config,
     population_prior,
     reduce_renderings,

@@ -13,7 +13,7 @@ catalogue's prior), and per shear field:
 - ``truth``: c2 of the twin-summed *true* sheared ellipticities of the same galaxies,
   ``(e(e_s) + e(-e_s)) / 2 - g`` (the rotation leaves ``-2 g e_s^2``, zero on average
   but not in one field), and c2 with it taken out as a control variate
-  (``pylensfit.validation.truth_control_variate``, as ``validate --truth-control``).
+  (``pylensfit_validation.validation.truth_control_variate``, as ``validate --truth-control``).
 
 Then the chi-square of c2 about each PSF's mean, with and without the control variate.
 
@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
-from pylensfit.validation import _truth, _truth_terms, truth_control_variate
+from pylensfit_validation.validation import read_truth, truth_control_variate, truth_terms
 from step1_true_psf import MEMBERS, sums
 
 N_SIDE = 8  # spatial blocks per side
@@ -46,8 +46,8 @@ def field_rows(d: Path, run: str, k: int, fl: list[dict], rng) -> list[tuple]:
         g = np.array([f["g1"], f["g2"]])
         # sum over the group's renderings of e_true - g per truth object (NaN: stars)
         names = [f["file"].replace(".fits", f"{m}.fits") for m in MEMBERS]
-        t_all = _truth_terms({n: {"path": d / n, "g1": g[0], "g2": g[1]} for n in names}, names)
-        t = _truth(d / names[0])
+        t_all = truth_terms({n: {"path": d / n, "g1": g[0], "g2": g[1]} for n in names}, names)
+        t = read_truth(d / names[0])
         gal = ~np.asarray(t["is_star"], bool)
         x = S[f["file"]]
         ok = np.isfinite(x).all(1)

@@ -2,9 +2,10 @@
 
 A check of the shear bias on galaxies that none of pylensfit's own simulation code drew:
 this script renders its population with GalSim directly (it imports nothing of
-``pylensfit.precision``, ``pylensfit.simulate``, ``pylensfit.validation`` or
-``pylensfit.convergence``), measures every rendering with pylensfit's public stamps API
-and with GalSim's HSM REGAUSS, and prints the multiplicative and additive biases ``m``
+``pylensfit_validation.precision``, ``pylensfit_validation.simulate``,
+``pylensfit_validation.validation`` or ``pylensfit_validation.convergence``), measures
+every rendering with pylensfit's public stamps API and with GalSim's HSM REGAUSS, and
+prints the multiplicative and additive biases ``m``
 and ``c`` of both, per PSF and averaged over the PSFs.
 
 The design is that of the metacalibration-style paired simulations (four renderings per

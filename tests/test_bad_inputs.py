@@ -206,7 +206,7 @@ def test_a_whole_stamp_size_and_a_positive_number_of_jobs(tmp_path, capsys):
 def test_a_nan_position_is_kept_and_flagged(tmp_path, capsys):
     """An input catalogue's row without a finite position: the run goes on, the row is
     kept (NaN position) and flagged BAD_POSITION, the others are measured."""
-    from pylensfit.simulate import FieldSpec, field_psf, simulate_field, write_field
+    from pylensfit_validation.simulate import FieldSpec, field_psf, simulate_field, write_field
 
     spec = FieldSpec(size=192, model="exponential", star_fraction=0.0, snr_range=(40, 80))
     img, w, truth = simulate_field(spec, seed=5)

@@ -24,7 +24,7 @@ from pylensfit.flags import FLAGS
 def written(tmp_path_factory):
     """A catalogue that ``measure`` wrote: a small simulated field with a WCS, bulge
     fraction marginalised over two values (so that ``LNLB`` and ``lnL_star`` are there)."""
-    from pylensfit.simulate import FieldSpec, simulate_field, write_field
+    from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
     d = tmp_path_factory.mktemp("columns")
     spec = FieldSpec(size=160, spacing=32.0, jitter=4.0, model="exponential")

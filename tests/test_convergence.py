@@ -5,14 +5,14 @@ import pytest
 from astropy.table import Table
 
 from pylensfit import Config, Prior
-from pylensfit.convergence import (
+from pylensfit.shear import apply_shear
+from pylensfit_validation.convergence import (
     PARAMETERS,
     convergence,
     convergence_table,
     measure_setting,
     render_sample,
 )
-from pylensfit.shear import apply_shear
 
 
 @pytest.fixture(scope="module")
@@ -174,7 +174,7 @@ def test_report_without_matplotlib(tmp_path, monkeypatch, caplog):
     out with a warning, and the Markdown says so; with it, the PNG is back."""
     import sys
 
-    from pylensfit.convergence import write_convergence
+    from pylensfit_validation.convergence import write_convergence
 
     tab = convergence(None, ngal=6, seed=3, des=(0.1,), drs=(), r_maxs=(), offsets=(),
                       progress=False)  # fmt: skip

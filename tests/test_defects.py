@@ -16,7 +16,7 @@ from pylensfit.config import ConfigError
 from pylensfit.detection import grow_mask, saturation_level, saturation_mask
 from pylensfit.flags import flag_value
 from pylensfit.pipeline import measure, read_catalogue
-from pylensfit.simulate import FieldSpec, simulate_field, write_field
+from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
 CFG = Config.paper(model="exponential", r_max=6.0, r_step=0.3)
 PRIOR = Prior()

@@ -19,7 +19,7 @@ from pylensfit.forced import (
     forced_threshold,
     position_snr,
 )
-from pylensfit.simulate import FieldSpec, simulate_field, write_field
+from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
 N = 32
 PSF = galsim.Moffat(beta=3.5, fwhm=3.0)

@@ -1,12 +1,13 @@
-"""The simulations' galaxy and PSF builders (pylensfit.galaxies) against GalSim's measures."""
+"""The simulations' galaxy and PSF builders (pylensfit_validation.galaxies) against
+GalSim's measures."""
 
 import numpy as np
 import pytest
 from scipy.optimize import brentq
 from scipy.special import gammainc, gammaincinv
 
-from pylensfit.galaxies import GalaxyProfile, PSFProfile, inner_shear
 from pylensfit.models import DEVAUC_TRUNCATION
+from pylensfit_validation.galaxies import GalaxyProfile, PSFProfile, inner_shear
 
 galsim = pytest.importorskip("galsim")
 

@@ -1,31 +1,86 @@
-"""The package's layout rules, checked on its source.
+"""The packages' layout rules, checked on their source.
+
+Each rule holds for the method (``pylensfit``) and for the validation harness
+(``pylensfit_validation``):
 
 * No module imports a private name (``_x``) of another module.
 * An import inside a function says why in a comment (an optional dependency, a heavy
   import, an import cycle), on its line or just above it.
 * No function is longer than 150 lines, docstring included.
 * No import cycle among the package's modules, counting imports inside functions.
+
+And between the layers:
+
+* No module of the method imports the harness.
+* The harness and the benchmarks (``benchmarks/``, ``benchmarks/studies/``) use of the
+  method only the names it exports: those of ``pylensfit.__all__`` and of the
+  ``__all__`` of the public modules, :data:`PUBLIC_MODULES`, each documented in
+  ``docs/api.rst``.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib
 from pathlib import Path
 
+import pytest
+
 import pylensfit
+import pylensfit_validation
 
 SRC = Path(pylensfit.__file__).parent
+HARNESS = Path(pylensfit_validation.__file__).parent
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS = (ROOT / "benchmarks", ROOT / "benchmarks" / "studies")
+PACKAGES = {"pylensfit": SRC, "pylensfit_validation": HARNESS}
 MAX_LINES = 150
 FUNCS = (ast.FunctionDef, ast.AsyncFunctionDef)
+
+#: The method's public modules: what they export (``__all__``) may be used by the harness,
+#: the benchmarks and users; each is documented in docs/api.rst.
+PUBLIC_MODULES = (
+    "pylensfit",
+    "pylensfit.calibration",
+    "pylensfit.catalogue",
+    "pylensfit.cli",
+    "pylensfit.config",
+    "pylensfit.detection",
+    "pylensfit.flags",
+    "pylensfit.forced",
+    "pylensfit.grid",
+    "pylensfit.likelihood",
+    "pylensfit.metacal",
+    "pylensfit.models",
+    "pylensfit.pipeline",
+    "pylensfit.prior",
+    "pylensfit.psf",
+    "pylensfit.psfmodel",
+    "pylensfit.runner",
+    "pylensfit.shear",
+    "pylensfit.skyframe",
+    "pylensfit.stamps",
+    "pylensfit.weights",
+)
 
 
 def _module(name: str, text: str):
     return name, text.splitlines(), ast.parse(text)
 
 
-def _package():
-    return [_module(p.relative_to(SRC).with_suffix("").as_posix().replace("/", "."),
-                    p.read_text()) for p in sorted(SRC.rglob("*.py"))]  # fmt: skip
+def _package(src: Path = SRC):
+    return [_module(p.relative_to(src).with_suffix("").as_posix().replace("/", "."),
+                    p.read_text()) for p in sorted(src.rglob("*.py"))]  # fmt: skip
+
+
+def _scripts():
+    """The benchmark scripts, named by their path from the repository's root."""
+    return [_module(p.relative_to(ROOT).as_posix(), p.read_text())
+            for d in BENCHMARKS for p in sorted(d.glob("*.py"))]  # fmt: skip
+
+
+def _exports() -> dict[str, set[str]]:
+    return {m: set(importlib.import_module(m).__all__) for m in PUBLIC_MODULES}
 
 
 def private_imports(modules) -> list[str]:
@@ -81,20 +136,149 @@ def import_cycles(modules) -> list[tuple[str, str]]:
     return [(a, b) for a, ds in deps.items() for b in ds if b != a and reaches(b, a)]
 
 
-def test_no_import_cycles():
-    assert import_cycles(_package()) == []
+def _absolute_imports(tree):
+    """``(node, module)`` for every absolute import (``import m``, ``from m import ...``)."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            yield from ((node, a.name) for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            yield node, node.module
 
 
-def test_no_private_imports_across_modules():
-    assert private_imports(_package()) == []
+def harness_imports(modules, harness: str = "pylensfit_validation") -> list[str]:
+    """Every import of the harness (``harness``) by a module of ``modules``, at any level
+    of the code."""
+    return [f"{name}:{node.lineno}: {lines[node.lineno - 1].strip()}"
+            for name, lines, tree in modules for node, mod in _absolute_imports(tree)
+            if mod.split(".")[0] == harness]  # fmt: skip
 
 
-def test_function_level_imports_say_why():
-    assert silent_local_imports(_package()) == []
+def _dotted(node) -> list[str] | None:
+    """``["a", "b", "c"]`` for the expression ``a.b.c``, None for anything else."""
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    return [node.id, *reversed(parts)] if isinstance(node, ast.Name) else None
 
 
-def test_no_long_functions():
-    assert long_functions(_package()) == []
+def _unexported(module: str, names: list[str], exports: dict[str, set[str]]) -> str | None:
+    """The first of ``names`` (a chain of attributes of ``module``) that the public
+    modules of ``exports`` do not export, as ``module.name``; None if all are."""
+    for name in names:
+        if name.startswith("__") and name.endswith("__"):
+            return None
+        sub = f"{module}.{name}"
+        if sub in exports:  # a public module, as an attribute of its package
+            module = sub
+            continue
+        return None if name in exports.get(module, ()) else sub
+    return None
+
+
+def unexported_uses(modules, exports: dict[str, set[str]], method: str = "pylensfit"):
+    """Every name of the package ``method`` that a module of ``modules`` imports or reads
+    as an attribute but that no public module (``exports``: module -> its ``__all__``)
+    exports, and every import of a module of ``method`` that is not public."""
+    found = []
+    for name, _, tree in modules:
+        alias: dict[str, str] = {}
+        for node, mod in _absolute_imports(tree):
+            if mod.split(".")[0] != method:
+                continue
+            if isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name.split(".")[0] != method:
+                        continue
+                    top = a.name if a.asname else method
+                    alias[a.asname or method] = top
+                    bad = a.name not in exports and _unexported(method, a.name.split(".")[1:],
+                                                                exports)  # fmt: skip
+                    if bad or a.name not in exports and a.asname:
+                        found.append(f"{name}:{node.lineno}: import {a.name}")
+                continue
+            for a in node.names:
+                if f"{mod}.{a.name}" in exports:
+                    alias[a.asname or a.name] = f"{mod}.{a.name}"
+                elif mod not in exports or a.name not in exports[mod]:
+                    found.append(f"{name}:{node.lineno}: from {mod} import {a.name}")
+        for node in ast.walk(tree):
+            chain = _dotted(node) if isinstance(node, ast.Attribute) else None
+            if chain and chain[0] in alias and not isinstance(node.ctx, ast.Del):
+                bad = _unexported(alias[chain[0]], chain[1:], exports)
+                if bad:
+                    found.append(f"{name}:{node.lineno}: {bad}")
+    return sorted(set(found))
+
+
+def harness_private_uses(modules, harness: str = "pylensfit_validation") -> list[str]:
+    """Every private name (``_x``) of the harness's modules that a module of ``modules``
+    imports or reads as an attribute of a harness module."""
+    found = []
+    for name, _, tree in modules:
+        alias = {}
+        for node, mod in _absolute_imports(tree):
+            if mod.split(".")[0] != harness:
+                continue
+            for a in node.names:
+                if isinstance(node, ast.Import):
+                    alias[a.asname or a.name.split(".")[0]] = a.name
+                elif a.name.startswith("_") and not a.name.startswith("__"):
+                    found.append(f"{name}:{node.lineno}: from {mod} import {a.name}")
+                else:
+                    alias[a.asname or a.name] = f"{mod}.{a.name}"
+        for node in ast.walk(tree):
+            chain = _dotted(node) if isinstance(node, ast.Attribute) else None
+            if chain and chain[0] in alias:
+                private = [c for c in chain[1:] if c.startswith("_") and not c.startswith("__")]
+                if private:
+                    found.append(f"{name}:{node.lineno}: {'.'.join(chain)}")
+    return sorted(set(found))
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_no_import_cycles(package):
+    assert import_cycles(_package(PACKAGES[package])) == []
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_no_private_imports_across_modules(package):
+    assert private_imports(_package(PACKAGES[package])) == []
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_function_level_imports_say_why(package):
+    assert silent_local_imports(_package(PACKAGES[package])) == []
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_no_long_functions(package):
+    assert long_functions(_package(PACKAGES[package])) == []
+
+
+def test_the_method_imports_nothing_of_the_harness():
+    assert harness_imports(_package(SRC)) == []
+
+
+def test_the_harness_uses_only_what_the_method_exports():
+    assert unexported_uses(_package(HARNESS), _exports()) == []
+
+
+def test_the_benchmarks_use_only_what_the_method_exports():
+    assert unexported_uses(_scripts(), _exports()) == []
+
+
+def test_the_benchmarks_use_no_private_name_of_the_harness():
+    assert harness_private_uses(_scripts()) == []
+
+
+def test_the_public_modules_are_documented():
+    api = (ROOT / "docs" / "api.rst").read_text()
+    assert [m for m in PUBLIC_MODULES[1:] if f".. automodule:: {m}\n" not in api] == []
+    for m in PUBLIC_MODULES:
+        mod = importlib.import_module(m)
+        assert mod.__doc__, m
+        assert [n for n in mod.__all__ if not hasattr(mod, n)] == [], m
 
 
 def test_the_checks_find_what_they_are_for():
@@ -107,3 +291,38 @@ def test_the_checks_find_what_they_are_for():
     assert long_functions(bad) == [f"m.g: {MAX_LINES + 1} lines"]
     loop = [_module("a", "from .b import x\n"), _module("b", "def f():\n    from .a import y\n")]
     assert sorted(import_cycles(loop)) == [("a", "b"), ("b", "a")]
+
+
+def test_the_layer_checks_find_what_they_are_for():
+    method = [_module("m", "import os\ndef f():\n    from pylensfit_validation.cli import x\n"
+                           "    import pylensfit_validation as v\n")]  # fmt: skip
+    assert harness_imports(method) == [
+        "m:3: from pylensfit_validation.cli import x", "m:4: import pylensfit_validation as v"]
+    exports = {"pylensfit": {"Config", "measure"}, "pylensfit.shear": {"shapes"}}
+    harness = [_module("h", "import pylensfit as plf\nimport pylensfit.shear\n"
+                            "import pylensfit.grid\nimport pylensfit.prior as P\n"
+                            "from pylensfit import Config, shear, pipeline\n"
+                            "from pylensfit.shear import shapes, _all_sums\n"
+                            "from pylensfit.likelihood import fit_stamps\n"
+                            "plf.measure, plf.shear.shapes, plf.__version__, plf.pipeline\n"
+                            "shear.kernel_columns, pylensfit.shear.sums_with, P.x\n")]  # fmt: skip
+    assert unexported_uses(harness, exports) == [
+        "h:3: import pylensfit.grid",
+        "h:4: import pylensfit.prior",
+        "h:5: from pylensfit import pipeline",
+        "h:6: from pylensfit.shear import _all_sums",
+        "h:7: from pylensfit.likelihood import fit_stamps",
+        "h:8: pylensfit.pipeline",
+        "h:9: pylensfit.prior.x",
+        "h:9: pylensfit.shear.kernel_columns",
+        "h:9: pylensfit.shear.sums_with",
+    ]
+    script = [_module("b", "import pylensfit_validation.precision as P\n"
+                           "from pylensfit_validation import validation as V\n"
+                           "from pylensfit_validation.stats import _hidden, shown\n"
+                           "P._draw(V.read_truth, V._truth)\n")]  # fmt: skip
+    assert harness_private_uses(script) == [
+        "b:3: from pylensfit_validation.stats import _hidden",
+        "b:4: P._draw",
+        "b:4: V._truth",
+    ]

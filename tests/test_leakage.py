@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from pylensfit.validation import psf_leakage
+from pylensfit_validation.validation import psf_leakage
 
 ALPHA = (0.12, -0.06)
 C = (1e-3, -2e-3)
@@ -126,7 +126,7 @@ def test_validate_in_the_sky_frame_with_a_varying_psf(tmp_path):
     pytest.importorskip("galsim")
     from pylensfit import CalibrationWarning
     from pylensfit.config import Config
-    from pylensfit.validation import STEP1_PSFS, simulate_step, validate
+    from pylensfit_validation.validation import STEP1_PSFS, simulate_step, validate
 
     d = simulate_step("step1", tmp_path / "s", ngal=600, seed=11, psfs=STEP1_PSFS[1:2],
                       n_shear=5, twins=True, psf_variation="survey", wcs_rotation_deg=35.0,

@@ -13,7 +13,7 @@ from pylensfit.cli import main
 from pylensfit.flags import flag_value
 from pylensfit.pipeline import InputError, measure, read_catalogue
 from pylensfit.prior import RadialPrior, SplinePrior
-from pylensfit.simulate import FieldSpec, simulate_field, write_field
+from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
 CFG = Config.paper(model="exponential", r_max=6.0, r_step=0.3)
 PRIOR = Prior()
@@ -347,7 +347,7 @@ def test_edge_objects_are_flagged(reference):
 
 def _true_psf(n=48, **kw):
     """The simulated fields' PSF (``FieldSpec``'s Moffat) as the pipeline uses one."""
-    from pylensfit.simulate import field_psf
+    from pylensfit_validation.simulate import field_psf
 
     img = field_psf(FieldSpec(**kw)).drawImage(nx=n, ny=n, scale=1.0, use_true_center=False).array
     return img.astype(np.float64)

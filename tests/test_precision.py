@@ -8,22 +8,22 @@ import pytest
 from pylensfit import Config, ellipticity_grid, shear_fixed_point
 from pylensfit.likelihood import fit_stamps
 from pylensfit.models import model_bank
-from pylensfit.precision import (
+from pylensfit.prior import Prior, estimate_size_prior
+from pylensfit_validation.precision import (
     PrecisionSpec,
-    _population,
-    _shear_from_sums,
     bias_table,
     default_config,
     population_prior,
+    population_table,
     precision,
     reduce_likelihoods,
     reduce_renderings,
     reference_norm,
     render_block,
     shape_controls,
+    shear_from_sums,
     spec_with,
 )
-from pylensfit.prior import Prior, estimate_size_prior
 
 galsim = pytest.importorskip("galsim")
 
@@ -101,9 +101,9 @@ def test_rotated_twin_of_a_round_psf_is_the_rotated_image():
     """
     spec = PrecisionSpec(ngal=8, block_size=8, seed=2, morphology_weights=(1, 0, 0, 0, 0))
     clean, _, t = render_block(spec, 0, 0, stamp_size=33, noise=False)
-    import pylensfit.precision as pp
+    import pylensfit_validation.precision as pp
 
-    psf = pp._galsim_psf(spec.psfs[0])
+    psf = pp.galsim_psf(spec.psfs[0])
     for a in range(len(t)):
         gal = galsim.Exponential(half_light_radius=float(t["r"][a])).shear(
             g1=float(t["e1_int"][a]), g2=float(t["e2_int"][a])
@@ -112,16 +112,17 @@ def test_rotated_twin_of_a_round_psf_is_the_rotated_image():
         off = (float(t["dx"][a]), float(t["dy"][a]))
         rot = galsim.Convolve(gal.rotate(90 * galsim.degrees).shear(g1=g, g2=g), psf)
         minus = galsim.Convolve(gal.shear(g1=-g, g2=-g), psf)
-        np.testing.assert_allclose(clean[a, 1], pp._draw(rot, 33, off) * t["flux"][a], atol=1e-4)
+        np.testing.assert_allclose(clean[a, 1], pp.draw_image(rot, 33, off) * t["flux"][a],
+                                   atol=1e-4)
         # at zero offset the rotation identity is exact on the pixel grid
-        r0, m0 = pp._draw(rot, 33), pp._draw(minus, 33)
+        r0, m0 = pp.draw_image(rot, 33), pp.draw_image(minus, 33)
         np.testing.assert_allclose(r0, np.rot90(m0), atol=1e-6 * r0.max())
         # On the mode's even stamp, with the offset turned with the galaxy, the +g
         # rendering turned by +90 degrees about element [N//2, N//2] is the turned
         # galaxy's -g rendering (rows and columns 1..N-1; row and column 0 have no
         # partner): the renderings' half of the argument that a round PSF's c is 0.
-        plus = pp._draw(galsim.Convolve(gal.shear(g1=g, g2=g), psf), 32, off)
-        turned = pp._draw(galsim.Convolve(gal.rotate(90 * galsim.degrees).shear(g1=-g, g2=-g),
+        plus = pp.draw_image(galsim.Convolve(gal.shear(g1=g, g2=g), psf), 32, off)
+        turned = pp.draw_image(galsim.Convolve(gal.rotate(90 * galsim.degrees).shear(g1=-g, g2=-g),
                                           psf), 32, (-off[1], off[0]))  # fmt: skip
         np.testing.assert_allclose(np.rot90(plus[1:, 1:], k=-1), turned[1:, 1:],
                                    atol=1e-6 * plus.max())  # fmt: skip
@@ -157,7 +158,7 @@ def test_gaussian_offsets_are_isotropic_with_the_square_variance():
     tabs = {}
     for shape in ("square", "gaussian"):
         spec = PrecisionSpec(offset=0.5, offset_shape=shape, seed=4)
-        t = _population(spec, n, 2.0, np.random.default_rng(7), stratified=False)
+        t = population_table(spec, n, 2.0, np.random.default_rng(7), stratified=False)
         x, y = np.asarray(t["dx"]), np.asarray(t["dy"])
         np.testing.assert_allclose([x.var(), y.var()], 0.25 / 3, rtol=0.03)
         r4 = (x * x + y * y) ** 2
@@ -226,7 +227,7 @@ def test_streamed_fixed_point_equals_the_iterated_one():
     ref = shear_fixed_point(lnL, EGRID, PRIOR, refine=4)
     for gn in ([0.03, -0.02], [0.0, 0.0], [0.05, 0.0]):
         Q = reduce_likelihoods(lnL, EGRID, PRIOR, gn, refine=4)
-        gh = _shear_from_sums(Q.sum(axis=0), np.float64(n), np.array(gn), "fixed-point")
+        gh = shear_from_sums(Q.sum(axis=0), np.float64(n), np.array(gn), "fixed-point")
         tol = 2e-5 if gn == [0.03, -0.02] else 1e-3  # second order in (g_hat - g_n)
         assert np.max(np.abs(gh - [ref.g1, ref.g2])) < tol, (gn, gh, ref)
     # the key2 columns are those of shapes()
@@ -337,7 +338,7 @@ def test_fixed_point_is_unbiased_for_narrow_gaussian_likelihoods():
     estimator's or the grid's).
     """
     from pylensfit.shear import apply_shear
-    from pylensfit.simulate import draw_shapes
+    from pylensfit_validation.simulate import draw_shapes
 
     rng = np.random.default_rng(3)
     n, g = 10000, 0.02
@@ -555,7 +556,7 @@ def test_two_bulge_sizes_in_the_precision_mode(tmp_path):
     assert len(bp["weights"]) == 5 and abs(sum(bp["weights"]) - 1) < 1e-9
     assert bp["weights"][0] > 0.8, bp
     assert res.meta["config"]["bulge_size_ratio2"] == 1.2
-    from pylensfit.precision import write_report
+    from pylensfit_validation.precision import write_report
 
     write_report(res, tmp_path / "report.md")
     text = (tmp_path / "report.md").read_text()
@@ -581,7 +582,7 @@ def test_sersic_ladder_in_the_precision_mode(tmp_path):
     assert len(bp["weights"]) == 9 and abs(sum(bp["weights"]) - 1) < 1e-9
     assert bp["weights"][0] == max(bp["weights"]) and bp["weights"][0] > 0.5, bp
     assert res.meta["config"]["sersic_ladder"] == [0.5, 2.0, 4.0]
-    from pylensfit.precision import write_report
+    from pylensfit_validation.precision import write_report
 
     write_report(res, tmp_path / "report.md")
     assert "Sersic 2+4: " in (tmp_path / "report.md").read_text()
@@ -593,7 +594,7 @@ def test_flux_prior_bounds_are_estimated_from_the_calibration_fluxes(tmp_path):
     10 %) of the population's limits for exponentials fitted as such, the faint one
     measured from galaxies at S/N 5-20, and the report says so; with
     ``flux_bounds=False`` the prior is unbounded."""
-    from pylensfit.precision import reference_norm, write_report
+    from pylensfit_validation.precision import reference_norm, write_report
 
     spec = spec_with(ngal=20, block_size=20, ncal=1000, seed=4, psfs=["round"],
                      snr_range=(10.0, 200.0), size_ratio_range=(0.5, 1.5),
@@ -768,7 +769,7 @@ def test_given_size_and_bulge_priors_replace_the_estimates(monkeypatch):
     """``precision(size_prior=, bulge_weights=)``: the population's own size prior
     covers exactly the sizes that ``render_block`` draws, and given priors are used
     as they are (no calibration pass), recorded as given, and change the result."""
-    from pylensfit.precision import population_size_prior
+    from pylensfit_validation.precision import population_size_prior
 
     spec = spec_with(ngal=40, block_size=20, ncal=400, seed=3, psfs=["round"],
                      snr_range=(20.0, 40.0), morphology_weights=(1, 0, 0, 0, 0))  # fmt: skip
@@ -816,7 +817,7 @@ def test_given_size_and_bulge_priors_replace_the_estimates(monkeypatch):
 def test_cli_precision_e_refine_reaches_the_configuration(monkeypatch):
     """``validate --precision --e-refine 2`` fits with the precision mode's own configuration
     refined (and a given one refined alike); ``--noise-twins`` reaches the spec."""
-    import pylensfit.precision as prec
+    import pylensfit_validation.precision as prec
     from pylensfit.cli import main
 
     seen = {}
@@ -840,13 +841,13 @@ def test_cli_precision_e_refine_reaches_the_configuration(monkeypatch):
     assert seen["spec"].noise_twins and seen["spec"].ngal == 16
 
 
-def test_breakdowns_take_a_table_or_a_dict_and_bin_sersic_indices():
-    """``_breakdowns`` (the report's bins, also used by ``benchmarks/studies/precision_ab.py``
+def testbreakdowns_take_a_table_or_a_dict_and_bin_sersic_indices():
+    """``breakdowns`` (the report's bins, also used by ``benchmarks/studies/precision_ab.py``
     on a dict of columns): the Sersic-index bins hold the Sersic galaxies and only them,
     each once; without Sersic galaxies there is no such breakdown."""
     from astropy.table import Table
 
-    from pylensfit.precision import PRECISION_PSFS, SERSIC_EDGES, _breakdowns
+    from pylensfit_validation.precision import PRECISION_PSFS, SERSIC_EDGES, breakdowns
 
     n = 7
     cols = {"snr": np.full(n, 20.0), "size_ratio": np.full(n, 1.2),
@@ -855,13 +856,13 @@ def test_breakdowns_take_a_table_or_a_dict_and_bin_sersic_indices():
             "sersic_n": np.array([np.nan, np.nan, 0.5, 1.2, 4.0, np.nan, 2.5]),
             "psf": np.zeros(n, int)}  # fmt: skip
     for gal in (cols, Table(cols)):
-        b = _breakdowns(gal, PRECISION_PSFS[:1])
+        b = breakdowns(gal, PRECISION_PSFS[:1])
         counts = np.sum([v for v in b["sersic_n"].values()], axis=0)
         np.testing.assert_array_equal(counts, np.isfinite(cols["sersic_n"]).astype(int))
         assert len(b["sersic_n"]) == len(SERSIC_EDGES) - 1
         assert b["sersic_n"]["2.5-4"].sum() == 2  # 2.5 and the top edge, 4
     none = dict(cols, sersic_n=np.full(n, np.nan))
-    assert "sersic_n" not in _breakdowns(none, PRECISION_PSFS[:1])
+    assert "sersic_n" not in breakdowns(none, PRECISION_PSFS[:1])
 
 
 def test_realistic_population_misaligns_the_bulges_and_keeps_the_rest():

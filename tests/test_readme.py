@@ -36,7 +36,7 @@ def _stamps(n: int, seed: int = 3):
 
 
 def _fields(d: Path) -> None:
-    from pylensfit.simulate import FieldSpec, simulate_field, write_field
+    from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
     spec = FieldSpec(size=320, spacing=32.0, jitter=4.0, model="mixed", g1=0.03)
     img, w, truth = simulate_field(spec, seed=11, noise_seed=12)

@@ -8,7 +8,7 @@ from astropy.io import fits
 import pylensfit.pipeline as pl
 from pylensfit import Config, Prior
 from pylensfit.pipeline import measure
-from pylensfit.simulate import FieldSpec, simulate_field, write_field
+from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
 CFG = Config.paper(model="exponential", r_max=6.0, r_step=0.3)
 PRIOR = Prior()

@@ -10,7 +10,8 @@ from astropy.io import fits
 from astropy.table import Table
 from astropy.wcs import WCS
 
-from pylensfit.simulate import (
+from pylensfit_validation.cli import simulate_main as main
+from pylensfit_validation.simulate import (
     FieldSpec,
     _wcs,
     add_object,
@@ -26,7 +27,12 @@ from pylensfit.simulate import (
     sky_to_pixel_shear,
     write_field,
 )
-from pylensfit.validation import STEP2_KINDS, _step2_galaxy, main, read_manifest, render_step2_field
+from pylensfit_validation.step import _step2_galaxy
+from pylensfit_validation.validation import (
+    STEP2_KINDS,
+    read_manifest,
+    render_step2_field,
+)
 
 galsim = pytest.importorskip("galsim")
 

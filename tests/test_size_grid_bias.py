@@ -16,7 +16,7 @@ import pytest
 
 from pylensfit import Config
 from pylensfit.likelihood import fit_stamps
-from pylensfit.precision import (
+from pylensfit_validation.precision import (
     bias_table,
     population_prior,
     population_size_prior,

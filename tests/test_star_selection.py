@@ -20,7 +20,7 @@ from pylensfit import Config, Prior, measure
 from pylensfit.detection import detect, select_stars
 from pylensfit.flags import flag_value
 from pylensfit.pipeline import PSF_SUSPECT_CHI2, PSF_SUSPECT_PVALUE
-from pylensfit.simulate import FieldSpec, simulate_field, write_field
+from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
 SPEC = FieldSpec(size=640, spacing=36, jitter=6, psf_fwhm=4.0, psf_beta=3.5, psf_e1=0.0,
                  psf_e2=0.0, psf_variation="survey", star_fraction=0.2,

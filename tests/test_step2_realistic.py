@@ -10,16 +10,16 @@ from astropy.io import fits
 from astropy.table import Table
 
 from pylensfit import cli
-from pylensfit.galaxies import REALISTIC, draw_bulge_shapes
-from pylensfit.simulate import (
+from pylensfit_validation.cli import simulate_main as main
+from pylensfit_validation.galaxies import REALISTIC, draw_bulge_shapes
+from pylensfit_validation.simulate import (
     FieldSpec,
     pixel_to_sky_shear,
     sky_to_pixel_shear,
     to_pixel_frame,
 )
-from pylensfit.validation import (
-    _step2_galaxy,
-    main,
+from pylensfit_validation.step import _step2_galaxy
+from pylensfit_validation.validation import (
     read_manifest,
     render_step2_field,
     simulate_step,

@@ -14,9 +14,9 @@ from astropy.table import Table
 from astropy.wcs import WCS
 from astropy.wcs.utils import proj_plane_pixel_scales
 
-from pylensfit.validation import (
+from pylensfit_validation.cli import simulate_main as main
+from pylensfit_validation.validation import (
     STEP1_SHEARS,
-    main,
     read_manifest,
     simulate_step,
 )
@@ -142,7 +142,7 @@ def test_noise_twins(tmp_path):
     """``noise_twins=True``: every shear field has a twin with the same objects and the
     same noise field negated; nothing else changes, and the seeds of the other fields are
     those of the set without them, rendered in parallel or not."""
-    from pylensfit.validation import STEP2_PSFS
+    from pylensfit_validation.validation import STEP2_PSFS
 
     kw = dict(ngal=240, seed=6, n_shear=1, psfs=STEP2_PSFS[:1], field_size=200)
     d = simulate_step("step2", tmp_path / "n", noise_twins=True, jobs=2, **kw)
@@ -247,7 +247,7 @@ def test_pylensfit_simulate_command(tmp_path):
 
 
 def test_fit_m_c_and_quality_factor():
-    from pylensfit.validation import fit_m_c, quality_factor
+    from pylensfit_validation.validation import fit_m_c, quality_factor
 
     rng = np.random.default_rng(3)
     gt = np.repeat([0.0, 0.005, 0.01, 0.05, 0.1], 40)
@@ -276,7 +276,7 @@ def test_fit_m_c_and_quality_factor():
 
 def test_validate_end_to_end(tmp_path):
     from pylensfit import CalibrationWarning
-    from pylensfit.validation import STEP1_PSFS, simulate_step, validate
+    from pylensfit_validation.validation import STEP1_PSFS, simulate_step, validate
 
     # three of the five PSFs (round, elliptical along e1 and along e2), with the fields of
     # a 1500-galaxy set
@@ -342,7 +342,7 @@ def test_validate_end_to_end(tmp_path):
 # Twins, bins, kept catalogues, report (issue: per-bin m/c, twins, quick tier)
 # ----------------------------------------------------------------------------------------
 def test_twin_shear_cancels_shape_noise():
-    from pylensfit.validation import twin_shear
+    from pylensfit_validation.validation import twin_shear
 
     rng = np.random.default_rng(11)
     n, g = 500, np.array([0.031, -0.017])
@@ -385,7 +385,7 @@ def test_group_shear_cancels_shape_and_noise():
     measured galaxies by truth index keeps only galaxies measured in every member."""
     from astropy.table import Table
 
-    from pylensfit.validation import _group_members, _groups, group_shear
+    from pylensfit_validation.validation import group_members, group_shear, shear_groups
 
     rng = np.random.default_rng(12)
     n, g = 400, np.array([-0.022, 0.041])
@@ -406,7 +406,7 @@ def test_group_shear_cancels_shape_and_noise():
     assert est.g1_err > 1e-4
     # the pair estimate is the group estimate of two members
     p = twin_shear_pair = group_shear(e[:, [0, 2]], s[:, [0, 2]])
-    from pylensfit.validation import twin_shear
+    from pylensfit_validation.validation import twin_shear
 
     q = twin_shear(e[:, 0], e[:, 2], s[:, 0], s[:, 2])
     assert (p.g1, p.g2, p.g1_err, p.g2_err) == (q.g1, q.g2, q.g1_err, q.g2_err)
@@ -427,12 +427,12 @@ def test_group_shear_cancels_shape_and_noise():
             if not (name == "psf0_g0_rot_neg" and t == 3)]
     rows = [rows[i] for i in rng.permutation(len(rows))]
     gal = Table(rows=rows, names=("image", "truth_index"))
-    gid, base = _groups(gal, fields)
+    gid, base = shear_groups(gal, fields)
     img, tix = np.asarray(gal["image"]), np.asarray(gal["truth_index"])
     assert np.all(gid[img == "psf0_prior"] == -1)
     assert np.all(gid[(tix == 3) & np.char.startswith(img.astype(str), "psf0")] == -1)
     assert np.sum(gid >= 0) == 4 * 4 + 4 * 5
-    mem = _group_members(gid)
+    mem = group_members(gid)
     assert mem.shape == (9, 4)
     for r in mem:  # one galaxy, four renderings of one key, one base
         assert len(set(tix[r])) == 1 and len(set(img[r])) == 4 and len(set(base[r])) == 1
@@ -443,7 +443,7 @@ def test_group_error_is_the_ratio_estimators():
     """The group error is the scatter of ``e - g s``: galaxies whose summed ellipticity
     is exactly their sensitivity times the shear carry no error however much their
     sensitivities differ (``std(e)`` would give ``g std(s) sqrt(N) / sum s``)."""
-    from pylensfit.validation import group_shear
+    from pylensfit_validation.validation import group_shear
 
     rng = np.random.default_rng(5)
     n, g = 300, np.array([0.1, -0.05])
@@ -464,7 +464,7 @@ def _controlled_trials(rng, n_trials, select):
     """Plain and truth-controlled key2 estimates of single images of a population with
     shape noise and measurement noise."""
     from pylensfit.shear import apply_shear
-    from pylensfit.validation import truth_control_variate
+    from pylensfit_validation.validation import truth_control_variate
 
     n_pop, g = 3000, np.array([0.04, -0.02])
     out = []
@@ -494,7 +494,7 @@ def test_truth_control_variate_takes_out_the_shape_noise():
     """The control variate keeps the estimate's expectation and takes the shape noise
     out of it, with errors that match the scatter over independent images; a twin
     group at g = 0 (``t`` zero) is left as it is."""
-    from pylensfit.validation import truth_control_variate
+    from pylensfit_validation.validation import truth_control_variate
 
     rng = np.random.default_rng(21)
     a, g = _controlled_trials(rng, 150, lambda e, rng: rng.random(len(e)) < 0.7)
@@ -539,12 +539,12 @@ def test_truth_control_variate_keeps_what_a_selection_does():
 
 
 def test_bins_partition():
-    from pylensfit.validation import _bin_edges, bin_index
+    from pylensfit_validation.validation import bin_index, quantile_edges
 
     rng = np.random.default_rng(2)
     v = rng.normal(size=1001)
     extra = rng.normal(size=300) * 2  # the prior fields' values widen the outer edges
-    edges = _bin_edges(v, 4, extra)
+    edges = quantile_edges(v, 4, extra)
     assert edges.size == 5 and np.all(np.diff(edges) > 0)
     assert edges[0] <= min(v.min(), extra.min()) and edges[-1] >= max(v.max(), extra.max())
     for x in (v, extra):
@@ -559,20 +559,21 @@ def test_bins_partition():
         0, 0, 1, 1, -1, -1, -1,
     ]  # fmt: skip
     with pytest.raises(ValueError):
-        _bin_edges(v, [0.0, 0.0, 1.0], extra)
+        quantile_edges(v, [0.0, 0.0, 1.0], extra)
 
 
 def test_diagnosis_states():
     from astropy.table import Table
 
-    from pylensfit.validation import _diagnose, _summary
+    from pylensfit_validation.validate import _diagnose
+    from pylensfit_validation.validation import mc_summary
 
     def res(m, m_err, c, c_err, q):
         rows = [(str(k), m, m_err, c[k], c_err, m, m_err, -c[k], c_err, q, 100) for k in range(3)]
         rows.append(("all", m, m_err, 0.0, c_err, m, m_err, 0.0, c_err, q, 300))
         t = Table(rows=rows, names=("psf", "m1", "m1_err", "c1", "c1_err", "m2", "m2_err",
                                     "c2", "c2_err", "Q", "n_gal"))  # fmt: skip
-        t.meta.update(_summary(t[:-1]))
+        t.meta.update(mc_summary(t[:-1]))
         return t
 
     d = _diagnose(res(0.002, 0.001, [1e-5, -1e-5, 0.0], 1e-5, 500))
@@ -594,7 +595,7 @@ def test_c_scatter_coverage():
     """The spread of c over PSFs beyond its errors: the upper limit covers the true spread
     at its confidence, the estimate converges on many PSFs, and without a spread the
     chi-square's p is uniform."""
-    from pylensfit.validation import c_scatter
+    from pylensfit_validation.validation import c_scatter
 
     rng = np.random.default_rng(5)
     err = np.array([1.5e-4, 2e-4, 2e-4, 2.5e-4, 3e-4])  # five PSFs, unequal errors
@@ -635,7 +636,7 @@ def _exponential():
 
 
 def test_validate_with_the_true_psf(tmp_path):
-    from pylensfit.validation import STEP1_PSFS, true_psf_image, validate
+    from pylensfit_validation.validation import STEP1_PSFS, true_psf_image, validate
 
     d = simulate_step("step1", tmp_path / "s1", ngal=300, seed=6, psfs=STEP1_PSFS[1:3],
                       n_shear=2)  # fmt: skip
@@ -686,7 +687,8 @@ def test_validate_with_the_true_psf(tmp_path):
 
 
 def test_validate_with_the_true_psf_over_the_field(tmp_path):
-    from pylensfit.validation import STEP1_PSFS, _true_psf, validate
+    from pylensfit_validation.validate import _true_psf
+    from pylensfit_validation.validation import STEP1_PSFS, validate
 
     d = simulate_step("step1", tmp_path / "v", ngal=300, seed=8, psfs=STEP1_PSFS[1:2],
                       n_shear=1, psf_variation="survey")  # fmt: skip
@@ -712,7 +714,7 @@ def step2_validated(step2):
     import warnings
 
     from pylensfit import CalibrationWarning
-    from pylensfit.validation import validate
+    from pylensfit_validation.validation import validate
 
     # on a STEP2 set validate adds a bin per galaxy kind to these; its zero-shear fields
     # hold ~15 galaxies per PSF, too few for the recipe's priors (their defaults are used,
@@ -773,7 +775,7 @@ def test_validate_step2_twins_and_bins(step2, step2_validated):
 def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
     from pylensfit import pipeline
     from pylensfit.config import Config
-    from pylensfit.validation import validate
+    from pylensfit_validation.validation import validate
 
     def boom(*a, **k):
         raise AssertionError("measure called")
@@ -791,9 +793,9 @@ def test_validate_reuses_kept_catalogues(step2, step2_validated, monkeypatch):
     with pytest.raises(AssertionError, match="measure called"):
         validate(step2["dir"], config=_exponential(), progress=False, bins={}, remeasure=True)
     # so does a catalogue kept by a version of the code that measured differently
-    from pylensfit import validation
+    from pylensfit_validation import estimates
 
-    monkeypatch.setattr(validation, "_MEASURE_VERSION", validation._MEASURE_VERSION + 1)
+    monkeypatch.setattr(estimates, "_MEASURE_VERSION", estimates._MEASURE_VERSION + 1)
     with pytest.raises(AssertionError, match="measure called"):
         validate(step2["dir"], config=_exponential(), progress=False, bins={})
     monkeypatch.undo()
@@ -817,7 +819,7 @@ def test_validate_takes_the_size_prior_from_the_zero_shear_field(tmp_path, monke
     from pylensfit import pipeline
     from pylensfit.config import Config
     from pylensfit.prior import SizePrior
-    from pylensfit.validation import STEP2_PSFS, simulate_step, validate
+    from pylensfit_validation.validation import STEP2_PSFS, simulate_step, validate
 
     # two PSFs (the round one and the diagonal, highly elliptical one) with the fields of
     # a 1500-galaxy five-PSF set, about 150 galaxies each; one model, one bulge fraction:
@@ -861,7 +863,7 @@ def test_validate_groups_noise_twins(tmp_path):
     rotated twin, and both with the noise negated), so that the shape noise and the
     noise's first order cancel: the group errors are a small fraction of the single
     images', and the report says how the renderings were grouped."""
-    from pylensfit.validation import STEP2_PSFS, validate
+    from pylensfit_validation.validation import STEP2_PSFS, validate
 
     d = simulate_step("step2", tmp_path / "s2n", ngal=800, seed=9, n_shear=1,
                       psfs=STEP2_PSFS[:1], noise_twins=True, jobs=2)  # fmt: skip
@@ -894,8 +896,8 @@ def test_step2_flux_does_not_follow_the_shear():
     shears gives the same fluxes (the image differs), and the twin's too. When the flux
     came from the S/N of the lensed galaxy, galaxies sheared longer got brighter (by up
     to 0.6 % at g = 0.06: with the uniform amplitude prior, too little to move m)."""
-    from pylensfit.simulate import FieldSpec
-    from pylensfit.validation import render_step2_field
+    from pylensfit_validation.simulate import FieldSpec
+    from pylensfit_validation.validation import render_step2_field
 
     base = FieldSpec(size=160, spacing=40.0, star_fraction=0.0)
     runs = [render_step2_field(replace(base, g1=g, g2=-g, rotate=rot), seed=7)
@@ -910,7 +912,7 @@ def test_step2_flux_does_not_follow_the_shear():
 def test_truth_tables_are_read_once_per_file_version(tmp_path):
     """validate reads each field's TRUTH for the matching and the truth control: once,
     unless the file changes."""
-    from pylensfit import validation as V
+    from pylensfit_validation import validation as V
 
     path = tmp_path / "f.fits"
 
@@ -921,10 +923,10 @@ def test_truth_tables_are_read_once_per_file_version(tmp_path):
             h[1].name = "TRUTH"
 
     write(0.1)
-    a = V._truth(path)
-    assert V._truth(str(path)) is a and a["e1"][0] == pytest.approx(0.1)
+    a = V.read_truth(path)
+    assert V.read_truth(str(path)) is a and a["e1"][0] == pytest.approx(0.1)
     write(0.25)  # a new version of the file (its size or time differs): read again
     st = os.stat(path)
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
-    b = V._truth(path)
+    b = V.read_truth(path)
     assert b is not a and b["e1"][0] == pytest.approx(0.25)

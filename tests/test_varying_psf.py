@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from pylensfit import Config, Prior, measure
-from pylensfit.simulate import FieldSpec, simulate_field, write_field
+from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
 
 SPEC = FieldSpec(size=1024, spacing=36, psf_variation="survey", psf_e1=0.0, psf_e2=0.0,
                  star_fraction=0.25, snr_range=(60.0, 200.0), size_range=(1.5, 2.5),
@@ -101,7 +101,7 @@ def test_heldout_residuals_are_pooled_over_images():
     sqrt(sum n x^2 / sum n)."""
     from astropy.table import Table, vstack
 
-    from pylensfit.validation import _heldout_pooled
+    from pylensfit_validation.validate import _heldout_pooled
 
     p = Table({"psf_heldout_n": [10, 30, 0], "psf_heldout_rms_de1": [3e-3, 1e-3, np.nan],
                "psf_heldout_rms_de2": [2e-3, 2e-3, np.nan],

@@ -36,7 +36,8 @@ from pylensfit.config import Config
 from pylensfit.flags import flag_value
 from pylensfit.likelihood import fit_stamps
 from pylensfit.models import model_bank, render_models
-from pylensfit.precision import (
+from pylensfit.prior import SizePrior
+from pylensfit_validation.precision import (
     MORPHOLOGIES,
     bias_table,
     population_prior,
@@ -46,7 +47,6 @@ from pylensfit.precision import (
     shape_controls,
     spec_with,
 )
-from pylensfit.prior import SizePrior
 
 
 def true_size_prior(spec, size, stamp_size: int = 32) -> SizePrior:

@@ -3,7 +3,7 @@
 ``pylensfit validate --precision`` keeps every calibration galaxy's likelihood grids
 (``L(e)`` per bulge fraction, and in the first pass ``L(r)`` per annulus of |e| for the
 size prior) while the priors are estimated; the main sample streams and keeps 12 numbers
-per rendering. This runs :func:`pylensfit.precision.precision` (the mode's defaults,
+per rendering. This runs :func:`pylensfit_validation.precision.precision` (the mode's defaults,
 ``--jobs`` workers) with a small main sample and each calibration size given, samples the
 main process's resident memory every 0.2 s, and prints its peak, the wall time and the
 fixed-point m (the same seed gives the same calibration galaxies, so runs at two sizes
@@ -23,7 +23,7 @@ import time
 
 import psutil
 
-from pylensfit import precision as P
+from pylensfit_validation import precision as P
 
 
 def peak_rss(ncal: int, ngal: int, seed: int, jobs: int) -> tuple[float, float, float, dict]:

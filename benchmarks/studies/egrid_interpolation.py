@@ -1,7 +1,7 @@
 """What the e-grid's interpolation costs in m: exact ``ln L`` on a grid of 0.05 against
 ``ln L`` interpolated from a grid of 0.1, on the same precision renderings.
 
-Every block of the precision set (``pylensfit.precision``: four renderings per galaxy,
+Every block of the precision set (``pylensfit_validation.precision``: four renderings per galaxy,
 +-g, unrotated and rotated by 90 degrees, the population's priors) is fitted twice, with
 ``e_step`` 0.1 (the default) and 0.05. On the 0.05 grid (integration refined by 2, the
 same 0.025 cells as the default's refinement by 4 of the 0.1 grid), m is computed from:
@@ -34,10 +34,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from pylensfit import precision as P
 from pylensfit.likelihood import fit_stamps
 from pylensfit.runner import run_tasks, worker_pool
 from pylensfit.shear import refine_lnL
+from pylensfit_validation import precision as P
 
 _MID = {4: (np.array([-1.0, 9.0, 9.0, -1.0]) / 16.0, np.array([-3, -1, 1, 3])),
         6: (np.array([3.0, -25.0, 150.0, 150.0, -25.0, 3.0]) / 256.0,
@@ -146,13 +146,13 @@ def precision_ab():
 def paired_table(res: list, spec, bins: list, title: str, min_n: int = 100) -> None:
     """Print each variant's m minus the ``exact`` one's per bin of true S/N (the blocks'
     results ``res``: ``Q`` per variant, ``snr``, ``block``), paired jackknife over groups of
-    ``P._JACKKNIFE_GALAXIES`` galaxies; bins with fewer than ``min_n`` galaxies left empty."""
+    ``P.JACKKNIFE_GALAXIES`` galaxies; bins with fewer than ``min_n`` galaxies left empty."""
     ab = precision_ab()
     names = list(res[0]["Q"])
     Q = {k: np.concatenate([r["Q"][k] for r in res]).astype(float) for k in names}
     snr = np.concatenate([r["snr"] for r in res])
-    per = -(-spec.block_size // P._JACKKNIFE_GALAXIES)
-    jk = np.concatenate([r["block"] * per + np.arange(len(r["snr"])) // P._JACKKNIFE_GALAXIES
+    per = -(-spec.block_size // P.JACKKNIFE_GALAXIES)
+    jk = np.concatenate([r["block"] * per + np.arange(len(r["snr"])) // P.JACKKNIFE_GALAXIES
                          for r in res])  # fmt: skip
     ok = np.ones(snr.size, bool)
     print(title)

@@ -1,7 +1,7 @@
 """Which likelihoods the 0.1 e-grid under-samples, and how large a window of finer cells
 about each galaxy's peak fixes it: the emulation behind ``Config.e_refine``.
 
-Every block of the precision set (``pylensfit.precision``: four renderings per galaxy,
+Every block of the precision set (``pylensfit_validation.precision``: four renderings per galaxy,
 +-g, unrotated and rotated by 90 degrees; here by default exponential galaxies fitted
 with the exponential model, the population's own priors and flux bounds: the case in
 which the likelihood is narrowest) is fitted on the grid of 0.1 and on the grid of 0.025,
@@ -34,10 +34,10 @@ from types import SimpleNamespace
 import numpy as np
 import scipy.sparse as sp
 
-from pylensfit import precision as P
 from pylensfit.likelihood import fit_stamps
 from pylensfit.runner import run_tasks, worker_pool
 from pylensfit.shear import refine_lnL
+from pylensfit_validation import precision as P
 
 _W6 = np.array([3.0, -25.0, 150.0, 150.0, -25.0, 3.0]) / 256.0
 _O6 = np.array([-5, -3, -1, 1, 3, 5])

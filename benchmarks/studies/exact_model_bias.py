@@ -26,7 +26,8 @@ from brute_likelihood import true_size_prior  # this folder's (run as a script)
 from pylensfit.config import Config
 from pylensfit.likelihood import fit_stamps
 from pylensfit.models import model_bank
-from pylensfit.precision import (
+from pylensfit.prior import estimate_bulge_weights, estimate_size_prior
+from pylensfit_validation.precision import (
     MORPHOLOGIES,
     bias_table,
     population_prior,
@@ -35,7 +36,6 @@ from pylensfit.precision import (
     shape_controls,
     spec_with,
 )
-from pylensfit.prior import estimate_bulge_weights, estimate_size_prior
 
 
 def main() -> None:

@@ -1,7 +1,7 @@
 """How exactly the engine's models reproduce GalSim's renderings, and their shear signal.
 
 For an exponential galaxy of ``r`` PSF half-light radii and ellipticity ``z`` under a
-precision-mode PSF, rendered by GalSim (:func:`pylensfit.precision._draw`, as the
+precision-mode PSF, rendered by GalSim (:func:`pylensfit_validation.precision.draw_image`, as the
 precision mode draws its data) at shears ``+g`` and ``-g`` along e1, and by
 :func:`pylensfit.models.render_models` at the same parameters (on a 192-pixel canvas cut
 to the stamp), it prints:
@@ -23,7 +23,7 @@ import argparse
 
 import numpy as np
 
-import pylensfit.precision as PR
+import pylensfit_validation.precision as PR
 from pylensfit.models import half_light_radius, render_models
 
 
@@ -41,15 +41,15 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     for name in a.psf:
         p = next(q for q in PR.PRECISION_PSFS if q["name"] == name)
-        psf_img, psf_hlr = PR._psf_image(p, n)
-        gpsf = PR._galsim_psf(p)
+        psf_img, psf_hlr = PR.psf_image(p, n)
+        gpsf = PR.galsim_psf(p)
         for ratio in a.ratio:
             r = ratio * psf_hlr
             for z in (0.3, 0.3j, 0.0):
                 d, m = [], []
                 for s in (a.g, -a.g):
                     gal = galsim.Exponential(half_light_radius=r).shear(g1=z.real, g2=z.imag)
-                    d.append(PR._draw(galsim.Convolve(gal.shear(g1=s, g2=0.0), gpsf), n))
+                    d.append(PR.draw_image(galsim.Convolve(gal.shear(g1=s, g2=0.0), gpsf), n))
                     e = (z + s) / (1 + np.conj(s) * z)
                     im = render_models(2 * c, psf_img, [c], [c], [e.real], [e.imag],
                                        [r / half_light_radius("exponential")], [1.0],

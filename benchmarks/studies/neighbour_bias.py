@@ -40,18 +40,18 @@ from precision_ab import _kv
 import pylensfit.pipeline as pl
 from pylensfit.config import Config
 from pylensfit.likelihood import fit_stamps
-from pylensfit.precision import (
+from pylensfit.prior import Prior, SizePrior
+from pylensfit.stamps import cut_stamps
+from pylensfit_validation.precision import (
     PRECISION_PSFS,
-    _draw,
-    _galsim_psf,
-    _psf_image,
     bias_table,
+    draw_image,
+    galsim_psf,
+    psf_image,
     reduce_renderings,
     shape_controls,
 )
-from pylensfit.prior import Prior, SizePrior
-from pylensfit.simulate import draw_shapes, galaxy_profile
-from pylensfit.stamps import cut_stamps
+from pylensfit_validation.simulate import draw_shapes, galaxy_profile
 
 #: Half-light radius over disc scale length of the galaxy drawn here (bulge fraction 0.5,
 #: bulge half-light radius 0.6 scale lengths), measured on its GalSim profile.
@@ -79,7 +79,7 @@ def scene(rng, a, psf, prior, with_neighbours: bool, canvas: int):
             t = np.log(snr[k] / SNR_RANGE[0]) / np.log(SNR_RANGE[1] / SNR_RANGE[0])
             flux[k] = a.flux_range[0] * (a.flux_range[1] / a.flux_range[0]) ** t
             continue
-        ref = _draw(galsim.Convolve(galaxy_profile("bulge+disc", rd[k]), psf), 64)
+        ref = draw_image(galsim.Convolve(galaxy_profile("bulge+disc", rd[k]), psf), 64)
         flux[k] = snr[k] / math.sqrt(float(np.sum(ref.astype(float) ** 2)))
     out = np.zeros((4, canvas, canvas))
     for i, (g, rot) in enumerate([(a.g, False), (a.g, True), (-a.g, False), (-a.g, True)]):
@@ -87,7 +87,7 @@ def scene(rng, a, psf, prior, with_neighbours: bool, canvas: int):
             gal = galaxy_profile("bulge+disc", rd[k]).shear(g1=e[k, 0], g2=e[k, 1])
             if rot:
                 gal = gal.rotate(90 * galsim.degrees)
-            out[i] += flux[k] * _draw(galsim.Convolve(gal.shear(g1=g, g2=g), psf), canvas,
+            out[i] += flux[k] * draw_image(galsim.Convolve(gal.shear(g1=g, g2=g), psf), canvas,
                                       tuple(pos[k]))  # fmt: skip
     c = canvas // 2
     return out, pos[:shown] + c, e[0]
@@ -159,8 +159,8 @@ def main() -> None:
     canvas = int(2 * a.spacing + 2 * N + 16)
     prior = Prior(B=0.19, C=0.58, D=2.4)
     p = PRECISION_PSFS[0]
-    psf = _galsim_psf(p)
-    psf_img, _ = _psf_image(p, N)
+    psf = galsim_psf(p)
+    psf_img, _ = psf_image(p, N)
     cfg = Config(model="bulge+disc", n_bulge_fractions=1, bulge_fraction=0.5,
                  bulge_size_ratio=0.6, stamp_size=N,
                  neighbour_iterations=a.iterations, **over)  # fmt: skip

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pylensfit.validation import STEP2_PSFS, simulate_step, validate
+from pylensfit_validation.validation import STEP2_PSFS, simulate_step, validate
 
 
 def main() -> None:

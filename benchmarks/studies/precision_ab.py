@@ -1,12 +1,12 @@
 """Two configurations on the same precision renderings: m of each, B - A paired, fit time.
 
-The precision mode's blocks (``pylensfit.precision``: four renderings per galaxy, +-g,
+The precision mode's blocks (``pylensfit_validation.precision``: four renderings per galaxy, +-g,
 unrotated and rotated by 90 degrees) are fitted and reduced twice, once with the
 default configuration (``precision.default_config``, changed by ``--a KEY=VALUE``) and
 once with ``--b KEY=VALUE`` on top of it, with the same priors: the population's own
 (its ellipticity prior, its log-uniform size prior per PSF, equal bulge-fraction
 weights), or with ``--estimated`` those a calibration of config A estimates
-(:func:`pylensfit.precision.precision` on the same seed; with ``--own-priors`` B gets
+(:func:`pylensfit_validation.precision.precision` on the same seed; with ``--own-priors`` B gets
 its own, as a change of the bulge fractions needs). The renderings and their noise
 are the same, so the difference B - A is measured far better than either m: its error
 is the jackknife (groups of 100 galaxies) of the paired difference of the fixed-point
@@ -30,9 +30,9 @@ import time
 
 import numpy as np
 
-from pylensfit import precision as P
 from pylensfit.prior import Prior, RadialPrior, SizePrior
 from pylensfit.runner import run_tasks, worker_pool
+from pylensfit_validation import precision as P
 
 
 def _oracle(spec, cfg) -> list:
@@ -103,8 +103,8 @@ def _m_jk(Q, ok, jk, g):
     T = np.concatenate([tot[None], tot[None] - sums])  # full, then leave one out
     N = np.concatenate([[ntot], ntot - n])
     gv = np.array([g, g])
-    gp = P._shear_from_sums(T[:, 0] + T[:, 1], 2 * N, gv, "fixed-point")
-    gm = P._shear_from_sums(T[:, 2] + T[:, 3], 2 * N, -gv, "fixed-point")
+    gp = P.shear_from_sums(T[:, 0] + T[:, 1], 2 * N, gv, "fixed-point")
+    gm = P.shear_from_sums(T[:, 2] + T[:, 3], 2 * N, -gv, "fixed-point")
     return (gp - gm) / (2 * g) - 1.0
 
 
@@ -121,7 +121,8 @@ def _paired(QA, QB, ok, jk, g):
 
 
 def _fp(tab, name: str):
-    """The fixed-point row of group ``name`` in a :func:`pylensfit.precision.bias_table`."""
+    """The fixed-point row of group ``name`` in a
+    :func:`pylensfit_validation.precision.bias_table`."""
     return tab[(tab["group"] == name) & (tab["estimator"] == "fixed-point")][0]
 
 
@@ -247,7 +248,7 @@ def main() -> None:
     res: dict = {"A": {}, "B": {}}
     t0 = time.perf_counter()
     with worker_pool(a.jobs) as pool:
-        for t, r in run_tasks(P._block_task, tasks, a.jobs, None, "A/B", True, pool):
+        for t, r in run_tasks(P.block_task, tasks, a.jobs, None, "A/B", True, pool):
             res[t["which"]][t["block"]] = r
     print(f"{len(tasks)} block fits in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs)")
     cat = {w: [res[w][b] for b in range(nb)] for w in "AB"}
@@ -256,8 +257,8 @@ def main() -> None:
         [r["usable"] for r in cat["B"]]).all(1)
     truth = [r["truth"] for r in cat["A"]]
     psf = np.concatenate([np.full(len(t), r["psf"]) for t, r in zip(truth, cat["A"], strict=True)])
-    per = -(-spec.block_size // P._JACKKNIFE_GALAXIES)
-    jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P._JACKKNIFE_GALAXIES
+    per = -(-spec.block_size // P.JACKKNIFE_GALAXIES)
+    jk = np.concatenate([r["block"] * per + np.arange(len(t)) // P.JACKKNIFE_GALAXIES
                          for t, r in zip(truth, cat["A"], strict=True)])  # fmt: skip
     X = P.shape_controls(np.concatenate([t["e1_int"] for t in truth]),
                          np.concatenate([t["e2_int"] for t in truth]))  # fmt: skip
@@ -319,7 +320,7 @@ def main() -> None:
     gal = {c: np.concatenate([np.asarray(t[c]) for t in truth])
            for c in ("snr", "size_ratio", "bulge_frac", "morph")}  # fmt: skip
     gal["psf"] = psf
-    bins = P._breakdowns(gal, spec.psfs)  # the precision report's bins
+    bins = P.breakdowns(gal, spec.psfs)  # the precision report's bins
     for by in a.by:  # bins of true S/N or size, all PSFs together
         print(f"by {by}:\n| bin | galaxies | m2 - m1, A | m2 - m1, B | B - A, m1 | B - A, m2 |"
               f"\n|{'---|' * 6}")  # fmt: skip

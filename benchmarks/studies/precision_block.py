@@ -25,7 +25,7 @@ import argparse
 import time
 
 import pylensfit
-from pylensfit import precision as P
+from pylensfit_validation import precision as P
 
 
 def main() -> None:
@@ -50,10 +50,10 @@ def main() -> None:
                 "bulge_weights": [1 / 3, 1 / 3, 1 / 3], "psf": psf, "block": psf,
                 "size_prior": P.population_size_prior(spec, psf),
                 "single_thread": True}  # fmt: skip
-        P._block_task(task)  # warm-up: compilation, banks
+        P.block_task(task)  # warm-up: compilation, banks
         task["block"] = psf + 4
         t0 = time.perf_counter()
-        r = P._block_task(task)
+        r = P.block_task(task)
         print(f"PSF {spec.psfs[psf]['name']}: block {time.perf_counter() - t0:.1f} s "
               f"(render {r['render_s']:.1f}, fit {r['fit_s']:.1f}, reduce {r['reduce_s']:.1f}) "
               f"for {spec.block_size} galaxies x 4 renderings")  # fmt: skip

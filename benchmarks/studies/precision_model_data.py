@@ -6,8 +6,8 @@ population's ellipticity, size and bulge-fraction priors) with each rendering dr
 canvas cut to the stamp, so no periodic wings) instead of GalSim: the data are then
 exactly the model family. The shears compose as GalSim's do (``(e + g) / (1 + g* e)``),
 the flux, the offsets and the noise are those of
-:func:`pylensfit.precision.render_block` for the same seed. The amplitude and position
-priors are the precision mode's (:func:`pylensfit.precision.default_config`) unless
+:func:`pylensfit_validation.precision.render_block` for the same seed. The amplitude and position
+priors are the precision mode's (:func:`pylensfit_validation.precision.default_config`) unless
 given. It runs in one process (``jobs=1``), since the renderer is replaced in this
 module::
 
@@ -33,7 +33,7 @@ import time
 
 import numpy as np
 
-import pylensfit.precision as PR
+import pylensfit_validation.precision as PR
 from pylensfit import Config
 from pylensfit.models import half_light_radius, render_models
 
@@ -42,13 +42,13 @@ _CANVAS = 96
 
 def render_block_model(spec, psf_index, block, *, stamp_size=32, calibration=False,
                        noise=True):  # fmt: skip
-    """:func:`pylensfit.precision.render_block` with the engine's exponential models."""
+    """:func:`pylensfit_validation.precision.render_block` with the engine's exponential models."""
     n_stamp = int(stamp_size)
-    psf_img, psf_hlr = PR._psf_image(spec.psfs[psf_index], n_stamp)
+    psf_img, psf_hlr = PR.psf_image(spec.psfs[psf_index], n_stamp)
     ntot = spec.ncal if calibration else spec.ngal
     n = min(spec.block_size, ntot - block * spec.block_size)
     rng = np.random.default_rng([spec.seed, int(calibration), block])
-    t = PR._population(spec, n, psf_hlr, rng)
+    t = PR.population_table(spec, n, psf_hlr, rng)
     if np.any(np.asarray(t["morph"]) != 0):
         raise ValueError("only the exponential population (--morphology-weights 1 0 0 0 0)")
     z = np.asarray(t["e1_int"]) + 1j * np.asarray(t["e2_int"])
@@ -62,7 +62,7 @@ def render_block_model(spec, psf_index, block, *, stamp_size=32, calibration=Fal
         img = render_models(_CANVAS, psf_img, c + np.asarray(t["dx"]), c + np.asarray(t["dy"]),
                             e.real, e.imag, scale, np.ones(n), model="exponential")  # fmt: skip
         out[:, k] = img[:, c - h : c + h, c - h : c + h]
-    PR._flux_and_noise(out, t, spec, block, PR.reference_norm(spec, psf_index, n_stamp),
+    PR.flux_and_noise(out, t, spec, block, PR.reference_norm(spec, psf_index, n_stamp),
                        calibration=calibration, noise=noise)  # fmt: skip
     return out, psf_img, t
 

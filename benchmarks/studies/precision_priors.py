@@ -2,18 +2,18 @@
 
 ``pylensfit validate --precision`` estimates three priors from an unsheared calibration
 sample: the ellipticity prior, the size prior (one per PSF) and the weights of the
-bulge fractions. This runs :func:`pylensfit.precision.precision` on a chosen population
+bulge fractions. This runs :func:`pylensfit_validation.precision.precision` on a chosen population
 (``--morphology-weights`` over exponential, de Vaucouleurs, bulge+disc, Sersic, knots)
 with any of them replaced by the population's own:
 
 - ``--true-prior``: the functional prior the intrinsic ellipticities are drawn from;
 - ``--true-size-prior``: log-uniform over the drawn sizes, per PSF
-  (:func:`pylensfit.precision.population_size_prior`; exact for the exponential, de
+  (:func:`pylensfit_validation.precision.population_size_prior`; exact for the exponential, de
   Vaucouleurs and Sersic galaxies, whose half-light radius is the one drawn);
 - ``--bulge-weights W0 W05 W1``: the weights of the bulge fractions 0, 0.5, 1.
 
 The amplitude and position priors are the precision mode's
-(:func:`pylensfit.precision.default_config`: the flux's power law, its power estimated
+(:func:`pylensfit_validation.precision.default_config`: the flux's power law, its power estimated
 from the calibration sample, the catalogue positions' scatter) unless
 ``--amplitude-prior uniform|snr`` (the paper's uniform prior; ``t^-2`` in each model's
 S/N), ``--amplitude-prior-power`` or ``--position-prior-sigma`` say otherwise.
@@ -38,7 +38,7 @@ import time
 import numpy as np
 
 from pylensfit import Config
-from pylensfit.precision import (
+from pylensfit_validation.precision import (
     PRECISION_PSFS,
     default_config,
     population_flux_range,

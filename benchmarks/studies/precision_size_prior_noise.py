@@ -8,7 +8,7 @@ PSF, an error the jackknife of the main sample does not see. This measures that 
 several estimators of the size prior at once, on the same main sample:
 
 1. For each calibration seed, the calibration's first pass (flat size prior) is run as
-   :func:`pylensfit.precision.precision` runs it, and each PSF's ``L(r)`` (marginalised
+   :func:`pylensfit_validation.precision.precision` runs it, and each PSF's ``L(r)`` (marginalised
    over e with the first pass's ellipticity prior) is kept, with the configuration and
    bulge weights the size prior would be estimated with. ``--cache DIR`` keeps them.
 2. Each setting (``--smooth``, ``--knot-step``; the knots' spacing in ln h and the EMS
@@ -38,10 +38,10 @@ from pathlib import Path
 import numpy as np
 
 import pylensfit.prior as prior_mod
-from pylensfit import precision as P
 from pylensfit.models import model_bank
 from pylensfit.prior import RadialPrior
 from pylensfit.runner import run_tasks, worker_pool
+from pylensfit_validation import precision as P
 
 
 class _Captured(Exception):
@@ -92,8 +92,8 @@ def _m(Q: np.ndarray, ok: np.ndarray, g: float) -> np.ndarray:
     T = Q[ok].sum(0)
     N = np.asarray(2.0 * ok.sum())
     gv = np.array([g, g])
-    gp = P._shear_from_sums(T[0] + T[1], N, gv, "fixed-point")
-    gm = P._shear_from_sums(T[2] + T[3], N, -gv, "fixed-point")
+    gp = P.shear_from_sums(T[0] + T[1], N, gv, "fixed-point")
+    gm = P.shear_from_sums(T[2] + T[3], N, -gv, "fixed-point")
     return (gp - gm) / (2 * g) - 1.0
 
 
@@ -157,7 +157,7 @@ def main() -> None:
     res: dict = {i: {} for i in range(len(keys))}
     t0 = time.perf_counter()
     with worker_pool(a.jobs) as pool:
-        for t, r in run_tasks(P._block_task, tasks, a.jobs, None, "size priors", True, pool):
+        for t, r in run_tasks(P.block_task, tasks, a.jobs, None, "size priors", True, pool):
             res[t["key"]][t["block"]] = r
     print(f"{len(tasks)} block fits in {time.perf_counter() - t0:.0f} s")
     psf = np.concatenate([np.full(len(res[0][b]["truth"]), b % npsf) for b in range(nb)])

@@ -63,10 +63,10 @@ def _measure(args):
 
 
 def main(argv=None) -> int:
-    from pylensfit import validation as V
     from pylensfit.config import Config
     from pylensfit.prior import estimate_prior
     from pylensfit.shear import shapes
+    from pylensfit_validation import validation as V
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("directory")
@@ -90,7 +90,7 @@ def main(argv=None) -> int:
             err = (np.mean(cat["background"][ok]) - sky) / noise
             print(f"{mode:5s} {Path(path).name}: sky error {err:+.4f} sigma", flush=True)
     fwhm = float(man["psfs"][a.psf]["fwhm"])
-    gal = {m: V._galaxies(vstack(c, metadata_conflicts="silent"), fields, a.psf, fwhm)
+    gal = {m: V.matched_galaxies(vstack(c, metadata_conflicts="silent"), fields, a.psf, fwhm)
            for m, c in cats.items()}  # fmt: skip
     egrid = cats["sep"][0].meta["egrid"]
     prior = estimate_prior(np.asarray(gal["sep"]["lnL"]), egrid)
@@ -103,8 +103,8 @@ def main(argv=None) -> int:
         img = np.asarray(g["image"]).astype(str)
         t = np.asarray(g["truth_index"])
         if pairs:  # each galaxy's renderings summed, keyed by the group's first image
-            gid, base = V._groups(g, fields)
-            mem = V._group_members(gid)
+            gid, base = V.shear_groups(g, fields)
+            mem = V.group_members(gid)
             i = mem[:, 0]
             img = base.astype(str)
             e, s = e[mem].sum(axis=1), s[mem].sum(axis=1)
@@ -129,7 +129,7 @@ def main(argv=None) -> int:
         out = []
         for i in range(2):
             gt = g_true[:, i]
-            mm, _, cov = V._fit_m_c_cov(gt, est[m][0][:, i], est[m][1][:, i])
+            mm, _, cov = V.fit_m_c_cov(gt, est[m][0][:, i], est[m][1][:, i])
             line = f"m{i + 1} {mm:+.4f} +- {np.sqrt(cov[0, 0]):.4f}"
             if m != "sep" and np.ptp(gt) > 0:
                 d = est[m][0][:, i] - est["sep"][0][:, i]

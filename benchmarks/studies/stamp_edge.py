@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-import pylensfit.precision as PR
+import pylensfit_validation.precision as PR
 from pylensfit import Config, Prior, fit_stamps
 from pylensfit.models import half_light_radius, render_models
 from pylensfit.shear import posterior_moments
@@ -52,16 +52,17 @@ def ring(psf_name: str, ratio: float, n: int, *, renderer: str, snr: float, g: f
     import galsim
 
     p = next(q for q in PR.PRECISION_PSFS if q["name"] == psf_name)
-    psf_img, psf_hlr = PR._psf_image(p, n)
+    psf_img, psf_hlr = PR.psf_image(p, n)
     r = ratio * psf_hlr
-    gpsf = PR._galsim_psf(p)
+    gpsf = PR.galsim_psf(p)
     imgs = []
     for a in np.arange(n_angles) * np.pi / n_angles:
         z = 0.2 * np.exp(2j * a)
         for s in (g, -g, 1j * g, -1j * g):
             if renderer == "galsim":
-                gal = PR._profile(profile, r, 0.0, 4.0, 0, 0.0, 0).shear(g1=z.real, g2=z.imag)
-                imgs.append(PR._draw(galsim.Convolve(gal.shear(g1=s.real, g2=s.imag), gpsf), n))
+                gal = PR.profile_of(profile, r, 0.0, 4.0, 0, 0.0, 0).shear(g1=z.real, g2=z.imag)
+                sheared = galsim.Convolve(gal.shear(g1=s.real, g2=s.imag), gpsf)
+                imgs.append(PR.draw_image(sheared, n))
             else:
                 e = (z + s) / (1 + np.conj(s) * z)
                 c = 96

@@ -2,7 +2,7 @@
 
 STEP2's random shears and independent noise leave m with an error of about 0.015 per PSF
 (0.006 over five PSFs from 100,000 galaxies). This benchmark renders STEP2-like fields
-(`pylensfit.validation.render_step2_field`: Sersic, bulge+disc and knotty galaxies on a
+(`pylensfit_validation.validation.render_step2_field`: Sersic, bulge+disc and knotty galaxies on a
 jittered lattice, stars, sky and noise) four times, as the precision mode renders its
 stamps: sheared by +(g, g) and by -(g, g) with the same objects and the same noise
 field, each with a 90-degree-rotated twin (its own noise). Every field goes through
@@ -59,9 +59,9 @@ KINDS = ("sersic", "bulge+disc", "knots")
 
 
 def _spec(psf: int, size: int, spacing: float, snr, g: float, rotate: bool):
-    from pylensfit.validation import STEP2_PSFS, _spec_for
+    from pylensfit_validation.validation import STEP2_PSFS, spec_for
 
-    return _spec_for(STEP2_PSFS[psf], size=size, spacing=spacing, noise_sigma=1.0,
+    return spec_for(STEP2_PSFS[psf], size=size, spacing=spacing, noise_sigma=1.0,
                      snr_range=tuple(snr), size_range=(1.5, 4.5), star_fraction=0.05,
                      pixel_scale_arcsec=0.2, model="bulge+disc", g1=g, g2=g,
                      rotate=rotate)  # fmt: skip
@@ -69,8 +69,8 @@ def _spec(psf: int, size: int, spacing: float, snr, g: float, rotate: bool):
 
 def _render(task) -> str:
     """Render one field (or the star field) unless it exists."""
-    from pylensfit.simulate import simulate_field, write_field
-    from pylensfit.validation import render_step2_field
+    from pylensfit_validation.simulate import simulate_field, write_field
+    from pylensfit_validation.validation import render_step2_field
 
     path, psf, size, spacing, snr, g, rotate, seed, noise_seed, stars = task
     if Path(path).exists():
@@ -90,38 +90,27 @@ def _render(task) -> str:
 
 
 def _measure(task) -> str:
-    """Measure one field in a fresh worker, with the oracles' patches (they die with it)."""
-    import dataclasses
-
-    from pylensfit import pipeline
-    from pylensfit.config import Config
-    from pylensfit.prior import Prior
+    """Measure one field in a fresh worker, with the oracles (the sky's patch dies with it):
+    the true PSF given to :func:`pylensfit.measure` (``psf=``) instead of the stacked one."""
+    from pylensfit import Config, Prior, measure
 
     path, star, cfg_dict, size_prior, out, true_psf, true_sky = task
-    if true_psf is not None:
-        orig_psf = pipeline._psf_from_stars
-        img = np.asarray(true_psf)
-
-        def psf_from_stars(*a, **k):
-            res, stars = orig_psf(*a, **k)
-            return dataclasses.replace(res, image=img.copy()), stars
-
-        pipeline._psf_from_stars = psf_from_stars
+    psf = None if true_psf is None else np.asarray(true_psf).copy()
     if true_sky is not None:
         from sky_bias import patch_true_sky  # benchmarks/studies/ is the script's path
 
         patch_true_sky(true_sky)
-    pipeline.measure([path], stars=[star], config=Config.from_dict(cfg_dict), prior=Prior(),
-                     size_prior=size_prior, output=out, overwrite=True, progress=False)  # fmt: skip
+    measure([path], stars=[star], config=Config.from_dict(cfg_dict), prior=Prior(), psf=psf,
+            size_prior=size_prior, output=out, overwrite=True, progress=False)  # fmt: skip
     return out
 
 
 def _true_psf_image(psf: int, n: int) -> np.ndarray:
     """The rendering's own PSF (`simulate.field_psf`) with the pixel, centred as a stacked one."""
-    from pylensfit.precision import _draw
-    from pylensfit.simulate import field_psf
+    from pylensfit_validation.precision import draw_image
+    from pylensfit_validation.simulate import field_psf
 
-    img = _draw(field_psf(_spec(psf, n, 40.0, (15.0, 150.0), 0.0, False)), n).astype(float)
+    img = draw_image(field_psf(_spec(psf, n, 40.0, (15.0, 150.0), 0.0, False)), n).astype(float)
     return img / img.sum()
 
 
@@ -162,13 +151,13 @@ def _shapes(cfg, mdir: Path, base: Path, quads, psf: int) -> dict:
     from pylensfit import pipeline
     from pylensfit.prior import estimate_prior_and_bulge, mix_bulge_fractions
     from pylensfit.shear import shapes, shear_fixed_point
-    from pylensfit.validation import STEP2_PSFS, _galaxies
+    from pylensfit_validation.validation import STEP2_PSFS, matched_galaxies
 
     fwhm = STEP2_PSFS[psf]["fwhm"]
     fields = {n: {"path": str(base / n)} for q in quads for n in q}
     fields["prior.fits"] = {"path": str(base / "prior.fits")}
     pcat = pipeline.read_catalogue(mdir / "prior.fits")
-    pg = _galaxies(pcat, fields, psf, fwhm)
+    pg = matched_galaxies(pcat, fields, psf, fwhm)
     egrid = np.asarray(pcat.meta["egrid"])
     prior, bw = estimate_prior_and_bulge(np.asarray(pg["lnL_bulge"]), np.asarray(pg["lnL_star"]),
                                          egrid, method=cfg.prior_method)  # fmt: skip
@@ -176,7 +165,7 @@ def _shapes(cfg, mdir: Path, base: Path, quads, psf: int) -> dict:
     for j, q in enumerate(quads):
         per = []
         for n in q:
-            g = _galaxies(pipeline.read_catalogue(mdir / n), fields, psf, fwhm)
+            g = matched_galaxies(pipeline.read_catalogue(mdir / n), fields, psf, fwhm)
             per.append(g[(np.asarray(g["truth_index"]) >= 0) & ~np.asarray(g["truth_star"])])
         ti = np.array(sorted(set.intersection(*(set(np.asarray(g["truth_index"]).tolist())
                                                 for g in per))), dtype=np.int64)  # fmt: skip
@@ -243,7 +232,7 @@ def _table(fn, info, title: str) -> None:
 
 def main(argv=None) -> int:
     from pylensfit.config import Config
-    from pylensfit.validation import STEP2_PSFS, step_config
+    from pylensfit_validation.validation import STEP2_PSFS, step_config
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", required=True, help="work directory (renderings, catalogues)")

@@ -26,7 +26,7 @@ import numpy as np
 
 
 def main(argv=None) -> int:
-    import pylensfit.validation as V
+    import pylensfit_validation.validate as V
     from pylensfit import pipeline
     from pylensfit.config import Config
 
@@ -43,7 +43,7 @@ def main(argv=None) -> int:
             raise SystemExit(f"{path}: no catalogue; run `pylensfit validate` on it first")
         return pipeline.read_catalogue(path), True
 
-    V._measured = kept
+    V.measured_catalogues = kept  # validate's name for the kept catalogues
     runs = [V.validate(d, config=Config.from_yaml(y) if y != "-" else None, progress=False)
             for d, y in ((a.dir_a, a.config_a), (a.dir_b, a.config_b))]  # fmt: skip
     for name, r in zip("AB", runs, strict=True):

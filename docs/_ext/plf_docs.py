@@ -272,9 +272,10 @@ class CliHelp(Directive):
     option_spec = {"caption": directives.unchanged}
 
     def run(self):
-        from pylensfit import cli, config, validation
+        from pylensfit import cli, config
+        from pylensfit_validation import cli as harness_cli
 
-        _depend(self, cli, config, validation)
+        _depend(self, cli, config, harness_cli)
         env = self.state.document.settings.env
         env.plf_cli_docs = getattr(env, "plf_cli_docs", {})
         env.plf_cli_docs.setdefault(env.docname, set()).add(" ".join(self.arguments))

@@ -11,7 +11,6 @@ package writes (:func:`atomic_write_with`).
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 import tempfile
@@ -310,22 +309,6 @@ def read_json_entry(path: str | Path, key: str, what: str, others: dict[str, str
                   else f"no {key!r} entry" + other_file_hint(d, others))  # fmt: skip
         raise ValueError(f"{path}: not a {what} file ({detail})")
     return d[key]
-
-
-def pyplot_or_none(what: str):
-    """``matplotlib.pyplot`` on the Agg backend, or None (with a warning naming ``what``)
-    when matplotlib, the optional ``[plots]`` extra, is not installed."""
-    try:
-        import matplotlib  # the optional [plots] extra; a heavy import, only for figures
-    except ImportError:
-        logging.getLogger("pylensfit").warning(
-            "%s: matplotlib is not installed, so the figures are not drawn "
-            "(pip install 'pylensfit[plots]')", what)
-        return None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # the optional [plots] extra
-
-    return plt
 
 
 # ----------------------------------------------------------------------------------------

@@ -90,7 +90,7 @@ HDUS: dict[str, str] = {
 # the module's documentation lists the HDUs from the same table
 __doc__ = __doc__.replace(
     "in that order.\n",
-    "in that order:\n\n" + "".join(f"* ``{k}``: {v}\n" for k, v in HDUS.items()),
+    "in that order:\n\n" + "".join(f"* ``{k}``: {v}\n" for k, v in HDUS.items()) + "\n",
     1,
 )
 

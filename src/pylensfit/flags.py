@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FLAGS", "describe", "flag_value"]
+__all__ = ["BAD", "FLAGS", "describe", "flag_value"]
 
 #: name -> (bit value, description)
 FLAGS: dict[str, tuple[int, str]] = {

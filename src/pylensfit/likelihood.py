@@ -69,7 +69,7 @@ from .prior import Prior, SizePrior
 from .psf import psf_transform
 from .shear import refine_lnL
 
-__all__ = ["StampFits", "fit_stamps"]
+__all__ = ["StampFits", "blend_fits", "e_annuli", "fit_stamps"]
 
 
 def _fork_safe_threading() -> None:

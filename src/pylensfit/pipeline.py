@@ -94,7 +94,7 @@ from .skyframe import (
 )
 from .stamps import add_patches, cut_stamps, patch_origins
 
-__all__ = ["InputError", "measure", "read_catalogue", "write_catalogue"]
+__all__ = ["InputError", "measure", "read_catalogue", "subtract_neighbours", "write_catalogue"]
 
 log = logging.getLogger(__name__)
 

@@ -68,6 +68,7 @@ __all__ = [
     "fit_functional_prior",
     "marginal_log_likelihood",
     "prior_is_valid",
+    "usable_rows",
     "MIN_FLUX_RANGE_SAMPLE",
 ]
 

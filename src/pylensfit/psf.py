@@ -201,7 +201,7 @@ class PSFResult:
     def digest(self) -> str:
         """SHA-1 hex digest of the image's bytes (C order): what a kept result was fitted
         with, for the resume keys of :func:`pylensfit.measure` and
-        :func:`pylensfit.validation.validate`."""
+        :func:`pylensfit_validation.validation.validate`."""
         return hashlib.sha1(np.ascontiguousarray(self.image).tobytes()).hexdigest()
 
     def stars(self):

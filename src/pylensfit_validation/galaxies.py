@@ -1,7 +1,8 @@
 """Round galaxy profiles and PSFs of the simulations, described once and built with GalSim.
 
-The simulated sets (:mod:`pylensfit.simulate`, :mod:`pylensfit.validation`,
-:mod:`pylensfit.precision`, :mod:`pylensfit.convergence`) describe each galaxy by a
+The simulated sets (:mod:`pylensfit_validation.simulate`,
+:mod:`pylensfit_validation.validation`, :mod:`pylensfit_validation.precision`,
+:mod:`pylensfit_validation.convergence`) describe each galaxy by a
 :class:`GalaxyProfile` and each PSF by a :class:`PSFProfile`, and build their GalSim
 objects with :meth:`GalaxyProfile.galsim` and :meth:`PSFProfile.galsim`. The sets differ
 only in their parameters:
@@ -27,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .models import DEVAUC_TRUNCATION
+from pylensfit.models import DEVAUC_TRUNCATION
 
 __all__ = [
     "GALAXY_KINDS",
@@ -270,7 +271,7 @@ class PSFProfile:
             ``{"fwhm", "beta", "e1", "e2"}`` (a Moffat: STEP-like sets, a manifest's
             ``psfs`` entries), optionally ``"kind"`` (default ``"moffat"``; a
             ``"kolmogorov"`` needs no ``"beta"``) and ``"lobe_flux"``, ``"lobe_shift"``
-            (``"asymmetric"``, :data:`pylensfit.precision.PRECISION_PSFS`). Other keys
+            (``"asymmetric"``, :data:`pylensfit_validation.precision.PRECISION_PSFS`). Other keys
             (``"name"``) are ignored.
 
         Returns

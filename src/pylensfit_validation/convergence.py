@@ -47,12 +47,13 @@ import numpy as np
 from astropy.table import Table
 from tqdm.auto import tqdm
 
-from .config import Config
-from .flags import BAD, flag_value
+from pylensfit.config import Config
+from pylensfit.flags import BAD, flag_value
+from pylensfit.likelihood import fit_stamps
+from pylensfit.prior import Prior
+from pylensfit.shear import shapes, shear_sensitivity
+
 from .galaxies import GalaxyProfile, PSFProfile
-from .likelihood import fit_stamps
-from .prior import Prior
-from .shear import shapes, shear_sensitivity
 from .simulate import draw_shapes
 
 log = logging.getLogger(__name__)
@@ -74,7 +75,7 @@ __all__ = [
     "write_convergence",
 ]
 
-#: Default PSF: a round Moffat (FWHM in px), STEP1 PSF 0 of :mod:`pylensfit.validation`.
+#: Default PSF: a round Moffat (FWHM in px), STEP1 PSF 0 of :mod:`pylensfit_validation.validation`.
 DEFAULT_PSF: Mapping[str, float] = {"fwhm": 3.0, "beta": 3.5, "e1": 0.0, "e2": 0.0}
 #: Default ellipticity grid spacings ``de``.
 DEFAULT_DES: tuple[float, ...] = (0.05, 0.075, 0.1, 0.15, 0.2, 0.3)
@@ -182,11 +183,11 @@ def render_sample(
         model grid's, see :attr:`ConvergenceSample.r`).
     psf : mapping, optional
         Moffat PSF ``{"fwhm": px, "beta": ..., "e1": ..., "e2": ...}``, or any PSF of
-        :meth:`pylensfit.galaxies.PSFProfile.from_dict`; default :data:`DEFAULT_PSF`.
+        :meth:`pylensfit_validation.galaxies.PSFProfile.from_dict`; default :data:`DEFAULT_PSF`.
     model : str
         ``"devaucouleurs"``, ``"exponential"`` or ``"bulge+disc"`` (with the default
         :class:`~pylensfit.Config` bulge fraction and size ratio):
-        :meth:`pylensfit.galaxies.GalaxyProfile.from_model`.
+        :meth:`pylensfit_validation.galaxies.GalaxyProfile.from_model`.
     prior : Prior, optional
         Functional prior of the intrinsic ellipticities (default ``Prior()``, the
         STEP-like B, C, D = 0.19, 0.58, 2.4); draws with ``|e| > 0.99`` are redrawn.

@@ -29,10 +29,11 @@ from astropy.table import Table
 from astropy.wcs import WCS
 from scipy.interpolate import RectBivariateSpline
 
-from .catalogue import atomic_write
+from pylensfit.catalogue import atomic_write
+from pylensfit.prior import Prior
+from pylensfit.shear import apply_shear
+
 from .galaxies import GalaxyProfile, PSFProfile
-from .prior import Prior
-from .shear import apply_shear
 
 __all__ = [
     "MIXED_KINDS",
@@ -73,8 +74,8 @@ __all__ = [
 PSF_VARIATIONS: dict[str, tuple[float, float]] = {"none": (0.0, 0.0), "survey": (0.1, 0.04)}
 
 #: The galaxy populations of :attr:`FieldSpec.population` (STEP2-like fields,
-#: :func:`pylensfit.validation.render_step2_field`; ranges in
-#: :data:`pylensfit.galaxies.REALISTIC`).
+#: :func:`pylensfit_validation.validation.render_step2_field`; ranges in
+#: :data:`pylensfit_validation.galaxies.REALISTIC`).
 POPULATIONS: tuple[str, ...] = ("aligned", "realistic")
 
 
@@ -94,9 +95,9 @@ class FieldSpec:
     field (:func:`psf_map`).
 
     ``population`` (one of :data:`POPULATIONS`) is that of the galaxies of a STEP2-like
-    field (:func:`pylensfit.validation.render_step2_field`): ``"aligned"``, every bulge
+    field (:func:`pylensfit_validation.validation.render_step2_field`): ``"aligned"``, every bulge
     aligned with its disc, or ``"realistic"``, bulges of their own size and shape
-    (:data:`pylensfit.galaxies.REALISTIC`). :func:`simulate_field` ignores it: its
+    (:data:`pylensfit_validation.galaxies.REALISTIC`). :func:`simulate_field` ignores it: its
     galaxies are the model bank's families.
     """
 
@@ -313,7 +314,7 @@ def map_psf_model(spec: FieldSpec, *, size: int = 64, order: int = 5, grid: int 
     the field, for fitting galaxies with their own PSF.
 
     The PSF is drawn noise-free with GalSim's pixel, centred on element
-    ``[size//2, size//2]`` (as :func:`pylensfit.validation.true_psf_image`), at the
+    ``[size//2, size//2]`` (as :func:`pylensfit_validation.validation.true_psf_image`), at the
     ``grid x grid`` positions of a square lattice spanning the field's pixel centres,
     and every pixel is fitted by least squares as a polynomial of total degree
     ``order`` in the field's normalised position. Under the ``"survey"`` map the
@@ -337,7 +338,7 @@ def map_psf_model(spec: FieldSpec, *, size: int = 64, order: int = 5, grid: int 
     pylensfit.psfmodel.PolynomialPSF
         The model, bounds ``(0, spec.size - 1)`` on both axes, ``source`` naming the map.
     """
-    from .psfmodel import PolynomialPSF, n_terms  # psfmodel imports the PSF stack
+    from pylensfit.psfmodel import PolynomialPSF, n_terms  # psfmodel imports the PSF stack
 
     if grid * grid <= n_terms(order):
         raise ValueError(f"a {grid} x {grid} grid cannot fit {n_terms(order)} terms "
@@ -511,7 +512,7 @@ def galaxy_profile(model: str, r: float, index: int = 0):
         scale length, the de Vaucouleurs half-light radius (truncated at
         :data:`~pylensfit.models.DEVAUC_TRUNCATION` of them), the bulge+disc's disc
         scale length (bulge half-light radius ``0.6 r``, half the flux each):
-        :meth:`pylensfit.galaxies.GalaxyProfile.from_model`.
+        :meth:`pylensfit_validation.galaxies.GalaxyProfile.from_model`.
     index : int
         The object's index, for ``model="mixed"``.
 
