@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "atomic_write",
     "atomic_write_with",
     "check_egrid",
     "check_lnL",
@@ -359,3 +360,17 @@ def atomic_write_with(write: Callable[[str], None], path: str | Path, *,
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def atomic_write(hdulist, path: str | Path, *, overwrite: bool = False) -> None:
+    """Write a FITS HDU list to ``path`` through a temporary file renamed when complete
+    (:func:`atomic_write_with`): a run killed while writing leaves no partial file under
+    ``path``, and the file gets the permissions of the user's umask.
+
+    Raises
+    ------
+    FileExistsError
+        If ``path`` exists and ``overwrite`` is false.
+    """
+    atomic_write_with(lambda tmp: hdulist.writeto(tmp, overwrite=True), path,
+                      overwrite=overwrite)  # fmt: skip

@@ -31,7 +31,7 @@ from pathlib import Path
 from astropy.io import fits
 from astropy.table import Table
 
-from ._util import atomic_write_with
+from ._util import atomic_write
 from .flags import FLAGS
 
 __all__ = [
@@ -373,11 +373,3 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"{path}: tables rewritten")
     return int(stale and args.check)
 
-
-def atomic_write(hdulist, path: str | Path, *, overwrite: bool = False) -> None:
-    """Write an HDU list to ``path`` through a temporary file renamed when complete.
-
-    A run killed while writing leaves no partial file under ``path``.
-    """
-    atomic_write_with(lambda tmp: hdulist.writeto(tmp, overwrite=True), path,
-                      overwrite=overwrite)  # fmt: skip

@@ -53,8 +53,7 @@ from threadpoolctl import ThreadpoolController
 
 from . import flags as _flags
 from ._kernels_nb import AMP_UNIFORM, amplitude_table, laplace_grid, laplace_grid_tab
-from ._util import newton_peak, per_object
-from .catalogue import atomic_write
+from ._util import atomic_write, newton_peak, per_object
 from .config import Config
 from .grid import ellipticity_grid
 from .models import (

@@ -16,8 +16,7 @@ import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-from ._util import newton_peak, per_object, rfft_frequencies
-from .catalogue import atomic_write
+from ._util import atomic_write, newton_peak, per_object, rfft_frequencies
 
 __all__ = [
     "REASONS",

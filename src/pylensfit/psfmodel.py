@@ -36,8 +36,14 @@ from astropy.table import Table
 from scipy.stats import chi2 as chi2_dist
 from scipy.stats import f as f_dist
 
-from ._util import atomic_write_with, jsonable, newton_peak, per_object, rfft_frequencies
-from .catalogue import atomic_write
+from ._util import (
+    atomic_write,
+    atomic_write_with,
+    jsonable,
+    newton_peak,
+    per_object,
+    rfft_frequencies,
+)
 from .psf import (
     REASONS,
     PSFError,
