@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from golden import COLUMNS, DATA, measured
+from golden import DATA, measured
 
 pytestmark = pytest.mark.filterwarnings("ignore::pylensfit.calibration.CalibrationWarning")
 
