@@ -246,7 +246,13 @@ class Config:
 
 
 # the flat shortcut: cfg.e_step reads cfg.grid.e_step
+def _flat_doc(name: str) -> str:
+    p = PARAMS[name]
+    unit = f", {p.unit}" if p.unit else ""
+    return f"{p.doc} Default {p.default!r}{unit}; ``cfg.{OWNER[name]}.{name}``."
+
+
 for _name, _owner in OWNER.items():
     setattr(Config, _name, property(operator.attrgetter(f"{_owner}.{_name}"),
-                                    doc=f"{PARAMS[_name].doc} (``{_owner}.{_name}``)"))
+                                    doc=_flat_doc(_name)))  # fmt: skip
 del _name, _owner

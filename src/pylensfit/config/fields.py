@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cache
 from typing import Any
 
 __all__ = ["OWNER", "PARAMS", "SECTIONS", "Param", "Section", "in_bounds", "parse_bounds"]
@@ -57,6 +58,7 @@ class Section:
     params: tuple[Param, ...]
 
 
+@cache
 def parse_bounds(text: str) -> tuple[float, float, bool, bool]:
     """``(lo, hi, lo_open, hi_open)`` of an interval written ``"[lo, hi)"``."""
     text = text.strip()

@@ -19,7 +19,7 @@ __all__ = ["SECTION_CLASSES", "Centring", "Detection", "Grid", "Models", "Neighb
 
 
 def _post_init(self) -> None:
-    validate_section(self.section, dataclasses.asdict(self))
+    validate_section(self.section, self.__dict__)
 
 
 def _to_dict(self) -> dict[str, Any]:
