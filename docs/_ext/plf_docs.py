@@ -3,9 +3,9 @@
 Directives (each reads the package at build time, so that the pages never go stale):
 
 ``.. plf-config-table::``
-    Every field of :class:`pylensfit.Config` (``dataclasses.fields``) with its type,
-    default and the description stored in the field's metadata (``metadata["doc"]``),
-    grouped under the ``# --- group ---`` comments of the class body.
+    Every parameter of :class:`pylensfit.Config`, one table per section, from the
+    declarative tables of :mod:`pylensfit.config.fields` (type, default, unit, allowed
+    values or range, description).
 ``.. plf-presets::``
     The named configurations of :data:`pylensfit.config.PRESETS`.
 ``.. plf-hdus::``
@@ -27,7 +27,6 @@ not shipped, or if a name of ``pylensfit.__all__`` is left undocumented.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import inspect
 import io
 import os
@@ -128,55 +127,34 @@ def _lit(text: str) -> list[nodes.Node]:
     return [nodes.literal(text, text)]
 
 
-def _config_groups(cls) -> list[tuple[str, list[str]]]:
-    """``[(group title, [field names])]`` from the ``# --- title ---`` comments of ``cls``."""
-    names = [f.name for f in dataclasses.fields(cls)]
-    try:
-        src = inspect.getsource(cls).splitlines()
-    except (OSError, TypeError):
-        return [("", names)]
-    groups: list[tuple[str, list[str]]] = [("", [])]
-    header = re.compile(r"^\s*#\s*-{2,}\s*(.*?)\s*-{2,}\s*$")
-    field_line = re.compile(r"^    (\w+)\s*:")
-    known = set(names)
-    for line in src:
-        h = header.match(line)
-        if h:
-            groups.append((h.group(1), []))
-            continue
-        f = field_line.match(line)
-        if f and f.group(1) in known:
-            groups[-1][1].append(f.group(1))
-    seen = {n for _, g in groups for n in g}
-    missing = [n for n in names if n not in seen]
-    if missing:  # anything the source scan missed still gets a row
-        groups.append(("other settings", missing))
-    return [(t, g) for t, g in groups if g]
+def config_rows(section) -> list[list]:
+    """The reference table's rows of one section of :data:`pylensfit.config.SECTIONS`:
+    parameter, type, default, unit, allowed values or range, description."""
+    return [[_lit(p.name), _lit(p.type_name), _lit(repr(p.default)), p.unit,
+             _lit(p.allowed) if p.allowed else "", _text_nodes(p.doc)]
+            for p in section.params]  # fmt: skip
 
 
 class ConfigTable(Directive):
-    """Every :class:`pylensfit.Config` field: type, default, description."""
+    """Every :class:`pylensfit.Config` parameter, one table per section, generated from
+    the declarative tables of :mod:`pylensfit.config.fields`."""
 
     has_content = False
 
     def run(self):
-        from pylensfit import Config, config
+        from pylensfit import config
+        from pylensfit.config import SECTIONS, fields
 
-        _depend(self, config)
-        fields = {f.name: f for f in dataclasses.fields(Config)}
+        _depend(self, config, fields)
         out: list[nodes.Node] = []
-        for title, names in _config_groups(Config):
-            if title:
-                out.append(nodes.rubric("", "", *_text_nodes(title[:1].upper() + title[1:])))
-            rows = []
-            for name in names:
-                f = fields[name]
-                typ = f.type if isinstance(f.type, str) else getattr(f.type, "__name__",
-                                                                      str(f.type))
-                rows.append([_lit(name), _lit(typ), _lit(repr(f.default)),
-                             _text_nodes(f.metadata.get("doc", ""))])
-            out.append(_table(["field", "type", "default", "description"], rows,
-                              [18, 6, 10, 66], ids=[f"config-{n}" for n in names]))
+        for section in SECTIONS:
+            out.append(nodes.rubric("", "", nodes.Text(f"{section.title} "),
+                                    nodes.literal(f"cfg.{section.name}",
+                                                  f"cfg.{section.name}")))  # fmt: skip
+            out.append(nodes.paragraph("", "", *_text_nodes(section.doc)))
+            out.append(_table(["parameter", "type", "default", "unit", "allowed",
+                               "description"], config_rows(section), [16, 8, 8, 8, 12, 48],
+                              ids=[f"config-{p.name}" for p in section.params]))  # fmt: skip
         return out
 
 
