@@ -49,6 +49,7 @@ PUBLIC_MODULES = (
     "pylensfit.flags",
     "pylensfit.forced",
     "pylensfit.grid",
+    "pylensfit.images",
     "pylensfit.likelihood",
     "pylensfit.metacal",
     "pylensfit.models",

@@ -74,16 +74,16 @@ def test_headline_command_and_validate_on_a_few_star_set(few_stars, tmp_path, ca
 def test_a_failed_run_leaves_no_parts_and_no_output(few_stars, tmp_path, monkeypatch):
     """An error in the second image's task: the error reaches the caller, and neither
     ``<output>.parts/`` nor the catalogue is left behind."""
-    from pylensfit import pipeline
+    from pylensfit.images import passes
 
-    task = pipeline._image_task
+    task = passes.image_task
 
     def failing(t):
         if Path(t.path).name == "psf0_g1.fits":
             raise ValueError("a failure in the work")
         return task(t)
 
-    monkeypatch.setattr(pipeline, "_image_task", failing)
+    monkeypatch.setattr(passes, "image_task", failing)
     out = tmp_path / "cat.fits"
     with pytest.raises(ValueError, match="a failure in the work"):
         plf.measure([few_stars / "psf0_g0.fits", few_stars / "psf0_g1.fits"],

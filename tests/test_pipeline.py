@@ -7,6 +7,9 @@ import pytest
 from astropy.io import fits
 from astropy.table import Table
 
+import pylensfit.images.neighbours as neighbours
+import pylensfit.images.passes as passes
+import pylensfit.images.run as run
 import pylensfit.pipeline as pl
 from pylensfit import Config, Prior
 from pylensfit.cli import main
@@ -192,8 +195,8 @@ def test_missing_and_corrupt_files(fields, tmp_path):
 def _no_task_runs(monkeypatch) -> list:
     """The tasks that start (none should), in place of the pipeline's."""
     calls = []
-    monkeypatch.setattr(pl, "_image_task", lambda t: calls.append(t.path))
-    monkeypatch.setattr(pl, "_starfield_task", lambda t: calls.append(t.path))
+    monkeypatch.setattr(passes, "image_task", lambda t: calls.append(t.path))
+    monkeypatch.setattr(run, "starfield_task", lambda t: calls.append(t.path))
     return calls
 
 
@@ -429,7 +432,7 @@ def test_resume_after_a_killed_run(fields, tmp_path, monkeypatch):
     d, *_ = fields
     out = tmp_path / "run.fits"
     calls = []
-    real = pl._image_task
+    real = passes.image_task
 
     def crashing(task):
         calls.append(task.path)
@@ -437,7 +440,7 @@ def test_resume_after_a_killed_run(fields, tmp_path, monkeypatch):
             raise KeyboardInterrupt("killed")
         return real(task)
 
-    monkeypatch.setattr(pl, "_image_task", crashing)
+    monkeypatch.setattr(passes, "image_task", crashing)
     args = dict(stars=[d / "stars.fits"], config=CFG, prior=PRIOR, output=out, progress=False)
     with pytest.raises(KeyboardInterrupt):
         measure([d / "a.fits", d / "b.fits"], **args)
@@ -445,7 +448,7 @@ def test_resume_after_a_killed_run(fields, tmp_path, monkeypatch):
     parts = list((tmp_path / "run.fits.parts").glob("*.fits"))
     assert len(parts) == 1 and "_a_" in parts[0].name
     calls.clear()
-    monkeypatch.setattr(pl, "_image_task", lambda t: (calls.append(t.path), real(t))[1])
+    monkeypatch.setattr(passes, "image_task", lambda t: (calls.append(t.path), real(t))[1])
     cat = measure([d / "a.fits", d / "b.fits"], **args)
     assert [c.rsplit("/", 1)[-1] for c in calls] == ["b.fits"], "finished images not redone"
     assert out.exists() and not (tmp_path / "run.fits.parts").exists()
@@ -668,8 +671,9 @@ def test_neighbour_subtraction_recovers_the_isolated_shape():
         return (w @ f.egrid) / w.sum(axis=1, keepdims=True)
 
     first = fit_stamps(stamps, psf_img, 1.0, config=cfg, centres=(cx, cy))
-    others, _ = pl._neighbour_light(target.shape, x, y, first.x + (x - cx), first.y + (y - cy),
-                                 np.arange(2), first, psf_img, cfg)  # fmt: skip
+    others, _ = neighbours.neighbour_light(target.shape, x, y, first.x + (x - cx),
+                                           first.y + (y - cy), np.arange(2), first, psf_img,
+                                           cfg)  # fmt: skip
     true_light, *_ = cut_stamps(neigh, x[:1], y[:1], 32)
     assert np.abs(others[0] - true_light[0]).max() < 0.1 * true_light[0].max()
     alone, *_ = cut_stamps(target, x[:1], y[:1], 32)

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 from astropy.io import fits
 
-import pylensfit.pipeline as pl
+import pylensfit.images.passes as passes
 from pylensfit import Config, Prior
 from pylensfit.pipeline import measure
 from pylensfit_validation.simulate import FieldSpec, simulate_field, write_field
@@ -34,14 +34,14 @@ def images(tmp_path_factory):
 
 def _killed_at(monkeypatch, name: str) -> None:
     """Image tasks as they are, but a kill when the task of image ``name`` starts."""
-    real = pl._image_task
+    real = passes.image_task
 
     def task(t):
         if t.path.endswith(name):
             raise KeyboardInterrupt("killed")
         return real(t)
 
-    monkeypatch.setattr(pl, "_image_task", task)
+    monkeypatch.setattr(passes, "image_task", task)
 
 
 def _date_masked(path) -> bytes:

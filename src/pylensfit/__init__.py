@@ -17,8 +17,8 @@ from ._version import __version__
 from .calibration import CalibrationWarning, Priors, calibrate, measure_stamps
 from .config import Config, ConfigError
 from .grid import ellipticity_grid
+from .images import InputError, measure, read_catalogue, write_catalogue
 from .likelihood import StampFits, fit_stamps
-from .pipeline import InputError, measure, read_catalogue, write_catalogue
 from .prior import (
     BinnedPrior,
     Prior,

@@ -28,7 +28,7 @@ import numpy as np
 from astropy.table import vstack
 
 from .config import PRESETS, Config
-from .pipeline import InputError, catalogue_frame, measure, read_catalogue
+from .images import InputError, catalogue_frame, measure, read_catalogue
 from .prior import RadialPrior, estimate_prior
 from .shear import shapes, shear_table
 from .skyframe import sensitivity_to_sky, to_sky

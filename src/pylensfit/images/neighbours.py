@@ -1,0 +1,304 @@
+"""Neighbour subtraction: the neighbours' models taken out of each stamp (method, not
+plumbing).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from .. import flags as _flags
+from ..config import Config
+from ..models import render_models
+from ..shear import refine_lnL
+from ..stamps import add_patches, cut_stamps, patch_origins
+
+__all__ = ["subtract_neighbours", "implausible_models", "neighbour_light"]
+
+
+_MODEL_KEYS = ("flux", "x", "y", "is_star", "r_best", "lnL", "bulge_best", "flags", "stamp")
+
+
+def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Config, refit,
+                        store, *, sky=None, data=None):  # fmt: skip
+    """Fit galaxies again with their neighbours' best-fit models taken out of the stamps.
+
+    ``cfg.neighbour_iterations`` rounds: each renders every fitted object's current model
+    (:func:`neighbour_light`) and refits the galaxies of the first fit (``flags == 0``)
+    whose stamps hold more than ``cfg.neighbour_min_chi2`` of their neighbours' light.
+    The first round's neighbour models were fitted with the galaxy's own wings in their
+    stamps; a second round fits the neighbours with the galaxy's model subtracted in turn
+    (measured: it moves m by less than 2e-4 for the neighbours alone; the re-measured
+    sky below needs it, so two rounds are the default). With
+    ``cfg.subtract_neighbours`` off, no neighbour light is taken out (only ``sky``'s
+    change).
+
+    With ``sky``, every round also measures the background again on the image less the
+    current model of every fitted object (``sky(field)`` returns the change of the
+    background map), and that change is taken out of every stamp too; a galaxy is
+    refitted when the two together exceed ``cfg.neighbour_min_chi2``. The first fit
+    (on the first background, with the neighbours in the stamps) gives models too
+    extended and too faint, so the sky converges over the rounds (a STEP2-like field:
+    +0.056, +0.017, +0.006 noise sigma).
+
+    Parameters
+    ----------
+    shape : tuple
+        Image shape.
+    x, y : numpy.ndarray
+        Every object's stamp position (the stamps' centres).
+    xf, yf : numpy.ndarray
+        Every object's fitted position, updated in place by ``store``.
+    noise : numpy.ndarray
+        Every object's noise sigma.
+    fitted : numpy.ndarray
+        Indices of the objects fitted, in the order of ``first``.
+    first : StampFits
+        Their first fits.
+    psf : numpy.ndarray or tuple
+        PSF image, or ``(images, cell)``: ``(n_cells, N, N)`` PSF images and each
+        object's cell (``(n_objects,)``), every model rendered with its cell's PSF.
+    cfg : Config
+    refit : callable
+        ``refit(idx, others)`` fits the stamps of objects ``idx`` less ``others``.
+    store : callable
+        ``store(fits, idx)`` records the fits of objects ``idx`` (and updates ``xf, yf``).
+    sky : callable, optional
+        ``sky(field) -> (ny, nx)``: the change of the background when it is measured on
+        the image less ``field``, the rendered models of all fitted objects.
+    data : numpy.ndarray, optional
+        ``(n, N, N)`` every object's stamp as the fits saw it (``N =
+        cfg.largest_stamp``): with it, every round first judges the current models
+        (:func:`implausible_models`). The objects whose models do not fit their stamps
+        (a defect: a saturated star, a bleed trail, a hot pixel) are suspects: their
+        models are rendered neither into the others' stamps nor into ``field``, and they
+        are fitted again with the others' light taken out; a suspect whose new fit
+        describes its stamp is cleared (a first fit spoiled by a bright neighbour), the
+        others are ``DEFECT``. After the last round the suspects' last fits are judged
+        once more.
+
+    Returns
+    -------
+    done : numpy.ndarray
+        Indices of the objects whose neighbours' light was taken out (a subset of those
+        fitted again when ``sky`` is given).
+    defect : numpy.ndarray
+        Boolean, one per ``fitted``: the objects whose best model does not fit their
+        stamp (none without ``data``).
+    """
+    cur = {k: np.array(getattr(first, k)) for k in _MODEL_KEYS}
+    cur["egrid"] = first.egrid
+    ok = first.flags == 0
+    done = np.zeros(0, dtype=np.int64)
+    dsky = None
+    suspect = np.zeros(fitted.size, dtype=bool)
+
+    def light():  # every fitted model, the suspects' into their own stamps only
+        return neighbour_light(shape, x, y, xf, yf, fitted, SimpleNamespace(**cur), psf, cfg,
+                                exclude=suspect, own_too=True)  # fmt: skip
+
+    def judge(others, own, aside):  # with every model's light, the suspects' too
+        return implausible_models(data, fitted, noise, SimpleNamespace(**cur), cfg,
+                                   others if aside is None else others + aside, own,
+                                   dsky)  # fmt: skip
+
+    def _chi2(light):  # the light taken out of each fitted stamp, in units of its noise
+        # (the window each object was fitted on: the base stamp or a larger tier)
+        out = np.empty(fitted.size)
+        nl, win = light.shape[1], np.asarray(cur["stamp"])
+        for s in np.unique(win):
+            a, i = nl // 2 - int(s) // 2, np.flatnonzero(win == s)
+            out[i] = np.sum(light[fitted[i], a : a + int(s), a : a + int(s)] ** 2, axis=(1, 2))
+        return out / noise[fitted] ** 2
+
+    refitted = np.zeros(fitted.size, dtype=bool)  # in the last round
+    for _ in range(int(cfg.neighbour_iterations)):
+        others, field, own, aside = light()
+        if data is not None:
+            now = judge(others, own, aside)
+            if (now != suspect).any():
+                suspect = now
+                others, field, own, aside = light()
+        if not cfg.subtract_neighbours:
+            others[:] = 0.0
+        if sky is not None:
+            dsky = cut_stamps(sky(field), x, y, cfg.largest_stamp)[0]
+        near = _chi2(others) > cfg.neighbour_min_chi2
+        less = others if dsky is None else others + dsky
+        go = near if dsky is None else _chi2(less) > cfg.neighbour_min_chi2
+        sel = np.flatnonzero(ok & (go | suspect))
+        refitted[:] = False
+        if sel.size == 0:
+            break
+        idx = fitted[sel]
+        f2 = refit(idx, less[idx])
+        store(f2, idx)
+        for k in _MODEL_KEYS:
+            cur[k][sel] = getattr(f2, k)
+        refitted[sel] = True
+        done = np.union1d(done, fitted[ok & near])
+    if data is not None and (suspect & refitted).any():  # the suspects' last fits
+        others, _, own, aside = light()
+        suspect = judge(others, own, aside)
+    return done, suspect
+
+
+def _likelihood_mean_e(lnL: np.ndarray, egrid: np.ndarray, block: int = 512) -> np.ndarray:
+    """``(n, 2)`` mean of each ``L(e)`` (flat prior) on the refined integration grid: the
+    ellipticity of a neighbour's model, continuous where the most likely cell is not."""
+    out = np.zeros((lnL.shape[0], 2))
+    for s0 in range(0, lnL.shape[0], block):
+        fine, grid = refine_lnL(lnL[s0 : s0 + block], egrid)
+        w = np.exp(fine)
+        out[s0 : s0 + block] = (w @ grid) / w.sum(axis=1, keepdims=True)
+    return out
+
+
+def _rendered(f) -> np.ndarray:
+    """Which fits ``f`` have a model to render: a finite, positive flux at a finite
+    position."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(f.flux) & (f.flux > 0) & np.isfinite(f.x) & np.isfinite(f.y)
+
+
+def implausible_models(data, fitted, noise, f, cfg: Config, others, own,
+                        dsky=None) -> np.ndarray:  # fmt: skip
+    """The fitted objects whose best model does not fit their stamp (``DEFECT``).
+
+    On the base stamp (``cfg.stamp_size`` px square about the object, where the
+    close-pair test left no other detection) the residual ``r`` is the stamp less the
+    object's own rendered model and its neighbours'. An object is implausible where the
+    residual is both significant, a reduced chi-square ``chi2 = sum(r^2) / (sigma^2
+    N^2)`` above ``cfg.max_reduced_chi2``, and a large part of the model's own power,
+    ``sum(r^2 - sigma^2) / sum(m^2)`` above ``cfg.max_residual_fraction`` (``m`` the
+    model on the stamp). A galaxy or a star that the models describe leaves the noise
+    and a small mismatch of the profile; a saturated star, a bleed trail or a hot pixel
+    (flat-topped, or sharper than the PSF) leaves a residual of thousands of noise
+    variances per pixel, 0.13 to 20 times the model's power. So is a fit with no finite
+    positive amplitude and no other flag than ``STAR``.
+
+    A defect's model spreads into its neighbours' stamps and raises their residuals, so
+    an object is implausible only if its stamp less its own model alone is beyond the
+    limits too: a neighbour spoiled by the defect's model alone is not.
+
+    Parameters
+    ----------
+    data : numpy.ndarray
+        ``(n, N, N)`` every object's stamp (background subtracted, data units), cut as
+        :func:`~pylensfit.stamps.cut_stamps` cuts them (``N >= cfg.stamp_size``).
+    fitted : numpy.ndarray
+        ``(m,)`` indices of the fitted objects, in the order of ``f``.
+    noise : numpy.ndarray
+        ``(n,)`` noise sigma per pixel (data units).
+    f : StampFits or namespace
+        The current fits of the objects ``fitted`` (``flux, x, y, flags``).
+    cfg : Config
+    others, own : numpy.ndarray
+        ``(n, N, N)`` :func:`neighbour_light`'s light of the other objects and each
+        object's own model (``own_too=True``), data units.
+    dsky : numpy.ndarray, optional
+        ``(n, N, N)`` the change of the sky taken out of the stamps too.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(m,)`` boolean, the implausible objects.
+    """
+    n, big = cfg.stamp_size, data.shape[1]
+    w = slice(big // 2 - n // 2, big // 2 - n // 2 + n)  # the base stamp in the larger
+
+    def cut(a, idx):
+        return a[idx][:, w, w]
+
+    rendered = _rendered(f)
+    var = noise[fitted] ** 2
+    mine = cut(own, fitted)
+    resid = cut(data, fitted) - mine
+    if dsky is not None:
+        resid -= cut(dsky, fitted)
+    with np.errstate(over="ignore", invalid="ignore"):
+        power = np.sum(mine * mine, axis=(1, 2)) / var  # the model's, in noise variances
+    out = rendered & _poor_fit(resid, var, power, cfg)  # its own model alone
+    i = np.flatnonzero(out)  # the few: with the neighbours' light taken out too
+    out[i] = _poor_fit(resid[i] - cut(others, fitted[i]), var[i], power[i], cfg)
+    star = _flags.flag_value("STAR")
+    return out | ~rendered & ((np.asarray(f.flags) & ~star) == 0)
+
+
+def _poor_fit(resid: np.ndarray, var: np.ndarray, power: np.ndarray, cfg: Config) -> np.ndarray:
+    """Where residuals ``(m, N, N)`` (data units; noise variance ``var`` per stamp) are
+    significant (reduced chi-square above ``cfg.max_reduced_chi2``) and more than
+    ``cfg.max_residual_fraction`` of the model's ``power`` (in noise variances)."""
+    npix = resid.shape[1] * resid.shape[2]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        chi2 = np.sum(resid * resid, axis=(1, 2)) / var
+        frac = (chi2 - npix) / power
+        return ~(chi2 <= cfg.max_reduced_chi2 * npix) & ~(frac <= cfg.max_residual_fraction)
+
+
+def neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: int = 256,
+                     exclude=None, own_too: bool = False):  # fmt: skip
+    """The light of every other fitted object in each object's stamp.
+
+    Each object of ``fitted`` (fits ``f``, in the same order) is rendered
+    (:func:`pylensfit.models.render_models`) with the size, bulge fraction, flux and
+    position of the maximum of ``L(e, r)`` and the mean ellipticity of ``L(e)`` (a
+    point source for stars) on a canvas of four times the stamp side about its position
+    (the models are periodic on it: a de Vaucouleurs model has 13-28 % of its light
+    beyond 16 px at r = 4 px, which a canvas of twice the stamp wraps back), and
+    the canvases are added into an image of the field (and at least twice the largest
+    stamp tier). Returns ``(n, N, N)``, ``N = cfg.largest_stamp``: that image cut about
+    every object's position as :func:`~pylensfit.stamps.cut_stamps` cuts the stamps,
+    less the object's own model; and the image of the field. The objects of
+    ``exclude`` (boolean, one per ``fitted``: suspected defects) are left out of the
+    field, so of every stamp but their own. With ``own_too``, two more: each object's
+    own model (``(n, N, N)``, zero where none; the excluded objects' too) and the light
+    of the excluded objects in each stamp, less its own (``(n, N, N)``, or ``None``
+    where none is excluded). ``psf`` is the PSF image, or ``(images, cell)`` for a PSF
+    per cell of the image (:func:`subtract_neighbours`).
+    """
+    n_stamp = cfg.largest_stamp  # the stamps of the tiers (Config.max_stamp_size)
+    big = max(4 * cfg.stamp_size, 2 * n_stamp)
+    good = _rendered(f)
+    obj = fitted[good]
+    into = np.ones(obj.size, dtype=bool) if exclude is None else ~np.asarray(exclude)[good]
+    r = np.where(f.is_star[good], 0.0, np.nan_to_num(f.r_best[good]))
+    e = _likelihood_mean_e(f.lnL[good], f.egrid)
+    e1 = np.where(f.is_star[good], 0.0, e[:, 0])
+    e2 = np.where(f.is_star[good], 0.0, e[:, 1])
+    bf = np.nan_to_num(f.bulge_best[good], nan=cfg.bulge_fraction)
+    flux = f.flux[good]
+    field = np.zeros(shape)
+    aside = np.zeros(shape) if own_too and not into.all() else None  # the excluded's
+    own = np.zeros((x.size, n_stamp, n_stamp))
+    bx0, by0 = patch_origins(x[obj], y[obj], big)
+    lo = big // 2 - n_stamp // 2
+    if isinstance(psf, tuple):  # a PSF per cell of the image: each model with its own
+        images, cell = psf
+        groups = [(images[c], np.flatnonzero(cell[obj] == c)) for c in np.unique(cell[obj])]
+    else:
+        groups = [(psf, np.arange(obj.size))]
+    for p_img, members in groups:
+        for s0 in range(0, members.size, block):
+            sl = members[s0 : s0 + block]
+            pat = render_models(big, p_img, xf[obj[sl]] - bx0[sl], yf[obj[sl]] - by0[sl],
+                                e1[sl], e2[sl], r[sl], flux[sl], model=cfg.model,
+                                bulge_fraction=bf[sl],
+                                bulge_size_ratio=cfg.bulge_size_ratio)  # fmt: skip
+            k = into[sl]
+            add_patches(field, pat[k], bx0[sl][k], by0[sl][k])
+            if aside is not None:
+                add_patches(aside, pat[~k], bx0[sl][~k], by0[sl][~k])
+            own[obj[sl]] = pat[:, lo : lo + n_stamp, lo : lo + n_stamp]
+    stamps, _, _, _ = cut_stamps(field, x, y, n_stamp)
+    if into.all():
+        stamps -= own
+    else:  # the excluded objects' own light is in no stamp
+        stamps[obj[into]] -= own[obj[into]]
+    if not own_too:
+        return stamps, field
+    if aside is not None:
+        aside = cut_stamps(aside, x, y, n_stamp)[0]
+        aside[obj[~into]] -= own[obj[~into]]
+    return stamps, field, own, aside

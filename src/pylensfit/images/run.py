@@ -1,0 +1,216 @@
+""":func:`measure`, the pipeline's entry point: from FITS images to a shear catalogue."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from astropy.table import Table
+
+from ..calibration import Priors
+from ..config import Config
+from ..prior import Prior, SizePrior
+from ..psf import PSFResult
+from ..psfmodel import PSFModel
+from ..runner import run_tasks, worker_pool
+from .catalogue_io import write_catalogue
+from .image_psf import starfield_task
+from .inputs import InputError, as_list, check_inputs, load_given, read_given_psfs
+from .parts import parts_dropped_if_unused, remove_stale_temporaries
+from .passes import LastPass, assemble_results, calibrate_images, measure_pass
+from .records import ImageTask, StarfieldTask
+
+__all__ = ["measure"]
+
+# the pipeline's one logger: its name predates the split into modules
+log = logging.getLogger("pylensfit.pipeline")
+
+
+def measure(
+    images: str | os.PathLike | Iterable[str | os.PathLike],
+    *,
+    stars: Iterable[str | os.PathLike] | None = None,
+    weights: Iterable[str | os.PathLike | None] | None = None,
+    masks: Iterable[str | os.PathLike | None] | None = None,
+    catalogues: Iterable[str | os.PathLike | None] | None = None,
+    star_column: str | None = None,
+    config: Config | None = None,
+    prior: Prior | str | os.PathLike | None = None,
+    size_prior: SizePrior | str | os.PathLike | None = None,
+    priors: Priors | str | os.PathLike | None = None,
+    psf: PSFResult | PSFModel | np.ndarray | str | os.PathLike | Sequence | None = None,
+    output: str | os.PathLike | None = None,
+    psf_dir: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> Table:
+    """Measure the shapes of every object in FITS images: images in, catalogue out.
+
+    Parameters
+    ----------
+    images : str or list of str
+        FITS images (background need not be subtracted). A ``WEIGHT`` HDU (inverse
+        variance) and a ``MASK`` HDU (non-zero = bad) in the same file are used if present.
+    stars : list of str, optional
+        Separate star-field images; their PSFs are co-added with each image's own
+        (``Config.psf_model = "polynomial"``: the polynomial model of the most stars is
+        used).
+    psf : PSFResult, PSFModel, numpy.ndarray or str, or a list of them, optional
+        The PSF instead of stars: an image (pixel response included, centred on
+        ``[n//2, n//2]``) or its file, a :class:`~pylensfit.psfmodel.PSFModel` (a PSF
+        over the field, each galaxy fitted with it at its position as
+        ``Config.psf_interpolation`` says) or a file :func:`~pylensfit.psfmodel.read_psf_model`
+        reads (a Piff model); one for every image or one per image.
+    weights, masks : list of str, optional
+        Weight and mask files, one per image (``None`` entries allowed).
+    catalogues : list of str, optional
+        Input catalogues (FITS or any astropy-readable table with ``x, y`` 0-based or
+        ``X_IMAGE, Y_IMAGE`` 1-based), one per image, instead of detection.
+    star_column : str, optional
+        Column of the detection / input catalogue that marks the PSF stars (overrides
+        the stellar-locus selection).
+    config : Config, optional
+        Settings (default ``Config()``, the recommended method).
+    prior : Prior or str, optional
+        An ellipticity prior (or the path of a saved one) to keep instead of estimating
+        it; the other priors are still estimated.
+    size_prior : SizePrior or str, optional
+        A size prior (or the path of a saved one, :meth:`pylensfit.prior.SizePrior.save`)
+        to keep instead of estimating it.
+    priors : Priors or str, optional
+        Every prior, as :func:`pylensfit.calibrate` or an earlier run gives them (or the
+        path of a saved :class:`~pylensfit.Priors`): the images are measured once, under
+        them. Without it the calibration recipe (:mod:`pylensfit.calibration`) estimates
+        them from the run's own galaxies: passes over the images with the starting
+        priors, then under the flux and position priors estimated, then under the size
+        prior (with the default configuration three passes; the last is the
+        measurement). The catalogue keeps them (``meta["priors"]``, HDU ``PRIORS``).
+    output : str, optional
+        Catalogue path (FITS). With an output, finished images are kept in
+        ``<output>.parts/`` until the catalogue is written, and a restarted run resumes.
+    psf_dir : str, optional
+        Write each image's PSF here as ``<image stem>.psf.fits`` (the image, its size and
+        ellipticity in the header, and a ``STARS`` table of every star candidate: used or
+        rejected, and why; :meth:`pylensfit.psf.PSFResult.write`). With a dask scheduler
+        the workers write it, so the folder must be shared with them.
+    overwrite : bool
+        Replace an existing output.
+    jobs : int
+        Local worker processes (one BLAS / numba thread each); 1 runs in this process.
+    scheduler : str, optional
+        Address of a dask.distributed scheduler to run the images on instead.
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    astropy.table.Table
+        The catalogue (columns: :data:`pylensfit.catalogue.COLUMNS`), with the
+        ``(n, n_e)`` ``lnL`` grids as a 2-D column and ``meta`` holding the ellipticity
+        grid, the prior and the per-image PSF diagnostics.
+
+    Raises
+    ------
+    InputError
+        A missing, unreadable or truncated file, an image given twice, an empty image, an
+        empty input catalogue, a star field without usable stars: one line naming the
+        file and the problem. Every image, weight map, mask and star field is opened
+        (its headers read) before any work starts.
+    """
+    cfg = config if config is not None else Config()
+    inp = _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_prior,
+                          priors, output, overwrite)  # fmt: skip
+    if psf_dir is not None:
+        Path(psf_dir).mkdir(parents=True, exist_ok=True)
+    parts = inp.parts
+    # one set of workers for every pass; a run failing before it has written a part
+    # leaves no empty <output>.parts/
+    with worker_pool(jobs, scheduler) as pool, parts_dropped_if_unused(parts):
+        # star fields first: their PSFs go to every image
+        star_psfs = []
+        st_tasks = [StarfieldTask(path=p, index=i, config=cfg) for i, p in enumerate(inp.stars)]
+        for _, res in run_tasks(starfield_task, st_tasks, jobs, scheduler, "star fields",
+                                progress, pool):  # fmt: skip
+            star_psfs.append(res)
+        star_psfs.sort(key=lambda r: inp.stars.index(r.source))
+        tasks = [
+            ImageTask(path=p, index=i, config=cfg, weight=w, mask=m, catalogue=c,
+                       star_psfs=tuple(star_psfs), star_column=star_column,
+                       psf_dir=None if psf_dir is None else str(psf_dir),
+                       psf=None if inp.psfs is None else inp.psfs[i])
+            for i, (p, w, m, c) in enumerate(zip(inp.images, inp.weights, inp.masks,
+                                                 inp.catalogues, strict=True))
+        ]  # fmt: skip
+        pr_file = parts / "priors.json" if parts is not None else None
+        last = LastPass()
+        priors = inp.priors
+        if priors is None and pr_file is not None and pr_file.exists():
+            priors = Priors.load(pr_file)  # a resumed run keeps its priors
+            log.info("priors of the interrupted run read from %s", pr_file)
+        if priors is None:
+            priors = calibrate_images(tasks, cfg, inp.prior, inp.size_prior, jobs, scheduler,
+                                       progress, pool, last, parts)  # fmt: skip
+        results = measure_pass(tasks, cfg, priors, last, parts, pr_file, jobs, scheduler,
+                                progress, pool)  # fmt: skip
+    cat = assemble_results([results[i] for i in range(len(tasks))], cfg, priors)
+    if inp.out is not None:
+        write_catalogue(cat, inp.out, overwrite=overwrite)
+        shutil.rmtree(parts, ignore_errors=True)
+    return cat
+
+
+@dataclass
+class _MeasureInputs:
+    """:func:`measure`'s inputs, checked: paths as strings, one entry per image."""
+
+    images: list[str]
+    stars: list[str]
+    weights: list
+    masks: list
+    catalogues: list
+    psfs: list[PSFResult | PSFModel] | None  # given PSFs, one per image
+    prior: Prior | None
+    size_prior: SizePrior | None
+    priors: Priors | None
+    out: Path | None  # the catalogue
+    parts: Path | None  # the finished images' folder, ``<output>.parts/``
+
+
+def _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_prior,
+                    priors, output, overwrite: bool) -> _MeasureInputs:  # fmt: skip
+    """Check :func:`measure`'s inputs (every file opened) before any work starts."""
+    if isinstance(images, (str, os.PathLike)):
+        images = [images]
+    images = [str(p) for p in images]
+    if not images:
+        raise InputError("no input image")
+    stars = [str(p) for p in (stars or [])]
+    given_psfs = read_given_psfs(psf, images)
+    if given_psfs is not None and stars:
+        raise InputError("give the PSF (psf=) or star fields to build it from (stars=), not both")
+    weights = as_list(weights, len(images), "weights")
+    masks = as_list(masks, len(images), "masks")
+    catalogues = as_list(catalogues, len(images), "catalogues")
+    for p in [*images, *stars, *[q for q in (*weights, *masks, *catalogues) if q]]:
+        if not Path(p).exists():
+            raise InputError(f"{p}: file not found")
+    check_inputs(images, weights, masks, stars)
+    prior = load_given(prior, Prior, "prior")
+    priors = load_given(priors, Priors, "priors")
+    size_prior = load_given(size_prior, SizePrior, "size prior")
+    out = Path(output) if output is not None else None
+    if out is not None and out.exists() and not overwrite:
+        raise FileExistsError(f"{out}: output exists (use overwrite to replace it)")
+    parts = out.with_name(out.name + ".parts") if out is not None else None
+    if out is not None:
+        remove_stale_temporaries(out, parts)
+    return _MeasureInputs(images=images, stars=stars, weights=weights, masks=masks,
+                          catalogues=catalogues, psfs=given_psfs, prior=prior,
+                          size_prior=size_prior, priors=priors, out=out, parts=parts)
