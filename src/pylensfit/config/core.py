@@ -249,7 +249,8 @@ class Config:
 def _flat_doc(name: str) -> str:
     p = PARAMS[name]
     unit = f", {p.unit}" if p.unit else ""
-    return f"{p.doc} Default {p.default!r}{unit}; ``cfg.{OWNER[name]}.{name}``."
+    doc = p.doc.replace("|", "\\|")  # |e| is no reStructuredText substitution
+    return f"{doc} Default {p.default!r}{unit}; ``cfg.{OWNER[name]}.{name}``."
 
 
 for _name, _owner in OWNER.items():

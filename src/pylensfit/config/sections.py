@@ -33,7 +33,7 @@ def _class_doc(section: Section) -> str:
     for p in section.params:
         unit = f", {p.unit}" if p.unit else ""
         lines += [f"{p.name} : {p.type_name}, default {p.default!r}{unit}", f"    {p.doc}"]
-    return "\n".join(lines)
+    return "\n".join(lines).replace("|", "\\|")  # |e| is no reStructuredText substitution
 
 
 def make_section(section: Section, cls_name: str) -> type:
