@@ -281,7 +281,7 @@ def test_select_stars_rejects_saturated(field, image):
 
 
 def test_select_stars_needs_candidates(cat, caplog):
-    with caplog.at_level("WARNING", logger="pylensfit.detection"):
+    with caplog.at_level("INFO", logger="pylensfit.detection"):
         sel = select_stars(cat, min_peak_snr=1e6)
     assert "fewer than min_stars" in caplog.text
     assert not sel.any()

@@ -888,8 +888,8 @@ def select_stars(
     min_width : float, optional
         Smallest intrinsic width of the locus in dex. Default 0.003 (0.7%).
     min_stars : int, optional
-        Fewest candidates needed to define a locus; with fewer, nothing is selected and a
-        warning is issued. Default 3.
+        Fewest candidates needed to define a locus; with fewer, nothing is selected (said
+        in the log at INFO level). Default 3.
     exclude_flags : int, optional
         Bits of ``flags`` that disqualify a star; default EDGE | MASKED | BAD_PIXELS.
     min_fraction : float, optional
@@ -924,8 +924,8 @@ def select_stars(
     k = len(r_half)
     sel = np.zeros(k, dtype=bool)
     idx = np.flatnonzero(cand)
-    if len(idx) < max(int(min_stars), 1):
-        log.warning(
+    if len(idx) < max(int(min_stars), 1):  # info: a caller says what it does instead
+        log.info(
             "select_stars: %d candidate(s) with peak S/N >= %g, fewer than min_stars=%d: "
             "no star selected", len(idx), min_peak_snr, min_stars,
         )
