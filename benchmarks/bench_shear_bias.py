@@ -35,12 +35,11 @@ import time
 
 import numpy as np
 
-from pylensfit.grid import ellipticity_grid
+from pylensfit.grid import ellipticity_grid, refined_grid
 from pylensfit.prior import Prior, estimate_prior
 from pylensfit.shear import (
     apply_shear,
     kernel_columns,
-    refined_grid,
     sensitivity_from_sums,
     sums_with,
 )

@@ -8,6 +8,7 @@ Each rule holds for the method (``pylensfit``) and for the validation harness
   import, an import cycle), on its line or just above it.
 * No function is longer than 150 lines, docstring included.
 * No import cycle among the package's modules, counting imports inside functions.
+* No module of the method imports one of a higher layer (:data:`LAYERS`).
 
 And between the layers:
 
@@ -113,15 +114,40 @@ def long_functions(modules) -> list[str]:
             if isinstance(fn, FUNCS) and fn.end_lineno - fn.lineno + 1 > MAX_LINES]
 
 
-def import_cycles(modules) -> list[tuple[str, str]]:
-    """``(a, b)`` for every import of module ``b`` by ``a`` (relative, at any level of
-    the code) where ``b`` imports ``a`` back, directly or through others."""
+def _resolve(name: str, node: ast.ImportFrom, known: set[str]) -> list[str]:
+    """The modules of the package that the relative import ``node`` of module ``name``
+    reaches (a package as its ``__init__``)."""
+    pkg = name.split(".")[:-1]
+    base = pkg[: len(pkg) - (node.level - 1)] if node.level > 1 else pkg
+    wanted = ([base + node.module.split(".")] if node.module
+              else [base + [a.name] for a in node.names])  # fmt: skip
+    found = []
+    for parts in wanted:
+        for cand in (".".join(parts), ".".join(parts + ["__init__"]),
+                     ".".join(parts[:-1] + ["__init__"])):  # fmt: skip
+            if cand in known:
+                found.append(cand)
+                break
+    return found
+
+
+def dependencies(modules) -> dict[str, set[str]]:
+    """``{module: modules of the package it imports}``, relative imports at any level of
+    the code, submodules of subpackages by their dotted names."""
+    known = {name for name, _, _ in modules}
     deps: dict[str, set[str]] = {}
     for name, _, tree in modules:
         d = deps.setdefault(name, set())
         for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom) and node.level == 1:
-                d |= {node.module.split(".")[0]} if node.module else {a.name for a in node.names}
+            if isinstance(node, ast.ImportFrom) and node.level >= 1:
+                d |= set(_resolve(name, node, known)) - {name}
+    return deps
+
+
+def import_cycles(modules) -> list[tuple[str, str]]:
+    """``(a, b)`` for every import of module ``b`` by ``a`` (relative, at any level of
+    the code) where ``b`` imports ``a`` back, directly or through others."""
+    deps = dependencies(modules)
 
     def reaches(a: str, b: str) -> bool:
         seen, todo = set(), [a]
@@ -135,6 +161,39 @@ def import_cycles(modules) -> list[tuple[str, str]]:
         return False
 
     return [(a, b) for a, ds in deps.items() for b in ds if b != a and reaches(b, a)]
+
+
+#: The method's layers, from the bottom: a module imports only from its own layer or
+#: from those below it (a subpackage counts as one module). The fit takes the priors
+#: as its inputs, so the prior distributions lie below it; the Bayesian layer (shapes,
+#: shear, weights, the measured response) lies above it, the assembly of catalogue rows
+#: and the calibration recipe above that, the image pipeline above all of the method,
+#: and the command line and the package's namespace on top.
+LAYERS = (
+    ("_version", "_util", "flags", "bankruns", "config", "runner"),
+    ("grid", "_kernels_nb", "psf", "psfmodel", "detection", "stamps", "skyframe",
+     "catalogue"),
+    ("models", "forced"),
+    ("prior",),
+    ("likelihood",),
+    ("shear", "weights", "metacal"),
+    ("assemble",),
+    ("calibration",),
+    ("images", "pipeline"),
+    ("cli", "__init__"),
+)
+
+
+def layer_violations(modules, layers=LAYERS) -> list[str]:
+    """``"a -> b"`` for every import by ``a`` of a module ``b`` of a higher layer, and
+    ``"a: no layer"`` for a top-level module that :data:`LAYERS` does not place."""
+    rank = {m: i for i, layer in enumerate(layers) for m in layer}
+    top = lambda m: m.split(".")[0]  # noqa: E731
+    found = [f"{top(a)}: no layer" for a in dependencies(modules) if top(a) not in rank]
+    for a, ds in dependencies(modules).items():
+        found += [f"{a} -> {b}" for b in ds
+                  if top(b) in rank and top(a) in rank and rank[top(b)] > rank[top(a)]]  # fmt: skip
+    return sorted(set(found))
 
 
 def _absolute_imports(tree):
@@ -242,6 +301,10 @@ def test_no_import_cycles(package):
     assert import_cycles(_package(PACKAGES[package])) == []
 
 
+def test_no_layer_imports_a_higher_one():
+    assert layer_violations(_package(SRC)) == []
+
+
 @pytest.mark.parametrize("package", PACKAGES)
 def test_no_private_imports_across_modules(package):
     assert private_imports(_package(PACKAGES[package])) == []
@@ -292,6 +355,14 @@ def test_the_checks_find_what_they_are_for():
     assert long_functions(bad) == [f"m.g: {MAX_LINES + 1} lines"]
     loop = [_module("a", "from .b import x\n"), _module("b", "def f():\n    from .a import y\n")]
     assert sorted(import_cycles(loop)) == [("a", "b"), ("b", "a")]
+    inner = [_module("p.__init__", "from .a import x\n"), _module("p.a", "from . import b\n"),
+             _module("p.b", "def f():\n    from .a import y\n")]  # fmt: skip
+    assert sorted(import_cycles(inner)) == [("p.a", "p.b"), ("p.b", "p.a")]
+    layers = (("low",), ("p",), ("high",))
+    stack = [_module("low", "from .p import x\n"), _module("p.__init__", "from ..high import y\n"),
+             _module("high", "from . import low\n"), _module("stray", "")]  # fmt: skip
+    assert layer_violations(stack, layers) == ["low -> p.__init__", "p.__init__ -> high",
+                                                "stray: no layer"]  # fmt: skip
 
 
 def test_the_layer_checks_find_what_they_are_for():

@@ -1130,7 +1130,7 @@ def test_refined_windows_are_the_finer_grid_fit(rng, model, n_b):
     the grid of 0.05 gives (the same models, up to the centring pass's origin), and
     elsewhere the interpolation of its fit on the grid of 0.1, which alone is off by
     more than a unit of ln L at the peak of such a narrow likelihood."""
-    from pylensfit.shear import refine_lnL
+    from pylensfit.grid import refine_lnL
 
     stamps, psf = _refinement_set(rng, model, (60, 250))
     cfg = Config.paper(model=model, n_bulge_fractions=n_b)
@@ -1157,7 +1157,7 @@ def test_refined_windows_are_the_finer_grid_fit(rng, model, n_b):
 def test_broad_likelihoods_are_interpolated_not_refined(rng):
     """A faint galaxy's likelihood spreads beyond ``refine_width``: it is the interpolation
     of the grid of 0.1 (the quintic of the Bayesian integrals) on every cell."""
-    from pylensfit.shear import refine_lnL
+    from pylensfit.grid import refine_lnL
 
     stamps, psf = _refinement_set(rng, "exponential", (8, 12))
     cfg = Config.paper(model="exponential")

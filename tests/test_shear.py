@@ -4,17 +4,15 @@ import numpy as np
 import pytest
 from astropy.table import Table
 
-from pylensfit.grid import ellipticity_grid
+from pylensfit.grid import DEFAULT_REFINE, ellipticity_grid, refine_lnL
 from pylensfit.prior import Prior, estimate_prior, estimate_prior_binned
 from pylensfit.shear import (
-    DEFAULT_REFINE,
     FLAG_BAD_LIKELIHOOD,
     ShearEstimate,
     _all_sums,
     apply_shear,
     estimate_shear,
     posterior_moments,
-    refine_lnL,
     sensitivity_from_sums,
     shapes,
     shear_sensitivity,
@@ -101,7 +99,7 @@ def test_shapes_match_brute_force_on_the_grid():
 def test_refinement_survives_a_cliff_in_lnL():
     """A bright galaxy's ln L falls off a cliff where the models degenerate (|e| -> 1).
 
-    Without the cap of ``_Refiner.excess`` the kernel's negative lobes turn a cell
+    Without the cap of ``Refiner.excess`` the kernel's negative lobes turn a cell
     250 e-folds under its neighbours into a spurious peak (ln L +7 above the real one),
     and the posterior mean jumps to it; with it, the mean is that of the likelihood
     without the cliff to 1e-6.

@@ -34,9 +34,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from pylensfit.grid import refine_lnL
 from pylensfit.likelihood import fit_stamps
 from pylensfit.runner import run_tasks, worker_pool
-from pylensfit.shear import refine_lnL
 from pylensfit_validation import precision as P
 
 _MID = {4: (np.array([-1.0, 9.0, 9.0, -1.0]) / 16.0, np.array([-3, -1, 1, 3])),

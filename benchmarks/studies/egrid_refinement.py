@@ -9,7 +9,7 @@ the Bayesian integrals' own cells, where ``ln L`` is then exact. On those cells 
 computed from (fixed point, paired jackknife over groups of 100 galaxies, per bin of
 true S/N, minus the exact grid's m):
 
-* ``0.1 quintic``: the 0.1 fit interpolated (:func:`pylensfit.shear.refine_lnL`, refine
+* ``0.1 quintic``: the 0.1 fit interpolated (:func:`pylensfit.grid.refine_lnL`, refine
   4), what the integrals use by default;
 * ``0.05 everywhere``: exact values on every other cell (a lattice of 0.05), the cells
   between them interpolated by the quintic's midpoint stencil;
@@ -34,9 +34,9 @@ from types import SimpleNamespace
 import numpy as np
 import scipy.sparse as sp
 
+from pylensfit.grid import refine_lnL
 from pylensfit.likelihood import fit_stamps
 from pylensfit.runner import run_tasks, worker_pool
-from pylensfit.shear import refine_lnL
 from pylensfit_validation import precision as P
 
 _W6 = np.array([3.0, -25.0, 150.0, 150.0, -25.0, 3.0]) / 256.0

@@ -183,7 +183,7 @@ def main() -> None:
                     help="B's (default: B's priors' own)")
     ap.add_argument("--a-stencil", type=int, default=None, choices=[4, 6],
                     help="A's interpolation onto the integration grid: 4 (Keys cubic) or 6 "
-                         "(quintic Lagrange; default pylensfit.shear.DEFAULT_STENCIL)")
+                         "(quintic Lagrange; default pylensfit.grid.DEFAULT_STENCIL)")
     ap.add_argument("--b-stencil", type=int, default=None, choices=[4, 6],
                     help="B's (default A's)")
     ap.add_argument("--by-morphology", action="store_true",

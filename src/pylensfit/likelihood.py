@@ -55,7 +55,7 @@ from . import flags as _flags
 from ._kernels_nb import AMP_UNIFORM, amplitude_table, laplace_grid, laplace_grid_tab
 from ._util import atomic_write, newton_peak, per_object
 from .config import Config
-from .grid import ellipticity_grid
+from .grid import ellipticity_grid, refine_lnL
 from .models import (
     ModelBank,
     fourier_profile,
@@ -66,7 +66,6 @@ from .models import (
 )
 from .prior import Prior, SizePrior
 from .psf import psf_transform
-from .shear import refine_lnL
 
 __all__ = ["StampFits", "blend_fits", "e_annuli", "fit_stamps"]
 

@@ -14,15 +14,14 @@ from scipy.special import logsumexp
 
 from pylensfit.calibration import CalibrationSample
 from pylensfit.config import Config
+from pylensfit.grid import DEFAULT_STENCIL, refined_grid
 from pylensfit.likelihood import e_annuli, fit_stamps
 from pylensfit.models import model_bank
 from pylensfit.prior import Prior, mix_bulge_fractions
 from pylensfit.runner import single_thread
 from pylensfit.shear import (
-    DEFAULT_STENCIL,
     kernel_columns,
     moments_from_sums,
-    refined_grid,
     sensitivity_from_sums,
     sheared_prior_columns,
     sums_with,
@@ -74,7 +73,7 @@ def reduce_likelihoods(
         Integration refinement (as :func:`pylensfit.shear.shapes`).
     stencil : int, optional
         Points per axis of the interpolation onto the integration grid
-        (:func:`pylensfit.shear.refine_lnL`; default :data:`pylensfit.shear.DEFAULT_STENCIL`).
+        (:func:`pylensfit.grid.refine_lnL`; default :data:`pylensfit.grid.DEFAULT_STENCIL`).
 
     Returns
     -------

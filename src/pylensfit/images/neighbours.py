@@ -10,8 +10,8 @@ import numpy as np
 
 from .. import flags as _flags
 from ..config import Config
+from ..grid import refine_lnL
 from ..models import render_models
-from ..shear import refine_lnL
 from ..stamps import add_patches, cut_stamps, patch_origins
 
 __all__ = ["subtract_neighbours", "implausible_models", "neighbour_light"]
