@@ -47,6 +47,7 @@ PUBLIC_MODULES = (
     "pylensfit.cli",
     "pylensfit.config",
     "pylensfit.detection",
+    "pylensfit.exposures",
     "pylensfit.flags",
     "pylensfit.forced",
     "pylensfit.grid",
@@ -172,7 +173,7 @@ def import_cycles(modules) -> list[tuple[str, str]]:
 LAYERS = (
     ("_version", "_util", "flags", "bankruns", "config", "runner"),
     ("grid", "_kernels_nb", "psf", "psfmodel", "detection", "stamps", "skyframe",
-     "catalogue"),
+     "exposures", "catalogue"),
     ("models", "forced"),
     ("prior",),
     ("likelihood",),
