@@ -315,12 +315,30 @@ def add_demo(sub) -> None:
     d.set_defaults(func=_demo)
 
 
+def _simulate_dither(a: argparse.Namespace) -> int:
+    """``pylensfit simulate dither``: :func:`pylensfit_validation.dither.simulate_dither`."""
+    from .dither import DitherSpec, read_dither, simulate_dither  # start-up cost: this command
+
+    kw = {"n_exposures": 5 if a.exposures is None else a.exposures, "ngal": a.ngal,
+          "noise_sigma": a.noise}  # fmt: skip
+    if a.star_field_size:
+        kw["star_field_size"] = a.star_field_size
+    s = read_dither(simulate_dither(a.out, DitherSpec(**kw), seed=a.seed))
+    print(f"dither: {len(s.exposures)} exposures of {s.spec.image_size} px, {len(s.truth)} "
+          f"galaxies (truth in sky coordinates: {s.directory / 'truth.fits'}), a star field "
+          f"per exposure -> {s.directory}")  # fmt: skip
+    return 0
+
+
 def simulate_main(argv: list[str] | None = None) -> int:
-    """``pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S] [--noise SIGMA] ...``.
+    """``pylensfit simulate step1|step2|dither --out DIR [--ngal N] [--seed S] ...``.
 
     Among the options, ``--psf-variation {none,survey}``, ``--wcs-rotation DEG``,
     ``--wcs-flip`` and ``--population {aligned,realistic}`` (:func:`simulate_step`'s
-    ``psf_variation``, ``wcs_rotation_deg``, ``wcs_flip``, ``population``).
+    ``psf_variation``, ``wcs_rotation_deg``, ``wcs_flip``, ``population``);
+    ``dither --exposures K`` writes ``K`` dithered exposures of one patch
+    (:func:`pylensfit_validation.dither.simulate_dither`; ``--ngal``, ``--seed``,
+    ``--noise``, ``--star-field-size`` apply).
 
     The ``simulate`` command's own parser, handed the rest of the command line.
 
@@ -341,7 +359,8 @@ def simulate_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="pylensfit simulate", description="simulate a STEP1/STEP2-like validation set"
     )
-    p.add_argument("kind", choices=["step1", "step2"])
+    p.add_argument("kind", choices=["step1", "step2", "dither"],
+                   help="a STEP1- or STEP2-like set, or dithered exposures of one patch")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--ngal", type=int, default=20000, help="galaxies over the shear fields")
     p.add_argument("--seed", type=int, default=1)
@@ -371,7 +390,14 @@ def simulate_main(argv: list[str] | None = None) -> int:
                    help="step2 galaxies: aligned (bulges aligned with their discs, Sersic "
                         "n 0.5-4) or realistic (bulges of their own size, shape and "
                         "misalignment, Sersic n 0.3-6; step1: aligned only)")
+    p.add_argument("--exposures", type=int, default=None, metavar="K",
+                   help="dither: exposures of the patch (default 5; surveys take 3-8), "
+                        "each with its own pointing, WCS, PSF, noise and zero point")
     a = p.parse_args(argv)
+    if a.kind == "dither":
+        return _simulate_dither(a)
+    if a.exposures is not None:
+        p.error("--exposures is an option of the dither kind")
     d = simulate_step(
         a.kind,
         a.out,
