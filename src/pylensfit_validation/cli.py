@@ -315,12 +315,60 @@ def add_demo(sub) -> None:
     d.set_defaults(func=_demo)
 
 
+def _simulate_parser() -> argparse.ArgumentParser:
+    """``pylensfit simulate``'s parser (:func:`simulate_main`)."""
+    from .simulate import POPULATIONS, PSF_VARIATIONS  # start-up cost: only for simulate
+
+    p = argparse.ArgumentParser(
+        prog="pylensfit simulate",
+        description="simulate a STEP1/STEP2-like validation set or dithered exposures"
+    )
+    p.add_argument("kind", choices=["step1", "step2", "dither"],
+                   help="a STEP1- or STEP2-like set, or dithered exposures of one patch")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--ngal", type=int, default=None,
+                   help="galaxies over the shear fields (default 20000; dither: galaxies on "
+                        "the patch, default 400)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--noise", type=float, default=1.0, help="noise sigma per pixel")
+    p.add_argument("--size", type=int, default=None, help="field size (px)")
+    p.add_argument("--nshear", type=int, default=None, help="shear values per PSF")
+    p.add_argument("--star-field-size", type=int, default=None,
+                   help="side of the star fields (px; default the shear fields')")
+    p.add_argument("--twins", action=argparse.BooleanOptionalAction, default=None,
+                   help="a 90-degree-rotated twin of every shear field (default: step2 "
+                        "yes, step1 no); with twins the shape noise cancels in validate")
+    p.add_argument("--jobs", type=int, default=1, help="fields rendered in parallel")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--noise-twins", action="store_true",
+                   help="a noise twin of every shear field (the same noise negated): the "
+                        "noise's first-order effect cancels in validate, resolving c per "
+                        "PSF to ~1e-4; --ngal counts the renderings")
+    p.add_argument("--psf-variation", choices=sorted(PSF_VARIATIONS), default="none",
+                   help="PSF variation over every field, star fields included (survey: "
+                        "FWHM +-10%% and |e| up to 0.08 corner to corner)")
+    p.add_argument("--wcs-rotation", type=float, default=0.0, metavar="DEG",
+                   help="rotation of every field's WCS, pixel to sky (degrees); the "
+                        "shears are the sky frame's")
+    p.add_argument("--wcs-flip", action="store_true",
+                   help="flip every field's WCS (dy -> -dy before the rotation)")
+    p.add_argument("--population", choices=POPULATIONS, default="aligned",
+                   help="step2 galaxies: aligned (bulges aligned with their discs, Sersic "
+                        "n 0.5-4) or realistic (bulges of their own size, shape and "
+                        "misalignment, Sersic n 0.3-6; step1: aligned only)")
+    p.add_argument("--exposures", type=int, default=None, metavar="K",
+                   help="dither: exposures of the patch (default 5; surveys take 3-8), "
+                        "each with its own pointing, WCS, PSF, noise and zero point")
+    return p
+
+
 def _simulate_dither(a: argparse.Namespace) -> int:
     """``pylensfit simulate dither``: :func:`pylensfit_validation.dither.simulate_dither`."""
     from .dither import DitherSpec, read_dither, simulate_dither  # start-up cost: this command
 
-    kw = {"n_exposures": 5 if a.exposures is None else a.exposures, "ngal": a.ngal,
-          "noise_sigma": a.noise}  # fmt: skip
+    kw = {"n_exposures": 5 if a.exposures is None else a.exposures, "noise_sigma": a.noise}
+    if a.ngal is not None:
+        kw["ngal"] = a.ngal
     if a.star_field_size:
         kw["star_field_size"] = a.star_field_size
     s = read_dither(simulate_dither(a.out, DitherSpec(**kw), seed=a.seed))
@@ -352,52 +400,16 @@ def simulate_main(argv: list[str] | None = None) -> int:
     int
         Exit status.
     """
-    # start-up cost: the simulation modules load only for this command
-    from .simulate import POPULATIONS, PSF_VARIATIONS
-    from .step import read_manifest, simulate_step
+    from .step import read_manifest, simulate_step  # start-up cost: only for this command
 
-    p = argparse.ArgumentParser(
-        prog="pylensfit simulate", description="simulate a STEP1/STEP2-like validation set"
-    )
-    p.add_argument("kind", choices=["step1", "step2", "dither"],
-                   help="a STEP1- or STEP2-like set, or dithered exposures of one patch")
-    p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--ngal", type=int, default=20000, help="galaxies over the shear fields")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--noise", type=float, default=1.0, help="noise sigma per pixel")
-    p.add_argument("--size", type=int, default=None, help="field size (px)")
-    p.add_argument("--nshear", type=int, default=None, help="shear values per PSF")
-    p.add_argument("--star-field-size", type=int, default=None,
-                   help="side of the star fields (px; default the shear fields')")
-    p.add_argument("--twins", action=argparse.BooleanOptionalAction, default=None,
-                   help="a 90-degree-rotated twin of every shear field (default: step2 "
-                        "yes, step1 no); with twins the shape noise cancels in validate")
-    p.add_argument("--jobs", type=int, default=1, help="fields rendered in parallel")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--noise-twins", action="store_true",
-                   help="a noise twin of every shear field (the same noise negated): the "
-                        "noise's first-order effect cancels in validate, resolving c per "
-                        "PSF to ~1e-4; --ngal counts the renderings")
-    p.add_argument("--psf-variation", choices=sorted(PSF_VARIATIONS), default="none",
-                   help="PSF variation over every field, star fields included (survey: "
-                        "FWHM +-10%% and |e| up to 0.08 corner to corner)")
-    p.add_argument("--wcs-rotation", type=float, default=0.0, metavar="DEG",
-                   help="rotation of every field's WCS, pixel to sky (degrees); the "
-                        "shears are the sky frame's")
-    p.add_argument("--wcs-flip", action="store_true",
-                   help="flip every field's WCS (dy -> -dy before the rotation)")
-    p.add_argument("--population", choices=POPULATIONS, default="aligned",
-                   help="step2 galaxies: aligned (bulges aligned with their discs, Sersic "
-                        "n 0.5-4) or realistic (bulges of their own size, shape and "
-                        "misalignment, Sersic n 0.3-6; step1: aligned only)")
-    p.add_argument("--exposures", type=int, default=None, metavar="K",
-                   help="dither: exposures of the patch (default 5; surveys take 3-8), "
-                        "each with its own pointing, WCS, PSF, noise and zero point")
+    p = _simulate_parser()
     a = p.parse_args(argv)
     if a.kind == "dither":
         return _simulate_dither(a)
     if a.exposures is not None:
         p.error("--exposures is an option of the dither kind")
+    if a.ngal is None:
+        a.ngal = 20000
     d = simulate_step(
         a.kind,
         a.out,
