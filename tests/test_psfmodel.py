@@ -12,7 +12,8 @@ import galsim
 import numpy as np
 import pytest
 
-from pylensfit.psf import REASONS, PSFError, PSFResult, gaussian_peak, pad_to, stack_psf
+from pylensfit.psf import REASONS, PSFError, PSFResult, stack_psf
+from pylensfit.psf.fourier import gaussian_peak, pad_to
 from pylensfit.psfmodel import (
     ConstantPSF,
     PiffNotInstalledError,
@@ -98,7 +99,7 @@ def truth_residuals(model, probe):
 
 def gaussian_centre(images, sigma=2.0):
     """Offset of the Gaussian cross-correlation peak from [size//2, size//2] (pixels)."""
-    from pylensfit.psfmodel import _phase
+    from pylensfit.psfmodel.basis import phase as _phase  # a helper of the models
 
     images = np.atleast_3d(images).reshape(-1, *np.shape(images)[-2:])
     big = images.shape[-1] + 9
