@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import sep
@@ -63,18 +64,27 @@ class Background:
         return data
 
 
-def measure_background(
-    image,
-    *,
-    mask=None,
-    weight=None,
-    box: int = 64,
-    filter_size: int = 3,
-    mask_sources: bool = True,
-    source_threshold: float = 3.0,
-    source_radius: float = 6.0,
-    rescale_rms: bool = True,
-) -> Background:
+class BackgroundGrid(NamedTuple):
+    """The image as SEP's background takes it: native float64 with the unusable pixels
+    (``bad``) set to 0, and the box (``bh x bw``) and filter (``fw``) sides in pixels and
+    boxes."""
+
+    data: np.ndarray
+    bad: np.ndarray
+    bh: int
+    bw: int
+    fw: int
+
+    def sep_background(self, mask: np.ndarray) -> sep.Background:
+        """SEP's background of :attr:`data` with the pixels of ``mask`` left out."""
+        return sep.Background(self.data, mask=mask, bw=self.bw, bh=self.bh, fw=self.fw,
+                              fh=self.fw)  # fmt: skip
+
+
+def measure_background(image, *, mask=None, weight=None, box: int = 64, filter_size: int = 3,
+                       mask_sources: bool = True, source_threshold: float = 3.0,
+                       source_radius: float = 6.0, rescale_rms: bool = True
+                       ) -> Background:  # fmt: skip
     """Measure the sky background and its rms with SEP (Source Extractor's algorithm).
 
     In boxes of ``box x box`` pixels the sigma-clipped mode of the pixel values gives the
@@ -101,18 +111,18 @@ def measure_background(
         Pixels with ``mask > 0`` are left out.
     weight : array_like, optional
         Inverse-variance map; pixels with ``weight <= 0`` (or non-finite) are left out.
-    box : int, optional
-        Background box side in pixels (clipped to the image size). Default 64.
-    filter_size : int, optional
-        Median-filter size in boxes. Default 3.
-    mask_sources : bool, optional
-        Mask detected objects and measure again. Default True.
-    source_threshold : float, optional
-        Detection threshold (in rms) of the objects masked. Default 3.
-    source_radius : float, optional
-        Masked ellipse size in units of the objects' ``a``, ``b``. Default 6.
-    rescale_rms : bool, optional
-        Rescale the rms map to the robust sigma of the sky pixels. Default True.
+    box : int
+        Background box side in pixels (clipped to the image size).
+    filter_size : int
+        Median-filter size in boxes.
+    mask_sources : bool
+        Mask detected objects and measure again.
+    source_threshold : float
+        Detection threshold (in rms) of the objects masked.
+    source_radius : float
+        Masked ellipse size in units of the objects' ``a``, ``b``.
+    rescale_rms : bool
+        Rescale the rms map to the robust sigma of the sky pixels.
 
     Returns
     -------
@@ -126,6 +136,20 @@ def measure_background(
     ValueError
         If the image is not 2-D, or has no finite, unmasked pixel.
     """
+    grid = background_grid(image, mask, weight, box, filter_size)
+    bkg, sky = grid.sep_background(grid.bad), ~grid.bad
+    if mask_sources:
+        bkg, sky = mask_objects(grid, bkg, source_threshold, source_radius)
+    back = np.asarray(bkg.back(), dtype=np.float64)
+    rms = np.asarray(bkg.rms(), dtype=np.float64)
+    scale = rms_scale(grid.data, back, rms, sky) if rescale_rms else 1.0
+    return Background(back=back, rms=rms * scale, global_back=float(bkg.globalback),
+                      global_rms=float(bkg.globalrms) * scale, bad=grid.bad)  # fmt: skip
+
+
+def background_grid(image, mask, weight, box: int, filter_size: int) -> BackgroundGrid:
+    """The checked image and box sides of :func:`measure_background` (``ValueError`` for
+    an image with no usable pixel or a box or filter side under 1)."""
     data = as_image(image)
     bad, _ = bad_pixels(data, mask, weight)
     if bad.all():
@@ -136,56 +160,51 @@ def measure_background(
     filter_size = int(filter_size)
     if box < 1 or filter_size < 1:
         raise ValueError(f"box and filter_size must be >= 1, got {box} and {filter_size}")
-    bh, bw = min(box, data.shape[0]), min(box, data.shape[1])
     data[bad] = 0.0  # SEP ignores masked pixels but must not see NaN
-    bkg = sep.Background(data, mask=bad, bw=bw, bh=bh, fw=filter_size, fh=filter_size)
-    sky = ~bad  # pixels of sky for the rms rescaling
-    if mask_sources:
-        rms = bkg.rms()
-        ok = ~bad & (rms > 0) & np.isfinite(rms)
-        if ok.any():
-            sub = np.where(ok, data - bkg.back(), 0.0)
-            objs = extract(sub, float(source_threshold), np.where(ok, rms, 1.0), ~ok)
-            if len(objs):
-                src = np.zeros(data.shape, dtype=bool)
-                sep.mask_ellipse(
-                    src,
-                    objs["x"],
-                    objs["y"],
-                    objs["a"],
-                    objs["b"],
-                    objs["theta"],
-                    r=float(source_radius),
-                )
-                if usable_boxes(bad | src, bh, bw):
-                    sky = ~(bad | src)
-                    bkg = sep.Background(
-                        data, mask=~sky, bw=bw, bh=bh, fw=filter_size, fh=filter_size
-                    )
-                else:
-                    log.warning(
-                        "masking the objects (to %g times their isophotal ellipses) leaves "
-                        "no %d x %d background box half free: background measured "
-                        "without the object mask", source_radius, bw, bh,
-                    )
-    back = np.asarray(bkg.back(), dtype=np.float64)
-    rms = np.asarray(bkg.rms(), dtype=np.float64)
-    global_rms = float(bkg.globalrms)
-    if rescale_rms:
-        sky &= (rms > 0) & np.isfinite(rms)
-        if sky.sum() >= 100:
-            r = (data[sky] - back[sky]) / rms[sky]
-            scale = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-            if np.isfinite(scale) and scale > 0:
-                rms *= scale
-                global_rms *= scale
-    return Background(
-        back=back,
-        rms=rms,
-        global_back=float(bkg.globalback),
-        global_rms=global_rms,
-        bad=bad,
-    )
+    return BackgroundGrid(data, bad, min(box, data.shape[0]), min(box, data.shape[1]),
+                          filter_size)  # fmt: skip
+
+
+def mask_objects(grid: BackgroundGrid, bkg: sep.Background, threshold: float, radius: float
+                 ) -> tuple[sep.Background, np.ndarray]:  # fmt: skip
+    """The background measured again with the objects detected above ``threshold`` rms on
+    ``bkg`` masked out to ``radius`` times their isophotal ellipses, and the map of the sky
+    pixels left (``bkg`` and the unmasked pixels where there is none, or where the mask
+    would leave no background box half free)."""
+    data, bad = grid.data, grid.bad
+    sky = ~bad
+    rms = bkg.rms()
+    ok = ~bad & (rms > 0) & np.isfinite(rms)
+    if not ok.any():
+        return bkg, sky
+    sub = np.where(ok, data - bkg.back(), 0.0)
+    objs = extract(sub, float(threshold), np.where(ok, rms, 1.0), ~ok)
+    if not len(objs):
+        return bkg, sky
+    src = np.zeros(data.shape, dtype=bool)
+    sep.mask_ellipse(src, objs["x"], objs["y"], objs["a"], objs["b"], objs["theta"],
+                     r=float(radius))  # fmt: skip
+    if not usable_boxes(bad | src, grid.bh, grid.bw):
+        log.warning(
+            "masking the objects (to %g times their isophotal ellipses) leaves "
+            "no %d x %d background box half free: background measured "
+            "without the object mask", radius, grid.bw, grid.bh,
+        )
+        return bkg, sky
+    sky = ~(bad | src)
+    return grid.sep_background(~sky), sky
+
+
+def rms_scale(data: np.ndarray, back: np.ndarray, rms: np.ndarray, sky: np.ndarray) -> float:
+    """The robust sigma (1.4826 MAD) of ``(data - back) / rms`` over the sky pixels, the
+    factor that makes the rms map unbiased for Gaussian noise (1 with fewer than 100 sky
+    pixels or no positive value)."""
+    sky = sky & (rms > 0) & np.isfinite(rms)
+    if sky.sum() < 100:
+        return 1.0
+    r = (data[sky] - back[sky]) / rms[sky]
+    scale = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    return scale if np.isfinite(scale) and scale > 0 else 1.0
 
 
 def usable_boxes(masked: np.ndarray, bh: int, bw: int) -> bool:

@@ -3,6 +3,9 @@ quantities, and the catalogue's columns (:data:`COLUMNS`)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import NamedTuple
+
 import numpy as np
 import sep
 from astropy.table import Table
@@ -36,6 +39,75 @@ COLUMNS: tuple[tuple[str, str, str, str], ...] = (
     ("sep_flag", "i4", "", "SEP object and aperture flags (see SEP_FLAGS)"),
     ("flags", "i8", "", "pylensfit flags: EDGE, MASKED, BAD_PIXELS, CLOSE_PAIR"),
 )
+
+
+@dataclass(frozen=True)
+class DetectionMaps:
+    """The maps of :func:`~pylensfit.detection.detect`, all of the image's shape.
+
+    Attributes
+    ----------
+    background : Background
+        The background subtracted.
+    bad, nonfinite : numpy.ndarray
+        Boolean: the unusable pixels (non-finite, masked, zero weight), and the
+        non-finite ones among them.
+    weight : numpy.ndarray or None
+        The weight map as native float64.
+    sub : numpy.ndarray
+        The background-subtracted image, 0 on the unusable pixels.
+    sigma : numpy.ndarray
+        The per-pixel noise sigma (``1/sqrt(weight)``, else the background rms).
+    bad_det : numpy.ndarray
+        Boolean: the pixels left out of the detection (``bad`` or no positive sigma).
+    err : numpy.ndarray
+        SEP's error map (``sigma``, 1 on ``bad_det``, which SEP treats as masked).
+    """
+
+    background: Background
+    bad: np.ndarray
+    nonfinite: np.ndarray
+    weight: np.ndarray | None
+    sub: np.ndarray
+    sigma: np.ndarray
+    bad_det: np.ndarray
+    err: np.ndarray
+
+
+class Photometry(NamedTuple):
+    """How :func:`~pylensfit.detection.detect` measures the objects: the aperture radius
+    in units of ``r_half`` and its bounds (pixels), the windowed centroid, the gain
+    (electrons per image unit, or None) and the magnitude zeropoint."""
+
+    aperture: float
+    min_aperture: float
+    max_aperture: float
+    windowed: bool
+    gain: float | None
+    zeropoint: float
+
+
+def measure_objects(objs: np.ndarray, maps: DetectionMaps, phot: Photometry, n: int,
+                    faint_ratio: float | None) -> dict[str, np.ndarray]:  # fmt: skip
+    """The measured columns of the catalogue of SEP's objects ``objs``: positions,
+    aperture photometry, pixel quantities and the flags and noise of their ``n x n``
+    stamps."""
+    sub, bad_det, sigma = maps.sub, maps.bad_det, maps.sigma
+    x, y, r0 = refine_positions(sub, objs, bad_det, phot.min_aperture, phot.max_aperture,
+                                phot.windowed)  # fmt: skip
+    sep_flag = objs["flag"].astype(np.int32)
+    rap, flux, flux_err, r_half, sep_flag = aperture_photometry(
+        sub, x, y, r0, sigma, bad_det, sep_flag, phot.aperture, phot.min_aperture,
+        phot.max_aperture, phot.gain,
+    )  # fmt: skip
+    pix = pixel_quantities(objs, x, y, flux, flux_err, sigma, bad_det, maps.background,
+                           phot.zeropoint)  # fmt: skip
+    flags, noise_sigma = stamp_quantities(
+        x, y, objs["flux"], pix["bkg_rms"], maps.bad, maps.nonfinite, bad_det, sigma,
+        maps.weight, n, faint_ratio,
+    )  # fmt: skip
+    return dict(pix, x=x, y=y, flux=flux, flux_err=flux_err, r_half=r_half, aper_radius=rap,
+                noise_sigma=noise_sigma, sep_flag=sep_flag, flags=flags)  # fmt: skip
 
 
 def stamp_windows(arr: np.ndarray, ix: np.ndarray, iy: np.ndarray, n: int, fill, chunk=2048):

@@ -63,53 +63,16 @@ def star_candidates(catalogue, min_peak_snr: float, saturation: float | None,
     return cand, r_half, snr, pos
 
 
-def select_stars(
-    catalogue,
-    *,
-    min_peak_snr: float = 30.0,
-    column: str | None = None,
-    saturation: float | None = None,
-    nsigma: float = 3.0,
-    window: float = 0.05,
-    min_width: float = 0.003,
-    min_stars: int = 3,
-    exclude_flags: int | None = None,
-    min_fraction: float = 0.25,
-    position_order: int = 2,
-) -> np.ndarray:
+def select_stars(catalogue, *, min_peak_snr: float = 30.0, column: str | None = None,
+                 saturation: float | None = None, nsigma: float = 3.0, window: float = 0.05,
+                 min_width: float = 0.003, min_stars: int = 3, exclude_flags: int | None = None,
+                 min_fraction: float = 0.25, position_order: int = 2) -> np.ndarray:  # fmt: skip
     """Select PSF stars on the stellar locus of size against magnitude.
 
-    Point sources all have the PSF's size whatever their flux, so in ``log10 r_half``
-    against magnitude they form a narrow horizontal band at the small-size end, while
-    galaxies spread over larger sizes. Compact galaxies convolved with the PSF are only
-    a little larger than it (0.1 dex for an exponential of half-light radius 0.45 times
-    the PSF's FWHM), and where they outnumber the stars their sizes may crowd more
-    densely than the stars'; where the PSF's size varies over the image (10 % is
-    common) the stars' band is as wide as that gap. The algorithm:
-
-    1. Candidates: finite ``r_half > 0`` and ``flux > 0``, ``peak_snr >= min_peak_snr``
-       (paper section 2.4: stars of peak S/N > 30 make a good PSF), no SEP flag of
-       blending, truncation, singular moments or masked aperture (``sep_flag``), none of
-       ``exclude_flags`` in ``flags``, and, with ``saturation``, a raw peak
-       ``peak + background`` below ``saturation`` (less a 1e-5 relative margin for the
-       float32 rounding of SEP's peak).
-    2. Locus: windows ``[s, s + 2 window]`` of ``s = log10 r_half`` over the candidates;
-       the first (smallest-size) window holding at least ``min_fraction`` of the
-       densest window's count (and ``min_stars``), then the densest window that starts
-       within ``2 window`` of it: the smallest-size clump of sizes, not the most
-       populous one, which compact galaxies may make.
-    3. Band: an object lies on the locus when ``|s - c(x, y)| <= nsigma * sigma_i``, with
-       ``sigma_i^2 = width^2 + (0.434 / snr_i)^2``: the measurement noise of
-       ``log10 r_half`` (about ``0.434 / snr`` in simulations) added to an intrinsic width
-       (pixelisation, what the centre does not follow) that is fitted so that the
-       normalised deviations of the members have a robust (1.4826 MAD) sigma of 1, at
-       least ``min_width``. The centre ``c`` is first the members' median, then (with
-       ``x`` and ``y`` columns) a polynomial in the position of total degree up to
-       ``position_order`` (as many terms as the members allow at 5 members a term),
-       fitted to the members weighted by ``1 / sigma_i^2``: it follows the PSF's size
-       over the image, so that the band is as narrow as the stars' noise and the compact
-       galaxies, larger than the PSF where they are, fall outside it. Centre, width and
-       membership are iterated from the window's members until stable.
+    Point sources all have the PSF's size whatever their flux: the candidates (bright,
+    unflagged, unsaturated) whose ``log10 r_half`` lies within ``nsigma`` of the locus, a
+    band found at the small-size end and whose centre follows the PSF's size over the
+    image, are the stars (the steps are those of :mod:`pylensfit.detection`).
 
     Parameters
     ----------
@@ -149,22 +112,12 @@ def select_stars(
         Boolean array, True for the selected stars.
     """
     if column is not None:
-        try:
-            values = np.asarray(catalogue[column])
-        except (KeyError, ValueError, IndexError):
-            raise ValueError(f"star column {column!r} not in the catalogue") from None
-        if values.dtype == bool:
-            return values.copy()
-        if np.issubdtype(values.dtype, np.integer):
-            return values != 0
-        raise ValueError(f"star column {column!r} must be bool or int, got {values.dtype}")
+        return column_stars(catalogue, column)
     if not 0.0 < min_fraction <= 1.0:
         raise ValueError(f"min_fraction must be in (0, 1], got {min_fraction}")
-
     cand, r_half, snr, pos = star_candidates(catalogue, min_peak_snr, saturation,
-                                              exclude_flags, position_order)  # fmt: skip
-    k = len(r_half)
-    sel = np.zeros(k, dtype=bool)
+                                             exclude_flags, position_order)  # fmt: skip
+    sel = np.zeros(len(r_half), dtype=bool)
     idx = np.flatnonzero(cand)
     if len(idx) < max(int(min_stars), 1):  # info: a caller says what it does instead
         log.info(
@@ -178,6 +131,30 @@ def select_stars(
     noise = np.nan_to_num(noise, nan=np.inf)
     member = locus_window(s, window, min_fraction, int(min_stars))
     design = None if pos is None else locus_design(pos[0][idx], pos[1][idx], position_order)
+    sel[idx[locus_members(s, noise, member, design, nsigma, min_width)]] = True
+    return sel
+
+
+def column_stars(catalogue, column: str) -> np.ndarray:
+    """The stars of a user-supplied column (bool, or int where nonzero means star)."""
+    try:
+        values = np.asarray(catalogue[column])
+    except (KeyError, ValueError, IndexError):
+        raise ValueError(f"star column {column!r} not in the catalogue") from None
+    if values.dtype == bool:
+        return values.copy()
+    if np.issubdtype(values.dtype, np.integer):
+        return values != 0
+    raise ValueError(f"star column {column!r} must be bool or int, got {values.dtype}")
+
+
+def locus_members(s: np.ndarray, noise: np.ndarray, member: np.ndarray,
+                  design: np.ndarray | None, nsigma: float, min_width: float
+                  ) -> np.ndarray:  # fmt: skip
+    """The candidates on the locus (:func:`select_stars`, step 3): centre, width and
+    membership iterated from the window's ``member`` until stable; ``s`` is
+    ``log10 r_half``, ``noise`` its measurement noise and ``design`` the monomials of the
+    positions (None: a centre constant over the image)."""
     centre = np.full(s.size, np.median(s[member]))
     settled = design is None  # the centre a polynomial in the position, where one is
     for _ in range(30):
@@ -191,8 +168,7 @@ def select_stars(
             settled = True
         else:
             centre[:] = np.median(s[member])
-    sel[idx[member]] = True
-    return sel
+    return member
 
 
 def locus_window(s: np.ndarray, window: float, min_fraction: float, min_stars: int
