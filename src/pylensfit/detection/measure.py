@@ -87,29 +87,6 @@ class Photometry(NamedTuple):
     zeropoint: float
 
 
-def measure_objects(objs: np.ndarray, maps: DetectionMaps, phot: Photometry, n: int,
-                    faint_ratio: float | None) -> dict[str, np.ndarray]:  # fmt: skip
-    """The measured columns of the catalogue of SEP's objects ``objs``: positions,
-    aperture photometry, pixel quantities and the flags and noise of their ``n x n``
-    stamps."""
-    sub, bad_det, sigma = maps.sub, maps.bad_det, maps.sigma
-    x, y, r0 = refine_positions(sub, objs, bad_det, phot.min_aperture, phot.max_aperture,
-                                phot.windowed)  # fmt: skip
-    sep_flag = objs["flag"].astype(np.int32)
-    rap, flux, flux_err, r_half, sep_flag = aperture_photometry(
-        sub, x, y, r0, sigma, bad_det, sep_flag, phot.aperture, phot.min_aperture,
-        phot.max_aperture, phot.gain,
-    )  # fmt: skip
-    pix = pixel_quantities(objs, x, y, flux, flux_err, sigma, bad_det, maps.background,
-                           phot.zeropoint)  # fmt: skip
-    flags, noise_sigma = stamp_quantities(
-        x, y, objs["flux"], pix["bkg_rms"], maps.bad, maps.nonfinite, bad_det, sigma,
-        maps.weight, n, faint_ratio,
-    )  # fmt: skip
-    return dict(pix, x=x, y=y, flux=flux, flux_err=flux_err, r_half=r_half, aper_radius=rap,
-                noise_sigma=noise_sigma, sep_flag=sep_flag, flags=flags)  # fmt: skip
-
-
 def stamp_windows(arr: np.ndarray, ix: np.ndarray, iy: np.ndarray, n: int, fill, chunk=2048):
     """Yield ``(slice, windows)``: ``n x n`` cut-outs of ``arr`` (``fill`` outside the image).
 
@@ -142,22 +119,52 @@ def empty_table() -> Table:
     return t
 
 
-def refine_positions(
-    sub: np.ndarray,
-    objs: np.ndarray,
-    bad_det: np.ndarray,
-    min_aperture: float,
-    max_aperture: float,
-    windowed: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+class Positions(NamedTuple):
+    """The objects' positions ``x, y`` (0-based pixels) and first half-light radii
+    ``r0`` (pixels), each ``(k,)``."""
+
+    x: np.ndarray
+    y: np.ndarray
+    r0: np.ndarray
+
+
+class Apertures(NamedTuple):
+    """The objects' aperture photometry, each ``(k,)``: the aperture radius (pixels), the
+    flux and its error (image units), the half-light radius within the aperture
+    (pixels, NaN where undefined) and SEP's flags with the aperture's."""
+
+    radius: np.ndarray
+    flux: np.ndarray
+    flux_err: np.ndarray
+    r_half: np.ndarray
+    sep_flag: np.ndarray
+
+
+def measure_objects(objs: np.ndarray, maps: DetectionMaps, phot: Photometry, n: int,
+                    faint_ratio: float | None) -> dict[str, np.ndarray]:  # fmt: skip
+    """The measured columns of the catalogue of SEP's objects ``objs``: positions,
+    aperture photometry, pixel quantities and the flags and noise of their ``n x n``
+    stamps."""
+    pos = refine_positions(objs, maps, phot)
+    ap = aperture_photometry(objs, maps, pos, phot)
+    pix = pixel_quantities(objs, maps, pos, ap, phot.zeropoint)
+    flags, noise_sigma = stamp_quantities(objs, maps, pos, pix["bkg_rms"], n, faint_ratio)
+    return dict(pix, x=pos.x, y=pos.y, flux=ap.flux, flux_err=ap.flux_err, r_half=ap.r_half,
+                aper_radius=ap.radius, noise_sigma=noise_sigma, sep_flag=ap.sep_flag,
+                flags=flags)  # fmt: skip
+
+
+def refine_positions(objs: np.ndarray, maps: DetectionMaps, phot: Photometry) -> Positions:
     """Positions (barycentre, or windowed centroid where it is sound) and first ``r_half``."""
+    sub, bad_det = maps.sub, maps.bad_det
+    min_aperture, max_aperture = phot.min_aperture, phot.max_aperture
     x = objs["x"].astype(np.float64)
     y = objs["y"].astype(np.float64)
     a = objs["a"].astype(np.float64)
     # first half-light radius: normalised to the flux inside max(6a, min_aperture)
     rmax0 = np.clip(np.nan_to_num(6.0 * a, nan=min_aperture), min_aperture, max_aperture)
     r0 = half_radius(sub, x, y, rmax0)
-    if windowed:
+    if phot.windowed:
         # the window's cost grows as its area: capped at 3 px, past which the position
         # gains little (the likelihood fit re-centres every object anyway)
         sig = np.clip(2.0 * r0 / 2.35, 0.5, 3.0)
@@ -170,52 +177,34 @@ def refine_positions(
         x = np.where(ok, xw, x)
         y = np.where(ok, yw, y)
         r0 = half_radius(sub, x, y, rmax0)
-    return x, y, r0
+    return Positions(x, y, r0)
 
 
-def aperture_photometry(
-    sub: np.ndarray,
-    x: np.ndarray,
-    y: np.ndarray,
-    r0: np.ndarray,
-    sigma: np.ndarray,
-    bad_det: np.ndarray,
-    sep_flag: np.ndarray,
-    aperture: float,
-    min_aperture: float,
-    max_aperture: float,
-    gain: float | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Circular-aperture flux, its error and ``r_half``; updates ``sep_flag`` in place.
-
-    Returns ``(aper_radius, flux, flux_err, r_half, sep_flag)``.
-    """
+def aperture_photometry(objs: np.ndarray, maps: DetectionMaps, pos: Positions,
+                        phot: Photometry) -> Apertures:  # fmt: skip
+    """Circular-aperture flux, its error and ``r_half``, and SEP's flags of ``objs`` with
+    the aperture's."""
+    sub, bad_det, (x, y, r0) = maps.sub, maps.bad_det, pos
+    sep_flag = objs["flag"].astype(np.int32)
     badf = bad_det.astype(np.float64)
-    rap = np.clip(aperture * r0, min_aperture, max_aperture)
+    rap = np.clip(phot.aperture * r0, phot.min_aperture, phot.max_aperture)
     # bad pixels are summed as 0 with no variance (SEP's own masking rescales by area)
     flux, flux_err, aflag = sep.sum_circle(
-        sub, x, y, rap, err=np.where(bad_det, 0.0, sigma), gain=gain, subpix=5
+        sub, x, y, rap, err=np.where(bad_det, 0.0, maps.sigma), gain=phot.gain, subpix=5
     )
     nbad, _, _ = sep.sum_circle(badf, x, y, rap, subpix=0)
     sep_flag |= aflag.astype(np.int32)
     sep_flag |= np.where(nbad > 0, SEP_FLAGS["APER_HASMASKED"], 0).astype(np.int32)
     r_half, _ = sep.flux_radius(sub, x, y, rap, 0.5, normflux=flux, subpix=5)
     r_half = np.where((flux > 0) & np.isfinite(r_half) & (r_half > 0), r_half, np.nan)
-    return rap, flux, flux_err, r_half, sep_flag
+    return Apertures(rap, flux, flux_err, r_half, sep_flag)
 
 
-def pixel_quantities(
-    objs: np.ndarray,
-    x: np.ndarray,
-    y: np.ndarray,
-    flux: np.ndarray,
-    flux_err: np.ndarray,
-    sigma: np.ndarray,
-    bad_det: np.ndarray,
-    background: Background,
-    zeropoint: float,
-) -> dict[str, np.ndarray]:
+def pixel_quantities(objs: np.ndarray, maps: DetectionMaps, pos: Positions, ap: Apertures,
+                     zeropoint: float) -> dict[str, np.ndarray]:  # fmt: skip
     """Background maps at the objects, peak, peak S/N, S/N and magnitude (table columns)."""
+    x, y, flux, flux_err = pos.x, pos.y, ap.flux, ap.flux_err
+    sigma, bad_det, background = maps.sigma, maps.bad_det, maps.background
     ny, nx = bad_det.shape
     ix = np.clip(np.rint(x).astype(np.int64), 0, nx - 1)
     iy = np.clip(np.rint(y).astype(np.int64), 0, ny - 1)
@@ -233,20 +222,14 @@ def pixel_quantities(
     )
 
 
-def stamp_quantities(
-    x: np.ndarray,
-    y: np.ndarray,
-    flux_iso: np.ndarray,
-    bkg_rms: np.ndarray,
-    bad: np.ndarray,
-    nonfinite: np.ndarray,
-    bad_det: np.ndarray,
-    sigma: np.ndarray,
-    w: np.ndarray | None,
-    n: int,
-    faint_ratio: float | None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-stamp pylensfit ``flags`` (EDGE, MASKED, BAD_PIXELS, CLOSE_PAIR) and noise sigma."""
+def stamp_quantities(objs: np.ndarray, maps: DetectionMaps, pos: Positions,
+                     bkg_rms: np.ndarray, n: int, faint_ratio: float | None
+                     ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Per-stamp pylensfit ``flags`` (EDGE, MASKED, BAD_PIXELS, CLOSE_PAIR) and noise sigma
+    (the background rms ``bkg_rms`` at the objects without a weight map)."""
+    x, y, flux_iso = pos.x, pos.y, objs["flux"]
+    bad, nonfinite, bad_det, sigma, w = (maps.bad, maps.nonfinite, maps.bad_det, maps.sigma,
+                                         maps.weight)  # fmt: skip
     ny, nx = bad.shape
     flags = np.zeros(len(x), dtype=np.int64)
     noise_sigma = bkg_rms.copy()
