@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -170,7 +171,22 @@ def references(A, w, unit, used, coefs, cov):
     return ref.reshape(m, size, size), var
 
 
-def check_stars(S: Stars, ref, var_ref, X, Y, checks: StarChecks):
+class StarCheck(NamedTuple):
+    """One comparison of stars with their references, ``(m,)`` each but ``stars``: the
+    new centres ``X, Y`` (pixels from the cutout centres), the re-centred stars
+    ``(m, size, size)``, their flux, matched-filter S/N, noise-debiased correlation and
+    core reduced chi-square."""
+
+    X: np.ndarray
+    Y: np.ndarray
+    stars: np.ndarray
+    flux: np.ndarray
+    snr: np.ndarray
+    corr: np.ndarray
+    chi2: np.ndarray
+
+
+def check_stars(S: Stars, ref, var_ref, X, Y, checks: StarChecks) -> StarCheck:
     """Re-centre the stars on their references and measure flux, S/N, correlation, chi2."""
     big, size = S.D.shape[-2], ref.shape[-1]
     npix = size * size
@@ -199,11 +215,12 @@ def check_stars(S: Stars, ref, var_ref, X, Y, checks: StarChecks):
     dof = np.maximum(core.sum(axis=(1, 2)) - 3, 1)
     chi2 = np.sum(np.where(core, resid**2 / var_pix, 0.0), axis=(1, 2)) / dof
     snr = sp / (sig * np.sqrt(pp))
-    return Xn, Yn, st, f, snr, corr, chi2
+    return StarCheck(Xn, Yn, st, f, snr, corr, chi2)
 
 
-def verdict(S: Stars, X, Y, f, corr, chi2, checks: StarChecks) -> np.ndarray:
+def verdict(S: Stars, chk: StarCheck, checks: StarChecks) -> np.ndarray:
     """Rejection reason of each star after a check (``''`` for a star kept)."""
+    X, Y, f, corr, chi2 = chk.X, chk.Y, chk.flux, chk.corr, chk.chi2
     why = np.full(S.m, "", dtype=object)
     clip = checks.max_chi2
     tests = [(np.hypot(X - S.x0, Y - S.y0) > checks.max_shift, "shift"), (~(f > 0), "flux"),
@@ -241,11 +258,12 @@ def iterate(S: Stars, cand: np.ndarray, order: int, uv, opts: FitOptions) -> Fit
         w = np.where(used, 1.0 / var_unit, 0.0)
         coefs, cov = solve(A[used], w[used], unit[used].reshape(int(used.sum()), -1))
         ref, var_ref = references(A, w, unit, used, coefs, cov)
-        Xc, Yc, st, f, s, r, x2 = check_stars(Sc, ref[c], var_ref[c], X[c], Y[c], opts.checks)
-        X[c], Y[c], flux[c], snr[c], corr[c], chi2[c] = Xc, Yc, f, s, r, x2
-        why[c] = verdict(Sc, Xc, Yc, f, r, x2, opts.checks)
+        chk = check_stars(Sc, ref[c], var_ref[c], X[c], Y[c], opts.checks)
+        f = chk.flux
+        X[c], Y[c], flux[c], snr[c], corr[c], chi2[c] = chk.X, chk.Y, f, chk.snr, chk.corr, chk.chi2
+        why[c] = verdict(Sc, chk, opts.checks)
         fa = np.where(f > 0, f, 1.0)
-        unit[c] = np.where((f > 0)[:, None, None], st / fa[:, None, None], unit[c])
+        unit[c] = np.where((f > 0)[:, None, None], chk.stars / fa[:, None, None], unit[c])
         var_unit[c] = np.where(f > 0, (S.sig[c] / fa) ** 2, var_unit[c])
         used = cand & (why == "")
     if not used.any():
