@@ -80,12 +80,15 @@ takes them, :data:`SEP_FLAGS`), :mod:`~pylensfit.detection.masks` (saturated pix
 :mod:`~pylensfit.detection.stars` (:func:`select_stars`).
 """
 
+from . import inputs
 from .background import Background, measure_background
 from .extraction import detect
-from .inputs import SEP_FLAGS
 from .masks import grow_mask, saturation_level, saturation_mask
 from .pairs import close_pairs
 from .stars import select_stars
+
+#: SEP's object and aperture flags, name -> bit (the ``sep_flag`` column).
+SEP_FLAGS = inputs.SEP_FLAGS
 
 __all__ = [
     "Background",

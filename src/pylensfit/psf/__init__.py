@@ -45,11 +45,15 @@ stages of the stack: centre, compare, reject), :mod:`~pylensfit.psf.stack`
 :mod:`~pylensfit.psf.result` (:class:`PSFResult`, its files, :func:`combine_psfs`).
 """
 
+from . import stars
 from .diagnostics import psf_diagnostics
 from .result import PSFResult, combine_psfs, psf_from_image, read_psf
 from .stack import stack_psf
-from .stars import REASONS, StarChecks, check_star_inputs
+from .stars import StarChecks, check_star_inputs
 from .transform import PSFError, centre_on_stamp, psf_transform
+
+#: Rejection reasons written in :attr:`PSFResult.reason` (``''`` for a used star), by key.
+REASONS = stars.REASONS
 
 __all__ = [
     "REASONS",
