@@ -5,6 +5,8 @@ The star field's Moffat PSF varies with survey-like gradients: ``e = 0.04 (u + i
 pixels, ``u, v in [-1, 1]`` across the image.
 """
 
+import dataclasses
+import inspect
 import logging
 import sys
 
@@ -12,7 +14,7 @@ import galsim
 import numpy as np
 import pytest
 
-from pylensfit.psf import REASONS, PSFError, PSFResult, stack_psf
+from pylensfit.psf import REASONS, PSFError, PSFResult, StarChecks, stack_psf
 from pylensfit.psf.fourier import gaussian_peak, pad_to
 from pylensfit.psfmodel import (
     ConstantPSF,
@@ -393,3 +395,15 @@ def test_piff_model(field, catalogue, probe, tmp_path):
     (tmp_path / "junk.piff").write_text("not a Piff file")
     with pytest.raises(PSFError, match="junk.piff: not a readable Piff file"):
         read_psf_model(tmp_path / "junk.piff")
+
+
+def test_star_checks_hold_the_keywords_of_the_stack_and_the_polynomial_fit():
+    """StarChecks, the stars' tests shared by stack_psf and PolynomialPSF.fit, has their
+    keywords' names (``clip`` for ``max_chi2`` in the fit) and defaults."""
+    checks = {f.name: f.default for f in dataclasses.fields(StarChecks)}
+    for fn, names in ((stack_psf, {}), (PolynomialPSF.fit, {"max_chi2": "clip"})):
+        params = inspect.signature(fn).parameters
+        assert {k: params[names.get(k, k)].default for k in checks} == checks
+    for bad in ({"centroid_sigma": 0.0}, {"max_shift": -1.0}, {"margin": -1}):
+        with pytest.raises(ValueError, match="centroid_sigma and max_shift must be positive"):
+            StarChecks(**bad)

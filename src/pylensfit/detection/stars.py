@@ -23,7 +23,7 @@ STAR_BAD_SEP = (
 
 
 def star_candidates(catalogue, min_peak_snr: float, saturation: float | None,
-                     exclude_flags: int | None, position_order: int):  # fmt: skip
+                    exclude_flags: int | None, position_order: int):  # fmt: skip
     """:func:`select_stars`' step 1: ``(cand, r_half, snr, pos)``, the candidates (bool),
     their half-light radii and S/N (every row), and the positions ``(x, y)`` where the
     locus centre may follow them (None otherwise)."""

@@ -186,7 +186,7 @@ def centre_on_gaussian(
     unit = stars / safe_amp[:, None, None]
     var_unit = (cand.sig / safe_amp) ** 2  # per-pixel variance of each unit-flux star
     return Centred(phase=phase, F0=F0, D=D, x0=x0, y0=y0, X=X, Y=Y, unit=unit,
-                    var_unit=var_unit)  # fmt: skip
+                   var_unit=var_unit)  # fmt: skip
 
 
 def reference_stacks(cen: Centred, used: np.ndarray, median: bool) -> Reference:

@@ -15,8 +15,9 @@ from .._util import atomic_write
 from .diagnostics import psf_diagnostics
 from .transform import PSFError, centre_on_stamp
 
+#: Columns of the per-star table, :meth:`PSFResult.stars`.
 STAR_COLUMNS = ("x_cat", "y_cat", "x", "y", "flux", "snr", "correlation", "chi2", "used",
-                 "reason")  # fmt: skip
+                "reason")  # fmt: skip
 
 
 @dataclass

@@ -12,12 +12,12 @@ from .basis import moments_many, n_terms
 from .polyfit import Fit, FitOptions, Stars
 
 TABLE_COLUMNS = ("x_cat", "y_cat", "x", "y", "flux", "snr", "correlation", "chi2", "used",
-                  "reason", "heldout", "e1_star", "e2_star", "sigma_star", "e1_model",
-                  "e2_model", "sigma_model")  # fmt: skip
+                 "reason", "heldout", "e1_star", "e2_star", "sigma_star", "e1_model",
+                 "e2_model", "sigma_model")  # fmt: skip
 
 
 def moment_noise(image: np.ndarray, rng: np.random.Generator, nu: float = 200.0,
-                  n_real: int = 48) -> tuple[float, float]:  # fmt: skip
+                 n_real: int = 48) -> tuple[float, float]:  # fmt: skip
     """Noise of the adaptive moments of a star of this PSF, times its matched-filter S/N.
 
     Monte Carlo: ``n_real`` copies of ``image`` plus white noise at matched-filter S/N
@@ -85,7 +85,7 @@ def star_table(S: Stars, x, y, fit: Fit, model, model_h, hold) -> Table:
     """The per-candidate table of :meth:`PolynomialPSF.fit`."""
     n, k = S.n, S.idx
     col = {c: np.full(n, np.nan) for c in TABLE_COLUMNS if c not in ("used", "reason",
-                                                                        "heldout")}  # fmt: skip
+                                                                     "heldout")}  # fmt: skip
     col["x_cat"], col["y_cat"] = x.copy(), y.copy()
     xs, ys = S.ix + fit.X, S.iy + fit.Y
     img, sx, sy, _ = model._draw_centred(xs, ys)

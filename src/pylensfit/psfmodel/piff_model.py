@@ -141,7 +141,7 @@ class PiffPSF(PSFModel):
     @property
     def digest(self) -> str:
         return sha1("PiffPSF", self._bytes, self.size, self.chipnum, self.origin,
-                     self.centroid_sigma, self.margin)  # fmt: skip
+                    self.centroid_sigma, self.margin)  # fmt: skip
 
     def write(self, path, overwrite=False):
         """Copy the Piff file (byte for byte), atomically."""

@@ -102,8 +102,8 @@ def first_stage(image, weight, x, y, sigma_all, size, checks: StarChecks) -> Sta
         z, zi = np.zeros(0), np.zeros(0, np.int64)
         e = np.zeros((0, big, big // 2 + 1), complex)
         return Stars(n=x.size, idx=zi, ix=zi, iy=zi, F0=e, D=e, x0=z, y0=z, X=z, Y=z,
-                      stars=np.zeros((0, size, size)), amp=z, sig=z, reason=reason,
-                      snr=np.full(x.size, np.nan))  # fmt: skip
+                     stars=np.zeros((0, size, size)), amp=z, sig=z, reason=reason,
+                     snr=np.full(x.size, np.nan))  # fmt: skip
     sig = sigma_all[idx]
     F0 = np.fft.rfft2(stamps)
     D = F0 * phase(big)[None]
@@ -123,8 +123,8 @@ def first_stage(image, weight, x, y, sigma_all, size, checks: StarChecks) -> Sta
     reason[idx] = why
     k = why == ""
     return Stars(n=x.size, idx=idx[k], ix=ix[idx[k]], iy=iy[idx[k]], F0=F0[k], D=D[k],
-                  x0=x0[k], y0=y0[k], X=X[k], Y=Y[k], stars=stars[k], amp=amp[k], sig=sig[k],
-                  reason=reason, snr=snr)  # fmt: skip
+                 x0=x0[k], y0=y0[k], X=X[k], Y=Y[k], stars=stars[k], amp=amp[k], sig=sig[k],
+                 reason=reason, snr=snr)  # fmt: skip
 
 
 @dataclass
@@ -268,17 +268,17 @@ def iterate(S: Stars, cand: np.ndarray, order: int, uv, opts: FitOptions) -> Fit
         used = cand & (why == "")
     if not used.any():
         return Fit(order, np.zeros((n_terms(order), size, size)), np.zeros((1, 1)), used, why,
-                    X, Y, unit, flux, snr, corr, chi2)  # fmt: skip
+                   X, Y, unit, flux, snr, corr, chi2)  # fmt: skip
     w = 1.0 / var_unit[used]
     coefs, cov = solve(A[used], w, unit[used].reshape(int(used.sum()), -1))
     return Fit(order, coefs.reshape(-1, size, size), cov, used, why, X, Y, unit, flux, snr,
-                corr, chi2)  # fmt: skip
+               corr, chi2)  # fmt: skip
 
 
 def subset(S: Stars, mask: np.ndarray) -> Stars:
     """The stars of ``mask`` (the per-candidate bookkeeping is shared)."""
     pick = {k: getattr(S, k)[mask] for k in ("idx", "ix", "iy", "F0", "D", "x0", "y0", "X",
-                                              "Y", "stars", "amp", "sig")}  # fmt: skip
+                                             "Y", "stars", "amp", "sig")}  # fmt: skip
     return Stars(n=S.n, reason=S.reason, snr=S.snr, **pick)
 
 

@@ -200,7 +200,7 @@ class PolynomialPSF(PSFModel):
     @property
     def digest(self) -> str:
         return sha1("PolynomialPSF", self.coefs, self.order, np.array(self.bounds),
-                     self.centroid_sigma, self.margin)  # fmt: skip
+                    self.centroid_sigma, self.margin)  # fmt: skip
 
     # -- fitting --------------------------------------------------------------------------
     @classmethod
