@@ -5,6 +5,8 @@ The star field's Moffat PSF varies with survey-like gradients: ``e = 0.04 (u + i
 pixels, ``u, v in [-1, 1]`` across the image.
 """
 
+import dataclasses
+import inspect
 import logging
 import sys
 
@@ -12,7 +14,8 @@ import galsim
 import numpy as np
 import pytest
 
-from pylensfit.psf import REASONS, PSFError, PSFResult, gaussian_peak, pad_to, stack_psf
+from pylensfit.psf import REASONS, PSFError, PSFResult, StarChecks, stack_psf
+from pylensfit.psf.fourier import gaussian_peak, pad_to
 from pylensfit.psfmodel import (
     ConstantPSF,
     PiffNotInstalledError,
@@ -98,7 +101,7 @@ def truth_residuals(model, probe):
 
 def gaussian_centre(images, sigma=2.0):
     """Offset of the Gaussian cross-correlation peak from [size//2, size//2] (pixels)."""
-    from pylensfit.psfmodel import _phase
+    from pylensfit.psfmodel.basis import phase as _phase  # a helper of the models
 
     images = np.atleast_3d(images).reshape(-1, *np.shape(images)[-2:])
     big = images.shape[-1] + 9
@@ -392,3 +395,15 @@ def test_piff_model(field, catalogue, probe, tmp_path):
     (tmp_path / "junk.piff").write_text("not a Piff file")
     with pytest.raises(PSFError, match="junk.piff: not a readable Piff file"):
         read_psf_model(tmp_path / "junk.piff")
+
+
+def test_star_checks_hold_the_keywords_of_the_stack_and_the_polynomial_fit():
+    """StarChecks, the stars' tests shared by stack_psf and PolynomialPSF.fit, has their
+    keywords' names (``clip`` for ``max_chi2`` in the fit) and defaults."""
+    checks = {f.name: f.default for f in dataclasses.fields(StarChecks)}
+    for fn, names in ((stack_psf, {}), (PolynomialPSF.fit, {"max_chi2": "clip"})):
+        params = inspect.signature(fn).parameters
+        assert {k: params[names.get(k, k)].default for k in checks} == checks
+    for bad in ({"centroid_sigma": 0.0}, {"max_shift": -1.0}, {"margin": -1}):
+        with pytest.raises(ValueError, match="centroid_sigma and max_shift must be positive"):
+            StarChecks(**bad)
