@@ -38,16 +38,17 @@ bulge fractions' prior), ``size`` and ``size_estimate`` (:class:`SizePrior` and 
 estimate) and ``flux`` (the amplitude prior's power and bounds).
 """
 
+from . import flux, functional, spline
 from .bulge import estimate_bulge_weights, estimate_prior_and_bulge, mix_bulge_fractions
 from .estimate import BinnedPrior, estimate_prior, estimate_prior_binned
 from .fit import fit_functional_prior, marginal_log_likelihood
-from .flux import MIN_FLUX_RANGE_SAMPLE, estimate_flux_range, estimate_flux_slope
-from .functional import PRIOR_BOUNDS, Prior, prior_is_valid
+from .flux import estimate_flux_range, estimate_flux_slope
+from .functional import Prior, prior_is_valid
 from .radial import RadialPrior
 from .sample import usable_rows
 from .size import SizePrior
 from .size_estimate import estimate_size_prior, select_size_prior_smoothing
-from .spline import SPLINE_KNOTS, SPLINE_SMOOTHING, SplinePrior
+from .spline import SplinePrior
 
 __all__ = [
     "PRIOR_BOUNDS",
@@ -73,3 +74,22 @@ __all__ = [
     "usable_rows",
     "MIN_FLUX_RANGE_SAMPLE",
 ]
+
+# The constants are bound here with their documentation, that of the API reference.
+
+#: Box bounds on the parameters ``(B, C, D)`` of the functional prior. Together with the
+#: joint conditions of :func:`prior_is_valid` they keep the prior positive, finite and
+#: free of turning points for ``0 < |e| < 1``. The lower bounds on ``B`` and ``C`` stop
+#: the degenerate direction (``B -> 0`` with ``C`` falling, which small or noisy samples
+#: drift along) where the cusp at ``e = 0`` becomes sharper than the grid resolves: the
+#: scale ``B/2`` where the exponent reaches 1 stays above 0.01, and the cells nearest the
+#: origin (``|e| = 0.07`` for ``de = 0.1``) cannot constrain anything smaller.
+PRIOR_BOUNDS = functional.PRIOR_BOUNDS
+#: Knots of :class:`SplinePrior`'s cubic B-spline in ``|e|``: uniform on ``[0, 1]`` with
+#: interior knots every 0.2, eight coefficients. Finer than the likelihoods resolve on the
+#: paper's grid (cells 0.1 wide, likelihood widths 0.1-0.3) would only add noise.
+SPLINE_KNOTS = spline.SPLINE_KNOTS
+#: Default weight of :class:`SplinePrior`'s roughness penalty (see :func:`estimate_prior`).
+SPLINE_SMOOTHING = spline.SPLINE_SMOOTHING
+#: Fewest usable fluxes from which :func:`estimate_flux_range` estimates a range.
+MIN_FLUX_RANGE_SAMPLE = flux.MIN_FLUX_RANGE_SAMPLE

@@ -98,7 +98,7 @@ def _flux_range_loglike(f: np.ndarray, s: np.ndarray, lo: float, hi: float, beta
     return ln_int - math.log(norm)
 
 
-#: fewest usable fluxes from which :func:`estimate_flux_range` estimates a range
+#: Fewest usable fluxes for a range (:data:`pylensfit.prior.MIN_FLUX_RANGE_SAMPLE`).
 MIN_FLUX_RANGE_SAMPLE = 50
 
 

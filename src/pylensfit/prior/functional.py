@@ -20,13 +20,7 @@ import numpy as np
 
 from .radial import RadialPrior
 
-#: Box bounds on the parameters ``(B, C, D)`` of the functional prior. Together with the
-#: joint conditions of :func:`prior_is_valid` they keep the prior positive, finite and
-#: free of turning points for ``0 < |e| < 1``. The lower bounds on ``B`` and ``C`` stop
-#: the degenerate direction (``B -> 0`` with ``C`` falling, which small or noisy samples
-#: drift along) where the cusp at ``e = 0`` becomes sharper than the grid resolves: the
-#: scale ``B/2`` where the exponent reaches 1 stays above 0.01, and the cells nearest the
-#: origin (``|e| = 0.07`` for ``de = 0.1``) cannot constrain anything smaller.
+#: Box bounds on ``(B, C, D)`` (why these: :data:`pylensfit.prior.PRIOR_BOUNDS`).
 PRIOR_BOUNDS: dict[str, tuple[float, float]] = {
     "B": (0.02, 5.0),
     "C": (0.2, 5.0),

@@ -19,11 +19,9 @@ from .functional import DEFAULT_PARAMS, log_f
 from .radial import RadialPrior
 from .sample import PreparedSample
 
-#: Knots of :class:`SplinePrior`'s cubic B-spline in ``|e|``: uniform on ``[0, 1]`` with
-#: interior knots every 0.2, eight coefficients. Finer than the likelihoods resolve on the
-#: paper's grid (cells 0.1 wide, likelihood widths 0.1-0.3) would only add noise.
+#: Knots of :class:`SplinePrior`'s cubic B-spline (:data:`pylensfit.prior.SPLINE_KNOTS`).
 SPLINE_KNOTS = np.concatenate([[0.0] * 4, [0.2, 0.4, 0.6, 0.8], [1.0] * 4])
-#: Default weight of :class:`SplinePrior`'s roughness penalty (see :func:`estimate_prior`).
+#: Default weight of the roughness penalty (:data:`pylensfit.prior.SPLINE_SMOOTHING`).
 SPLINE_SMOOTHING = 10.0
 
 

@@ -33,12 +33,11 @@ The package holds one module per step: ``reduced`` (the reduced-shear map,
 import warnings
 
 from .. import grid
+from . import posterior
 from .estimate import estimate_shear
 from .fixed_point import ShearEstimate, shear_fixed_point
 from .frames import table_frame
 from .posterior import (
-    FLAG_BAD_LIKELIHOOD,
-    FLAG_NAMES,
     moments_from_sums,
     posterior_moments,
     sensitivity_from_sums,
@@ -67,6 +66,14 @@ __all__ = [
     "sums_with",
     "table_frame",
 ]
+
+# The constants are bound here with their documentation, that of the API reference.
+
+#: Flag bit: the likelihood row is unusable (all ``-inf``, or contains NaN / ``+inf``);
+#: the ``FIT_FAILED`` bit of the catalogue's flag table (:mod:`pylensfit.flags`).
+FLAG_BAD_LIKELIHOOD = posterior.FLAG_BAD_LIKELIHOOD
+#: Name table of the flag bits of :func:`shapes`.
+FLAG_NAMES = posterior.FLAG_NAMES
 
 #: Names that live in :mod:`pylensfit.grid`; importing them from here warns.
 _MOVED = {"DEFAULT_REFINE", "DEFAULT_STENCIL", "refine_lnL", "refined_grid"}

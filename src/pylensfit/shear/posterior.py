@@ -18,10 +18,9 @@ from ..grid import DEFAULT_REFINE, refined_grid
 from ..prior import BinnedPrior, Prior, RadialPrior, usable_rows
 from .sums import kernel_columns, sums_with
 
-#: Flag bit: the likelihood row is unusable (all ``-inf``, or contains NaN / ``+inf``);
-#: the ``FIT_FAILED`` bit of the catalogue's flag table (:mod:`pylensfit.flags`).
+#: Flag bit of an unusable likelihood row (:data:`pylensfit.shear.FLAG_BAD_LIKELIHOOD`).
 FLAG_BAD_LIKELIHOOD = flag_value("FIT_FAILED")
-#: Name table of the flag bits of :func:`shapes`.
+#: Name table of the flag bits of :func:`shapes` (:data:`pylensfit.shear.FLAG_NAMES`).
 FLAG_NAMES = {FLAG_BAD_LIKELIHOOD: "FIT_FAILED"}
 #: The shear sensitivities (:func:`shear_sensitivity`).
 _SENS_METHODS = ("exact", "paper")
