@@ -406,11 +406,11 @@ def test_box_size_prior_edge_moves_l_e_continuously(rng):
     faint galaxy changes smoothly (each node's share of the box is its hat's overlap),
     not in one jump when the edge crosses the node, as with the prior read at the
     nodes alone."""
-    from pylensfit.prior import SizePrior, _node_sizes
+    from pylensfit.prior.size import SizePrior, node_sizes
 
     cfg = Config.paper(model="exponential", e_step=0.2)
     bank = model_bank(cfg)
-    _, _, h = _node_sizes(bank, cfg)
+    _, _, h = node_sizes(bank, cfg)
     x = np.log(h)
     j = int(np.searchsorted(x, np.log(1.2)))
     step = x[j + 1] - x[j]
@@ -653,11 +653,11 @@ def test_floored_sizes_on_every_third_size_leave_galaxies_in_the_prior_alone(rng
 
 def test_size_prior_uniform_in_half_light_radius_is_the_flat_sum(rng):
     """A SizePrior of density ~ h per unit ln h reproduces the default sum over r."""
-    from pylensfit.prior import SizePrior, _node_sizes
+    from pylensfit.prior.size import SizePrior, node_sizes
 
     cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, e_step=0.2)
     bank = model_bank(cfg)
-    _, _, h = _node_sizes(bank, cfg)
+    _, _, h = node_sizes(bank, cfg)
     knots = np.linspace(np.log(h.min()) - 0.1, np.log(h.max()) + 0.1, 400)
     c = 0.37  # any constant: the prior's normalisation is a constant in ln L
     u0 = half_light_radius("bulge+disc", bulge_fraction=0.0)

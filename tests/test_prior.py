@@ -407,7 +407,7 @@ def test_bulge_fraction_sums_are_the_same_a_block_at_a_time(monkeypatch):
     """The fraction evidences and the mixed likelihoods, taken a few galaxies at a time
     (as the precision mode's 80,000-galaxy calibration is, to bound the temporaries),
     equal the direct sums over every galaxy, a bad row in the middle excluded."""
-    import pylensfit.prior as pr
+    import pylensfit.prior.bulge as pr
 
     egrid = ellipticity_grid(0.1)
     prior = Prior(egrid=egrid)
@@ -445,10 +445,10 @@ def test_bulge_fraction_sums_are_the_same_a_block_at_a_time(monkeypatch):
 
 def _size_sample(n, cfg, rng, mu=0.405, sd=0.35, width=(0.05, 0.4), star_frac=0.0):
     """Synthetic ``lnL_r``: Gaussians in ln(h) about each galaxy's measured ln h."""
-    from pylensfit.prior import _node_sizes
+    from pylensfit.prior.size import node_sizes
 
     bank = model_bank(cfg)
-    _, _, h = _node_sizes(bank, cfg)
+    _, _, h = node_sizes(bank, cfg)
     lnh_true = rng.normal(mu, sd, n)
     s = rng.uniform(*width, n)
     lnh_obs = lnh_true + s * rng.normal(size=n)
@@ -463,7 +463,8 @@ def _size_sample(n, cfg, rng, mu=0.405, sd=0.35, width=(0.05, 0.4), star_frac=0.
 def test_size_prior_recovers_a_lognormal_population():
     """Smoothed EM deconvolves the measurement widths: mean and spread of ln h."""
     from pylensfit import Config
-    from pylensfit.prior import _node_sizes, estimate_size_prior
+    from pylensfit.prior import estimate_size_prior
+    from pylensfit.prior.size import node_sizes
 
     cfg = Config.paper(model="exponential")
     rng = np.random.default_rng(5)
@@ -482,7 +483,7 @@ def test_size_prior_recovers_a_lognormal_population():
     # largest) floored below the mode, cut above it (those sizes are not evaluated)
     w, ws = sp.node_weights(bank, cfg.replace(size_prior_floor_stride=1))
     assert w.shape == (bank.n_r,) and ws == pytest.approx(sp.star)
-    _, _, h = _node_sizes(bank, cfg)
+    _, _, h = node_sizes(bank, cfg)
     tail = cfg.size_prior_cut * w.max()
     above = h > np.exp(sp.ln_h[np.argmax(sp.density)])
     assert np.all(w[~above] >= tail * (1 - 1e-12)) and np.any(w[~above] == tail)
@@ -513,11 +514,12 @@ def test_less_size_prior_smoothing_resolves_a_narrow_population():
     the default smoothing spreads it, ``size_prior_smoothing=0.05`` keeps more of the
     prior's mass inside the box."""
     from pylensfit import Config
-    from pylensfit.prior import _node_sizes, estimate_size_prior
+    from pylensfit.prior import estimate_size_prior
+    from pylensfit.prior.size import node_sizes
 
     cfg = Config.paper(model="exponential")
     bank = model_bank(cfg)
-    _, _, h = _node_sizes(bank, cfg)
+    _, _, h = node_sizes(bank, cfg)
     rng = np.random.default_rng(8)
     n = 20000
     lo, hi = np.log(1.0), np.log(1.4)
@@ -542,18 +544,13 @@ def test_size_prior_smoothing_chosen_by_held_out_evidence():
     """Cross-validation prefers the light smoothing on a narrow box by far, and its
     scores are the held-out evidence of priors fitted to the other groups alone."""
     from pylensfit import Config
-    from pylensfit.prior import (
-        SizePrior,
-        _node_sizes,
-        _size_mixture,
-        estimate_size_prior,
-        select_size_prior_smoothing,
-        size_likelihood_rows,
-    )
+    from pylensfit.prior import SizePrior, estimate_size_prior, select_size_prior_smoothing
+    from pylensfit.prior.size import node_sizes
+    from pylensfit.prior.size_estimate import size_likelihood_rows, size_mixture
 
     cfg = Config.paper(model="exponential")
     bank = model_bank(cfg)
-    _, _, h = _node_sizes(bank, cfg)
+    _, _, h = node_sizes(bank, cfg)
     rng = np.random.default_rng(8)
     n = 1500
     lnh_true = rng.uniform(np.log(1.0), np.log(1.4), n)
@@ -569,7 +566,7 @@ def test_size_prior_smoothing_chosen_by_held_out_evidence():
     # the score of 0.25 recomputed fold by fold with estimate_size_prior on the others
     ok = size_likelihood_rows(lnL_r)
     group = np.random.default_rng(2).permutation(ok.sum()) % 3
-    comp, knots, _, _ = _size_mixture(lnL_r, bank, cfg, None, 0.1, False)
+    comp, knots, _, _ = size_mixture(lnL_r, bank, cfg, None, 0.1, False)
     total = {}
     for sm in (0.05, 0.25):
         total[sm] = 0.0
@@ -684,11 +681,12 @@ def test_size_prior_per_run_recovers_each_fraction_s_sizes():
     one between them for both; each run's node weights are those of its own density,
     and the prior survives ``to_dict``."""
     from pylensfit import Config
-    from pylensfit.prior import SizePrior, _node_sizes, estimate_size_prior
+    from pylensfit.prior import SizePrior, estimate_size_prior
+    from pylensfit.prior.size import node_sizes
 
     cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3)
     bank = model_bank(cfg)
-    _, _, h = _node_sizes(bank, cfg)
+    _, _, h = node_sizes(bank, cfg)
     ns = bank.n_sizes
     rng = np.random.default_rng(12)
     n = 12000

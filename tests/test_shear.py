@@ -9,7 +9,6 @@ from pylensfit.prior import Prior, estimate_prior, estimate_prior_binned
 from pylensfit.shear import (
     FLAG_BAD_LIKELIHOOD,
     ShearEstimate,
-    _all_sums,
     apply_shear,
     estimate_shear,
     posterior_moments,
@@ -17,6 +16,7 @@ from pylensfit.shear import (
     shapes,
     shear_sensitivity,
 )
+from pylensfit.shear.posterior import all_sums
 
 TRUE = {"B": 0.19, "C": 0.58, "D": 2.4}  # STEP-like population (docs: method, eq-funcprior)
 EGRID = ellipticity_grid(0.1)
@@ -421,7 +421,7 @@ def test_shear_bias_exact_vs_paper_vs_none():
         """g_hat for each sensitivity from one pass over the population, (3, 2)."""
         e1, e2 = apply_shear(es.real, es.imag, g1, g2)
         lnL = gaussian_lnL(np.column_stack([e1 + noise.real, e2 + noise.imag]), s)
-        S, _ = _all_sums(lnL, EGRID, prior, refine, None, None)
+        S, _ = all_sums(lnL, EGRID, prior, refine, None, None)
         e = S[:, 1:3] / S[:, :1]
         sens = [np.column_stack(sensitivity_from_sums(S, m)) for m in ("exact", "paper")]
         sens.append(np.ones_like(e))

@@ -12,7 +12,7 @@ from astropy.table import Table
 from scipy.stats import norm
 
 from pylensfit import Config, ConfigError
-from pylensfit.grid import ellipticity_grid
+from pylensfit.grid import DEFAULT_REFINE, ellipticity_grid
 from pylensfit.pipeline import read_catalogue, write_catalogue
 from pylensfit.prior import (
     Prior,
@@ -21,13 +21,8 @@ from pylensfit.prior import (
     estimate_prior,
     marginal_log_likelihood,
 )
-from pylensfit.shear import (
-    DEFAULT_REFINE,
-    _all_sums,
-    apply_shear,
-    sensitivity_from_sums,
-    shapes,
-)
+from pylensfit.shear import apply_shear, sensitivity_from_sums, shapes
+from pylensfit.shear.posterior import all_sums
 
 EGRID = ellipticity_grid(0.1)
 
@@ -115,7 +110,7 @@ def test_shear_under_the_spline_prior_is_unbiased_where_the_functional_is_not():
         for g in (0.02, -0.02):
             e1, e2 = apply_shear(es.real, es.imag, g, 0.0)
             lnL = gaussian_lnL(np.column_stack([e1 + noise.real, e2 + noise.imag]), s)
-            S, _ = _all_sums(lnL, EGRID, prior, DEFAULT_REFINE, None, None)
+            S, _ = all_sums(lnL, EGRID, prior, DEFAULT_REFINE, None, None)
             sens = sensitivity_from_sums(S, "exact")[0]
             g_hat.append(np.sum(S[:, 1] / S[:, 0]) / np.sum(sens))
         m[name] = (g_hat[0] - g_hat[1]) / 0.04 - 1
