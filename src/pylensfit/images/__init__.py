@@ -45,7 +45,7 @@ from .image_psf import PSF_SUSPECT_CHI2, PSF_SUSPECT_PVALUE
 from .inputs import InputError
 from .neighbours import subtract_neighbours
 from .records import ImageResult, PSFSummary
-from .run import measure
+from .run import calibrate_images, measure
 
 __all__ = [
     "InputError",
@@ -53,6 +53,7 @@ __all__ = [
     "PSFSummary",
     "PSF_SUSPECT_CHI2",
     "PSF_SUSPECT_PVALUE",
+    "calibrate_images",
     "catalogue_frame",
     "measure",
     "read_catalogue",

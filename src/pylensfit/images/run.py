@@ -6,7 +6,7 @@ import logging
 import os
 import shutil
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,15 +17,16 @@ from ..config import Config
 from ..prior import Prior, SizePrior
 from ..psf import PSFResult
 from ..psfmodel import PSFModel
-from ..runner import run_tasks, worker_pool
+from ..runner import worker_pool
 from .catalogue_io import write_catalogue
 from .image_psf import starfield_task
 from .inputs import InputError, as_list, check_inputs, load_given, read_given_psfs
 from .parts import parts_dropped_if_unused, remove_stale_temporaries
-from .passes import LastPass, assemble_results, calibrate_images, measure_pass
-from .records import ImageTask, StarfieldTask
+from .passes import LastPass, Workers, assemble_results, calibration_passes, measure_pass
+from .records import ImageResult, ImageTask, StarfieldTask
+from .sample import sample_tasks
 
-__all__ = ["measure"]
+__all__ = ["calibrate_images", "measure"]
 
 # the pipeline's one logger: its name predates the split into modules
 log = logging.getLogger("pylensfit.pipeline")
@@ -129,41 +130,120 @@ def measure(
                           priors, output, overwrite)  # fmt: skip
     if psf_dir is not None:
         Path(psf_dir).mkdir(parents=True, exist_ok=True)
-    parts = inp.parts
     # one set of workers for every pass; a run failing before it has written a part
     # leaves no empty <output>.parts/
-    with worker_pool(jobs, scheduler) as pool, parts_dropped_if_unused(parts):
-        # star fields first: their PSFs go to every image
-        star_psfs = []
-        st_tasks = [StarfieldTask(path=p, index=i, config=cfg) for i, p in enumerate(inp.stars)]
-        for _, res in run_tasks(starfield_task, st_tasks, jobs, scheduler, "star fields",
-                                progress, pool):  # fmt: skip
-            star_psfs.append(res)
-        star_psfs.sort(key=lambda r: inp.stars.index(r.source))
-        tasks = [
-            ImageTask(path=p, index=i, config=cfg, weight=w, mask=m, catalogue=c,
-                       star_psfs=tuple(star_psfs), star_column=star_column,
-                       psf_dir=None if psf_dir is None else str(psf_dir),
-                       psf=None if inp.psfs is None else inp.psfs[i])
-            for i, (p, w, m, c) in enumerate(zip(inp.images, inp.weights, inp.masks,
-                                                 inp.catalogues, strict=True))
-        ]  # fmt: skip
-        pr_file = parts / "priors.json" if parts is not None else None
-        last = LastPass()
-        priors = inp.priors
-        if priors is None and pr_file is not None and pr_file.exists():
-            priors = Priors.load(pr_file)  # a resumed run keeps its priors
-            log.info("priors of the interrupted run read from %s", pr_file)
-        if priors is None:
-            priors = calibrate_images(tasks, cfg, inp.prior, inp.size_prior, jobs, scheduler,
-                                       progress, pool, last, parts)  # fmt: skip
-        results = measure_pass(tasks, cfg, priors, last, parts, pr_file, jobs, scheduler,
-                                progress, pool)  # fmt: skip
+    with worker_pool(jobs, scheduler) as pool, parts_dropped_if_unused(inp.parts):
+        workers = Workers(jobs=jobs, scheduler=scheduler, progress=progress, pool=pool)
+        tasks = _image_tasks(inp, cfg, star_column, psf_dir, workers)
+        results, priors = _measure_images(tasks, cfg, inp, workers)
     cat = assemble_results([results[i] for i in range(len(tasks))], cfg, priors)
     if inp.out is not None:
         write_catalogue(cat, inp.out, overwrite=overwrite)
-        shutil.rmtree(parts, ignore_errors=True)
+        shutil.rmtree(inp.parts, ignore_errors=True)
     return cat
+
+
+def calibrate_images(
+    images: str | os.PathLike | Iterable[str | os.PathLike],
+    *,
+    stars: Iterable[str | os.PathLike] | None = None,
+    weights: Iterable[str | os.PathLike | None] | None = None,
+    masks: Iterable[str | os.PathLike | None] | None = None,
+    catalogues: Iterable[str | os.PathLike | None] | None = None,
+    star_column: str | None = None,
+    config: Config | None = None,
+    prior: Prior | str | os.PathLike | None = None,
+    size_prior: SizePrior | str | os.PathLike | None = None,
+    psf: PSFResult | PSFModel | np.ndarray | str | os.PathLike | Sequence | None = None,
+    sample: int | None = None,
+    seed: int | None = None,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> Priors:
+    """Estimate every prior of the method once, on a sample of a survey's images.
+
+    The calibration recipe (:mod:`pylensfit.calibration`) on whole images drawn at
+    random until their objects reach ``sample`` (:mod:`pylensfit.images.sample`): each
+    galaxy fitted as :func:`measure` fits it. ``Priors.save`` keeps the priors for
+    ``measure(priors=...)`` (``pylensfit measure --priors``), which measures every image
+    in one pass under them, with the same ``config``.
+
+    Parameters
+    ----------
+    images, stars, weights, masks, catalogues, star_column, config, prior, size_prior, psf
+        As for :func:`measure`.
+    sample : int, optional
+        Objects (detections, or input catalogue rows) of the images drawn; 0: every
+        image. Default ``Config.calibration_sample`` (20,000).
+    seed : int, optional
+        Seed of the draw; default ``Config.calibration_seed``.
+    jobs, scheduler, progress
+        As for :func:`measure`.
+
+    Returns
+    -------
+    Priors
+        The priors; ``info["sample_images"]`` names the images of the sample.
+
+    Raises
+    ------
+    InputError
+        A missing or unreadable input: one line naming the file and the problem.
+    """
+    cfg = config if config is not None else Config()
+    cfg = cfg.replace(**{k: v for k, v in (("calibration_sample", sample),
+                                           ("calibration_seed", seed)) if v is not None})
+    inp = _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_prior,
+                          None, None, False)  # fmt: skip
+    with worker_pool(jobs, scheduler) as pool:
+        workers = Workers(jobs=jobs, scheduler=scheduler, progress=progress, pool=pool)
+        tasks = _image_tasks(inp, cfg, star_column, None, workers)
+        return _calibrate(tasks, cfg, inp, workers, LastPass())
+
+
+def _image_tasks(inp: _MeasureInputs, cfg: Config, star_column: str | None,
+                 psf_dir: str | os.PathLike | None,
+                 workers: Workers) -> list[ImageTask]:  # fmt: skip
+    """The images' tasks, with the PSFs of the star fields (built first: they go to every
+    image)."""
+    st_tasks = [StarfieldTask(path=p, index=i, config=cfg) for i, p in enumerate(inp.stars)]
+    star_psfs = [res for _, res in workers.run(starfield_task, st_tasks, "star fields")]
+    star_psfs.sort(key=lambda r: inp.stars.index(r.source))
+    return [
+        ImageTask(path=p, index=i, config=cfg, weight=w, mask=m, catalogue=c,
+                  star_psfs=tuple(star_psfs), star_column=star_column,
+                  psf_dir=None if psf_dir is None else str(psf_dir),
+                  psf=None if inp.psfs is None else inp.psfs[i])
+        for i, (p, w, m, c) in enumerate(zip(inp.images, inp.weights, inp.masks,
+                                             inp.catalogues, strict=True))
+    ]  # fmt: skip
+
+
+def _calibrate(tasks: list[ImageTask], cfg: Config, inp: _MeasureInputs, workers: Workers,
+               last: LastPass) -> Priors:  # fmt: skip
+    """The recipe on the calibration sample of ``tasks``; the priors name its images."""
+    sample = sample_tasks(tasks, cfg.calibration_sample, cfg.calibration_seed, workers)
+    priors = calibration_passes(sample, cfg, inp.prior, inp.size_prior, workers, last,
+                                inp.parts)  # fmt: skip
+    return replace(priors, info={**priors.info, "sample_images": [t.path for t in sample],
+                                 "images": len(tasks)})  # fmt: skip
+
+
+def _measure_images(tasks: list[ImageTask], cfg: Config, inp: _MeasureInputs,
+                    workers: Workers) -> tuple[dict[int, ImageResult], Priors]:  # fmt: skip
+    """Every image measured under the given priors, those of an interrupted run, or those
+    the recipe estimates on the calibration sample; the results by image and the priors."""
+    pr_file = inp.parts / "priors.json" if inp.parts is not None else None
+    last = LastPass()
+    priors = inp.priors
+    if priors is None and pr_file is not None and pr_file.exists():
+        priors = Priors.load(pr_file)  # a resumed run keeps its priors
+        log.info("priors of the interrupted run read from %s", pr_file)
+    if priors is None:
+        priors = _calibrate(tasks, cfg, inp, workers, last)
+    results = measure_pass(tasks, cfg, priors, last, inp.parts, pr_file, workers)
+    return results, priors
 
 
 @dataclass
