@@ -920,16 +920,10 @@ def stamps_table(fits, priors: Priors, run_cfg: Config, cx, cy, noise_sigma,
 
 
 def measure_stamps(
-    stamps: np.ndarray,
-    psf: np.ndarray,
-    noise_sigma,
-    *,
-    priors: Priors | str | Path | None = None,
-    config: Config | None = None,
-    centres: tuple[np.ndarray, np.ndarray] | None = None,
-    response: str = "model",
-    metacal_step: float = 0.01,
-    seed: int = 0,
+    stamps: np.ndarray, psf: np.ndarray, noise_sigma, *,
+    priors: Priors | str | Path | None = None, config: Config | None = None,
+    centres: tuple[np.ndarray, np.ndarray] | None = None, response: str = "model",
+    metacal_step: float = 0.01, seed: int = 0,
 ) -> Table:
     """Shapes, errors, sensitivities and weights of galaxies on postage stamps.
 
@@ -950,12 +944,10 @@ def measure_stamps(
     response : {"model", "metacal"}
         ``"model"``: the sensitivities are lensfit's exact response of the posterior
         mean if the galaxy is one of the models. ``"metacal"``: the response is also
-        measured on each galaxy itself (:func:`pylensfit.metacal.metacal_shapes`: the
-        stamp deconvolved, sheared by ``+-metacal_step``, reconvolved with a PSF
-        ``1 + 2 metacal_step`` times wider and fitted again, with a rotated noise field
-        added), for galaxies the model family does not hold (Sersic profiles far from
-        1 and 4, knotty discs, bulges misaligned with their discs), at 5 to 7.5 times
-        the cost. It adds the columns below.
+        measured on each galaxy itself (:func:`pylensfit.metacal.metacal_shapes`), for
+        galaxies the model family does not hold (Sersic profiles far from 1 and 4,
+        knotty discs, misaligned bulges), at 5 to 7.5 times the cost; it adds the
+        columns below.
     metacal_step : float
         The metacalibration shear ``delta`` (dimensionless).
     seed : int
@@ -965,33 +957,24 @@ def measure_stamps(
     Returns
     -------
     astropy.table.Table
-        One row per stamp, with the catalogue's columns of the same names and meanings
-        (:data:`pylensfit.catalogue.COLUMNS`; :data:`STAMP_COLUMNS`): ``x, y`` (fitted
-        centre, stamp pixels; the catalogue position where not fitted), ``x_detect,
-        y_detect`` (the catalogue position, ``centres``), ``noise_sigma``,
-        ``model_flux`` (data units), ``model_SNratio`` (the best model's matched-filter
-        S/N), ``scalelength`` (pixels), ``stamp_size`` (the side it was fitted on),
-        ``e1, e2`` (posterior means), ``e1_var, e2_var, e12_cov``, ``sens1, sens2`` (the
-        shear responses, dimensionless), ``weight`` (the inverse-variance weight of a
-        galaxy to use, :mod:`pylensfit.weights`; 0 otherwise), ``fitclass``,
-        ``is_star``, ``e1_best, e2_best``, ``bulge_best``, ``flags``
-        (:data:`pylensfit.flags.FLAGS`; usable rows have ``flags == 0`` and ``weight >
-        0``) and ``lnL`` (the ``(n, n_e)`` likelihood grid, for
-        :func:`~pylensfit.estimate_shear`'s fixed point). They are assembled as the
-        catalogue's (:func:`pylensfit.assemble.assemble`); a flagged row that was fitted
-        keeps its shapes here, where the catalogue has NaN. ``meta``: ``egrid``,
-        ``prior`` (the ellipticity prior), ``priors``, ``refine``, ``sensitivity``.
+        One row per stamp, with the catalogue's columns of the same names, meanings and
+        units (:data:`STAMP_COLUMNS`, :data:`pylensfit.catalogue.COLUMNS`): ``x, y`` the
+        fitted centre in stamp pixels (the catalogue position where not fitted),
+        ``x_detect, y_detect`` the catalogue position, the posterior means ``e1, e2``,
+        their covariance, the shear responses ``sens1, sens2``, the ``weight`` (0 for a
+        row not to use), ``flags`` (:data:`pylensfit.flags.FLAGS`) and ``lnL`` (the ``(n,
+        n_e)`` grid, for :func:`~pylensfit.estimate_shear`'s fixed point), assembled as
+        the catalogue's (:func:`pylensfit.assemble.assemble`); a flagged row that was
+        fitted keeps its shapes here, where the catalogue has NaN. ``meta``: ``egrid``,
+        ``prior``, ``priors``, ``refine``, ``sensitivity``.
 
         With ``response="metacal"`` also ``e1_mcal, e2_mcal`` (the posterior means on
-        the unsheared metacalibration image) and ``R11, R12, R21, R22`` (their measured
-        response ``R_ij = d<e_i>/dg_j``), NaN where a metacalibration fit failed, and
-        ``meta["metacal_step"]``. The shear of a sample is then metacalibration's
-        ``<e> / <R>``: ``estimate_shear(t, estimator="key2", e1_col="e1_mcal",
-        e2_col="e2_mcal", sens1_col="R11", sens2_col="R22")`` (the off-diagonal
-        responses average to zero). The metacalibration images carry twice the pixel
-        noise variance: on a realistic mix of kinds (Sersic, bulge+disc, knotty discs)
-        every kind's m is within 5e-3 above S/N 20, where lensfit's own sensitivity
-        leaves -0.028 to +0.010, but a noise bias of about +0.01 is left below S/N 20.
+        the unsheared metacalibration image) and ``R11, R12, R21, R22`` (their response
+        ``R_ij = d<e_i>/dg_j``), NaN where a metacalibration fit failed, and
+        ``meta["metacal_step"]``: the shear is then ``estimate_shear(t, estimator="key2",
+        e1_col="e1_mcal", e2_col="e2_mcal", sens1_col="R11", sens2_col="R22")``. On a
+        realistic mix of kinds every kind's m is within 5e-3 above S/N 20 (lensfit's own
+        sensitivity: -0.028 to +0.010); a noise bias of about +0.01 is left below S/N 20.
     """
     if response not in ("model", "metacal"):
         raise ValueError(f"response must be 'model' or 'metacal', got {response!r}")

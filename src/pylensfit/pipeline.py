@@ -10,8 +10,9 @@ from .images import (
     PSF_SUSPECT_PVALUE,
     ImageResult,
     InputError,
-    calibrate_images,
+    NeighbourScene,
     PSFSummary,
+    calibrate_images,
     catalogue_frame,
     measure,
     read_catalogue,
@@ -22,6 +23,7 @@ from .images import (
 __all__ = [
     "InputError",
     "ImageResult",
+    "NeighbourScene",
     "PSFSummary",
     "PSF_SUSPECT_CHI2",
     "PSF_SUSPECT_PVALUE",

@@ -33,23 +33,18 @@ log = logging.getLogger("pylensfit.pipeline")
 
 
 def measure(
-    images: str | os.PathLike | Iterable[str | os.PathLike],
-    *,
+    images: str | os.PathLike | Iterable[str | os.PathLike], *,
     stars: Iterable[str | os.PathLike] | None = None,
     weights: Iterable[str | os.PathLike | None] | None = None,
     masks: Iterable[str | os.PathLike | None] | None = None,
     catalogues: Iterable[str | os.PathLike | None] | None = None,
-    star_column: str | None = None,
-    config: Config | None = None,
+    star_column: str | None = None, config: Config | None = None,
     prior: Prior | str | os.PathLike | None = None,
     size_prior: SizePrior | str | os.PathLike | None = None,
     priors: Priors | str | os.PathLike | None = None,
     psf: PSFResult | PSFModel | np.ndarray | str | os.PathLike | Sequence | None = None,
-    output: str | os.PathLike | None = None,
-    psf_dir: str | os.PathLike | None = None,
-    overwrite: bool = False,
-    jobs: int = 1,
-    scheduler: str | None = None,
+    output: str | os.PathLike | None = None, psf_dir: str | os.PathLike | None = None,
+    overwrite: bool = False, jobs: int = 1, scheduler: str | None = None,
     progress: bool = True,
 ) -> Table:
     """Measure the shapes of every object in FITS images: images in, catalogue out.
@@ -57,18 +52,16 @@ def measure(
     Parameters
     ----------
     images : str or list of str
-        FITS images (background need not be subtracted). A ``WEIGHT`` HDU (inverse
-        variance) and a ``MASK`` HDU (non-zero = bad) in the same file are used if present.
+        FITS images (background need not be subtracted), with ``WEIGHT`` (inverse
+        variance) and ``MASK`` (non-zero = bad) HDUs used if present.
     stars : list of str, optional
-        Separate star-field images; their PSFs are co-added with each image's own
-        (``Config.psf_model = "polynomial"``: the polynomial model of the most stars is
-        used).
+        Star-field images; their PSFs are co-added with each image's own (with
+        ``Config.psf_model = "polynomial"`` the model of the most stars is used).
     psf : PSFResult, PSFModel, numpy.ndarray or str, or a list of them, optional
-        The PSF instead of stars: an image (pixel response included, centred on
-        ``[n//2, n//2]``) or its file, a :class:`~pylensfit.psfmodel.PSFModel` (a PSF
-        over the field, each galaxy fitted with it at its position as
-        ``Config.psf_interpolation`` says) or a file :func:`~pylensfit.psfmodel.read_psf_model`
-        reads (a Piff model); one for every image or one per image.
+        The PSF instead of stars, for every image or one per image: an image (pixel
+        response included, centred on ``[n//2, n//2]``) or its file, a
+        :class:`~pylensfit.psfmodel.PSFModel` (``Config.psf_interpolation``) or a file
+        :func:`~pylensfit.psfmodel.read_psf_model` reads (a Piff model).
     weights, masks : list of str, optional
         Weight and mask files, one per image (``None`` entries allowed).
     catalogues : list of str, optional
@@ -79,28 +72,22 @@ def measure(
         the stellar-locus selection).
     config : Config, optional
         Settings (default ``Config()``, the recommended method).
-    prior : Prior or str, optional
-        An ellipticity prior (or the path of a saved one) to keep instead of estimating
-        it; the other priors are still estimated.
-    size_prior : SizePrior or str, optional
-        A size prior (or the path of a saved one, :meth:`pylensfit.prior.SizePrior.save`)
-        to keep instead of estimating it.
+    prior, size_prior : Prior, SizePrior or str, optional
+        An ellipticity prior, a size prior (or the path of a saved one) to keep instead
+        of estimating it; the other priors are still estimated.
     priors : Priors or str, optional
-        Every prior, as :func:`pylensfit.calibrate` or an earlier run gives them (or the
-        path of a saved :class:`~pylensfit.Priors`): the images are measured once, under
-        them. Without it the calibration recipe (:mod:`pylensfit.calibration`) estimates
-        them from the run's own galaxies: passes over the images with the starting
-        priors, then under the flux and position priors estimated, then under the size
-        prior (with the default configuration three passes; the last is the
-        measurement). The catalogue keeps them (``meta["priors"]``, HDU ``PRIORS``).
+        Every prior, as :func:`calibrate_images` or an earlier run gives them (or the
+        path of a saved :class:`~pylensfit.Priors`): every image is measured in one pass
+        under them. Without it the calibration recipe (:mod:`pylensfit.calibration`)
+        estimates them first, on a sample of the images (``Config.calibration_sample``,
+        :mod:`pylensfit.images.sample`). The catalogue keeps them (``meta["priors"]``).
     output : str, optional
         Catalogue path (FITS). With an output, finished images are kept in
         ``<output>.parts/`` until the catalogue is written, and a restarted run resumes.
     psf_dir : str, optional
-        Write each image's PSF here as ``<image stem>.psf.fits`` (the image, its size and
-        ellipticity in the header, and a ``STARS`` table of every star candidate: used or
-        rejected, and why; :meth:`pylensfit.psf.PSFResult.write`). With a dask scheduler
-        the workers write it, so the folder must be shared with them.
+        Write each image's PSF here as ``<image stem>.psf.fits`` with a ``STARS`` table of
+        every star candidate (:meth:`pylensfit.psf.PSFResult.write`; a folder shared with
+        the workers of a dask scheduler).
     overwrite : bool
         Replace an existing output.
     jobs : int
@@ -120,10 +107,9 @@ def measure(
     Raises
     ------
     InputError
-        A missing, unreadable or truncated file, an image given twice, an empty image, an
-        empty input catalogue, a star field without usable stars: one line naming the
-        file and the problem. Every image, weight map, mask and star field is opened
-        (its headers read) before any work starts.
+        A missing, unreadable or truncated file, an image given twice, an empty image or
+        input catalogue, a star field without usable stars: one line naming the file and
+        the problem. Every input is opened before any work starts.
     """
     cfg = config if config is not None else Config()
     inp = _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_prior,
@@ -144,22 +130,17 @@ def measure(
 
 
 def calibrate_images(
-    images: str | os.PathLike | Iterable[str | os.PathLike],
-    *,
+    images: str | os.PathLike | Iterable[str | os.PathLike], *,
     stars: Iterable[str | os.PathLike] | None = None,
     weights: Iterable[str | os.PathLike | None] | None = None,
     masks: Iterable[str | os.PathLike | None] | None = None,
     catalogues: Iterable[str | os.PathLike | None] | None = None,
-    star_column: str | None = None,
-    config: Config | None = None,
+    star_column: str | None = None, config: Config | None = None,
     prior: Prior | str | os.PathLike | None = None,
     size_prior: SizePrior | str | os.PathLike | None = None,
     psf: PSFResult | PSFModel | np.ndarray | str | os.PathLike | Sequence | None = None,
-    sample: int | None = None,
-    seed: int | None = None,
-    jobs: int = 1,
-    scheduler: str | None = None,
-    progress: bool = True,
+    sample: int | None = None, seed: int | None = None, jobs: int = 1,
+    scheduler: str | None = None, progress: bool = True,
 ) -> Priors:
     """Estimate every prior of the method once, on a sample of a survey's images.
 
