@@ -14,8 +14,11 @@ per-image shears, as ``benchmarks/survey_cli.py`` does. The same images and nois
 measured every way, so ``dm``, the fit of the difference of the group means from the
 full recipe's, is the priors' own effect, with an error far below that of ``m``::
 
-    python benchmarks/calibration_sample.py --ngal 10000 --nshear 4 --sizes 250,1000 \\
-        --psfs 0 --jobs 2
+    python benchmarks/calibration_sample.py --ngal 12000 --nshear 8 --sizes 250,1000 \\
+        --draws 3 --psfs 0 --jobs 2
+
+``--draws K`` draws each sample K times (seeds ``--seed`` to ``--seed + K - 1``): the
+scatter of ``dm`` over the draws is the priors' noise at that size.
 
 ``--keep DIR`` keeps the set, the priors and the catalogues (a rerun reuses them).
 """
@@ -71,17 +74,18 @@ def _fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float, float]:
     return float(coef[0]), float(err[0]), float(coef[1]), float(err[1])
 
 
-def _measure_all(args, sim: Path, work: Path, fields: dict, sizes: list[int]) -> dict:
+def _measure_all(args, sim: Path, work: Path, fields: dict,
+                 ways: list[tuple[str, int | None, int]]) -> dict:
     """Each way's catalogue per PSF, and its times: ``{label: {"cats": [...], ...}}``."""
     cfg0 = work / "every_image.yaml"
     cfg0.write_text("priors:\n  calibration_sample: 0\n")
     runs: dict[str, dict] = {}
-    for label, size in [("full recipe", None), *[(f"sample {n}", n) for n in sizes]]:
+    for label, size, seed in ways:
         run = runs[label] = {"cats": [], "t_cal": 0.0, "t_meas": 0.0, "n_gal": 0}
         for k, fs in fields.items():
             imgs = [str(sim / f["file"]) for f in fs]
             common = ["--stars", str(sim / f"psf{k}_stars.fits"), "--jobs", str(args.jobs), "-q"]
-            tag = "full" if size is None else f"n{size}"
+            tag = "full" if size is None else f"n{size}_s{seed}"
             cat = work / f"cat{k}_{tag}.fits"
             if size is None and not cat.exists():
                 run["t_meas"] += _cli("measure", *imgs, *common, "--config", str(cfg0),
@@ -90,7 +94,7 @@ def _measure_all(args, sim: Path, work: Path, fields: dict, sizes: list[int]) ->
                 pri = work / f"priors{k}_{tag}.json"
                 pri.unlink(missing_ok=True)
                 run["t_cal"] += _cli("calibrate", *imgs, *common, "--sample", str(size),
-                                     "--seed", str(args.seed), "-o", str(pri))  # fmt: skip
+                                     "--seed", str(seed), "-o", str(pri))  # fmt: skip
                 run["t_meas"] += _cli("measure", *imgs, *common, "--priors", str(pri),
                                       "-o", str(cat))  # fmt: skip
             c = Table.read(cat, hdu="CATALOG")
@@ -108,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", default="250,1000", help="calibration sample sizes (objects)")
     ap.add_argument("--psfs", default="0", help="comma-separated PSF indices measured")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--draws", type=int, default=1, help="draws of each sample size")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--keep", default=None, help="keep the set, priors and catalogues here")
     args = ap.parse_args(argv)
@@ -125,12 +130,14 @@ def main(argv: list[str] | None = None) -> int:
     sizes = [int(v) for v in args.sizes.split(",")]
     print(f"step1: {sum(len(v) for v in fields.values())} shear fields of "
           f"{man['field_size']} px (PSFs {args.psfs}), calibration samples {sizes} objects")
-    runs = _measure_all(args, sim, work, fields, sizes)
+    ways = [("full recipe", None, 0)] + [(f"sample {n} #{d + 1}", n, args.seed + d)
+                                         for n in sizes for d in range(args.draws)]
+    runs = _measure_all(args, sim, work, fields, ways)
     means = {label: np.concatenate([_group_means(cat, work / f"shear_{cat.stem}.ecsv",
                                                  fields[k]) for k, cat in run["cats"]])
              for label, run in runs.items()}  # fmt: skip
     full = means["full recipe"]
-    print(f"{'calibration':<14} {'m1':>18} {'c1':>20} {'dm1 vs full':>18} {'c2':>20}  "
+    print(f"{'calibration':<16} {'m1':>18} {'c1':>20} {'dm1 vs full':>18} {'c2':>20}  "
           f"{'cal s':>6} {'meas s':>6} {'gal/s':>6}")
     for label, g in means.items():
         m1, m1e, c1, c1e = _fit(g[:, 0], g[:, 2] - g[:, 0])
@@ -138,12 +145,17 @@ def main(argv: list[str] | None = None) -> int:
         dm = _fit(g[:, 0], g[:, 2] - full[:, 2]) if label != "full recipe" else None
         run = runs[label]
         t_all = run["t_cal"] + run["t_meas"]
-        print(f"{label:<14} {m1:+.4f} +- {m1e:.4f}  {c1:+.5f} +- {c1e:.5f}  "
+        print(f"{label:<16} {m1:+.4f} +- {m1e:.4f}  {c1:+.5f} +- {c1e:.5f}  "
               + (f"{dm[0]:+.4f} +- {dm[1]:.4f}" if dm else f"{'':>16}")
               + f"  {c2:+.5f} +- {c2e:.5f}  {run['t_cal']:6.0f} {run['t_meas']:6.0f} "
               f"{run['n_gal'] / t_all if t_all > 0 else np.nan:6.1f}", flush=True)  # fmt: skip
     print(f"(errors from the fits' residuals over {len(full)} group means; gal/s: usable "
           f"galaxies over calibration and measurement, --jobs {args.jobs})")
+    for n in sizes:
+        dms = [_fit(g[:, 0], g[:, 2] - full[:, 2])[0] for label, g in means.items()
+               if label.startswith(f"sample {n} #")]  # fmt: skip
+        print(f"sample {n}: dm1 over {len(dms)} draws {np.mean(dms):+.4f}, scatter "
+              f"{np.std(dms, ddof=1) if len(dms) > 1 else np.nan:.4f}")
     if not args.keep:
         shutil.rmtree(work, ignore_errors=True)
     return 0
