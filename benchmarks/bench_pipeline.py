@@ -12,6 +12,7 @@ Usage::
     python benchmarks/bench_pipeline.py --method paper  # Config.paper(), one pass
     python benchmarks/bench_pipeline.py --size 1024     # quick
     python benchmarks/bench_pipeline.py --jobs 1,2 --threads 1 --keep /tmp/bench-fields
+    python benchmarks/bench_pipeline.py --priors sample  # calibrate once, one pass timed
 
 The fields
 ----------
@@ -36,7 +37,11 @@ in that process (numba kernels loaded from their cache, model bank built). ``wal
 the wall time of the call, output written. With N > 1 the pool's workers are new
 processes and pay their own start-up (imports, numba cache load, model bank) inside
 ``wall``. ``--prior estimate`` lets ``measure`` estimate the prior instead (its cost is
-printed separately either way).
+printed separately either way). ``--priors FILE`` gives every run saved priors
+(``measure(priors=FILE)``: one measuring pass); ``--priors sample`` first estimates them
+with :func:`pylensfit.calibrate_images` on the same images (``Config.calibration_sample``
+objects, timed on its own and printed), as a survey calibrates once and measures every
+image in one pass.
 
 ``cat.meta["timing"]`` sums the per-image seconds of the stages "read+detect", "psf",
 "stamps", "fit": with N jobs these are worker seconds (N workers run at once), so
@@ -143,7 +148,8 @@ def _config(method: str, model: str, changes: dict | None = None):
     return Config.paper(model=fit_model, **(changes or {}))
 
 
-def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras, method, changes):
+def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras, method, changes,
+         priors=None):
     import numba
 
     import pylensfit
@@ -161,7 +167,8 @@ def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras, met
                       overwrite=True, jobs=1, progress=False)  # fmt: skip
     t0 = time.perf_counter()
     cat = pylensfit.measure(images, stars=[stars], config=cfg, prior=prior, output=out,
-                            overwrite=True, jobs=jobs, progress=False)  # fmt: skip
+                            overwrite=True, jobs=jobs, progress=False,
+                            priors=priors)  # fmt: skip
     wall = time.perf_counter() - t0
     res = {
         "wall": wall, "timing": dict(cat.meta["timing"]), "nobj": len(cat),
@@ -199,8 +206,25 @@ def _run(images, stars, warm, out, jobs, model, prior_mode, threads, extras, met
 def timed_run(images, stars, warm, out, jobs, args, extras) -> dict:
     with cf.ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as ex:
         return ex.submit(_run, images, stars, warm, out, jobs, args.model, args.prior,
-                         args.threads, extras, args.method,
-                         _kv(args.set)).result()  # fmt: skip
+                         args.threads, extras, args.method, _kv(args.set),
+                         args.priors).result()  # fmt: skip
+
+
+def calibrate_once(images: list[str], stars: str, cfg, jobs: int, work: Path) -> str:
+    """The priors of :func:`pylensfit.calibrate_images` on ``images``, saved in ``work``
+    (timed here, in this process)."""
+    import pylensfit
+
+    t0 = time.perf_counter()
+    pri = pylensfit.calibrate_images(images, stars=[stars], config=cfg, jobs=jobs,
+                                     progress=False)  # fmt: skip
+    t = time.perf_counter() - t0
+    path = str(work / "priors.json")
+    pri.save(path)
+    print(f"calibrate_images, jobs={jobs}: {t:.1f} s on {len(pri.info['sample_images'])} "
+          f"of {len(images)} images ({pri.n_galaxies} galaxies), load {load()}",
+          flush=True)  # fmt: skip
+    return path
 
 
 # --------------------------------------------------------------------------------------
@@ -330,6 +354,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--prior", choices=["fixed", "estimate"], default="fixed",
                    help="with --method paper: prior=Prior() (fixed) or estimated by measure "
                         "(estimate)")  # fmt: skip
+    p.add_argument("--priors", metavar="FILE|sample",
+                   help="saved priors for every run (one measuring pass), or 'sample': "
+                        "estimated first by calibrate_images on the same images")  # fmt: skip
     p.add_argument("--no-hsm", action="store_true", help="skip the HSM REGAUSS peer")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="changes to the method's configuration (r_floor=0)")
@@ -360,6 +387,8 @@ def main(argv: list[str] | None = None) -> int:
         work = Path(tempfile.mkdtemp(prefix="pylensfit-bench-"))
     try:
         images, stars, warm = simulate(work, args)
+        if args.priors == "sample":
+            args.priors = calibrate_once(images, stars, cfg, max(jobs), work)
         rows = []
         extras = None
         for nj in jobs:

@@ -125,8 +125,9 @@ def subtracted_centrals(scenes, canvas: int, N: int, psf_img, cfg):
         xf[idx] = f.x + (x[idx] - cx[idx])
         yf[idx] = f.y + (y[idx] - cy[idx])
 
-    pl.subtract_neighbours(mosaic.shape, x, y, xf, yf, np.ones(x.size), np.arange(x.size),
-                           first, psf_img, cfg, refit, store)  # fmt: skip
+    pl.subtract_neighbours(pl.NeighbourScene(mosaic.shape, x, y, xf, yf, np.ones(x.size),
+                                             np.arange(x.size), psf_img),
+                           first, cfg, refit, store)  # fmt: skip
     return cleaned[np.asarray(central)].reshape(len(scenes), 4, N, N)
 
 

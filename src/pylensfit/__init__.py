@@ -17,7 +17,7 @@ from ._version import __version__
 from .calibration import CalibrationWarning, Priors, calibrate, measure_stamps
 from .config import Config, ConfigError
 from .grid import ellipticity_grid
-from .images import InputError, measure, read_catalogue, write_catalogue
+from .images import InputError, calibrate_images, measure, read_catalogue, write_catalogue
 from .likelihood import StampFits, fit_stamps
 from .prior import (
     BinnedPrior,
@@ -34,6 +34,7 @@ __all__ = [
     "CalibrationWarning",
     "Priors",
     "calibrate",
+    "calibrate_images",
     "measure_stamps",
     "Config",
     "ConfigError",

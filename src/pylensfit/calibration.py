@@ -37,8 +37,11 @@ bulge weights, the flat size prior, the unbounded flux power law of power 2, the
 configuration's position prior.
 
 The same recipe serves :func:`calibrate` (postage stamps), :func:`pylensfit.measure`
-(FITS images) and the validation modes, through :func:`run_recipe`, whose fitting
-pass is given by the caller.
+and :func:`pylensfit.calibrate_images` (FITS images) and the validation modes: a
+:class:`Recipe` says which pass to fit next (a :class:`RecipePass`: the configurations
+and size priors to fit with) and is handed each pass's :class:`CalibrationSample`; the
+caller fits, the recipe estimates. :func:`run_recipe` drives it with a caller's fitting
+function.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ import json
 import logging
 import math
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -83,6 +86,8 @@ __all__ = [
     "CalibrationSample",
     "CalibrationWarning",
     "Priors",
+    "Recipe",
+    "RecipePass",
     "calibrate",
     "estimate_position_sigma",
     "flag_low_snr",
@@ -401,9 +406,6 @@ def estimate_position_sigma(dx, dy, snr, *, n_bins: int = 8) -> tuple[float | No
 # ----------------------------------------------------------------------------------------
 # The recipe
 # ----------------------------------------------------------------------------------------
-FitPass = Callable[[list, list, bool, str], CalibrationSample]
-
-
 def _fallback(info: dict, what: str, why: str, default: str = "its default") -> None:
     info.setdefault("fallbacks", {})[what] = why
     warnings.warn(f"{why}: the {what} prior falls back to {default}", CalibrationWarning,
@@ -443,29 +445,81 @@ def _flux_power(flux: np.ndarray, info: dict[str, Any]) -> float | None:
     return float(beta)
 
 
-def run_recipe(
-    fit_pass: FitPass,
-    config: Config,
-    n_groups: int = 1,
-    *,
-    prior: Prior | None = None,
-    size_priors: Sequence[SizePrior | None] | None = None,
-    bulge_weights: Sequence[float] | None = None,
-    flux_slope: float | None = None,
-    flux_bounds: bool = True,
-    size_prior_per_group: bool = True,
-    group_names: Sequence[str] | None = None,
-) -> list[Priors]:
-    """Estimate the priors with a caller's fitting pass (see the module docstring).
+FitPass = Callable[[list, list, bool, str], CalibrationSample]
+
+
+@dataclass(frozen=True)
+class RecipePass:
+    """One fitting pass that the recipe asks of its caller (:class:`Recipe`).
+
+    Attributes
+    ----------
+    configs : tuple of Config
+        The configuration of each group of galaxies (its flux and position priors).
+    size_priors : tuple of SizePrior or None
+        The size prior of each group; ``None``: flat.
+    keep_lnL_r : bool
+        Keep each galaxy's ``L(r)`` per ring of ``|e|``
+        (:func:`pylensfit.likelihood.e_annuli`) in the sample handed back.
+    label : str
+        What the pass is, for messages and progress bars.
+    """
+
+    configs: tuple[Config, ...]
+    size_priors: tuple[SizePrior | None, ...]
+    keep_lnL_r: bool
+    label: str
+
+
+@dataclass
+class _Plan:
+    """What the recipe estimates, and what it was given instead."""
+
+    names: list[str]
+    prior: Prior | None
+    given_bw: np.ndarray | None
+    fit_bulge: bool
+    fit_size: bool
+    fit_flux: bool
+    fit_bounds: bool
+    fit_pos: bool
+    per_group: bool
+
+
+@dataclass
+class _State:
+    """The priors estimated so far, carried from one pass to the next."""
+
+    cfg: Config
+    cfgs: list[Config]
+    sps: list
+    out_power: float | None
+    ranges: list
+    pos_sigma: float | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def fit(self, keep_lnL_r: bool, label: str) -> RecipePass:
+        """The next pass, under the priors so far."""
+        return RecipePass(configs=tuple(self.cfgs), size_priors=tuple(self.sps),
+                          keep_lnL_r=keep_lnL_r, label=label)  # fmt: skip
+
+
+class Recipe:
+    """The calibration recipe, one fitting pass at a time (see the module docstring).
+
+    The caller fits the galaxies as :attr:`next_pass` says and hands the usable ones back
+    to :meth:`feed`, until :attr:`next_pass` is ``None``; :attr:`priors` are then the
+    result. The recipe fits nothing itself: the caller (:func:`calibrate` on postage
+    stamps, :func:`pylensfit.measure` and :func:`pylensfit.calibrate_images` on images,
+    the validation modes) owns its data and how they are fitted::
+
+        recipe = Recipe(config)
+        while recipe.next_pass is not None:
+            recipe.feed(fit(recipe.next_pass))
+        priors = recipe.priors[0]
 
     Parameters
     ----------
-    fit_pass : callable
-        ``fit_pass(configs, size_priors, keep_lnL_r, label) -> CalibrationSample``: fit
-        the calibration galaxies, group ``k`` with ``configs[k]`` and ``size_priors[k]``
-        (``None``: flat), keeping ``L(r)`` per ring of ``|e|``
-        (:func:`pylensfit.likelihood.e_annuli`) when ``keep_lnL_r``; only the usable
-        galaxies (:func:`usable_galaxies`) in the sample.
     config : Config
         The configuration: which priors to estimate, and the starting ones.
     n_groups : int
@@ -481,15 +535,79 @@ def run_recipe(
         One size prior per group (else one for all).
     group_names : sequence of str, optional
         For messages.
+    """
+
+    def __init__(self, config: Config, n_groups: int = 1, *, prior: Prior | None = None,
+                 size_priors: Sequence[SizePrior | None] | None = None,
+                 bulge_weights: Sequence[float] | None = None,
+                 flux_slope: float | None = None, flux_bounds: bool = True,
+                 size_prior_per_group: bool = True,
+                 group_names: Sequence[str] | None = None) -> None:  # fmt: skip
+        plan, state = _plan(config, n_groups, prior, size_priors, bulge_weights, flux_slope,
+                            flux_bounds, size_prior_per_group, group_names)  # fmt: skip
+        self._steps = _recipe_steps(plan, state)
+        self._next: RecipePass | None = next(self._steps)
+        self._priors: list[Priors] | None = None
+
+    @property
+    def next_pass(self) -> RecipePass | None:
+        """The pass to fit next; ``None`` when the priors are estimated."""
+        return self._next
+
+    def feed(self, sample: CalibrationSample) -> None:
+        """Hand the recipe the usable galaxies (:func:`usable_galaxies`) of
+        :attr:`next_pass`, fitted as it says."""
+        if self._next is None:
+            raise RuntimeError("the recipe has no pass left to feed")
+        try:
+            self._next = self._steps.send(sample)
+        except StopIteration as done:
+            self._next, self._priors = None, done.value
+
+    @property
+    def priors(self) -> list[Priors]:
+        """The priors, one per group (sharing the ellipticity prior and bulge weights)."""
+        if self._priors is None:
+            raise RuntimeError(f"the recipe's pass {self._next.label!r} is not fitted yet")
+        return self._priors
+
+
+def run_recipe(
+    fit_pass: FitPass,
+    config: Config,
+    n_groups: int = 1,
+    **kw: Any,
+) -> list[Priors]:
+    """Estimate the priors with a caller's fitting pass (:class:`Recipe` driven to its
+    end).
+
+    Parameters
+    ----------
+    fit_pass : callable
+        ``fit_pass(configs, size_priors, keep_lnL_r, label) -> CalibrationSample``: fit
+        the calibration galaxies as :class:`RecipePass` says (its fields in that
+        order, as lists); only the usable galaxies (:func:`usable_galaxies`) in the
+        sample.
+    config, n_groups, **kw
+        As for :class:`Recipe` (``prior``, ``size_priors``, ``bulge_weights``,
+        ``flux_slope``, ``flux_bounds``, ``size_prior_per_group``, ``group_names``).
 
     Returns
     -------
     list of Priors
         One per group (sharing the ellipticity prior and bulge weights).
     """
-    cfg = config
+    recipe = Recipe(config, n_groups, **kw)
+    while (step := recipe.next_pass) is not None:
+        recipe.feed(fit_pass(list(step.configs), list(step.size_priors), step.keep_lnL_r,
+                             step.label))  # fmt: skip
+    return recipe.priors
+
+
+def _plan(cfg: Config, n_groups: int, prior, size_priors, bulge_weights, flux_slope,
+          flux_bounds: bool, per_group: bool, group_names) -> tuple[_Plan, _State]:  # fmt: skip
+    """:class:`Recipe`'s arguments checked: what it estimates, and its starting priors."""
     names = list(group_names) if group_names is not None else [str(k) for k in range(n_groups)]
-    info: dict[str, Any] = {}
     given_bw = None
     if bulge_weights is not None:
         given_bw = np.asarray(bulge_weights, dtype=float)
@@ -498,90 +616,107 @@ def run_recipe(
             raise ValueError(f"bulge_weights needs {nf} non-negative weights "
                              f"(one per Config.bulge_runs), got {bulge_weights!r}")  # fmt: skip
         given_bw = given_bw / given_bw.sum()
-    fit_bulge = cfg.bulge_prior == "estimated" and cfg.n_bulge_fractions > 1 and given_bw is None
     given_sp = list(size_priors) if size_priors is not None else None
     if given_sp is not None and len(given_sp) != n_groups:
         raise ValueError(f"size_priors needs one per group ({n_groups})")
-    fit_size = cfg.size_prior == "estimated" and given_sp is None
     flux = cfg.amplitude_prior == "flux" and cfg.estimate_flux_prior
     if cfg.amplitude_prior == "flux" and flux_slope is not None:
         cfg = cfg.replace(amplitude_prior_power=float(flux_slope))
-    fit_flux = flux and flux_slope is None
-    fit_bounds = (flux and flux_bounds and cfg.amplitude_prior_min == 0
-                  and not math.isfinite(cfg.amplitude_prior_max))  # fmt: skip
-    fit_pos = cfg.estimate_position_prior
-    prior_given = prior is not None
-    cfgs = [cfg] * n_groups
-    sps: list = [None] * n_groups if given_sp is None else given_sp
-    out_power = cfg.amplitude_prior_power if cfg.amplitude_prior == "flux" else None
-    ranges: list = [None] * n_groups
-    pos_sigma = None
+    plan = _Plan(
+        names=names, prior=prior, given_bw=given_bw,
+        fit_bulge=(cfg.bulge_prior == "estimated" and cfg.n_bulge_fractions > 1
+                   and given_bw is None),
+        fit_size=cfg.size_prior == "estimated" and given_sp is None,
+        fit_flux=flux and flux_slope is None,
+        fit_bounds=(flux and flux_bounds and cfg.amplitude_prior_min == 0
+                    and not math.isfinite(cfg.amplitude_prior_max)),
+        fit_pos=cfg.estimate_position_prior, per_group=per_group)  # fmt: skip
+    state = _State(cfg=cfg, cfgs=[cfg] * n_groups,
+                   sps=[None] * n_groups if given_sp is None else given_sp,
+                   out_power=cfg.amplitude_prior_power if cfg.amplitude_prior == "flux" else None,
+                   ranges=[None] * n_groups)  # fmt: skip
+    return plan, state
 
-    def ellipticity_priors(cal: CalibrationSample, prior0):
-        return _ellipticity_priors(cal, prior0, given_bw, fit_bulge, cfg, info)
 
-    cal = fit_pass(cfgs, sps, fit_size, "calibration")
-    n_used = len(cal)
-    if fit_flux:
-        if len(cal) >= MIN_GALAXIES:
-            beta = _flux_power(cal.flux, info)
-            if beta is not None:
-                cfg = cfg.replace(amplitude_prior_power=beta)
-                out_power = beta
-        else:
-            _fallback(info, "flux power", f"{len(cal)} usable galaxies (fewer than "
-                      f"{MIN_GALAXIES})")  # fmt: skip
-    cfgs = [cfg] * n_groups
-    if fit_bounds:
-        cfgs, ranges = _flux_ranges(cal, cfg, names, info)
-    if fit_flux and out_power is not None and out_power < 0:
-        unbounded = [k for k in range(n_groups) if not math.isfinite(cfgs[k].amplitude_prior_max)]
-        if unbounded:  # counts that rise with flux need the prior's upper limit
-            _fallback(info, "flux power", f"counts rising with flux (power {out_power:.3f}) "
-                      f"and no upper flux limit", default="the flat power 0")
-            info["flux_power_estimated"] = out_power
-            out_power = 0.0
-            cfg = cfg.replace(amplitude_prior_power=0.0)
-            cfgs = [c.replace(amplitude_prior_power=0.0) for c in cfgs]
-    if fit_pos:
-        try:
-            pos_sigma, a = estimate_position_sigma(cal.dx, cal.dy, cal.snr)
-            info["position_snr_term"] = a
-            if pos_sigma is None:  # positions from the image itself: the broad prior kept
-                info["position_kept"] = ("no scatter independent of S/N (positions "
-                                         "detected on the image): the configured width")
-                pos_sigma = cfg.position_prior_sigma
-                fit_pos = False
-            else:
-                cfgs = [c.replace(position_prior_sigma=pos_sigma) for c in cfgs]
-        except ValueError as err:
-            _fallback(info, "position", str(err))
-    changed = fit_bounds or fit_pos
-    redo = changed if fit_size else (changed or fit_flux) and (prior is None or fit_bulge)
-    if redo:
+def _recipe_steps(plan: _Plan, st: _State) -> Generator[RecipePass, CalibrationSample,
+                                                          list[Priors]]:  # fmt: skip
+    """The recipe of the module docstring: yields each pass, is sent its sample, and
+    returns the priors."""
+    cal = yield st.fit(plan.fit_size, "calibration")
+    if _flux_and_position_priors(cal, plan, st):
         cal = None  # the first pass's grids freed before the second's arrive
-        cal = fit_pass(cfgs, sps, fit_size, "calibration with the flux and position priors")
-    prior0 = prior
-    prior, bw = ellipticity_priors(cal, prior0)
-    if fit_size:
+        cal = yield st.fit(plan.fit_size, "calibration with the flux and position priors")
+    prior, bw = _ellipticity_priors(cal, plan.prior, plan.given_bw, plan.fit_bulge, st.cfg,
+                                    st.info)  # fmt: skip
+    if plan.fit_size:
         if len(cal) < MIN_GALAXIES:
-            _fallback(info, "size", f"{len(cal)} usable galaxies (fewer than {MIN_GALAXIES})")
+            _fallback(st.info, "size", f"{len(cal)} usable galaxies (fewer than "
+                      f"{MIN_GALAXIES})")  # fmt: skip
         else:
-            sps = _size_priors(cal, cfgs, sps, prior, bw, names, size_prior_per_group, info)
+            st.sps = _size_priors(cal, st.cfgs, st.sps, prior, bw, plan.names,
+                                  plan.per_group, st.info)  # fmt: skip
             cal = None
-            cal = fit_pass(cfgs, sps, False, "calibration with the size prior")
-            prior, bw = ellipticity_priors(cal, prior0)
-    n_used = len(cal)
-    info["prior_given"] = prior_given
+            cal = yield st.fit(False, "calibration with the size prior")
+            prior, bw = _ellipticity_priors(cal, plan.prior, plan.given_bw, plan.fit_bulge,
+                                            st.cfg, st.info)  # fmt: skip
+    info = st.info
+    info["prior_given"] = plan.prior is not None
     if isinstance(prior, RadialPrior) and prior.info.get("at_bound"):
         info["ellipticity_at_bound"] = list(prior.info["at_bound"])
-    log.info("priors estimated from %d galaxies: %r, bulge weights %s", n_used, prior,
+    log.info("priors estimated from %d galaxies: %r, bulge weights %s", len(cal), prior,
              None if bw is None else np.round(bw, 3).tolist())
     return [Priors(ellipticity=prior, bulge_weights=None if bw is None else np.asarray(bw),
-                   size=sps[k], flux_power=out_power, flux_range=ranges[k],
-                   position_sigma=pos_sigma, n_galaxies=n_used,
-                   info={**info, "group": names[k]})
-            for k in range(n_groups)]  # fmt: skip
+                   size=st.sps[k], flux_power=st.out_power, flux_range=st.ranges[k],
+                   position_sigma=st.pos_sigma, n_galaxies=len(cal),
+                   info={**info, "group": plan.names[k]})
+            for k in range(len(plan.names))]  # fmt: skip
+
+
+def _flux_and_position_priors(cal: CalibrationSample, plan: _Plan, st: _State) -> bool:
+    """The flux prior's power and limits and the position prior's width from the first
+    pass, into ``st``; whether the pass must be fitted again under them."""
+    n_groups = len(plan.names)
+    if plan.fit_flux:
+        if len(cal) >= MIN_GALAXIES:
+            beta = _flux_power(cal.flux, st.info)
+            if beta is not None:
+                st.cfg = st.cfg.replace(amplitude_prior_power=beta)
+                st.out_power = beta
+        else:
+            _fallback(st.info, "flux power", f"{len(cal)} usable galaxies (fewer than "
+                      f"{MIN_GALAXIES})")  # fmt: skip
+    st.cfgs = [st.cfg] * n_groups
+    if plan.fit_bounds:
+        st.cfgs, st.ranges = _flux_ranges(cal, st.cfg, plan.names, st.info)
+    if plan.fit_flux and st.out_power is not None and st.out_power < 0:
+        unbounded = [k for k in range(n_groups)
+                     if not math.isfinite(st.cfgs[k].amplitude_prior_max)]  # fmt: skip
+        if unbounded:  # counts that rise with flux need the prior's upper limit
+            _fallback(st.info, "flux power", f"counts rising with flux (power "
+                      f"{st.out_power:.3f}) and no upper flux limit",
+                      default="the flat power 0")  # fmt: skip
+            st.info["flux_power_estimated"] = st.out_power
+            st.out_power = 0.0
+            st.cfg = st.cfg.replace(amplitude_prior_power=0.0)
+            st.cfgs = [c.replace(amplitude_prior_power=0.0) for c in st.cfgs]
+    fit_pos = plan.fit_pos
+    if fit_pos:
+        try:
+            st.pos_sigma, a = estimate_position_sigma(cal.dx, cal.dy, cal.snr)
+            st.info["position_snr_term"] = a
+            if st.pos_sigma is None:  # positions from the image itself: the broad prior kept
+                st.info["position_kept"] = ("no scatter independent of S/N (positions "
+                                            "detected on the image): the configured width")
+                st.pos_sigma = st.cfg.position_prior_sigma
+                fit_pos = False
+            else:
+                st.cfgs = [c.replace(position_prior_sigma=st.pos_sigma) for c in st.cfgs]
+        except ValueError as err:
+            _fallback(st.info, "position", str(err))
+    changed = plan.fit_bounds or fit_pos
+    if plan.fit_size:
+        return changed
+    return (changed or plan.fit_flux) and (plan.prior is None or plan.fit_bulge)
 
 
 def _ellipticity_priors(cal: CalibrationSample, prior0: RadialPrior | None,
@@ -785,16 +920,10 @@ def stamps_table(fits, priors: Priors, run_cfg: Config, cx, cy, noise_sigma,
 
 
 def measure_stamps(
-    stamps: np.ndarray,
-    psf: np.ndarray,
-    noise_sigma,
-    *,
-    priors: Priors | str | Path | None = None,
-    config: Config | None = None,
-    centres: tuple[np.ndarray, np.ndarray] | None = None,
-    response: str = "model",
-    metacal_step: float = 0.01,
-    seed: int = 0,
+    stamps: np.ndarray, psf: np.ndarray, noise_sigma, *,
+    priors: Priors | str | Path | None = None, config: Config | None = None,
+    centres: tuple[np.ndarray, np.ndarray] | None = None, response: str = "model",
+    metacal_step: float = 0.01, seed: int = 0,
 ) -> Table:
     """Shapes, errors, sensitivities and weights of galaxies on postage stamps.
 
@@ -815,12 +944,10 @@ def measure_stamps(
     response : {"model", "metacal"}
         ``"model"``: the sensitivities are lensfit's exact response of the posterior
         mean if the galaxy is one of the models. ``"metacal"``: the response is also
-        measured on each galaxy itself (:func:`pylensfit.metacal.metacal_shapes`: the
-        stamp deconvolved, sheared by ``+-metacal_step``, reconvolved with a PSF
-        ``1 + 2 metacal_step`` times wider and fitted again, with a rotated noise field
-        added), for galaxies the model family does not hold (Sersic profiles far from
-        1 and 4, knotty discs, bulges misaligned with their discs), at 5 to 7.5 times
-        the cost. It adds the columns below.
+        measured on each galaxy itself (:func:`pylensfit.metacal.metacal_shapes`), for
+        galaxies the model family does not hold (Sersic profiles far from 1 and 4,
+        knotty discs, misaligned bulges), at 5 to 7.5 times the cost; it adds the
+        columns below.
     metacal_step : float
         The metacalibration shear ``delta`` (dimensionless).
     seed : int
@@ -830,33 +957,24 @@ def measure_stamps(
     Returns
     -------
     astropy.table.Table
-        One row per stamp, with the catalogue's columns of the same names and meanings
-        (:data:`pylensfit.catalogue.COLUMNS`; :data:`STAMP_COLUMNS`): ``x, y`` (fitted
-        centre, stamp pixels; the catalogue position where not fitted), ``x_detect,
-        y_detect`` (the catalogue position, ``centres``), ``noise_sigma``,
-        ``model_flux`` (data units), ``model_SNratio`` (the best model's matched-filter
-        S/N), ``scalelength`` (pixels), ``stamp_size`` (the side it was fitted on),
-        ``e1, e2`` (posterior means), ``e1_var, e2_var, e12_cov``, ``sens1, sens2`` (the
-        shear responses, dimensionless), ``weight`` (the inverse-variance weight of a
-        galaxy to use, :mod:`pylensfit.weights`; 0 otherwise), ``fitclass``,
-        ``is_star``, ``e1_best, e2_best``, ``bulge_best``, ``flags``
-        (:data:`pylensfit.flags.FLAGS`; usable rows have ``flags == 0`` and ``weight >
-        0``) and ``lnL`` (the ``(n, n_e)`` likelihood grid, for
-        :func:`~pylensfit.estimate_shear`'s fixed point). They are assembled as the
-        catalogue's (:func:`pylensfit.assemble.assemble`); a flagged row that was fitted
-        keeps its shapes here, where the catalogue has NaN. ``meta``: ``egrid``,
-        ``prior`` (the ellipticity prior), ``priors``, ``refine``, ``sensitivity``.
+        One row per stamp, with the catalogue's columns of the same names, meanings and
+        units (:data:`STAMP_COLUMNS`, :data:`pylensfit.catalogue.COLUMNS`): ``x, y`` the
+        fitted centre in stamp pixels (the catalogue position where not fitted),
+        ``x_detect, y_detect`` the catalogue position, the posterior means ``e1, e2``,
+        their covariance, the shear responses ``sens1, sens2``, the ``weight`` (0 for a
+        row not to use), ``flags`` (:data:`pylensfit.flags.FLAGS`) and ``lnL`` (the ``(n,
+        n_e)`` grid, for :func:`~pylensfit.estimate_shear`'s fixed point), assembled as
+        the catalogue's (:func:`pylensfit.assemble.assemble`); a flagged row that was
+        fitted keeps its shapes here, where the catalogue has NaN. ``meta``: ``egrid``,
+        ``prior``, ``priors``, ``refine``, ``sensitivity``.
 
         With ``response="metacal"`` also ``e1_mcal, e2_mcal`` (the posterior means on
-        the unsheared metacalibration image) and ``R11, R12, R21, R22`` (their measured
-        response ``R_ij = d<e_i>/dg_j``), NaN where a metacalibration fit failed, and
-        ``meta["metacal_step"]``. The shear of a sample is then metacalibration's
-        ``<e> / <R>``: ``estimate_shear(t, estimator="key2", e1_col="e1_mcal",
-        e2_col="e2_mcal", sens1_col="R11", sens2_col="R22")`` (the off-diagonal
-        responses average to zero). The metacalibration images carry twice the pixel
-        noise variance: on a realistic mix of kinds (Sersic, bulge+disc, knotty discs)
-        every kind's m is within 5e-3 above S/N 20, where lensfit's own sensitivity
-        leaves -0.028 to +0.010, but a noise bias of about +0.01 is left below S/N 20.
+        the unsheared metacalibration image) and ``R11, R12, R21, R22`` (their response
+        ``R_ij = d<e_i>/dg_j``), NaN where a metacalibration fit failed, and
+        ``meta["metacal_step"]``: the shear is then ``estimate_shear(t, estimator="key2",
+        e1_col="e1_mcal", e2_col="e2_mcal", sens1_col="R11", sens2_col="R22")``. On a
+        realistic mix of kinds every kind's m is within 5e-3 above S/N 20 (lensfit's own
+        sensitivity: -0.028 to +0.010); a noise bias of about +0.01 is left below S/N 20.
     """
     if response not in ("model", "metacal"):
         raise ValueError(f"response must be 'model' or 'metacal', got {response!r}")

@@ -2,7 +2,9 @@
 
 ::
 
-    pylensfit measure IMAGE... [--stars STARFIELD...] [--config FILE] -o OUT
+    pylensfit calibrate IMAGE... [--stars STARFIELD...] [--config FILE] [--sample N]
+        [--seed S] -o PRIORS   # every prior, once, on a sample of the images
+    pylensfit measure IMAGE... [--stars STARFIELD...] [--config FILE] [--priors PRIORS] -o OUT
     pylensfit prior CATALOG... -o PRIOR
     pylensfit shear CATALOG... [--prior PRIOR] [--bin-by COLUMN:EDGES]
     pylensfit simulate step1|step2 --out DIR [--ngal N] [--seed S] [--twins] [--noise-twins]
@@ -22,13 +24,14 @@ import difflib
 import logging
 import sys
 from importlib.metadata import entry_points
+from pathlib import Path
 from typing import NoReturn
 
 import numpy as np
 from astropy.table import vstack
 
 from .config import PRESETS, Config
-from .images import InputError, catalogue_frame, measure, read_catalogue
+from .images import InputError, calibrate_images, catalogue_frame, measure, read_catalogue
 from .prior import RadialPrior, estimate_prior
 from .shear import shapes, shear_table
 from .skyframe import sensitivity_to_sky, to_sky
@@ -64,6 +67,22 @@ def _measure(args: argparse.Namespace) -> int:
     n_ok = int(np.sum(np.asarray(cat["weight"]) > 0))
     print(f"{args.output}: {len(cat)} objects, {n_ok} galaxies measured, "
           f"{int(np.sum(cat['fitclass'] == 1))} stars; {cat.meta['priors']!r}")  # fmt: skip
+    return 0
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    out = Path(args.output)
+    if out.exists() and not args.overwrite:
+        raise FileExistsError(f"{out}: output exists (use --overwrite to replace it)")
+    priors = calibrate_images(
+        args.images, stars=args.stars, weights=args.weights, masks=args.masks,
+        catalogues=args.catalogues, star_column=args.star_column, config=_config(args),
+        prior=args.prior, size_prior=args.size_prior, psf=_psf_arg(args.psf),
+        sample=args.sample, seed=args.seed, jobs=args.jobs, scheduler=args.scheduler,
+        progress=not args.quiet)  # fmt: skip
+    priors.save(out)
+    print(f"{out}: {priors!r}, from {len(priors.info['sample_images'])} of "
+          f"{priors.info['images']} images")  # fmt: skip
     return 0
 
 
@@ -257,6 +276,42 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} -h`)\n")
 
 
+def _add_image_arguments(m: argparse.ArgumentParser) -> None:
+    """The arguments that ``measure`` and ``calibrate`` share: the images and the run."""
+    m.add_argument("images", nargs="+", help="FITS images (WEIGHT and MASK HDUs used if present)")
+    m.add_argument("--stars", nargs="+", default=[], help="separate star-field images")
+    m.add_argument("--weights", nargs="+", help="weight (inverse variance) maps, one per image")
+    m.add_argument("--masks", nargs="+", help="mask maps (non-zero = bad), one per image")
+    m.add_argument("--catalogues", nargs="+", help="input catalogues instead of detection")
+    m.add_argument("--star-column", help="catalogue column marking the PSF stars")
+    m.add_argument("--config", help="YAML configuration (see `pylensfit config`)")
+    m.add_argument("--prior", help="a saved prior (default: estimated from the run)")
+    m.add_argument("--size-prior", help="a saved size prior (JSON, SizePrior.save); default "
+                                        "the config's size_prior: flat, or estimated from the run")
+    m.add_argument("--psf", nargs="+", help="the PSF instead of stacking stars: a FITS image "
+                   "(pixel response included, centred on pixel [n//2, n//2]; a --psf-dir "
+                   "file will do) or a PSF model over the field (a Piff file, *.piff, with "
+                   "the piff extra; a polynomial model from --psf-dir), for every image or "
+                   "one per image")  # fmt: skip
+    m.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    m.add_argument("--jobs", type=worker_count, default=1, help="local worker processes")
+    m.add_argument("--scheduler", help="dask.distributed scheduler address")
+    m.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+
+def _add_calibrate_parser(sub) -> None:
+    """The ``calibrate`` command's parser."""
+    c = sub.add_parser("calibrate", help="every prior, once, on a sample of the images")
+    _add_image_arguments(c)
+    c.add_argument("--sample", type=int, help="objects of the images drawn for the sample "
+                   "(default the config's calibration_sample, 20000; 0: every image)")
+    c.add_argument("--seed", type=int, help="seed of the draw (default the config's "
+                   "calibration_seed)")  # fmt: skip
+    c.add_argument("-o", "--output", required=True, help="the priors (JSON, for "
+                   "`pylensfit measure --priors`)")  # fmt: skip
+    c.set_defaults(func=_calibrate)
+
+
 def _add_prior_parser(sub) -> None:
     """The ``prior`` command's parser."""
     pr = sub.add_parser("prior", help="estimate the ellipticity prior from catalogues")
@@ -286,30 +341,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
     sub = p.add_subparsers(dest="command", required=True)
 
+    _add_calibrate_parser(sub)
     m = sub.add_parser("measure", help="FITS images in, shear catalogue out")
-    m.add_argument("images", nargs="+", help="FITS images (WEIGHT and MASK HDUs used if present)")
-    m.add_argument("--stars", nargs="+", default=[], help="separate star-field images")
-    m.add_argument("--weights", nargs="+", help="weight (inverse variance) maps, one per image")
-    m.add_argument("--masks", nargs="+", help="mask maps (non-zero = bad), one per image")
-    m.add_argument("--catalogues", nargs="+", help="input catalogues instead of detection")
-    m.add_argument("--star-column", help="catalogue column marking the PSF stars")
-    m.add_argument("--config", help="YAML configuration (see `pylensfit config`)")
-    m.add_argument("--prior", help="a saved prior (default: estimated from the run)")
-    m.add_argument("--size-prior", help="a saved size prior (JSON, SizePrior.save); default "
-                                        "the config's size_prior: flat, or estimated from the run")
-    m.add_argument("--priors", help="every prior, saved (JSON, Priors.save, or an earlier "
-                   "run's): measured once under them; default: estimated from the run")
+    _add_image_arguments(m)
+    m.add_argument("--priors", help="every prior, saved (JSON, `pylensfit calibrate`, "
+                   "Priors.save, or an earlier run's): the images measured in one pass under "
+                   "them; default: estimated from the run (Config.calibration_sample)")
     m.add_argument("-o", "--output", required=True, help="output catalogue (FITS)")
     m.add_argument("--psf-dir", help="write each image's PSF and star diagnostics here")
-    m.add_argument("--psf", nargs="+", help="the PSF instead of stacking stars: a FITS image "
-                   "(pixel response included, centred on pixel [n//2, n//2]; a --psf-dir "
-                   "file will do) or a PSF model over the field (a Piff file, *.piff, with "
-                   "the piff extra; a polynomial model from --psf-dir), for every image or "
-                   "one per image")  # fmt: skip
-    m.add_argument("--overwrite", action="store_true", help="replace an existing output")
-    m.add_argument("--jobs", type=worker_count, default=1, help="local worker processes")
-    m.add_argument("--scheduler", help="dask.distributed scheduler address")
-    m.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     m.set_defaults(func=_measure)
 
     _add_prior_parser(sub)

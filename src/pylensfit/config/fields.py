@@ -194,6 +194,12 @@ PRIORS = Section("priors", "Priors", "The priors of the marginalisations (docs: 
     P("estimate_position_prior", bool, True, "calibrate estimates position_prior_sigma from "
       "the scatter of the fitted centres about the catalogue positions, less the part that "
       "falls as 1 / S/N (calibration.estimate_position_sigma)."),
+    P("calibration_sample", int, 20000, "Objects that measure and calibrate_images run the "
+      "calibration recipe on: whole images drawn at random (calibration_seed) until their "
+      "detections reach it, then one measuring pass over every image. 0: every image.", "",
+      "[0, inf)"),
+    P("calibration_seed", int, 0, "Seed of the calibration sample's draw of images.", "",
+      "[0, inf)"),
     P("prior_method", str, "direct", "Estimation of the ellipticity prior: maximum marginal "
       "likelihood ('direct') or 'em'.", choices=("direct", "em")),
     P("prior_form", str, "spline", "Form of the estimated ellipticity prior: a cubic B-spline "

@@ -43,16 +43,18 @@ the public names.
 from .catalogue_io import catalogue_frame, read_catalogue, write_catalogue
 from .image_psf import PSF_SUSPECT_CHI2, PSF_SUSPECT_PVALUE
 from .inputs import InputError
-from .neighbours import subtract_neighbours
+from .neighbours import NeighbourScene, subtract_neighbours
 from .records import ImageResult, PSFSummary
-from .run import measure
+from .run import calibrate_images, measure
 
 __all__ = [
     "InputError",
     "ImageResult",
+    "NeighbourScene",
     "PSFSummary",
     "PSF_SUSPECT_CHI2",
     "PSF_SUSPECT_PVALUE",
+    "calibrate_images",
     "catalogue_frame",
     "measure",
     "read_catalogue",

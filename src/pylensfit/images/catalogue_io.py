@@ -151,77 +151,93 @@ def read_catalogue(path: str | os.PathLike) -> Table:
         for need in ("CATALOG", "LNL", "EGRID"):
             if need not in h:
                 raise InputError(f"{path}: not a pylensfit catalogue (no {need} HDU)")
-        hdu = "CATALOG"  # the HDU being read, for the message
-        try:
-            cat = Table(h["CATALOG"].data)
-            hdu = "LNL"
-            lnL = np.array(h["LNL"].data, dtype=np.float32)
-            hdu = "EGRID"
-            egrid = np.array(h["EGRID"].data, dtype=float)
-            if lnL.ndim != 2 or lnL.shape[0] != len(cat):
-                raise InputError(f"{path}: LNL has shape {lnL.shape} for {len(cat)} objects "
-                                 "(one row of ln L per object)")  # fmt: skip
-            if egrid.shape != (lnL.shape[1], 2) or not np.isfinite(egrid).all():
-                raise InputError(f"{path}: EGRID has shape {egrid.shape}; LNL's "
-                                 f"{lnL.shape[1]} columns need ({lnL.shape[1]}, 2) finite "
-                                 "ellipticities")  # fmt: skip
-            cat["lnL"] = lnL
-            cat.meta["egrid"] = egrid
-            if "LNLB" in h:
-                hdu = "LNLB"
-                hb = h["LNLB"]
-                cat["lnL_bulge"] = np.array(hb.data, dtype=np.float32)
-                cat.meta["bulge_fractions"] = np.array(hb.header["BULGEFR"].split(","), float)
-                if "BULGESZ" in hb.header:
-                    cat.meta["bulge_sizes"] = np.array(hb.header["BULGESZ"].split(","), float)
-                if "RUNS" in hb.header:
-                    cat.meta["runs"] = hb.header["RUNS"].split(";")
-                w = hb.header.get("BULGEW")
-                cat.meta["bulge_weights"] = None if w is None else np.array(w.split(","), float)
-            hdu = "PRIMARY"
-            hdr = h[0].header
-            cat.meta["frame"] = str(hdr.get("EFRAME", "pixel"))
-            if "PRIOR_B" in hdr or hdr.get("PRIORFRM") == SplinePrior.form:
-                cat.meta["prior"] = _header_prior(hdr, cat.meta["egrid"])
-            if "SIZEPRI" in h:
-                hdu = "SIZEPRI"
-                hs = h["SIZEPRI"]
-                cat.meta["size_prior"] = SizePrior(ln_h=np.array(hs.data["ln_h"], dtype=float),
-                                                   density=np.array(hs.data["density"], float).T,
-                                                   star=float(hs.header["STAR"]),
-                                                   smoothing=hs.header.get("SMOOTH"))  # fmt: skip
-            if "PRIORS" in h:
-                try:
-                    cat.meta["priors"] = Priors.from_dict(
-                        json.loads(str(h["PRIORS"].data["json"][0])), source=f"{path} PRIORS")
-                except ValueError as err:
-                    log.warning("%s: the PRIORS HDU cannot be read (%s); left out", path, err)
-            if "PSFS" in h:
-                hdu = "PSFS"
-                cat.meta["psfs"] = Table(h["PSFS"].data)
-            if "PSFIMG" in h:
-                hdu = "PSFIMG"
-                cat.meta["psf_images"] = np.array(h["PSFIMG"].data, dtype=float)
-            if "CONFIG" in h:
-                hdu = "CONFIG"
-                t = h["CONFIG"].data
-                vals = {str(k): json.loads(str(v))
-                        for k, v in zip(t["key"], t["value"], strict=True)}  # fmt: skip
-                known = set(Config.describe())
-                extra = sorted(set(vals) - known)
-                if extra:  # written by another version: read what this one knows
-                    log.warning("%s: configuration key(s) %s unknown to this version are left "
-                                "out", path, extra)  # fmt: skip
-                try:
-                    cat.meta["config"] = Config.from_dict({k: v for k, v in vals.items()
-                                                           if k in known})  # fmt: skip
-                except ValueError as err:
-                    log.warning("%s: its configuration cannot be read (%s); left out", path,
-                                err)  # fmt: skip
-        except InputError:
-            raise
-        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
-            msg = err.args[0] if isinstance(err, KeyError) and err.args else err
-            raise InputError(f"{path}: cannot read HDU {hdu} ({type(err).__name__}: "
-                             f"{msg})") from None  # fmt: skip
+        cat = _guarded(path, "CATALOG", lambda: Table(h["CATALOG"].data))
+        lnL = _guarded(path, "LNL", lambda: np.array(h["LNL"].data, dtype=np.float32))
+        egrid = _guarded(path, "EGRID", lambda: np.array(h["EGRID"].data, dtype=float))
+        if lnL.ndim != 2 or lnL.shape[0] != len(cat):
+            raise InputError(f"{path}: LNL has shape {lnL.shape} for {len(cat)} objects "
+                             "(one row of ln L per object)")  # fmt: skip
+        if egrid.shape != (lnL.shape[1], 2) or not np.isfinite(egrid).all():
+            raise InputError(f"{path}: EGRID has shape {egrid.shape}; LNL's "
+                             f"{lnL.shape[1]} columns need ({lnL.shape[1]}, 2) finite "
+                             "ellipticities")  # fmt: skip
+        cat["lnL"] = lnL
+        cat.meta["egrid"] = egrid
+        for hdu, read in _HDU_READERS:
+            if hdu == "PRIMARY" or hdu in h:
+                _guarded(path, hdu, lambda read=read, hdu=hdu: read(h, hdu, cat, path))
     return cat
+
+
+def _guarded(path, hdu: str, read):
+    """``read()``; an error reading it as one line naming the file and the HDU."""
+    try:
+        return read()
+    except InputError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+        msg = err.args[0] if isinstance(err, KeyError) and err.args else err
+        raise InputError(f"{path}: cannot read HDU {hdu} ({type(err).__name__}: "
+                         f"{msg})") from None  # fmt: skip
+
+
+def _read_bulge(h, hdu: str, cat: Table, path) -> None:
+    hb = h[hdu]
+    cat["lnL_bulge"] = np.array(hb.data, dtype=np.float32)
+    cat.meta["bulge_fractions"] = np.array(hb.header["BULGEFR"].split(","), float)
+    if "BULGESZ" in hb.header:
+        cat.meta["bulge_sizes"] = np.array(hb.header["BULGESZ"].split(","), float)
+    if "RUNS" in hb.header:
+        cat.meta["runs"] = hb.header["RUNS"].split(";")
+    w = hb.header.get("BULGEW")
+    cat.meta["bulge_weights"] = None if w is None else np.array(w.split(","), float)
+
+
+def _read_primary(h, hdu: str, cat: Table, path) -> None:
+    hdr = h[0].header
+    cat.meta["frame"] = str(hdr.get("EFRAME", "pixel"))
+    if "PRIOR_B" in hdr or hdr.get("PRIORFRM") == SplinePrior.form:
+        cat.meta["prior"] = _header_prior(hdr, cat.meta["egrid"])
+
+
+def _read_size_prior(h, hdu: str, cat: Table, path) -> None:
+    hs = h[hdu]
+    cat.meta["size_prior"] = SizePrior(ln_h=np.array(hs.data["ln_h"], dtype=float),
+                                       density=np.array(hs.data["density"], float).T,
+                                       star=float(hs.header["STAR"]),
+                                       smoothing=hs.header.get("SMOOTH"))  # fmt: skip
+
+
+def _read_priors(h, hdu: str, cat: Table, path) -> None:
+    try:
+        cat.meta["priors"] = Priors.from_dict(json.loads(str(h[hdu].data["json"][0])),
+                                              source=f"{path} PRIORS")  # fmt: skip
+    except ValueError as err:
+        log.warning("%s: the PRIORS HDU cannot be read (%s); left out", path, err)
+
+
+def _read_psfs(h, hdu: str, cat: Table, path) -> None:
+    if hdu == "PSFS":
+        cat.meta["psfs"] = Table(h[hdu].data)
+    else:
+        cat.meta["psf_images"] = np.array(h[hdu].data, dtype=float)
+
+
+def _read_config(h, hdu: str, cat: Table, path) -> None:
+    t = h[hdu].data
+    vals = {str(k): json.loads(str(v)) for k, v in zip(t["key"], t["value"], strict=True)}
+    known = set(Config.describe())
+    extra = sorted(set(vals) - known)
+    if extra:  # written by another version: read what this one knows
+        log.warning("%s: configuration key(s) %s unknown to this version are left out", path,
+                    extra)  # fmt: skip
+    try:
+        cat.meta["config"] = Config.from_dict({k: v for k, v in vals.items() if k in known})
+    except ValueError as err:
+        log.warning("%s: its configuration cannot be read (%s); left out", path, err)
+
+
+#: the optional HDUs of a catalogue and their readers, in the order they are read
+_HDU_READERS = (("LNLB", _read_bulge), ("PRIMARY", _read_primary),
+                ("SIZEPRI", _read_size_prior), ("PRIORS", _read_priors),
+                ("PSFS", _read_psfs), ("PSFIMG", _read_psfs), ("CONFIG", _read_config))

@@ -4,6 +4,8 @@ plumbing).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,14 +16,58 @@ from ..grid import refine_lnL
 from ..models import render_models
 from ..stamps import add_patches, cut_stamps, patch_origins
 
-__all__ = ["subtract_neighbours", "implausible_models", "neighbour_light"]
+__all__ = ["NeighbourScene", "subtract_neighbours", "implausible_models", "neighbour_light"]
 
 
 _MODEL_KEYS = ("flux", "x", "y", "is_star", "r_best", "lnL", "bulge_best", "flags", "stamp")
 
 
-def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Config, refit,
-                        store, *, sky=None, data=None):  # fmt: skip
+@dataclass
+class NeighbourScene:
+    """The objects of one image as :func:`subtract_neighbours` sees them.
+
+    Attributes
+    ----------
+    shape : tuple of int
+        Image shape ``(ny, nx)``.
+    x, y : numpy.ndarray
+        Every object's stamp position (the stamps' centres), pixels.
+    xf, yf : numpy.ndarray
+        Every object's fitted position, pixels; the ``store`` of
+        :func:`subtract_neighbours` updates them in place.
+    noise : numpy.ndarray
+        Every object's noise sigma (data units).
+    fitted : numpy.ndarray
+        Indices of the objects fitted, in the order of the first fits.
+    psf : numpy.ndarray or tuple
+        PSF image, or ``(images, cell)``: ``(n_cells, N, N)`` PSF images and each
+        object's cell (``(n_objects,)``), every model rendered with its cell's PSF.
+    data : numpy.ndarray, optional
+        ``(n, N, N)`` every object's stamp as the fits saw it (``N =
+        cfg.largest_stamp``): with it, every round first judges the current models
+        (:func:`implausible_models`). The objects whose models do not fit their stamps
+        (a defect: a saturated star, a bleed trail, a hot pixel) are suspects: their
+        models are rendered neither into the others' stamps nor into the sky's field,
+        and they are fitted again with the others' light taken out; a suspect whose new
+        fit describes its stamp is cleared (a first fit spoiled by a bright neighbour),
+        the others are ``DEFECT``. After the last round the suspects' last fits are
+        judged once more.
+    """
+
+    shape: tuple[int, int]
+    x: np.ndarray
+    y: np.ndarray
+    xf: np.ndarray
+    yf: np.ndarray
+    noise: np.ndarray
+    fitted: np.ndarray
+    psf: np.ndarray | tuple | None
+    data: np.ndarray | None = None
+
+
+def subtract_neighbours(scene: NeighbourScene, first, cfg: Config, refit: Callable,
+                        store: Callable, *, sky: Callable | None = None,
+                        ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Fit galaxies again with their neighbours' best-fit models taken out of the stamps.
 
     ``cfg.neighbour_iterations`` rounds: each renders every fitted object's current model
@@ -44,39 +90,19 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
 
     Parameters
     ----------
-    shape : tuple
-        Image shape.
-    x, y : numpy.ndarray
-        Every object's stamp position (the stamps' centres).
-    xf, yf : numpy.ndarray
-        Every object's fitted position, updated in place by ``store``.
-    noise : numpy.ndarray
-        Every object's noise sigma.
-    fitted : numpy.ndarray
-        Indices of the objects fitted, in the order of ``first``.
+    scene : NeighbourScene
+        The image's objects, their fitted positions, PSF and stamps.
     first : StampFits
-        Their first fits.
-    psf : numpy.ndarray or tuple
-        PSF image, or ``(images, cell)``: ``(n_cells, N, N)`` PSF images and each
-        object's cell (``(n_objects,)``), every model rendered with its cell's PSF.
+        The first fits of ``scene.fitted``.
     cfg : Config
     refit : callable
         ``refit(idx, others)`` fits the stamps of objects ``idx`` less ``others``.
     store : callable
-        ``store(fits, idx)`` records the fits of objects ``idx`` (and updates ``xf, yf``).
+        ``store(fits, idx)`` records the fits of objects ``idx`` (and updates
+        ``scene.xf, scene.yf``).
     sky : callable, optional
         ``sky(field) -> (ny, nx)``: the change of the background when it is measured on
         the image less ``field``, the rendered models of all fitted objects.
-    data : numpy.ndarray, optional
-        ``(n, N, N)`` every object's stamp as the fits saw it (``N =
-        cfg.largest_stamp``): with it, every round first judges the current models
-        (:func:`implausible_models`). The objects whose models do not fit their stamps
-        (a defect: a saturated star, a bleed trail, a hot pixel) are suspects: their
-        models are rendered neither into the others' stamps nor into ``field``, and they
-        are fitted again with the others' light taken out; a suspect whose new fit
-        describes its stamp is cleared (a first fit spoiled by a bright neighbour), the
-        others are ``DEFECT``. After the last round the suspects' last fits are judged
-        once more.
 
     Returns
     -------
@@ -84,64 +110,92 @@ def subtract_neighbours(shape, x, y, xf, yf, noise, fitted, first, psf, cfg: Con
         Indices of the objects whose neighbours' light was taken out (a subset of those
         fitted again when ``sky`` is given).
     defect : numpy.ndarray
-        Boolean, one per ``fitted``: the objects whose best model does not fit their
-        stamp (none without ``data``).
+        Boolean, one per ``scene.fitted``: the objects whose best model does not fit
+        their stamp (none without ``scene.data``).
     """
-    cur = {k: np.array(getattr(first, k)) for k in _MODEL_KEYS}
-    cur["egrid"] = first.egrid
+    rounds = _Rounds(scene, first, cfg)
+    fitted = scene.fitted
     ok = first.flags == 0
     done = np.zeros(0, dtype=np.int64)
-    dsky = None
-    suspect = np.zeros(fitted.size, dtype=bool)
-
-    def light():  # every fitted model, the suspects' into their own stamps only
-        return neighbour_light(shape, x, y, xf, yf, fitted, SimpleNamespace(**cur), psf, cfg,
-                                exclude=suspect, own_too=True)  # fmt: skip
-
-    def judge(others, own, aside):  # with every model's light, the suspects' too
-        return implausible_models(data, fitted, noise, SimpleNamespace(**cur), cfg,
-                                   others if aside is None else others + aside, own,
-                                   dsky)  # fmt: skip
-
-    def _chi2(light):  # the light taken out of each fitted stamp, in units of its noise
-        # (the window each object was fitted on: the base stamp or a larger tier)
-        out = np.empty(fitted.size)
-        nl, win = light.shape[1], np.asarray(cur["stamp"])
-        for s in np.unique(win):
-            a, i = nl // 2 - int(s) // 2, np.flatnonzero(win == s)
-            out[i] = np.sum(light[fitted[i], a : a + int(s), a : a + int(s)] ** 2, axis=(1, 2))
-        return out / noise[fitted] ** 2
-
     refitted = np.zeros(fitted.size, dtype=bool)  # in the last round
     for _ in range(int(cfg.neighbour_iterations)):
-        others, field, own, aside = light()
-        if data is not None:
-            now = judge(others, own, aside)
-            if (now != suspect).any():
-                suspect = now
-                others, field, own, aside = light()
-        if not cfg.subtract_neighbours:
-            others[:] = 0.0
-        if sky is not None:
-            dsky = cut_stamps(sky(field), x, y, cfg.largest_stamp)[0]
-        near = _chi2(others) > cfg.neighbour_min_chi2
-        less = others if dsky is None else others + dsky
-        go = near if dsky is None else _chi2(less) > cfg.neighbour_min_chi2
-        sel = np.flatnonzero(ok & (go | suspect))
+        less, near, go = rounds.light_to_take_out(sky)
+        sel = np.flatnonzero(ok & (go | rounds.suspect))
         refitted[:] = False
         if sel.size == 0:
             break
         idx = fitted[sel]
         f2 = refit(idx, less[idx])
         store(f2, idx)
-        for k in _MODEL_KEYS:
-            cur[k][sel] = getattr(f2, k)
+        rounds.update(sel, f2)
         refitted[sel] = True
         done = np.union1d(done, fitted[ok & near])
-    if data is not None and (suspect & refitted).any():  # the suspects' last fits
-        others, _, own, aside = light()
-        suspect = judge(others, own, aside)
-    return done, suspect
+    if scene.data is not None and (rounds.suspect & refitted).any():  # the suspects' last fits
+        rounds.suspect = rounds.judge(*rounds.light())
+    return done, rounds.suspect
+
+
+class _Rounds:
+    """The state of :func:`subtract_neighbours`' rounds: the current models, the
+    suspects and the sky's change."""
+
+    def __init__(self, scene: NeighbourScene, first, cfg: Config) -> None:
+        self.scene, self.cfg = scene, cfg
+        self.cur = {k: np.array(getattr(first, k)) for k in _MODEL_KEYS}
+        self.cur["egrid"] = first.egrid
+        self.suspect = np.zeros(scene.fitted.size, dtype=bool)
+        self.dsky = None
+
+    def light(self):
+        """Every fitted model's light, the suspects' into their own stamps only
+        (:func:`neighbour_light`: ``others, field, own, aside``)."""
+        s = self.scene
+        return neighbour_light(s.shape, s.x, s.y, s.xf, s.yf, s.fitted,
+                               SimpleNamespace(**self.cur), s.psf, self.cfg,
+                               exclude=self.suspect, own_too=True)  # fmt: skip
+
+    def judge(self, others, field, own, aside) -> np.ndarray:
+        """The suspects: every model's light taken out, the suspects' too."""
+        s = self.scene
+        return implausible_models(s.data, s.fitted, s.noise, SimpleNamespace(**self.cur),
+                                  self.cfg, others if aside is None else others + aside,
+                                  own, self.dsky)  # fmt: skip
+
+    def chi2(self, light: np.ndarray) -> np.ndarray:
+        """The light taken out of each fitted stamp, in units of its noise (on the window
+        each object was fitted on: the base stamp or a larger tier)."""
+        fitted = self.scene.fitted
+        out = np.empty(fitted.size)
+        nl, win = light.shape[1], np.asarray(self.cur["stamp"])
+        for s in np.unique(win):
+            a, i = nl // 2 - int(s) // 2, np.flatnonzero(win == s)
+            out[i] = np.sum(light[fitted[i], a : a + int(s), a : a + int(s)] ** 2, axis=(1, 2))
+        return out / self.scene.noise[fitted] ** 2
+
+    def light_to_take_out(self, sky: Callable | None):
+        """One round's light to take out of every stamp (the neighbours' and the sky's
+        change), whether the neighbours' alone exceed ``neighbour_min_chi2`` and whether
+        both do; the suspects judged first."""
+        s, cfg = self.scene, self.cfg
+        others, field, own, aside = self.light()
+        if s.data is not None:
+            now = self.judge(others, field, own, aside)
+            if (now != self.suspect).any():
+                self.suspect = now
+                others, field, own, aside = self.light()
+        if not cfg.subtract_neighbours:
+            others[:] = 0.0
+        if sky is not None:
+            self.dsky = cut_stamps(sky(field), s.x, s.y, cfg.largest_stamp)[0]
+        near = self.chi2(others) > cfg.neighbour_min_chi2
+        less = others if self.dsky is None else others + self.dsky
+        go = near if self.dsky is None else self.chi2(less) > cfg.neighbour_min_chi2
+        return less, near, go
+
+    def update(self, sel: np.ndarray, fits) -> None:
+        """The models of the fitted objects ``sel`` (positions in ``scene.fitted``)."""
+        for k in _MODEL_KEYS:
+            self.cur[k][sel] = getattr(fits, k)
 
 
 def _likelihood_mean_e(lnL: np.ndarray, egrid: np.ndarray, block: int = 512) -> np.ndarray:

@@ -8,12 +8,13 @@ import logging
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from astropy.table import Table, vstack
 
 from ..assemble import ObjectContext, assemble, usable_galaxies
-from ..calibration import CalibrationSample, Priors, run_recipe
+from ..calibration import CalibrationSample, Priors, Recipe, RecipePass
 from ..catalogue import COLUMNS, FITCLASS
 from ..config import Config
 from ..prior import Prior, SizePrior
@@ -24,15 +25,31 @@ from .parts import part_path, pass_key, resumed_results, write_part
 from .records import HELDOUT_KEYS, PSF_KEYS, ImageResult, ImageTask
 from .task import image_task
 
-__all__ = ["LastPass", "measure_pass", "calibrate_images", "assemble_results"]
+__all__ = ["LastPass", "Workers", "measure_pass", "calibration_passes", "assemble_results"]
 
 # the pipeline's one logger: its name predates the split into modules
 log = logging.getLogger("pylensfit.pipeline")
 
 
+@dataclass(frozen=True)
+class Workers:
+    """Where the images' tasks run (:func:`pylensfit.runner.run_tasks`): ``jobs`` local
+    processes of ``pool``, or the dask scheduler at ``scheduler``; ``progress``: a bar."""
+
+    jobs: int = 1
+    scheduler: str | None = None
+    progress: bool = False
+    pool: Any = None
+
+    def run(self, fn, tasks: list, label: str, objects: bool = False):
+        """``(task, result)`` of ``fn`` on every task, as they finish."""
+        return run_tasks(fn, tasks, self.jobs, self.scheduler, label, self.progress,
+                         self.pool, objects=objects)  # fmt: skip
+
+
 @dataclass
 class LastPass:
-    """The calibration recipe's last pass over the images (:func:`calibrate_images`),
+    """The calibration recipe's last pass over the images (:func:`calibration_passes`),
     kept for :func:`measure_pass`: its key (:func:`pass_key`) and its results."""
 
     key: str | None = None
@@ -44,10 +61,11 @@ class LastPass:
 
 
 def measure_pass(tasks: list[ImageTask], cfg: Config, priors: Priors, last: LastPass,
-                  parts: Path | None, pr_file: Path | None, jobs: int, scheduler: str | None,
-                  progress: bool, pool) -> dict[int, ImageResult]:  # fmt: skip
+                 parts: Path | None, pr_file: Path | None,
+                 workers: Workers) -> dict[int, ImageResult]:  # fmt: skip
     """The measurement: every image under ``priors``, the recipe's last pass reused where
-    it was made under them, finished images kept in ``parts`` (a resumed run reads them).
+    it was made under them (its images, where the recipe ran on a sample of them),
+    finished images kept in ``parts`` (a resumed run reads them).
     """
     results: dict[int, ImageResult] = {}
     run_cfg = priors.apply(cfg)
@@ -64,8 +82,7 @@ def measure_pass(tasks: list[ImageTask], cfg: Config, priors: Priors, last: Last
             if not pp.exists():
                 write_part(pp, results[t.index])
     todo = resumed_results([t for t in final if t.index not in results], parts, results)
-    for t, res in run_tasks(image_task, todo, jobs, scheduler, "images", progress, pool,
-                            objects=True):
+    for t, res in workers.run(image_task, todo, "images", objects=True):
         if parts is not None:
             write_part(part_path(parts, t), res)
         results[t.index] = res
@@ -74,62 +91,70 @@ def measure_pass(tasks: list[ImageTask], cfg: Config, priors: Priors, last: Last
     return results
 
 
-def calibrate_images(tasks: list[ImageTask], cfg: Config, prior: Prior | None,
-                      size_prior: SizePrior | None, jobs: int, scheduler: str | None,
-                      progress: bool, pool, last: LastPass,
-                      parts: Path | None = None) -> Priors:  # fmt: skip
-    """The calibration recipe (:func:`pylensfit.calibration.run_recipe`) on the images.
+def calibration_passes(tasks: list[ImageTask], cfg: Config, prior: Prior | None,
+                       size_prior: SizePrior | None, workers: Workers, last: LastPass,
+                       parts: Path | None = None) -> Priors:  # fmt: skip
+    """The calibration recipe (:class:`pylensfit.calibration.Recipe`) on the images of
+    ``tasks`` (all the run's, or its calibration sample).
 
-    Each pass measures every image (detection, PSF, neighbours and sky included) and hands
-    the recipe its usable galaxies (:func:`pylensfit.calibration.usable_galaxies`); the
-    last pass's results stay in ``last`` so that, when the measurement's settings are
-    those of the last pass, it is not done again. With ``parts``, the images of every
-    pass that keeps no ``L(r)`` are written there as they finish and read back by a
-    resumed run.
+    Each pass the recipe asks for measures every image of ``tasks`` (detection, PSF,
+    neighbours and sky included) and hands the recipe its usable galaxies
+    (:func:`pylensfit.calibration.usable_galaxies`); the last pass's results stay in
+    ``last`` so that, when the measurement's settings are those of the last pass, its
+    images are not measured again. With ``parts``, the images of every pass that keeps no
+    ``L(r)`` are written there as they finish and read back by a resumed run.
     """
+    recipe = Recipe(cfg, 1, prior=prior,
+                    size_priors=None if size_prior is None else [size_prior])  # fmt: skip
+    while (step := recipe.next_pass) is not None:
+        recipe.feed(_calibration_pass(tasks, step, workers, last, parts))
+    return recipe.priors[0]
 
-    def fit_pass(cfgs, sps, keep, label):
-        keep_r = "annuli" if keep else False
-        run = [replace(t, config=cfgs[0], keep_lnL_r=keep_r,
-                       psf_dir=t.psf_dir if not keep else None, size_prior=sps[0])
-               for t in tasks]  # fmt: skip
-        results, samples = {}, []
-        todo = run
+
+def _calibration_pass(tasks: list[ImageTask], step: RecipePass, workers: Workers,
+                      last: LastPass, parts: Path | None) -> CalibrationSample:  # fmt: skip
+    """One pass of the recipe over the images: their usable galaxies."""
+    keep = step.keep_lnL_r
+    run = [replace(t, config=step.configs[0], keep_lnL_r="annuli" if keep else False,
+                   psf_dir=t.psf_dir if not keep else None, size_prior=step.size_priors[0])
+           for t in tasks]  # fmt: skip
+    results: dict[int, ImageResult] = {}
+    todo = run
+    if parts is not None and not keep:
+        parts.mkdir(parents=True, exist_ok=True)
+        todo = resumed_results(run, parts, results)
+    for t, res in workers.run(image_task, todo, step.label, objects=True):
         if parts is not None and not keep:
-            parts.mkdir(parents=True, exist_ok=True)
-            todo = resumed_results(run, parts, results)
-        for t, res in run_tasks(image_task, todo, jobs, scheduler, label, progress, pool,
-                            objects=True):
-            if parts is not None and not keep:
-                write_part(part_path(parts, t), res)
-            results[t.index] = res
-        for i in range(len(tasks)):
-            res = results[i]
-            rows = res.rows
-            ok = (usable_galaxies(rows["flags"], rows["fitclass"] != FITCLASS["galaxy"],
-                                  rows["model_SNratio"], cfgs[0].min_snr)
-                  & np.isfinite(res.lnL).all(axis=1))  # fmt: skip
-            flux = np.asarray(rows["model_flux"], dtype=float)
-            samples.append(CalibrationSample(
-                egrid=res.egrid, lnL=res.lnL[ok], flux=flux[ok],
-                flux_err=(flux / np.asarray(rows["model_SNratio"], dtype=float))[ok],
-                snr=np.asarray(rows["model_SNratio"], dtype=float)[ok],
-                dx=(rows["x"] - rows["x_detect"])[ok], dy=(rows["y"] - rows["y_detect"])[ok],
-                group=np.zeros(int(ok.sum()), dtype=int),
-                lnL_bulge=None if res.lnL_bulge is None else res.lnL_bulge[ok],
-                lnL_star=rows["lnL_star"][ok] if "lnL_star" in rows else None,
-                lnL_r_grouped=[res.lnL_r[ok]] if keep else None))  # fmt: skip
-            if keep:  # the sample holds what the recipe needs
-                results[i] = replace(res, lnL_r=None)
-        last.clear()
-        if not keep:
-            last.key, last.results = pass_key(cfgs[0], sps[0], False), results
-        sample = CalibrationSample.concatenate(samples)
-        log.info("%s: %d usable galaxies", label, len(sample))
-        return sample
+            write_part(part_path(parts, t), res)
+        results[t.index] = res
+    samples = []
+    for t in tasks:
+        samples.append(_usable_sample(results[t.index], step.configs[0].min_snr, keep))
+        if keep:  # the sample holds what the recipe needs
+            results[t.index] = replace(results[t.index], lnL_r=None)
+    last.clear()
+    if not keep:
+        last.key, last.results = pass_key(step.configs[0], step.size_priors[0], False), results
+    sample = CalibrationSample.concatenate(samples)
+    log.info("%s: %d usable galaxies", step.label, len(sample))
+    return sample
 
-    return run_recipe(fit_pass, cfg, 1, prior=prior,
-                      size_priors=None if size_prior is None else [size_prior])[0]
+
+def _usable_sample(res: ImageResult, min_snr: float, keep: bool) -> CalibrationSample:
+    """An image's usable galaxies (:func:`usable_galaxies`, a finite ``ln L`` row) as the
+    recipe takes them; their ``L(r)`` per ring of ``|e|`` with ``keep``."""
+    rows = res.rows
+    snr = np.asarray(rows["model_SNratio"], dtype=float)
+    ok = (usable_galaxies(rows["flags"], rows["fitclass"] != FITCLASS["galaxy"], snr, min_snr)
+          & np.isfinite(res.lnL).all(axis=1))  # fmt: skip
+    flux = np.asarray(rows["model_flux"], dtype=float)
+    return CalibrationSample(
+        egrid=res.egrid, lnL=res.lnL[ok], flux=flux[ok], flux_err=(flux / snr)[ok],
+        snr=snr[ok], dx=(rows["x"] - rows["x_detect"])[ok],
+        dy=(rows["y"] - rows["y_detect"])[ok], group=np.zeros(int(ok.sum()), dtype=int),
+        lnL_bulge=None if res.lnL_bulge is None else res.lnL_bulge[ok],
+        lnL_star=rows["lnL_star"][ok] if "lnL_star" in rows else None,
+        lnL_r_grouped=[res.lnL_r[ok]] if keep else None)  # fmt: skip
 
 
 def assemble_results(results: list[ImageResult], cfg: Config, priors: Priors) -> Table:

@@ -6,7 +6,7 @@ import logging
 import os
 import shutil
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,38 +17,34 @@ from ..config import Config
 from ..prior import Prior, SizePrior
 from ..psf import PSFResult
 from ..psfmodel import PSFModel
-from ..runner import run_tasks, worker_pool
+from ..runner import worker_pool
 from .catalogue_io import write_catalogue
 from .image_psf import starfield_task
 from .inputs import InputError, as_list, check_inputs, load_given, read_given_psfs
 from .parts import parts_dropped_if_unused, remove_stale_temporaries
-from .passes import LastPass, assemble_results, calibrate_images, measure_pass
-from .records import ImageTask, StarfieldTask
+from .passes import LastPass, Workers, assemble_results, calibration_passes, measure_pass
+from .records import ImageResult, ImageTask, StarfieldTask
+from .sample import sample_tasks
 
-__all__ = ["measure"]
+__all__ = ["calibrate_images", "measure"]
 
 # the pipeline's one logger: its name predates the split into modules
 log = logging.getLogger("pylensfit.pipeline")
 
 
 def measure(
-    images: str | os.PathLike | Iterable[str | os.PathLike],
-    *,
+    images: str | os.PathLike | Iterable[str | os.PathLike], *,
     stars: Iterable[str | os.PathLike] | None = None,
     weights: Iterable[str | os.PathLike | None] | None = None,
     masks: Iterable[str | os.PathLike | None] | None = None,
     catalogues: Iterable[str | os.PathLike | None] | None = None,
-    star_column: str | None = None,
-    config: Config | None = None,
+    star_column: str | None = None, config: Config | None = None,
     prior: Prior | str | os.PathLike | None = None,
     size_prior: SizePrior | str | os.PathLike | None = None,
     priors: Priors | str | os.PathLike | None = None,
     psf: PSFResult | PSFModel | np.ndarray | str | os.PathLike | Sequence | None = None,
-    output: str | os.PathLike | None = None,
-    psf_dir: str | os.PathLike | None = None,
-    overwrite: bool = False,
-    jobs: int = 1,
-    scheduler: str | None = None,
+    output: str | os.PathLike | None = None, psf_dir: str | os.PathLike | None = None,
+    overwrite: bool = False, jobs: int = 1, scheduler: str | None = None,
     progress: bool = True,
 ) -> Table:
     """Measure the shapes of every object in FITS images: images in, catalogue out.
@@ -56,18 +52,16 @@ def measure(
     Parameters
     ----------
     images : str or list of str
-        FITS images (background need not be subtracted). A ``WEIGHT`` HDU (inverse
-        variance) and a ``MASK`` HDU (non-zero = bad) in the same file are used if present.
+        FITS images (background need not be subtracted), with ``WEIGHT`` (inverse
+        variance) and ``MASK`` (non-zero = bad) HDUs used if present.
     stars : list of str, optional
-        Separate star-field images; their PSFs are co-added with each image's own
-        (``Config.psf_model = "polynomial"``: the polynomial model of the most stars is
-        used).
+        Star-field images; their PSFs are co-added with each image's own (with
+        ``Config.psf_model = "polynomial"`` the model of the most stars is used).
     psf : PSFResult, PSFModel, numpy.ndarray or str, or a list of them, optional
-        The PSF instead of stars: an image (pixel response included, centred on
-        ``[n//2, n//2]``) or its file, a :class:`~pylensfit.psfmodel.PSFModel` (a PSF
-        over the field, each galaxy fitted with it at its position as
-        ``Config.psf_interpolation`` says) or a file :func:`~pylensfit.psfmodel.read_psf_model`
-        reads (a Piff model); one for every image or one per image.
+        The PSF instead of stars, for every image or one per image: an image (pixel
+        response included, centred on ``[n//2, n//2]``) or its file, a
+        :class:`~pylensfit.psfmodel.PSFModel` (``Config.psf_interpolation``) or a file
+        :func:`~pylensfit.psfmodel.read_psf_model` reads (a Piff model).
     weights, masks : list of str, optional
         Weight and mask files, one per image (``None`` entries allowed).
     catalogues : list of str, optional
@@ -78,28 +72,22 @@ def measure(
         the stellar-locus selection).
     config : Config, optional
         Settings (default ``Config()``, the recommended method).
-    prior : Prior or str, optional
-        An ellipticity prior (or the path of a saved one) to keep instead of estimating
-        it; the other priors are still estimated.
-    size_prior : SizePrior or str, optional
-        A size prior (or the path of a saved one, :meth:`pylensfit.prior.SizePrior.save`)
-        to keep instead of estimating it.
+    prior, size_prior : Prior, SizePrior or str, optional
+        An ellipticity prior, a size prior (or the path of a saved one) to keep instead
+        of estimating it; the other priors are still estimated.
     priors : Priors or str, optional
-        Every prior, as :func:`pylensfit.calibrate` or an earlier run gives them (or the
-        path of a saved :class:`~pylensfit.Priors`): the images are measured once, under
-        them. Without it the calibration recipe (:mod:`pylensfit.calibration`) estimates
-        them from the run's own galaxies: passes over the images with the starting
-        priors, then under the flux and position priors estimated, then under the size
-        prior (with the default configuration three passes; the last is the
-        measurement). The catalogue keeps them (``meta["priors"]``, HDU ``PRIORS``).
+        Every prior, as :func:`calibrate_images` or an earlier run gives them (or the
+        path of a saved :class:`~pylensfit.Priors`): every image is measured in one pass
+        under them. Without it the calibration recipe (:mod:`pylensfit.calibration`)
+        estimates them first, on a sample of the images (``Config.calibration_sample``,
+        :mod:`pylensfit.images.sample`). The catalogue keeps them (``meta["priors"]``).
     output : str, optional
         Catalogue path (FITS). With an output, finished images are kept in
         ``<output>.parts/`` until the catalogue is written, and a restarted run resumes.
     psf_dir : str, optional
-        Write each image's PSF here as ``<image stem>.psf.fits`` (the image, its size and
-        ellipticity in the header, and a ``STARS`` table of every star candidate: used or
-        rejected, and why; :meth:`pylensfit.psf.PSFResult.write`). With a dask scheduler
-        the workers write it, so the folder must be shared with them.
+        Write each image's PSF here as ``<image stem>.psf.fits`` with a ``STARS`` table of
+        every star candidate (:meth:`pylensfit.psf.PSFResult.write`; a folder shared with
+        the workers of a dask scheduler).
     overwrite : bool
         Replace an existing output.
     jobs : int
@@ -119,51 +107,124 @@ def measure(
     Raises
     ------
     InputError
-        A missing, unreadable or truncated file, an image given twice, an empty image, an
-        empty input catalogue, a star field without usable stars: one line naming the
-        file and the problem. Every image, weight map, mask and star field is opened
-        (its headers read) before any work starts.
+        A missing, unreadable or truncated file, an image given twice, an empty image or
+        input catalogue, a star field without usable stars: one line naming the file and
+        the problem. Every input is opened before any work starts.
     """
     cfg = config if config is not None else Config()
     inp = _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_prior,
                           priors, output, overwrite)  # fmt: skip
     if psf_dir is not None:
         Path(psf_dir).mkdir(parents=True, exist_ok=True)
-    parts = inp.parts
     # one set of workers for every pass; a run failing before it has written a part
     # leaves no empty <output>.parts/
-    with worker_pool(jobs, scheduler) as pool, parts_dropped_if_unused(parts):
-        # star fields first: their PSFs go to every image
-        star_psfs = []
-        st_tasks = [StarfieldTask(path=p, index=i, config=cfg) for i, p in enumerate(inp.stars)]
-        for _, res in run_tasks(starfield_task, st_tasks, jobs, scheduler, "star fields",
-                                progress, pool):  # fmt: skip
-            star_psfs.append(res)
-        star_psfs.sort(key=lambda r: inp.stars.index(r.source))
-        tasks = [
-            ImageTask(path=p, index=i, config=cfg, weight=w, mask=m, catalogue=c,
-                       star_psfs=tuple(star_psfs), star_column=star_column,
-                       psf_dir=None if psf_dir is None else str(psf_dir),
-                       psf=None if inp.psfs is None else inp.psfs[i])
-            for i, (p, w, m, c) in enumerate(zip(inp.images, inp.weights, inp.masks,
-                                                 inp.catalogues, strict=True))
-        ]  # fmt: skip
-        pr_file = parts / "priors.json" if parts is not None else None
-        last = LastPass()
-        priors = inp.priors
-        if priors is None and pr_file is not None and pr_file.exists():
-            priors = Priors.load(pr_file)  # a resumed run keeps its priors
-            log.info("priors of the interrupted run read from %s", pr_file)
-        if priors is None:
-            priors = calibrate_images(tasks, cfg, inp.prior, inp.size_prior, jobs, scheduler,
-                                       progress, pool, last, parts)  # fmt: skip
-        results = measure_pass(tasks, cfg, priors, last, parts, pr_file, jobs, scheduler,
-                                progress, pool)  # fmt: skip
+    with worker_pool(jobs, scheduler) as pool, parts_dropped_if_unused(inp.parts):
+        workers = Workers(jobs=jobs, scheduler=scheduler, progress=progress, pool=pool)
+        tasks = _image_tasks(inp, cfg, star_column, psf_dir, workers)
+        results, priors = _measure_images(tasks, cfg, inp, workers)
     cat = assemble_results([results[i] for i in range(len(tasks))], cfg, priors)
     if inp.out is not None:
         write_catalogue(cat, inp.out, overwrite=overwrite)
-        shutil.rmtree(parts, ignore_errors=True)
+        shutil.rmtree(inp.parts, ignore_errors=True)
     return cat
+
+
+def calibrate_images(
+    images: str | os.PathLike | Iterable[str | os.PathLike], *,
+    stars: Iterable[str | os.PathLike] | None = None,
+    weights: Iterable[str | os.PathLike | None] | None = None,
+    masks: Iterable[str | os.PathLike | None] | None = None,
+    catalogues: Iterable[str | os.PathLike | None] | None = None,
+    star_column: str | None = None, config: Config | None = None,
+    prior: Prior | str | os.PathLike | None = None,
+    size_prior: SizePrior | str | os.PathLike | None = None,
+    psf: PSFResult | PSFModel | np.ndarray | str | os.PathLike | Sequence | None = None,
+    sample: int | None = None, seed: int | None = None, jobs: int = 1,
+    scheduler: str | None = None, progress: bool = True,
+) -> Priors:
+    """Estimate every prior of the method once, on a sample of a survey's images.
+
+    The calibration recipe (:mod:`pylensfit.calibration`) on whole images drawn at
+    random until their objects reach ``sample`` (:mod:`pylensfit.images.sample`): each
+    galaxy fitted as :func:`measure` fits it. ``Priors.save`` keeps the priors for
+    ``measure(priors=...)`` (``pylensfit measure --priors``), which measures every image
+    in one pass under them, with the same ``config``.
+
+    Parameters
+    ----------
+    images, stars, weights, masks, catalogues, star_column, config, prior, size_prior, psf
+        As for :func:`measure`.
+    sample : int, optional
+        Objects (detections, or input catalogue rows) of the images drawn; 0: every
+        image. Default ``Config.calibration_sample`` (20,000).
+    seed : int, optional
+        Seed of the draw; default ``Config.calibration_seed``.
+    jobs, scheduler, progress
+        As for :func:`measure`.
+
+    Returns
+    -------
+    Priors
+        The priors; ``info["sample_images"]`` names the images of the sample.
+
+    Raises
+    ------
+    InputError
+        A missing or unreadable input: one line naming the file and the problem.
+    """
+    cfg = config if config is not None else Config()
+    cfg = cfg.replace(**{k: v for k, v in (("calibration_sample", sample),
+                                           ("calibration_seed", seed)) if v is not None})
+    inp = _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_prior,
+                          None, None, False)  # fmt: skip
+    with worker_pool(jobs, scheduler) as pool:
+        workers = Workers(jobs=jobs, scheduler=scheduler, progress=progress, pool=pool)
+        tasks = _image_tasks(inp, cfg, star_column, None, workers)
+        return _calibrate(tasks, cfg, inp, workers, LastPass())
+
+
+def _image_tasks(inp: _MeasureInputs, cfg: Config, star_column: str | None,
+                 psf_dir: str | os.PathLike | None,
+                 workers: Workers) -> list[ImageTask]:  # fmt: skip
+    """The images' tasks, with the PSFs of the star fields (built first: they go to every
+    image)."""
+    st_tasks = [StarfieldTask(path=p, index=i, config=cfg) for i, p in enumerate(inp.stars)]
+    star_psfs = [res for _, res in workers.run(starfield_task, st_tasks, "star fields")]
+    star_psfs.sort(key=lambda r: inp.stars.index(r.source))
+    return [
+        ImageTask(path=p, index=i, config=cfg, weight=w, mask=m, catalogue=c,
+                  star_psfs=tuple(star_psfs), star_column=star_column,
+                  psf_dir=None if psf_dir is None else str(psf_dir),
+                  psf=None if inp.psfs is None else inp.psfs[i])
+        for i, (p, w, m, c) in enumerate(zip(inp.images, inp.weights, inp.masks,
+                                             inp.catalogues, strict=True))
+    ]  # fmt: skip
+
+
+def _calibrate(tasks: list[ImageTask], cfg: Config, inp: _MeasureInputs, workers: Workers,
+               last: LastPass) -> Priors:  # fmt: skip
+    """The recipe on the calibration sample of ``tasks``; the priors name its images."""
+    sample = sample_tasks(tasks, cfg.calibration_sample, cfg.calibration_seed, workers)
+    priors = calibration_passes(sample, cfg, inp.prior, inp.size_prior, workers, last,
+                                inp.parts)  # fmt: skip
+    return replace(priors, info={**priors.info, "sample_images": [t.path for t in sample],
+                                 "images": len(tasks)})  # fmt: skip
+
+
+def _measure_images(tasks: list[ImageTask], cfg: Config, inp: _MeasureInputs,
+                    workers: Workers) -> tuple[dict[int, ImageResult], Priors]:  # fmt: skip
+    """Every image measured under the given priors, those of an interrupted run, or those
+    the recipe estimates on the calibration sample; the results by image and the priors."""
+    pr_file = inp.parts / "priors.json" if inp.parts is not None else None
+    last = LastPass()
+    priors = inp.priors
+    if priors is None and pr_file is not None and pr_file.exists():
+        priors = Priors.load(pr_file)  # a resumed run keeps its priors
+        log.info("priors of the interrupted run read from %s", pr_file)
+    if priors is None:
+        priors = _calibrate(tasks, cfg, inp, workers, last)
+    results = measure_pass(tasks, cfg, priors, last, inp.parts, pr_file, workers)
+    return results, priors
 
 
 @dataclass

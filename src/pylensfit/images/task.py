@@ -23,7 +23,12 @@ from ..runner import single_thread
 from ..skyframe import local_frame, pixel_frame, wcs_from_header
 from .image_psf import CellPSFs, cell_psfs, image_psf, psf_source_of
 from .inputs import Image, detect_objects, mask_saturated, read_image, read_positions, value_at
-from .neighbours import implausible_models, neighbour_light, subtract_neighbours
+from .neighbours import (
+    NeighbourScene,
+    implausible_models,
+    neighbour_light,
+    subtract_neighbours,
+)
 from .records import ImageResult, ImageTask, psf_summary
 from .tiers import ImageFitter, ImageResults, forced_snrs, image_stamps
 
@@ -56,18 +61,42 @@ def image_task(task: ImageTask) -> ImageResult:
     if psf is not None and task.psf_dir:
         (field_model or psf).write(Path(task.psf_dir) / f"{Path(path).stem}.psf.fits",
                                    overwrite=True)  # fmt: skip
-    x = np.asarray(det["x"], dtype=float)
-    y = np.asarray(det["y"], dtype=float)
-    noise = np.asarray(det["noise_sigma"], dtype=float)
     cells = None
     if field_model is not None:
-        cells = cell_psfs(field_model, sub.shape, cfg.psf_cells, x, y,
-                           bilinear=cfg.psf_interpolation == "bilinear")  # fmt: skip
+        cells = cell_psfs(field_model, sub.shape, cfg.psf_cells, np.asarray(det["x"], float),
+                          np.asarray(det["y"], float),
+                          bilinear=cfg.psf_interpolation == "bilinear")  # fmt: skip
     t_psf = time.perf_counter()
     st = image_stamps(sub, img, det, cfg, saturated, flags)
     if positions is not None:  # an input catalogue: the evidence at each position itself
-        det["forced_SNratio"] = forced_snrs(st, noise, psf, cells)
+        det["forced_SNratio"] = forced_snrs(st, np.asarray(det["noise_sigma"], dtype=float),
+                                            psf, cells)  # fmt: skip
     t_stamps = time.perf_counter()
+    res, back, redo = _fit_objects(task, img, sub, det, bkg, st, psf, cells, flags)
+    t_fit = time.perf_counter()
+    rows = _image_rows(task, img, det, res, back, psf, cells, own_stars, redo, lost)
+    if field_model is not None and field_model.diagnostics.get("heldout_suspect") == 1.0:
+        rows["flags"] = rows["flags"] | _flags.flag_value("PSF_SUSPECT")
+    timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
+              "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
+    return ImageResult(
+        index=task.index, path=path, rows=rows, lnL=res.lnL, lnL_bulge=res.lnL_bulge,
+        lnL_r=res.lnL_r, egrid=ellipticity_grid(cfg.output_e_step, emax=cfg.e_max),
+        psf=None if psf is None else psf_summary(psf, field_model), psf_note=psf_note,
+        psf_source=psf_source_of(task, psf, field_model, own_stars), timing=timing)  # fmt: skip
+
+
+def _fit_objects(task: ImageTask, img: Image, sub: np.ndarray, det: Table, bkg,
+                 st, psf: PSFResult | None, cells: CellPSFs | None,
+                 flags: np.ndarray) -> tuple[ImageResults, np.ndarray, np.ndarray]:  # fmt: skip
+    """Fit every object of ``flags == 0``, again with its neighbours and the sky's change
+    taken out (:func:`subtract_neighbours`), and flag ``DEFECT`` (in ``flags``) the
+    objects whose model does not fit their stamp: the fits, the background map they end
+    on, and the objects refitted with their neighbours taken out."""
+    cfg = task.config
+    x = np.asarray(det["x"], dtype=float)
+    y = np.asarray(det["y"], dtype=float)
+    noise = np.asarray(det["noise_sigma"], dtype=float)
     bank = model_bank(cfg)
     egrid = ellipticity_grid(cfg.output_e_step, emax=cfg.e_max)  # fit_stamps' grid
     rings = e_annuli(bank.egrid) if task.keep_lnL_r == "annuli" else None
@@ -80,15 +109,18 @@ def image_task(task: ImageTask) -> ImageResult:
     # the PSF the neighbours are rendered with: each object's heaviest node's, or the image's
     render_psf = (cells.images, cells.nearest) if cells is not None else (
         psf.image if psf is not None else None)
-    if todo.size:
-        fits_ = fit(todo)
-        res.store(fits_, todo)
     # a model that does not fit its stamp (a defect: a saturated star, a bleed trail, a
     # hot pixel) is flagged DEFECT and kept out of the others' stamps and of the sky
     defect = np.zeros(todo.size, dtype=bool)
     redo = np.zeros(0, dtype=np.int64)
     back = bkg.back
-    if todo.size and (cfg.subtract_neighbours and todo.size > 1 or cfg.model_background):
+    if not todo.size:
+        return res, back, redo
+    fits_ = fit(todo)
+    res.store(fits_, todo)
+    scene = NeighbourScene(shape=sub.shape, x=x, y=y, xf=res.xf, yf=res.yf, noise=noise,
+                           fitted=todo, psf=render_psf, data=st.bstamps)  # fmt: skip
+    if cfg.subtract_neighbours and todo.size > 1 or cfg.model_background:
 
         def sky(field):
             """The change of the background measured on the image less ``field``."""
@@ -97,30 +129,18 @@ def image_task(task: ImageTask) -> ImageResult:
                                       box=cfg.background_box).back  # fmt: skip
             return back - bkg.back
 
-        redo, defect = subtract_neighbours(
-            sub.shape, x, y, res.xf, res.yf, noise, todo, fits_, render_psf, cfg, fit,
-            res.store, sky=sky if cfg.model_background else None,
-            data=st.bstamps)  # fmt: skip
-    elif todo.size:  # no refit: the first fits are judged as they are
+        redo, defect = subtract_neighbours(scene, fits_, cfg, fit, res.store,
+                                           sky=sky if cfg.model_background else None)  # fmt: skip
+    else:  # no refit: the first fits are judged as they are
         others, _, own, _ = neighbour_light(sub.shape, x, y, res.xf, res.yf, todo, fits_,
                                              render_psf, cfg, own_too=True)  # fmt: skip
         defect = implausible_models(st.bstamps, todo, noise, fits_, cfg, others, own)
     if defect.any():
         flags[todo[defect]] |= _flags.flag_value("DEFECT")
         log.info("%s: %d object(s) whose best model does not fit the stamp flagged DEFECT "
-                 "(Config.max_reduced_chi2, max_residual_fraction)", path,
+                 "(Config.max_reduced_chi2, max_residual_fraction)", task.path,
                  int(defect.sum()))  # fmt: skip
-    t_fit = time.perf_counter()
-    rows = _image_rows(task, img, det, res, back, psf, cells, own_stars, redo, lost)
-    if field_model is not None and field_model.diagnostics.get("heldout_suspect") == 1.0:
-        rows["flags"] = rows["flags"] | _flags.flag_value("PSF_SUSPECT")
-    timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
-              "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
-    return ImageResult(
-        index=task.index, path=path, rows=rows, lnL=res.lnL, lnL_bulge=res.lnL_bulge,
-        lnL_r=res.lnL_r, egrid=egrid,
-        psf=None if psf is None else psf_summary(psf, field_model), psf_note=psf_note,
-        psf_source=psf_source_of(task, psf, field_model, own_stars), timing=timing)  # fmt: skip
+    return res, back, redo
 
 
 def _image_rows(task: ImageTask, img: Image, det: Table, res: ImageResults,
