@@ -41,6 +41,22 @@ def test_metacal_images_are_galsims_sheared_galaxy_with_the_dilated_psf(centre):
     assert mc.noise_sigma == 0.0 and mc.step == 0.01
 
 
+def test_the_reconvolution_psf_dilation_can_be_given():
+    """``dilation`` sets the reconvolution PSF's scale whatever the step (the same
+    estimator for two steps), as GalSim renders it; one below ``1 + step`` (which would
+    amplify the noise at some frequencies) is refused."""
+    psf = galsim.Gaussian(sigma=1.4).shear(g1=0.05)
+    gal = galsim.Exponential(half_light_radius=1.8).shear(g1=-0.2, g2=0.1)
+    img = _draw(galsim.Convolve(gal, psf))
+    for step in (0.01, 0.02):
+        mc = metacal_images(img, _draw(psf), 0.0, step=step, dilation=1.05, types=("2m",))
+        dil = galsim.Convolve(psf, galsim.Pixel(1.0)).dilate(1.05)
+        ref = _draw(galsim.Convolve(gal.shear(g2=-step), dil), "no_pixel")
+        assert np.abs(mc.images["2m"] - ref).max() < 2e-5 * ref.max()
+    with pytest.raises(ValueError, match="dilation"):
+        metacal_images(img, _draw(psf), 0.0, step=0.02, dilation=1.01)
+
+
 def test_shear_about_another_point_moves_the_galaxy():
     """Without the galaxy's centre the shear is about the stamp's: the galaxy moves by
     delta times its offset, which GalSim's rendering of the moved galaxy shows."""

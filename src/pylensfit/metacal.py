@@ -141,6 +141,7 @@ def metacal_images(
     seed: int | None = None,
     types: tuple[str, ...] = METACAL_TYPES,
     centres: tuple[np.ndarray, np.ndarray] | None = None,
+    dilation: float | None = None,
 ) -> MetacalImages:
     """Deconvolve, shear by ``+-step`` and reconvolve a set of stamps (module docstring).
 
@@ -173,6 +174,11 @@ def metacal_images(
         another point also moves the galaxy, by ``delta`` times its offset, and the
         estimator's response to that move (through the position prior about the
         catalogue position) is not a response to shear.
+    dilation : float, optional
+        The reconvolution PSF's dilation ``f`` (``P_r(k) = P(f k)``), at least
+        ``1 + |step|`` so that no frequency's noise is amplified (default ``1 + 2 step``):
+        give one value to compare steps at the same reconvolution PSF, and so the same
+        estimator.
 
     Returns
     -------
@@ -189,6 +195,9 @@ def metacal_images(
                          f"{st.shape} and {psf.shape}")  # fmt: skip
     if not 0.0 < step < 0.2:
         raise ValueError(f"step must be in (0, 0.2), got {step}")
+    f = 1.0 + 2.0 * step if dilation is None else float(dilation)
+    if not 1.0 + step <= f < 2.0:
+        raise ValueError(f"dilation must be in [1 + step, 2), got {dilation}")
     unknown = set(types) - set(METACAL_TYPES)
     if unknown:
         raise ValueError(f"unknown metacal types {sorted(unknown)}; use {METACAL_TYPES}")
@@ -221,7 +230,6 @@ def metacal_images(
         if not (np.isfinite(cx).all() and np.isfinite(cy).all()):
             raise ValueError("metacal_images got non-finite centres")
     kx, ky = _frequencies(n)
-    f = 1.0 + 2.0 * step
     Pr = _transform(psf[None], np.diag([f, f]))[0]
     out = {}
     for t in types:
@@ -281,6 +289,7 @@ def metacal_shapes(
     fits=None,
     centres: tuple[np.ndarray, np.ndarray] | None = None,
     position_prior_sigma: float | None = 2.0,
+    dilation: float | None = None,
 ) -> Table:
     """lensfit's posterior mean ellipticity of each stamp with its metacalibrated response.
 
@@ -310,7 +319,7 @@ def metacal_shapes(
     bulge_weights : numpy.ndarray, optional
         Prior probabilities of the bulge fractions (uniform if ``None``), with a
         bulge+disc model whose fraction is marginalised.
-    step, noise_fields, seed
+    step, noise_fields, seed, dilation
         As :func:`metacal_images`.
     fits : StampFits, optional
         Fits of ``stamps`` already made (their ``x``, ``y`` are the centres).
@@ -353,7 +362,8 @@ def metacal_shapes(
     n = st.shape[-1]
     ok = np.isfinite(cx) & np.isfinite(cy)
     mc = metacal_images(st, psf, noise_sigma, step=step, noise_fields=noise_fields, seed=seed,
-                        centres=(np.where(ok, cx, n // 2), np.where(ok, cy, n // 2)))  # fmt: skip
+                        centres=(np.where(ok, cx, n // 2), np.where(ok, cy, n // 2)),
+                        dilation=dilation)  # fmt: skip
     cfg = config or Config()
     refine = cfg.output_refine
     if position_prior_sigma is not None:
