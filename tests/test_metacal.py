@@ -133,6 +133,35 @@ def test_added_noise_cancels_the_anisotropy_of_the_sheared_noise():
     np.testing.assert_array_equal(again.images["1p"], fixed.images["1p"])
 
 
+def test_noise_power_of_the_unsheared_image_is_the_one_the_fits_assume_at_low_k():
+    """The unsheared image's noise (the data's and the added field, deconvolved and
+    reconvolved) has the power ``sigma^2 (|P_r(k) / P(k)|^2 + |P_r(R k) / P(R k)|^2)``
+    (``R`` the 90-degree turn): twice the input variance at low frequencies, where the
+    galaxies' signal is and where it equals the white ``noise_sigma^2`` the fits assume,
+    and less towards Nyquist (the reconvolution PSF is wider)."""
+    rng = np.random.default_rng(11)
+    n, sig, m = 32, 1.7, 2000
+    noise = rng.standard_normal((m, n, n)) * sig
+    psf_obj = galsim.Gaussian(sigma=1.3).shear(g1=0.1)
+    mc = metacal_images(noise, _draw(psf_obj, n=n), sig, seed=4, types=("noshear",))
+    power = (np.abs(np.fft.rfft2(mc.images["noshear"].astype(float))) ** 2).mean(0) / n**2
+    P = np.abs(np.fft.rfft2(np.fft.ifftshift(_draw(psf_obj, n=n))))
+    Pr = np.abs(np.fft.rfft2(np.fft.ifftshift(mc.psf)))
+    P, Pr = P / P[0, 0], Pr / Pr[0, 0]
+    # |P| at the turned frequencies (kx, ky) -> (-ky, kx) on the rfft2 grid (|P| is even)
+    kx, ky = np.fft.rfftfreq(n) * n, np.fft.fftfreq(n) * n
+    iy = np.broadcast_to(np.rint(kx).astype(int)[None, :] % n, P.shape)
+    ix = np.broadcast_to(np.abs(np.rint(ky)).astype(int)[:, None], P.shape)
+    expected = sig**2 * ((Pr / P) ** 2 + (Pr[iy, ix] / P[iy, ix]) ** 2)
+    k = np.hypot(*np.meshgrid(kx, ky))
+    for sel in (k <= 2, (k > 4) & (k < 8), (k > 10) & (k < 15)):  # rings in units of 2 pi / n
+        err = 4 / np.sqrt(m * sel.sum())  # 4 sigma of a mean of exponential variates
+        assert power[sel].mean() == pytest.approx(expected[sel].mean(), rel=err)
+    low = k <= 2  # where the fits' white level holds
+    assert power[low].mean() == pytest.approx(mc.noise_sigma**2, rel=0.04)
+    assert power[(k > 10) & (k < 15)].mean() < 0.8 * mc.noise_sigma**2
+
+
 def test_bad_input_is_refused_with_a_clear_message():
     psf = np.ones((16, 16))
     with pytest.raises(ValueError, match="square stamps and a PSF of their size"):
