@@ -162,8 +162,10 @@ def _selected_m(e, flags0, sel, step, g, grp):
                      + (P["E2p"] / P["N2p"] - P["E2m"] / P["N2m"])) / (2 * step)  # fmt: skip
         return (P["Ep"] / P["Np"] - P["Em"] / P["Nm"]) / (2 * g * R) - 1
 
-    full = m_of({key: v.sum(0) for key, v in parts.items()})
-    jk = np.array([m_of({key: v.sum(0) - v[i] for key, v in parts.items()}) for i in range(k)])
+    with np.errstate(invalid="ignore", divide="ignore"):  # a group without a selected row
+        full = m_of({key: v.sum(0) for key, v in parts.items()})
+        jk = np.array([m_of({key: v.sum(0) - v[i] for key, v in parts.items()})
+                       for i in range(k)])  # fmt: skip
     return full, np.sqrt((k - 1) / k * ((jk - jk.mean(0)) ** 2).sum(0)), w.mean()
 
 
@@ -202,7 +204,7 @@ def _report(es, flags0, snr, step, g, grp, morph=None) -> None:
     if morph is not None:
         bins += [(name, morph == j) for j, name in enumerate(P.MORPHOLOGIES)]
     for name, keep in bins:
-        if keep.sum() < 4 * (grp == 0).sum():
+        if keep.sum() < 2 * (grp == 0).sum():
             continue
         sub = np.flatnonzero(keep)
         gs = np.arange(sub.size) // max(1, (grp == 0).sum())
