@@ -37,7 +37,11 @@ the same level, rotated by 90 degrees, is put through the same operation, rotate
 and added ("fixnoise"): its anisotropy cancels that of the data's noise. The images
 then carry twice the pixel noise variance at low frequencies, where the galaxies'
 signal is; their fits assume ``sqrt(2)`` times the input noise, white
-(:attr:`MetacalImages.noise_sigma`).
+(:attr:`MetacalImages.noise_sigma`). The noise power of the unsheared image is
+``sigma^2 (|P_r(k) / P(k)|^2 + |P_r(R k) / P(R k)|^2)`` (``R`` the 90-degree turn): that
+level at low ``|k|``, less towards Nyquist. On exact exponential models at S/N 7-20
+the response measured so matches the true shear's within its error, ``(m1 + m2) / 2 =
+-0.002 +- 0.004`` (``benchmarks/studies/metacal_faint.py``).
 """
 
 from __future__ import annotations
