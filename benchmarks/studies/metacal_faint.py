@@ -1,6 +1,7 @@
 """Where metacalibration's faint-end bias comes from: the response's variants, paired.
 
-Exact exponential galaxies (the exponential model, the population's priors) of the
+Exact exponential galaxies (the exponential model, the population's priors; other
+kinds and models with ``--population``, ``--morphology-weights``, ``--model``) of the
 precision mode's population, four renderings each (+-g, rotated by 90 degrees, the same
 noise at +g and -g) and their antithetic twins (noise and added field negated), so that
 lensfit's own bias is ~0 and the noise's first-order terms cancel. Each rendering is
@@ -20,10 +21,16 @@ sheared images (all from the same renderings):
   same reconvolution PSF, and so the same estimator, at both steps).
 
 ``m = sum R_true / sum R - 1`` per component, with the jackknife error over groups of
-galaxies; the paired differences between variants share ``R_true`` (``mc``, ``A``) and
-are measured better than either::
+galaxies, under five selections (none; a galaxy only if no fit is flagged, as
+``metacal_shapes`` keeps it; each rendering on the data's flags; on the noshear image's,
+without and with the selection response), by true S/N and kind; the paired differences
+from the first variant (every usable fit)::
 
-    nice -n 5 python benchmarks/studies/metacal_faint.py --ngal 400 --snr 10 20 --jobs 2
+    nice -n 5 python benchmarks/studies/metacal_faint.py --ngal 2400 --seed 7 --jobs 2 \
+        --block-size 50 --group 50 --variants mc --set max_stamp_size=0 --save F.npz
+    nice -n 5 python benchmarks/studies/metacal_faint.py --ngal 1200 --seed 9 --jobs 2 \
+        --variants mc step2 --step2 0.02 --mc-option dilation=1.04 --set max_stamp_size=0
+    python benchmarks/studies/metacal_faint.py --report F.npz
 """
 
 from __future__ import annotations
