@@ -235,6 +235,7 @@ def main() -> None:
                     help="the population's reference S/N range")
     ap.add_argument("--psf", default="round")
     ap.add_argument("--step", type=float, default=0.01)
+    ap.add_argument("--g", type=float, default=0.02, help="the renderings' shear per component")
     ap.add_argument("--step2", type=float, default=0.02, help="the step of variant step2")
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=VARIANTS)
     ap.add_argument("--block-size", type=int, default=25)
@@ -259,7 +260,8 @@ def main() -> None:
     mc_kw = _kv(a.mc_option) | {"step2": a.step2}
     spec = P.spec_with(P.PrecisionSpec(ngal=a.ngal, seed=a.seed, snr_range=tuple(a.snr),
                                        morphology_weights=tuple(a.morphology_weights),
-                                       population=a.population, block_size=a.block_size),
+                                       population=a.population, block_size=a.block_size,
+                                       g=a.g),
                        psfs=[a.psf])  # fmt: skip
     cfg = P.default_config(spec).replace(model=a.model, **_kv(a.set))
     mcfg = cfg.replace(position_prior_sigma=a.mc_position_prior)
