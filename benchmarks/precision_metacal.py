@@ -103,7 +103,8 @@ def _block(task: dict) -> dict:
                             bulge_weights=bw, step=task["step"],
                             noise_fields=fld if task["noise"] else np.zeros_like(fld),
                             size_prior=task["size_prior"],
-                            position_prior_sigma=task["mc_position_prior"])  # fmt: skip
+                            position_prior_sigma=task["mc_position_prior"],
+                            dilation=task["dilation"])  # fmt: skip
         ok &= okA.reshape(-1) & (np.asarray(sh["flag"]) == 0)
         w = 1.0 / len(sets)
         out["QA"] = out["QA"] + w * np.nan_to_num(QA)
@@ -115,7 +116,8 @@ def _block(task: dict) -> dict:
             np.stack([np.column_stack([sh["R11"], sh["R12"]]),
                       np.column_stack([sh["R21"], sh["R22"]])], 1))  # fmt: skip
         t2 = time.perf_counter()
-        hsm_shapes(imgs, psf)  # GalSim HSM REGAUSS on the same renderings, timed only
+        if task["hsm"]:
+            hsm_shapes(imgs, psf)  # GalSim HSM REGAUSS on the same renderings, timed only
         times += [t1 - t0, t2 - t1, time.perf_counter() - t2]
     out = {"QA": out["QA"], "e": out["e"].reshape(n, 4, 2), "s": out["s"].reshape(n, 4, 2),
            "R": out["R"].reshape(n, 4, 2, 2), "e0": out["e0"].reshape(n, 4, 2),
@@ -171,6 +173,10 @@ def main() -> None:
     ap.add_argument("--ncal", type=int, default=20_000,
                     help="PrecisionSpec.ncal (default 20,000, as recorded)")
     ap.add_argument("--step", type=float, default=0.01, help="metacalibration's delta")
+    ap.add_argument("--dilation", type=float, default=None,
+                    help="the reconvolution PSF's dilation (default 1 + 2 step)")
+    ap.add_argument("--no-hsm", action="store_true",
+                    help="skip GalSim HSM REGAUSS (timed on the same renderings otherwise)")
     ap.add_argument("--true-priors", action="store_true",
                     help="the population's priors (else those the calibration estimates)")
     ap.add_argument("--noise-free", action="store_true",
@@ -214,7 +220,7 @@ def main() -> None:
               "noise": not a.noise_free, "about_stamp": a.about_stamp_centre,
               "about_true": a.about_true_centre,
               "mc_position_prior": a.metacal_position_prior or None,
-              "antithetic": a.antithetic}
+              "antithetic": a.antithetic, "dilation": a.dilation, "hsm": not a.no_hsm}
              for b in range(nb)]  # fmt: skip
     res = {}
     t0 = time.perf_counter()
@@ -226,8 +232,9 @@ def main() -> None:
     nr = sum(4 * len(r["ok"]) for r in cat) * (2 if a.antithetic and not a.noise_free else 1)
     print(f"{nb} blocks in {time.perf_counter() - t0:.0f} s ({a.jobs} jobs); renderings per "
           f"CPU second: lensfit's fit {nr / cpu['fit_s']:.1f}, with metacalibration "
-          f"{nr / (cpu['fit_s'] + cpu['mc_s']):.1f}, GalSim HSM REGAUSS "
-          f"{nr / cpu['hsm_s']:.1f} (same process)")
+          f"{nr / (cpu['fit_s'] + cpu['mc_s']):.1f}"
+          + ("" if a.no_hsm else f", GalSim HSM REGAUSS {nr / cpu['hsm_s']:.1f}")
+          + " (same process)")
     QA = np.concatenate([r["QA"] for r in cat]).astype(float)
     e, s, R, e0, s0 = (np.concatenate([r[k] for r in cat]).astype(float)
                        for k in ("e", "s", "R", "e0", "s0"))

@@ -41,6 +41,22 @@ def test_metacal_images_are_galsims_sheared_galaxy_with_the_dilated_psf(centre):
     assert mc.noise_sigma == 0.0 and mc.step == 0.01
 
 
+def test_the_reconvolution_psf_dilation_can_be_given():
+    """``dilation`` sets the reconvolution PSF's scale whatever the step (the same
+    estimator for two steps), as GalSim renders it; one below ``1 + step`` (which would
+    amplify the noise at some frequencies) is refused."""
+    psf = galsim.Gaussian(sigma=1.4).shear(g1=0.05)
+    gal = galsim.Exponential(half_light_radius=1.8).shear(g1=-0.2, g2=0.1)
+    img = _draw(galsim.Convolve(gal, psf))
+    for step in (0.01, 0.02):
+        mc = metacal_images(img, _draw(psf), 0.0, step=step, dilation=1.05, types=("2m",))
+        dil = galsim.Convolve(psf, galsim.Pixel(1.0)).dilate(1.05)
+        ref = _draw(galsim.Convolve(gal.shear(g2=-step), dil), "no_pixel")
+        assert np.abs(mc.images["2m"] - ref).max() < 2e-5 * ref.max()
+    with pytest.raises(ValueError, match="dilation"):
+        metacal_images(img, _draw(psf), 0.0, step=0.02, dilation=1.01)
+
+
 def test_shear_about_another_point_moves_the_galaxy():
     """Without the galaxy's centre the shear is about the stamp's: the galaxy moves by
     delta times its offset, which GalSim's rendering of the moved galaxy shows."""
@@ -115,6 +131,35 @@ def test_added_noise_cancels_the_anisotropy_of_the_sheared_noise():
     assert fixed.noise_sigma == pytest.approx(np.sqrt(2.0))
     again = metacal_images(noise, psf, 1.0, step=0.1, seed=5, types=("1p",))
     np.testing.assert_array_equal(again.images["1p"], fixed.images["1p"])
+
+
+def test_noise_power_of_the_unsheared_image_is_the_one_the_fits_assume_at_low_k():
+    """The unsheared image's noise (the data's and the added field, deconvolved and
+    reconvolved) has the power ``sigma^2 (|P_r(k) / P(k)|^2 + |P_r(R k) / P(R k)|^2)``
+    (``R`` the 90-degree turn): twice the input variance at low frequencies, where the
+    galaxies' signal is and where it equals the white ``noise_sigma^2`` the fits assume,
+    and less towards Nyquist (the reconvolution PSF is wider)."""
+    rng = np.random.default_rng(11)
+    n, sig, m = 32, 1.7, 2000
+    noise = rng.standard_normal((m, n, n)) * sig
+    psf_obj = galsim.Gaussian(sigma=1.3).shear(g1=0.1)
+    mc = metacal_images(noise, _draw(psf_obj, n=n), sig, seed=4, types=("noshear",))
+    power = (np.abs(np.fft.rfft2(mc.images["noshear"].astype(float))) ** 2).mean(0) / n**2
+    P = np.abs(np.fft.rfft2(np.fft.ifftshift(_draw(psf_obj, n=n))))
+    Pr = np.abs(np.fft.rfft2(np.fft.ifftshift(mc.psf)))
+    P, Pr = P / P[0, 0], Pr / Pr[0, 0]
+    # |P| at the turned frequencies (kx, ky) -> (-ky, kx) on the rfft2 grid (|P| is even)
+    kx, ky = np.fft.rfftfreq(n) * n, np.fft.fftfreq(n) * n
+    iy = np.broadcast_to(np.rint(kx).astype(int)[None, :] % n, P.shape)
+    ix = np.broadcast_to(np.abs(np.rint(ky)).astype(int)[:, None], P.shape)
+    expected = sig**2 * ((Pr / P) ** 2 + (Pr[iy, ix] / P[iy, ix]) ** 2)
+    k = np.hypot(*np.meshgrid(kx, ky))
+    for sel in (k <= 2, (k > 4) & (k < 8), (k > 10) & (k < 15)):  # rings in units of 2 pi / n
+        err = 4 / np.sqrt(m * sel.sum())  # 4 sigma of a mean of exponential variates
+        assert power[sel].mean() == pytest.approx(expected[sel].mean(), rel=err)
+    low = k <= 2  # where the fits' white level holds
+    assert power[low].mean() == pytest.approx(mc.noise_sigma**2, rel=0.04)
+    assert power[(k > 10) & (k < 15)].mean() < 0.8 * mc.noise_sigma**2
 
 
 def test_bad_input_is_refused_with_a_clear_message():
