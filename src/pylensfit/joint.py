@@ -426,12 +426,12 @@ def _peak_factor(lw: np.ndarray) -> np.ndarray:
 def _collapse(lnl: np.ndarray, cols: _Columns) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``ln L(e)``, ``ln L_b(e)`` per run and the point source's weighted ``ln L``."""
     m = lnl.shape[0]
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):  # NaN rows: no usable exposure
         lw = (lnl[:, :-1].reshape(m, cols.n_e, cols.n_b, cols.n_sub)
               + np.log(cols.node_w).reshape(cols.n_b, cols.n_sub))  # fmt: skip
-    lnlb = logsumexp(lw, axis=-1) + _peak_factor(lw)
-    star = lnl[:, -1] + np.log(cols.w_star)
-    lnle = np.logaddexp(logsumexp(lnlb, axis=-1) - np.log(cols.n_b), star[:, None])
+        lnlb = logsumexp(lw, axis=-1) + _peak_factor(lw)
+        star = lnl[:, -1] + np.log(cols.w_star)
+        lnle = np.logaddexp(logsumexp(lnlb, axis=-1) - np.log(cols.n_b), star[:, None])
     return lnle, lnlb, star
 
 
