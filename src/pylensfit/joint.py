@@ -324,13 +324,14 @@ class _Block:
     norm weights."""
 
     D: list  # per exposure, (m, n_f) complex: f D conj(P) coef / sigma^2
-    W: list  # per exposure, (m, n_f) real: f^2 |P|^2 coef / sigma^2
+    W: list  # per exposure, (1 or m, n_f) real: |P|^2 coef, one row per PSF
+    w2: list  # per exposure, (m,) f^2 / sigma^2
 
 
 def _block(inp: _Inputs, exps: list[_Exposure], sl: slice) -> _Block:
     N = inp.stamps.shape[-1]
     kx, ky, _ = rfft_frequencies(N)
-    D, W = [], []
+    D, W, w2 = [], [], []
     for k, ex in enumerate(exps):
         ph = np.exp(1j * (kx.ravel()[ex.sel][None] * inp.cx[k, sl, None]
                           + ky.ravel()[ex.sel][None] * inp.cy[k, sl, None]))  # fmt: skip
@@ -339,8 +340,9 @@ def _block(inp: _Inputs, exps: list[_Exposure], sl: slice) -> _Block:
         P = P[sl] if P.shape[0] > 1 else P
         wt = inp.fscale[k, sl] / inp.sigma[k, sl] ** 2
         D.append(F * ph * np.conj(P) * (ex.coef * wt[:, None]))
-        W.append(np.abs(P) ** 2 * (ex.coef * (wt * inp.fscale[k, sl])[:, None]))
-    return _Block(D=D, W=W)
+        W.append(np.abs(P) ** 2 * ex.coef)
+        w2.append(wt * inp.fscale[k, sl])
+    return _Block(D=D, W=W, w2=w2)
 
 
 def _rows(D: np.ndarray, ex: _Exposure, xc: np.ndarray, yc: np.ndarray) -> np.ndarray:
@@ -354,15 +356,16 @@ def _rows(D: np.ndarray, ex: _Exposure, xc: np.ndarray, yc: np.ndarray) -> np.nd
 
 def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None):
     """``(6, m, c)`` products of ``H`` and ``(4, m, c)`` of ``Q`` and the expected
-    Hessian, summed over the exposures (``cols``: those columns only)."""
+    Hessian, summed over the exposures (``cols``: those columns only). With one PSF per
+    exposure the norms are one product per exposure, scaled per galaxy."""
     A = B = 0.0
-    for D, W, ex in zip(blk.D, blk.W, exps, strict=True):
+    for D, W, w2, ex in zip(blk.D, blk.W, blk.w2, exps, strict=True):
         G = ex.G if cols is None else ex.G[:, cols]
         G2 = ex.G2 if cols is None else ex.G2[:, cols]
         R = _rows(D, ex, xc, yc).astype(G.dtype)
         A = A + np.matmul(R, G).astype(np.float64)
         q = np.stack([W, -W * ex.qx * ex.qx, -W * ex.qx * ex.qy, -W * ex.qy * ex.qy])
-        B = B + np.matmul(q.astype(G.dtype), G2).astype(np.float64)
+        B = B + np.matmul(q.astype(G.dtype), G2).astype(np.float64) * w2[None, :, None]
     return A, B
 
 
