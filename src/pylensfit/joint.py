@@ -51,9 +51,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import log_ndtr, logsumexp
+from scipy.special import logsumexp
 
 from . import flags as _flags
+from ._joint_nb import laplace_models
 from .bankruns import bank_runs
 from .config import Config
 from .exposures import ExposureStamps
@@ -70,7 +71,6 @@ from .psf import psf_transform
 
 __all__ = ["JointFits", "fit_exposures", "fit_views", "sky_frequencies"]
 
-_LN_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 #: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 64 x n_r)
 _E_CHUNK = 64
 
@@ -371,40 +371,16 @@ def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None):
 
 def _laplace(A: np.ndarray, B: np.ndarray, x0, y0, b2: float, max_step: float):
     """``ln L(e, r)`` of every model, marginalised over the amplitude and the position
-    (module docstring), and its ``H*``, ``X*`` (from the origin). ``x0, y0``: the
-    catalogue position from the origin."""
-    h0, gx, gy, hxx, hxy, hyy = A
-    Q, mxx, mxy, myy = B
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        det = hxx * hyy - hxy * hxy
-        x = (hxy * gy - hyy * gx) / det
-        y = (hxy * gx - hxx * gy) / det
-        ok = (hxx < 0) & (det > 0) & (x * x + y * y <= max_step * max_step)
-        # elsewhere the expected Hessian, that of the model's autocorrelation
-        sq = np.sqrt(Q)
-        scale = np.maximum(h0, sq) / Q
-        exx, exy, eyy = scale * mxx, scale * mxy, scale * myy
-        edet = exx * eyy - exy * exy
-        x2 = (exy * gy - eyy * gx) / edet
-        y2 = (exy * gx - exx * gy) / edet
-        f = np.minimum(1.0, max_step / np.hypot(x2, y2))
-        x = np.where(ok, x, x2 * f)
-        y = np.where(ok, y, y2 * f)
-        hxx, hxy, hyy = (np.where(ok, a, b) for a, b in ((hxx, exx), (hxy, exy), (hyy, eyy)))
-        hs = h0 + gx * x + gy * y + 0.5 * (hxx * x * x + 2 * hxy * x * y + hyy * y * y)
-        t = hs / sq
-        lphi = log_ndtr(t)
-        val = 0.5 * t * t + lphi - 0.5 * np.log(Q)
-        dl = -(t + np.exp(-0.5 * t * t - _LN_SQRT_2PI - lphi)) / sq  # d val / dH
-        f11, f12, f22 = dl * hxx, dl * hxy, dl * hyy
-        detf = f11 * f22 - f12 * f12
-        m11, m22, m12 = 1 + b2 * f11, 1 + b2 * f22, b2 * f12
-        detm = m11 * m22 - m12 * m12
-        dx, dy = x - x0[:, None], y - y0[:, None]
-        quad = ((f11 + b2 * detf) * dx * dx + 2 * f12 * dx * dy
-                + (f22 + b2 * detf) * dy * dy) / detm  # fmt: skip
-        lnl = val - 0.5 * np.log(detm) - 0.5 * quad
-    return lnl, hs, x, y
+    (module docstring), and its ``H*``, ``X*`` (from the origin): the Newton step with
+    the data's Hessian of ``H`` where it is a maximum and the step no longer than
+    ``max_step`` (arcsec), else with the expected Hessian ``max(H, sqrt Q) / Q`` times
+    that of the models' autocorrelations (the step then clipped to ``max_step``), as the
+    single-exposure fit does. ``x0, y0``: the catalogue position from the origin."""
+    m, c = A.shape[1:]
+    out = [np.empty((m, c)) for _ in range(4)]
+    laplace_models(A, B, np.ascontiguousarray(x0, dtype=float),
+                   np.ascontiguousarray(y0, dtype=float), float(b2), float(max_step), *out)
+    return tuple(out)
 
 
 def _peak_factor(lw: np.ndarray) -> np.ndarray:
