@@ -52,6 +52,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import logsumexp
+from threadpoolctl import threadpool_limits
 
 from . import flags as _flags
 from ._joint_nb import laplace_models
@@ -544,6 +545,13 @@ def fit_exposures(
     -------
     JointFits
         One row per galaxy; ``n_exposures`` says how many exposures each used.
+
+    Notes
+    -----
+    The stamps are fitted whole, on their ``N x N`` frequencies (``config.stamp_size`` is
+    not read). The matrix products run on one BLAS thread, as
+    :func:`pylensfit.likelihood.fit_stamps`'s, so that the result does not depend on the
+    machine's thread count; the Laplace terms run on numba's threads, one galaxy each.
     """
     cfg = config if config is not None else Config()
     inp = _inputs(stamps, psf, noise_sigma, jacobian, flux_scale, usable, centres)
@@ -555,8 +563,10 @@ def fit_exposures(
     eye = np.eye(2) / scale
     exps = [_exposure(cols, inp.J[k] if good[k] else eye, N, np.dtype(cfg.dtype))
             for k in range(K)]
-    parts = [_fit_block(inp, exps, cols, cfg, scale, slice(s, min(s + cfg.block_size, n_gal)))
-             for s in range(0, n_gal, cfg.block_size)]  # fmt: skip
+    with threadpool_limits(limits=1, user_api="blas"):  # as fit_stamps: the same bits anywhere
+        parts = [_fit_block(inp, exps, cols, cfg, scale, slice(s, min(s + cfg.block_size,
+                                                                     n_gal)))
+                 for s in range(0, n_gal, cfg.block_size)]  # fmt: skip
     return _assemble(parts, inp, cols, cfg, scale)
 
 
