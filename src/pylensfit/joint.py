@@ -204,6 +204,19 @@ def sky_frequencies(jacobian: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarra
 
     A sky-frame profile ``m(u)`` seen through ``J`` is ``m(J^-1 x) / |det J|`` in the
     pixels, whose transform at the pixel frequency ``k`` is ``M(J^T k)``.
+
+    Parameters
+    ----------
+    jacobian : numpy.ndarray
+        ``(2, 2)`` local WCS Jacobian ``J = d(x, y)/d(W, N)``, pixels per arcsec.
+    n : int
+        Stamp side, pixels.
+
+    Returns
+    -------
+    qx, qy : numpy.ndarray
+        ``(n, n // 2 + 1)`` the ``W`` and ``N`` components of ``J^T k``, radians per
+        arcsec, on the grid of :func:`pylensfit.models.rfft_frequencies`.
     """
     kx, ky, _ = rfft_frequencies(n)
     J = np.asarray(jacobian, dtype=float)
