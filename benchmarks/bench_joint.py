@@ -1,0 +1,111 @@
+"""Cost of the joint fit of K exposures per galaxy, beside the single-exposure fit.
+
+Renders ``--ngal`` exponential galaxies into 4 exposures (rotated by 0, 30, 60 and 90
+degrees, the last a mirror image, each with its own Gaussian PSF; not timed), then times
+in the same process, each after a warm-up call on a few galaxies:
+
+* ``fit_stamps`` of every galaxy on exposure 0 (one single-exposure fit per galaxy);
+* ``fit_exposures`` of every galaxy on its first K = 1, 2, 4 exposures.
+
+Both on the same grid (``--model``, de = 0.1, sizes 0-10 px in 0.2 px: the paper's
+grid), the uniform amplitude prior, untruncated models, float32 products, BLAS on one
+thread. Prints galaxies per second, microseconds per (galaxy, exposure) and the peak of
+the memory numpy allocates during the call (``tracemalloc``, bank included).
+
+Usage::
+
+    python benchmarks/bench_joint.py                 # 512 galaxies, ~1-2 min
+    python benchmarks/bench_joint.py --ngal 256 --model devaucouleurs
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+import tracemalloc
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from pylensfit.config import Config
+from pylensfit.joint import fit_exposures
+from pylensfit.likelihood import fit_stamps
+from pylensfit.models import render_models
+
+N = 32
+SCALE = 0.2  # arcsec per pixel
+
+
+def rotation(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+
+def gaussian_psf(s: float, size: int = 25) -> np.ndarray:
+    yy, xx = np.mgrid[:size, :size] - size // 2
+    return np.exp(-(xx**2 + yy**2) / (2 * s * s))
+
+
+def simulate(ngal: int, model: str, rng: np.random.Generator):
+    """Stamps ``(4, ngal, N, N)``, PSFs ``(4, s, s)`` and Jacobians ``(4, 2, 2)``."""
+    J = np.stack([rotation(0.0), rotation(30.0), rotation(60.0),
+                  np.diag([-1.0, 1.0]) @ rotation(90.0)]) / SCALE  # fmt: skip
+    psfs = np.stack([gaussian_psf(s) for s in (1.5, 1.7, 1.4, 1.6)])
+    e = rng.uniform(-0.3, 0.3, (2, ngal))
+    r = rng.uniform(1.0, 4.0, ngal)
+    dx, dy = rng.uniform(-0.5, 0.5, (2, ngal))
+    stamps = np.empty((4, ngal, N, N))
+    for k in range(4):
+        # the sky-frame ellipticity in the exposure's pixels: e rotated by twice the angle,
+        # then the mirror image's x -> -x flips e2; sizes unchanged (same pixel scale)
+        a = np.radians((0.0, 30.0, 60.0, 90.0)[k])
+        c, s = np.cos(2 * a), np.sin(2 * a)
+        e1, e2 = c * e[0] - s * e[1], s * e[0] + c * e[1]
+        if k == 3:
+            e2 = -e2
+        stamps[k] = render_models(N, psfs[k], N // 2 + dx, N // 2 + dy, e1, e2, r,
+                                  np.full(ngal, 300.0), model=model)  # fmt: skip
+    return stamps + rng.normal(0.0, 1.0, stamps.shape), psfs, J
+
+
+def timed(fn):
+    """``(seconds, peak MiB of traced allocations)`` of one call."""
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    fn()
+    dt = time.perf_counter() - t0
+    peak = tracemalloc.get_traced_memory()[1] / 2**20
+    tracemalloc.stop()
+    return dt, peak
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ngal", type=int, default=512)
+    ap.add_argument("--model", default="exponential")
+    ap.add_argument("--seed", type=int, default=1)
+    args = ap.parse_args()
+    cfg = Config().replace(model=args.model, n_bulge_fractions=1, amplitude_prior="uniform",
+                           truncate_models=False, max_stamp_size=0, e_refine=1, cubic_snr=0.0,
+                           r_min=0.0, r_max=10.0, r_step=0.2, r_rel_step=0.0, stamp_size=N,
+                           dtype="float32")  # fmt: skip
+    stamps, psfs, J = simulate(args.ngal, args.model, np.random.default_rng(args.seed))
+    print(f"{args.ngal} galaxies, {args.model}, 32x32 stamps, load {os.getloadavg()[0]:.2f}")
+    print(f"{'fit':<28}{'gal/s':>9}{'us/(gal exp)':>14}{'peak MiB':>10}")
+    with threadpool_limits(limits=1, user_api="blas"):
+        fit_stamps(stamps[0, :4], psfs[0], 1.0, config=cfg)  # warm-up: numba, bank
+        dt, peak = timed(lambda: fit_stamps(stamps[0], psfs[0], 1.0, config=cfg))
+        print(f"{'fit_stamps (1 exposure)':<28}{args.ngal / dt:9.1f}{1e6 * dt / args.ngal:14.0f}"
+              f"{peak:10.0f}")  # fmt: skip
+        for K in (1, 2, 4):
+            fit_exposures(stamps[:K, :4], psfs[:K], 1.0, J[:K], config=cfg, pixel_scale=SCALE)
+            dt, peak = timed(lambda K=K: fit_exposures(stamps[:K], psfs[:K], 1.0, J[:K],
+                                                       config=cfg, pixel_scale=SCALE))
+            print(f"{f'fit_exposures K={K}':<28}{args.ngal / dt:9.1f}"
+                  f"{1e6 * dt / (args.ngal * K):14.0f}{peak:10.0f}")  # fmt: skip
+    print(f"load at the end {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

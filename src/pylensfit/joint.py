@@ -1,0 +1,659 @@
+"""The likelihood of a galaxy on all of its exposures at once, on a sky-frame (e, r) grid.
+
+Each galaxy is seen in ``K`` exposures (:mod:`pylensfit.exposures`), each with its own
+stamp ``d_k``, PSF ``P_k``, noise ``sigma_k``, photometric scale ``f_k`` (counts per unit
+of the common flux) and local WCS Jacobian ``J_k = d(x, y)/d(W, N)`` (pixels per
+arcsec). One model of the sky, ``A m(u - X)`` (flux ``A``, sky offset ``X`` in arcsec,
+shape ``e`` and size ``r`` in the sky frame), is seen in exposure ``k`` as
+``A f_k m(J_k^-1 (x - c_k) - X) / |det J_k|`` convolved with ``P_k`` (``c_k`` the
+catalogue position in the stamp): its transform on the stamp's frequencies ``k`` is
+``M_sky(J_k^T k) P_k(k)``, with the phase ``exp(-i (J_k^T k) . X)`` of the shared offset.
+So every exposure is a sky-frame stamp sampled at the frequencies ``q = J_k^T k``
+(radians per arcsec), and the sky-frame model ``G(q) = F(|S(e)^T q| r)`` of
+:mod:`pylensfit.models` is evaluated there once per exposure.
+
+With ``h_k(X) = sum_x d_k(x) m_k(x - c_k - J_k X)`` and ``S_k = sum_x m_k^2``, the
+chi-square of all exposures is quadratic in ``A`` with ``H = sum_k f_k h_k / sigma_k^2``
+and ``Q = sum_k f_k^2 S_k / sigma_k^2``:
+
+* **amplitude** (uniform prior, ``A > 0``), marginalised once over the sum::
+
+      ln L(e, r, X) = H^2 / (2 Q) + ln Phi(H / sqrt Q) - ln(Q) / 2
+
+  which for one exposure is :func:`pylensfit.likelihood.fit_stamps`'s
+  ``h^2 / (2 sigma^2 S) + ln Phi(h / (sigma sqrt S)) - ln(S) / 2`` up to ``ln sigma``;
+* **position**: ``H`` and its gradient and Hessian in the sky offset ``X`` are sums over
+  every exposure's frequencies of ``Re(D'_k) G``, ``-q Im(D'_k) G`` and ``-q q^T Re(D'_k)
+  G`` with ``D'_k = f_k D_k conj(P_k) / sigma_k^2`` (the data re-centred on the catalogue
+  position by a phase ramp): matrix products of the block's rows with each exposure's
+  bank, summed over the exposures; ``Q`` and the expected Hessian likewise from
+  ``f_k^2 |P_k|^2 / sigma_k^2``. One Newton step gives ``X*`` and ``H*``, and the
+  Laplace approximation with the Gaussian position prior of width ``b`` (arcsec) about
+  the catalogue position is that of the single-exposure fit::
+
+      ln L(e, r) = l* - ln det(I + b^2 F) / 2 - X*^T (F^-1 + b^2 I)^-1 X* / 2,
+      F = -(dl/dH) Hess H;
+
+* **size and bulge fraction**: ``L(e) = sum_b pi_b sum_r w_r L(e, r) + w_* L_*``, the
+  radius weights of :func:`pylensfit.models.radius_weights` (with the single fit's
+  correction of a peak narrower than the r grid), a uniform prior over the bulge
+  fractions, the point source (``r = 0``) once.
+
+Sizes and lengths in the configuration (``r_min``, ``r_max``, ``r_step``,
+``position_prior_sigma``, ``max_offset``, ``centring_scale``, ``max_newton_step``) are
+read in units of a reference pixel scale (``pixel_scale``, arcsec): with one exposure of
+``J = I`` the fit is :func:`pylensfit.likelihood.fit_stamps`'s.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import logsumexp
+from threadpoolctl import threadpool_limits
+
+from . import flags as _flags
+from ._joint_nb import laplace_models
+from .bankruns import bank_runs
+from .config import Config
+from .exposures import ExposureStamps
+from .grid import ellipticity_grid
+from .models import (
+    fourier_profile,
+    half_light_radius,
+    radius_grid,
+    radius_weights,
+    rfft_frequencies,
+    sheared_k,
+)
+from .psf import psf_transform
+
+__all__ = ["JointFits", "fit_exposures", "fit_views", "sky_frequencies"]
+
+#: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 64 x n_r)
+_E_CHUNK = 64
+
+
+@dataclass
+class JointFits:
+    """Result of :func:`fit_exposures`: one row per galaxy.
+
+    Attributes
+    ----------
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` sky-frame ellipticity cell centres.
+    lnL : numpy.ndarray
+        ``(n, n_e)`` float32 ``ln L(e)`` of all usable exposures together, each row
+        shifted so that its maximum is 0; NaN for galaxies without a usable exposure.
+    lnL_peak : numpy.ndarray
+        ``(n,)`` the shift removed from each row.
+    n_exposures : numpy.ndarray
+        ``(n,)`` int, the exposures that entered each galaxy's fit.
+    r_best : numpy.ndarray
+        Size of the most likely model, arcsec (0 for the point source).
+    flux : numpy.ndarray
+        Amplitude of the most likely model, in the common flux unit (``H* / Q``).
+    x, y : numpy.ndarray
+        Sky offset ``(W, N)`` of the most likely model's centre from the catalogue
+        position, arcsec (west, north).
+    snr : numpy.ndarray
+        Matched-filter S/N of the most likely model, ``H* / sqrt Q``, all exposures.
+    e1_best, e2_best : numpy.ndarray
+        Sky-frame ellipticity of the most likely model.
+    flags : numpy.ndarray
+        Bit mask, :data:`pylensfit.flags.FLAGS` (``NOT_MEASURED``: no usable exposure;
+        ``NO_PEAK``: no positive cross-correlation peak; ``FIT_FAILED``).
+    lnL_bulge : numpy.ndarray or None
+        With several bulge fractions, ``(n, n_b, n_e)`` float32 ``ln L_b(e)`` of each
+        fraction alone (sizes > 0), shifted like ``lnL``.
+    lnL_star : numpy.ndarray or None
+        ``(n,)`` the point source's weighted ``ln L``, shifted like ``lnL``, with several
+        fractions.
+    bulge_fractions : numpy.ndarray or None
+        ``(n_b,)`` the fraction of each run of ``lnL_bulge``.
+    pixel_scale : float
+        The reference pixel scale, arcsec, in which the configuration's sizes were read.
+    meta : dict
+        The model family and grid steps.
+    """
+
+    egrid: np.ndarray
+    lnL: np.ndarray
+    lnL_peak: np.ndarray
+    n_exposures: np.ndarray
+    r_best: np.ndarray
+    flux: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    snr: np.ndarray
+    e1_best: np.ndarray
+    e2_best: np.ndarray
+    flags: np.ndarray
+    lnL_bulge: np.ndarray | None = None
+    lnL_star: np.ndarray | None = None
+    bulge_fractions: np.ndarray | None = None
+    pixel_scale: float = 1.0
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return self.lnL.shape[0]
+
+
+@dataclass(frozen=True)
+class _Columns:
+    """The model grid's columns: e cells, runs of sizes (arcsec) and their weights."""
+
+    egrid: np.ndarray  # (n_e, 2)
+    radii: np.ndarray  # (n_sub,) arcsec, one run
+    runs: tuple  # (fraction, bulge size ratio) per run
+    node_w: np.ndarray  # (n_b * n_sub,) weight of each size node in the sum over r
+    w_star: float
+    model: str
+
+    @property
+    def n_e(self) -> int:
+        return self.egrid.shape[0]
+
+    @property
+    def n_sub(self) -> int:
+        return self.radii.size
+
+    @property
+    def n_b(self) -> int:
+        return len(self.runs)
+
+    @property
+    def n_cols(self) -> int:
+        return self.n_e * self.n_b * self.n_sub + 1
+
+
+def _columns(cfg: Config, scale: float) -> _Columns:
+    """The configuration's grid with its sizes in arcsec (``scale`` arcsec per pixel)."""
+    if cfg.sersic_ladder or cfg.bulge_size_ratio2 > 0:
+        raise ValueError("fit_exposures: the Sersic ladder and a second bulge size are not "
+                         "supported; use one bulge size")  # fmt: skip
+    egrid = ellipticity_grid(cfg.e_step, emax=cfg.e_max)
+    radii = radius_grid(cfg.r_min, cfg.r_max, cfg.r_step, cfg.r_rel_step, cfg.r_floor)
+    r_w, w_star = radius_weights(radii, cfg.r_min)
+    runs = tuple((float(r.fraction), float(r.size)) for r in bank_runs(
+        cfg.model, cfg.bulge_fraction, cfg.bulge_size_ratio, int(cfg.n_bulge_fractions)))
+    run_w = np.ones(len(runs))
+    if len(runs) > 1:
+        hlr = np.array([half_light_radius("bulge+disc", bulge_fraction=f, bulge_size_ratio=s)
+                        for f, s in runs])  # fmt: skip
+        run_w = hlr / hlr[0]
+    node_w = np.tile(np.asarray(r_w, float), len(runs)) * np.repeat(run_w, radii.size)
+    return _Columns(egrid=egrid, radii=radii * scale, runs=runs, node_w=node_w,
+                    w_star=float(w_star), model=cfg.model)  # fmt: skip
+
+
+def _interior(n: int) -> np.ndarray:
+    """Flattened ``rfft2`` indices of an ``n x n`` stamp that are not Nyquist (``|j| <
+    n/2``), the frequencies the single-exposure fit sums over."""
+    kx, ky, _ = rfft_frequencies(n)
+    jmax = (n - 1) // 2
+    jx = np.rint(kx * n / (2 * np.pi)).astype(int)
+    jy = np.rint(ky * n / (2 * np.pi)).astype(int)
+    return np.flatnonzero(((np.abs(jx) <= jmax) & (np.abs(jy) <= jmax)).ravel())
+
+
+def sky_frequencies(jacobian: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``q = J^T k`` of every ``rfft2`` frequency of an ``n x n`` stamp, radians per arcsec.
+
+    A sky-frame profile ``m(u)`` seen through ``J`` is ``m(J^-1 x) / |det J|`` in the
+    pixels, whose transform at the pixel frequency ``k`` is ``M(J^T k)``.
+
+    Parameters
+    ----------
+    jacobian : numpy.ndarray
+        ``(2, 2)`` local WCS Jacobian ``J = d(x, y)/d(W, N)``, pixels per arcsec.
+    n : int
+        Stamp side, pixels.
+
+    Returns
+    -------
+    qx, qy : numpy.ndarray
+        ``(n, n // 2 + 1)`` the ``W`` and ``N`` components of ``J^T k``, radians per
+        arcsec, on the grid of :func:`pylensfit.models.rfft_frequencies`.
+    """
+    kx, ky, _ = rfft_frequencies(n)
+    J = np.asarray(jacobian, dtype=float)
+    return J[0, 0] * kx + J[1, 0] * ky, J[0, 1] * kx + J[1, 1] * ky
+
+
+def _bank(cols: _Columns, qx: np.ndarray, qy: np.ndarray, dtype) -> np.ndarray:
+    """``(n_freq, n_cols)`` sky-frame model transforms at the frequencies ``q``; the last
+    column is the point source."""
+    n_f, per_e = qx.size, cols.n_b * cols.n_sub
+    G = np.empty((n_f, cols.n_cols), dtype=dtype)
+    for e0 in range(0, cols.n_e, _E_CHUNK):  # vectorised blocks of (freq x e x r)
+        eg = cols.egrid[e0 : e0 + _E_CHUNK]
+        ks = sheared_k(qx[:, None], qy[:, None], eg[None, :, 0], eg[None, :, 1])
+        q = ks[:, :, None] * cols.radii[None, None, :]
+        blk = np.empty((n_f, eg.shape[0], cols.n_b, cols.n_sub))
+        for ib, (f, s) in enumerate(cols.runs):
+            blk[:, :, ib] = fourier_profile(q, cols.model, bulge_fraction=f, bulge_size_ratio=s)
+        G[:, e0 * per_e : (e0 + eg.shape[0]) * per_e] = blk.reshape(n_f, -1)
+    G[:, -1] = 1.0
+    return G
+
+
+@dataclass(frozen=True)
+class _Exposure:
+    """One exposure's part of the block: its bank and its frequencies."""
+
+    G: np.ndarray  # (n_f, n_cols) model transforms
+    G2: np.ndarray  # their squares
+    qx: np.ndarray  # (n_f,) sky frequencies of the summed terms
+    qy: np.ndarray
+    coef: np.ndarray  # (n_f,) Hermitian weight / n^2
+    sel: np.ndarray  # (n_f,) their flattened rfft2 indices
+
+
+def _exposure(cols: _Columns, J: np.ndarray, n: int, dtype) -> _Exposure:
+    sel = _interior(n)
+    qx, qy = (a.ravel()[sel] for a in sky_frequencies(J, n))
+    _, _, w = rfft_frequencies(n)
+    G = _bank(cols, qx, qy, dtype)
+    return _Exposure(G=G, G2=np.square(G), qx=qx, qy=qy, coef=w.ravel()[sel] / n**2, sel=sel)
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """The checked inputs, broadcast to ``(K, n, ...)``."""
+
+    stamps: np.ndarray  # (K, n, N, N)
+    P: np.ndarray  # (K, n_psf, N, N // 2 + 1) PSF transforms, n_psf 1 or n
+    sigma: np.ndarray  # (K, n)
+    fscale: np.ndarray  # (K, n)
+    usable: np.ndarray  # (K, n)
+    cx: np.ndarray  # (K, n) catalogue positions in the stamps, pixels
+    cy: np.ndarray
+    J: np.ndarray  # (K, 2, 2)
+
+
+def _psf_transforms(psf, K: int, n_gal: int, N: int) -> tuple[np.ndarray, np.ndarray]:
+    """The PSF transforms, ``(K, 1 or n, N, N // 2 + 1)``, and which are finite."""
+    psf = np.asarray(psf, dtype=float)
+    if psf.ndim == 2:
+        psf = np.broadcast_to(psf, (K, *psf.shape))
+    if psf.ndim not in (3, 4) or psf.shape[0] != K or (psf.ndim == 4 and psf.shape[1] != n_gal):
+        raise ValueError(f"psf must be (s, s), (K, s, s) or (K, n, s, s) for K={K}, n={n_gal}; "
+                         f"got {psf.shape}")  # fmt: skip
+    flat = psf.reshape(-1, *psf.shape[-2:])
+    ok = np.all(np.isfinite(flat), axis=(1, 2)) & (flat.sum(axis=(1, 2)) > 0)
+    P = np.zeros((flat.shape[0], N, N // 2 + 1), dtype=complex)
+    for i in np.flatnonzero(ok):  # one transform per distinct PSF image given
+        P[i] = psf_transform(flat[i], N)
+    shape = (K, 1 if psf.ndim == 3 else n_gal, N, N // 2 + 1)
+    return P.reshape(shape), ok.reshape(shape[:2])
+
+
+def _per(value, K: int, n: int, name: str) -> np.ndarray:
+    """A scalar, ``(K,)`` or ``(K, n)`` value as ``(K, n)`` floats."""
+    a = np.asarray(value, dtype=float)
+    if a.ndim == 1 and a.size == K:
+        a = a[:, None]
+    try:
+        return np.array(np.broadcast_to(a, (K, n)))
+    except ValueError:
+        raise ValueError(f"{name} must be a scalar, (K,) or (K, n) = ({K}, {n}), "
+                         f"got shape {a.shape}") from None
+
+
+def _inputs(stamps, psf, noise_sigma, jacobian, flux_scale, usable, centres) -> _Inputs:
+    stamps = np.asarray(stamps, dtype=float)
+    if stamps.ndim == 3:
+        stamps = stamps[None]
+    if stamps.ndim != 4 or stamps.shape[2] != stamps.shape[3]:
+        raise ValueError(f"stamps must be (K, n, N, N), got {stamps.shape}")
+    K, n_gal, N = stamps.shape[:3]
+    J = np.asarray(jacobian, dtype=float).reshape(-1, 2, 2)
+    if J.shape[0] != K:
+        raise ValueError(f"jacobian must be (K, 2, 2) for K={K}, got {np.shape(jacobian)}")
+    P, psf_ok = _psf_transforms(psf, K, n_gal, N)
+    sigma = _per(noise_sigma, K, n_gal, "noise_sigma")
+    fscale = _per(flux_scale, K, n_gal, "flux_scale")
+    use = np.ones((K, n_gal), bool) if usable is None else np.array(
+        np.broadcast_to(np.asarray(usable, dtype=bool), (K, n_gal)))  # fmt: skip
+    if centres is None:
+        cx = cy = np.full((K, n_gal), float(N // 2))
+    else:
+        cx, cy = (_per(c, K, n_gal, "centres") for c in centres)
+    det = np.linalg.det(J)
+    use &= (np.isfinite(stamps).all(axis=(2, 3)) & np.isfinite(sigma) & (sigma > 0)
+            & np.isfinite(fscale) & (fscale > 0) & np.isfinite(cx) & np.isfinite(cy)
+            & psf_ok & (np.isfinite(det) & (det != 0))[:, None])  # fmt: skip
+    stamps = np.where(use[:, :, None, None], np.nan_to_num(stamps), 0.0)
+    return _Inputs(stamps=stamps, P=P, sigma=np.where(use, sigma, 1.0),
+                   fscale=np.where(use, fscale, 0.0), usable=use, cx=np.where(use, cx, 0.0),
+                   cy=np.where(use, cy, 0.0), J=J)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _Block:
+    """One block's data rows, per exposure: ``D'`` at the catalogue position and the
+    norm weights."""
+
+    D: list  # per exposure, (m, n_f) complex: f D conj(P) coef / sigma^2
+    W: list  # per exposure, (1 or m, n_f) real: |P|^2 coef, one row per PSF
+    w2: list  # per exposure, (m,) f^2 / sigma^2
+
+
+def _block(inp: _Inputs, exps: list[_Exposure], sl: slice) -> _Block:
+    N = inp.stamps.shape[-1]
+    kx, ky, _ = rfft_frequencies(N)
+    D, W, w2 = [], [], []
+    for k, ex in enumerate(exps):
+        ph = np.exp(1j * (kx.ravel()[ex.sel][None] * inp.cx[k, sl, None]
+                          + ky.ravel()[ex.sel][None] * inp.cy[k, sl, None]))  # fmt: skip
+        F = np.fft.rfft2(inp.stamps[k, sl]).reshape(-1, N * (N // 2 + 1))[:, ex.sel]
+        P = inp.P[k].reshape(inp.P.shape[1], -1)[:, ex.sel]
+        P = P[sl] if P.shape[0] > 1 else P
+        wt = inp.fscale[k, sl] / inp.sigma[k, sl] ** 2
+        D.append(F * ph * np.conj(P) * (ex.coef * wt[:, None]))
+        W.append(np.abs(P) ** 2 * ex.coef)
+        w2.append(wt * inp.fscale[k, sl])
+    return _Block(D=D, W=W, w2=w2)
+
+
+def _rows(D: np.ndarray, ex: _Exposure, xc: np.ndarray, yc: np.ndarray) -> np.ndarray:
+    """``(6, m, n_f)``: the rows of ``H``, its gradient and Hessian at the origin
+    ``(xc, yc)`` (sky offsets, arcsec)."""
+    Dp = D * np.exp(1j * (ex.qx[None] * xc[:, None] + ex.qy[None] * yc[:, None]))
+    r, i = Dp.real, Dp.imag
+    qx, qy = ex.qx, ex.qy
+    return np.stack([r, -qx * i, -qy * i, -qx * qx * r, -qx * qy * r, -qy * qy * r])
+
+
+def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None):
+    """``(6, m, c)`` products of ``H`` and ``(4, m, c)`` of ``Q`` and the expected
+    Hessian, summed over the exposures (``cols``: those columns only). With one PSF per
+    exposure the norms are one product per exposure, scaled per galaxy."""
+    A = B = 0.0
+    for D, W, w2, ex in zip(blk.D, blk.W, blk.w2, exps, strict=True):
+        G = ex.G if cols is None else ex.G[:, cols]
+        G2 = ex.G2 if cols is None else ex.G2[:, cols]
+        R = _rows(D, ex, xc, yc).astype(G.dtype)
+        A = A + np.matmul(R, G).astype(np.float64)
+        q = np.stack([W, -W * ex.qx * ex.qx, -W * ex.qx * ex.qy, -W * ex.qy * ex.qy])
+        B = B + np.matmul(q.astype(G.dtype), G2).astype(np.float64) * w2[None, :, None]
+    return A, B
+
+
+def _laplace(A: np.ndarray, B: np.ndarray, x0, y0, b2: float, max_step: float):
+    """``ln L(e, r)`` of every model, marginalised over the amplitude and the position
+    (module docstring), and its ``H*``, ``X*`` (from the origin): the Newton step with
+    the data's Hessian of ``H`` where it is a maximum and the step no longer than
+    ``max_step`` (arcsec), else with the expected Hessian ``max(H, sqrt Q) / Q`` times
+    that of the models' autocorrelations (the step then clipped to ``max_step``), as the
+    single-exposure fit does. ``x0, y0``: the catalogue position from the origin."""
+    m, c = A.shape[1:]
+    out = [np.empty((m, c)) for _ in range(4)]
+    laplace_models(A, B, np.ascontiguousarray(x0, dtype=float),
+                   np.ascontiguousarray(y0, dtype=float), float(b2), float(max_step), *out)
+    return tuple(out)
+
+
+def _peak_factor(lw: np.ndarray) -> np.ndarray:
+    """``ln`` of the correction of the sum over a run of sizes for a peak narrower than
+    the grid step (the single fit's): the ratio of the Gaussian through the largest
+    ``ln(w L)`` and its neighbours to its grid sum, where the peak is inside the run."""
+    n_sub = lw.shape[-1]
+    km = np.argmax(lw, axis=-1)[..., None]
+    lm, l0, lp = (np.take_along_axis(lw, np.clip(km + d, 0, n_sub - 1), -1)[..., 0]
+                  for d in (-1, 0, 1))  # fmt: skip
+    a = lm - 2 * l0 + lp
+    narrow = (km[..., 0] > 0) & (km[..., 0] < n_sub - 1) & (a < -1.0) & np.isfinite(a)
+    a = np.where(narrow, a, -2.0)
+    s2 = -1.0 / a
+    d = 0.5 * (lm - lp) / a
+    j = np.arange(-7, 8)
+    gsum = np.exp(-0.5 * (j - d[..., None]) ** 2 / s2[..., None]).sum(-1)
+    good = narrow & (gsum > 1e-300)
+    return np.where(good, np.log(np.sqrt(2 * np.pi * s2) / np.where(good, gsum, 1.0)), 0.0)
+
+
+def _collapse(lnl: np.ndarray, cols: _Columns) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``ln L(e)``, ``ln L_b(e)`` per run and the point source's weighted ``ln L``."""
+    m = lnl.shape[0]
+    with np.errstate(divide="ignore", invalid="ignore"):  # NaN rows: no usable exposure
+        lw = (lnl[:, :-1].reshape(m, cols.n_e, cols.n_b, cols.n_sub)
+              + np.log(cols.node_w).reshape(cols.n_b, cols.n_sub))  # fmt: skip
+        lnlb = logsumexp(lw, axis=-1) + _peak_factor(lw)
+        star = lnl[:, -1] + np.log(cols.w_star)
+        lnle = np.logaddexp(logsumexp(lnlb, axis=-1) - np.log(cols.n_b), star[:, None])
+    return lnle, lnlb, star
+
+
+def _round_centre(inp: _Inputs, blk: _Block, exps: list[_Exposure], sl: slice, cfg: Config,
+                  scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The peak of the joint cross-correlation with a round exponential (``centring_scale``
+    reference pixels): each exposure's integer-pixel peak within ``max_offset`` taken to
+    the sky and averaged with its weight, then Newton steps on the joint series."""
+    m = sl.stop - sl.start
+    N = inp.stamps.shape[-1]
+    num, den = np.zeros((2, m)), np.zeros(m)
+    off = (np.arange(N) + N // 2) % N - N // 2
+    rad = max(cfg.max_offset, 0.75)
+    near = off[None, :] ** 2 + off[:, None] ** 2 <= rad * rad
+    refs = []
+    for k, ex in enumerate(exps):
+        qx, qy = sky_frequencies(inp.J[k], N)
+        ref = fourier_profile(np.hypot(qx, qy) * cfg.centring_scale * scale, "exponential")
+        refs.append(ref.ravel()[ex.sel])
+        full = np.zeros((m, N * (N // 2 + 1)), dtype=complex)
+        full[:, ex.sel] = blk.D[k] / ex.coef
+        cc = np.fft.irfft2(full.reshape(m, N, -1) * ref, s=(N, N))
+        cc = np.where(near, cc, -np.inf).reshape(m, -1)
+        iy, ix = np.unravel_index(cc.argmax(axis=1), (N, N))
+        v = np.maximum(cc.max(axis=1), 0.0)
+        sky = np.linalg.solve(inp.J[k], np.stack([off[ix], off[iy]]))  # pixels to arcsec
+        num += v * sky
+        den += v
+    with np.errstate(invalid="ignore", divide="ignore"):
+        xc, yc = np.where(den > 0, num / den, 0.0)
+    for _ in range(3):
+        h = sum((_rows(D, ex, xc, yc) * r).sum(-1) for D, ex, r in zip(blk.D, exps, refs,
+                                                                      strict=True))  # fmt: skip
+        det = h[3] * h[5] - h[4] ** 2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sx = np.where(det > 0, (h[4] * h[2] - h[5] * h[1]) / det, 0.0)
+            sy = np.where(det > 0, (h[4] * h[1] - h[3] * h[2]) / det, 0.0)
+        step_ok = (h[3] < 0) & (det > 0) & (np.hypot(sx, sy) < scale)
+        xc, yc = xc + np.where(step_ok, sx, 0.0), yc + np.where(step_ok, sy, 0.0)
+    return xc, yc, ~(den > 0)
+
+
+def _coarse_columns(cols: _Columns, e_step: float) -> np.ndarray:
+    """The centring pass's models, the single fit's: the e cells at every other lattice
+    step in both components, every 5th size from the third, the point source."""
+    lat = np.rint(np.abs(cols.egrid) / e_step - 0.5).astype(int)
+    ie = np.flatnonzero((lat % 2 == 0).all(axis=1))
+    n_r = cols.n_b * cols.n_sub
+    ir = np.arange(min(2, n_r - 1), n_r, 5)
+    return np.append((ie[:, None] * n_r + ir[None, :]).ravel(), cols.n_cols - 1)
+
+
+def _fit_block(inp: _Inputs, exps: list[_Exposure], cols: _Columns, cfg: Config,
+               scale: float, sl: slice) -> dict:  # fmt: skip
+    """Every model for the block's galaxies: centring, the coarse pass that moves the
+    origin to the best round model's peak, then the whole grid."""
+    blk = _block(inp, exps, sl)
+    b2 = (cfg.position_prior_sigma * scale) ** 2
+    step = cfg.max_newton_step * scale
+    xc, yc, no_peak = _round_centre(inp, blk, exps, sl, cfg, scale)
+    cc = _coarse_columns(cols, cfg.e_step)
+    A, B = _products(blk, exps, xc, yc, cc)
+    lnl, _, x, y = _laplace(A, B, -xc, -yc, b2, step)
+    ib = np.argmax(np.where(np.isfinite(lnl), lnl, -np.inf), axis=1)
+    g = np.arange(lnl.shape[0])
+    xc = xc + np.nan_to_num(x[g, ib])
+    yc = yc + np.nan_to_num(y[g, ib])
+    A, B = _products(blk, exps, xc, yc)
+    lnl, hs, x, y = _laplace(A, B, -xc, -yc, b2, step)
+    lnle, lnlb, star = _collapse(lnl, cols)
+    best = np.argmax(np.where(np.isfinite(lnl), lnl, -np.inf), axis=1)
+    return {"lnle": lnle, "lnlb": lnlb, "star": star, "best": best, "no_peak": no_peak,
+            "h": hs[g, best], "Q": B[0][g, best], "x": xc + x[g, best],
+            "y": yc + y[g, best]}  # fmt: skip
+
+
+def fit_exposures(
+    stamps: np.ndarray,
+    psf: np.ndarray,
+    noise_sigma,
+    jacobian: np.ndarray,
+    *,
+    flux_scale=1.0,
+    usable: np.ndarray | None = None,
+    centres: tuple[np.ndarray, np.ndarray] | None = None,
+    config: Config | None = None,
+    pixel_scale: float | None = None,
+) -> JointFits:
+    """The likelihood ``L(e)`` of each galaxy from all of its exposures together.
+
+    One sky-frame (e, r) grid serves every exposure: each exposure's models are the
+    sky-frame models at its frequencies ``J_k^T k``; flux and position are shared and
+    marginalised once over the sum of the exposures (module docstring). The matrix
+    products run block by block (``config.block_size`` galaxies), one bank per exposure.
+
+    Parameters
+    ----------
+    stamps : numpy.ndarray
+        ``(K, n, N, N)`` background-subtracted stamps, counts, indexed ``[exposure,
+        galaxy, y, x]`` (``(n, N, N)``: one exposure).
+    psf : numpy.ndarray
+        The PSF images including the pixel response, centred on element ``[s//2, s//2]``:
+        ``(s, s)`` for all, ``(K, s, s)`` one per exposure or ``(K, n, s, s)`` one per
+        galaxy and exposure (any normalisation).
+    noise_sigma : float or array_like
+        Per-pixel noise, counts: a scalar, ``(K,)`` or ``(K, n)``.
+    jacobian : numpy.ndarray
+        ``(K, 2, 2)`` local WCS Jacobian ``J = d(x, y)/d(W, N)`` of each exposure,
+        pixels per arcsec (:func:`pylensfit.exposures.local_jacobian`), one for the
+        galaxies of the call.
+    flux_scale : float or array_like
+        Counts per unit of the common flux, scalar, ``(K,)`` or ``(K, n)``.
+    usable : numpy.ndarray, optional
+        ``(K, n)`` bool: the exposures that hold each galaxy (default all). Exposures with
+        non-finite pixels, a bad noise, flux scale or PSF drop out as well.
+    centres : tuple of numpy.ndarray, optional
+        ``(x, y)``, each ``(K, n)`` (or ``(K,)``), the catalogue position in each stamp,
+        0-based pixels (default the stamp's element ``[N//2, N//2]``): the centre of
+        the position prior, mapped to the common sky position.
+    config : Config, optional
+        Grid, model and marginalisation settings (``e_step``, ``e_max``, the size grid,
+        ``model``, ``n_bulge_fractions``, ``position_prior_sigma``, ``max_offset``,
+        ``centring_scale``, ``max_newton_step``, ``block_size``, ``dtype``). Its lengths
+        are in reference pixels of ``pixel_scale`` arcsec. The amplitude prior is the
+        uniform positive one; the models are not truncated at the stamp's edge, and the
+        position expansion is of second order (the single fit's ``cubic_snr = 0``).
+    pixel_scale : float, optional
+        Arcsec per reference pixel (default: the median of ``1 / sqrt|det J_k|``).
+
+    Returns
+    -------
+    JointFits
+        One row per galaxy; ``n_exposures`` says how many exposures each used.
+
+    Notes
+    -----
+    The stamps are fitted whole, on their ``N x N`` frequencies (``config.stamp_size`` is
+    not read). The matrix products run on one BLAS thread, as
+    :func:`pylensfit.likelihood.fit_stamps`'s, so that the result does not depend on the
+    machine's thread count; the Laplace terms run on numba's threads, one galaxy each.
+    """
+    cfg = config if config is not None else Config()
+    inp = _inputs(stamps, psf, noise_sigma, jacobian, flux_scale, usable, centres)
+    K, n_gal, N = inp.stamps.shape[:3]
+    scale = float(pixel_scale if pixel_scale is not None
+                  else np.median(1.0 / np.sqrt(np.abs(np.linalg.det(inp.J)))))  # fmt: skip
+    cols = _columns(cfg, scale)
+    good = np.isfinite(np.linalg.det(inp.J)) & (np.linalg.det(inp.J) != 0)
+    eye = np.eye(2) / scale
+    exps = [_exposure(cols, inp.J[k] if good[k] else eye, N, np.dtype(cfg.dtype))
+            for k in range(K)]
+    with threadpool_limits(limits=1, user_api="blas"):  # as fit_stamps: the same bits anywhere
+        parts = [_fit_block(inp, exps, cols, cfg, scale, slice(s, min(s + cfg.block_size,
+                                                                     n_gal)))
+                 for s in range(0, n_gal, cfg.block_size)]  # fmt: skip
+    return _assemble(parts, inp, cols, cfg, scale)
+
+
+def _assemble(parts: list[dict], inp: _Inputs, cols: _Columns, cfg: Config,
+              scale: float) -> JointFits:  # fmt: skip
+    """The :class:`JointFits` of the blocks' results."""
+    cat = {k: np.concatenate([p[k] for p in parts]) if parts else np.zeros(0)
+           for k in ("lnle", "lnlb", "star", "best", "no_peak", "h", "Q", "x", "y")}  # fmt: skip
+    n_gal = inp.stamps.shape[1]
+    lnle = cat["lnle"].reshape(n_gal, cols.n_e)
+    n_exp = inp.usable.sum(axis=0)
+    flags = np.zeros(n_gal, dtype=np.int32)
+    flags[n_exp == 0] |= _flags.flag_value("NOT_MEASURED")
+    flags[cat["no_peak"].astype(bool) & (n_exp > 0)] |= _flags.flag_value("NO_PEAK")
+    with np.errstate(invalid="ignore", over="ignore"):
+        peak = lnle.max(axis=1) if n_gal else np.zeros(0)
+        failed = ~np.isfinite(lnle).all(axis=1) & (n_exp > 0)
+    flags[failed] |= _flags.flag_value("FIT_FAILED")
+    dead = (n_exp == 0) | failed
+    nan = np.where(dead, np.nan, 1.0)
+    lnL = np.where(dead[:, None], np.nan, lnle - peak[:, None]).astype(np.float32)
+    best = cat["best"].astype(np.int64)
+    per_e = cols.n_b * cols.n_sub
+    star = best == cols.n_cols - 1
+    ie = np.where(star, 0, best // per_e)
+    r = np.where(star, 0.0, cols.radii[best % cols.n_sub])
+    e = np.where(star[:, None], 0.0, cols.egrid[ie])
+    multi = cols.n_b > 1
+    lnlb = cat["lnlb"].reshape(n_gal, cols.n_e, cols.n_b)
+    return JointFits(
+        egrid=cols.egrid.copy(), lnL=lnL, lnL_peak=peak * nan, n_exposures=n_exp,
+        r_best=r * nan, flux=cat["h"] / cat["Q"] * nan, x=cat["x"] * nan, y=cat["y"] * nan,
+        snr=cat["h"] / np.sqrt(cat["Q"]) * nan, e1_best=e[:, 0] * nan, e2_best=e[:, 1] * nan,
+        flags=flags,
+        lnL_bulge=(np.moveaxis(lnlb - peak[:, None, None], 2, 1) * nan[:, None, None]
+                   ).astype(np.float32) if multi else None,
+        lnL_star=(cat["star"] - peak) * nan if multi else None,
+        bulge_fractions=np.array([f for f, _ in cols.runs]) if multi else None,
+        pixel_scale=scale,
+        meta={"model": cfg.model, "e_step": cfg.e_step, "r_step": cfg.r_step * scale},
+    )  # fmt: skip
+
+
+def fit_views(views: Sequence[ExposureStamps], *, config: Config | None = None,
+              pixel_scale: float | None = None) -> JointFits:  # fmt: skip
+    """:func:`fit_exposures` of the galaxies' views cut from their exposures.
+
+    Parameters
+    ----------
+    views : sequence of pylensfit.exposures.ExposureStamps
+        One per exposure (:func:`pylensfit.exposures.cut_exposures`), each with its PSF
+        at the galaxies; galaxy ``i`` is element ``i`` of each.
+    config : Config, optional
+        As :func:`fit_exposures`.
+    pixel_scale : float, optional
+        As :func:`fit_exposures`.
+
+    Returns
+    -------
+    JointFits
+        The exposures flagged for a galaxy (:attr:`ExposureStamps.usable`) leave its fit.
+        Each exposure's Jacobian is the median of its galaxies' (the call's galaxies
+        should lie within a region where it varies little: 1e-3 of it changes a model's
+        ellipticity by about 1e-3).
+    """
+    if any(v.psf is None for v in views):
+        raise ValueError("fit_views needs each exposure's PSF at the galaxies (ExposureStamps.psf)")
+    J = np.stack([np.nanmedian(v.jacobian, axis=0) for v in views])
+    return fit_exposures(
+        np.stack([v.stamps for v in views]), np.stack([v.psf for v in views]),
+        np.stack([v.noise_sigma for v in views]), J,
+        flux_scale=np.array([v.flux_scale for v in views]),
+        usable=np.stack([v.usable for v in views]),
+        centres=(np.stack([v.centres[0] for v in views]),
+                 np.stack([v.centres[1] for v in views])),
+        config=config, pixel_scale=pixel_scale,
+    )  # fmt: skip
