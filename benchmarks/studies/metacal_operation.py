@@ -12,7 +12,7 @@ sheared about the true centre:
 - the fits: lensfit's posterior mean (bulge+disc, the population's priors, fitted with
   the metacalibration images' noise level ``sqrt(2) sigma`` but no noise added),
   ``m = sum <e>-response to the true shear / sum metacalibration response - 1`` per
-  component, overall and by kind::
+  component (jackknife error over the galaxies), overall, by kind and by size::
 
     nice -n 5 python benchmarks/studies/metacal_operation.py --ngal 100 --psf kolmogorov \
         --stamp 32 [--pad 16]
@@ -137,9 +137,13 @@ def main() -> None:
     big = np.asarray(t["r"]) > np.median(np.asarray(t["r"]))
     kinds += [("larger half", big), ("smaller half", ~big)]
     for name, k in kinds:
-        if k.sum():
-            m = d_t[k].sum(0) / d_m[k].sum(0) - 1
-            print(f"fits, {name} ({k.sum()}): m1 {m[0]:+.4f}, m2 {m[1]:+.4f}")
+        if k.sum() > 1:
+            t_, m_ = d_t[k], d_m[k]
+            m = t_.sum(0) / m_.sum(0) - 1
+            jk = (t_.sum(0) - t_) / (m_.sum(0) - m_) - 1  # leave one galaxy out
+            err = np.sqrt((k.sum() - 1) / k.sum() * ((jk - jk.mean(0)) ** 2).sum(0))
+            print(f"fits, {name} ({k.sum()}): m1 {m[0]:+.4f} ± {err[0]:.4f}, "
+                  f"m2 {m[1]:+.4f} ± {err[1]:.4f}")
 
 
 if __name__ == "__main__":
