@@ -41,6 +41,30 @@ def test_metacal_images_are_galsims_sheared_galaxy_with_the_dilated_psf(centre):
     assert mc.noise_sigma == 0.0 and mc.step == 0.01
 
 
+def test_the_operation_needs_the_galaxys_light_in_the_stamp():
+    """Under a Kolmogorov PSF a de Vaucouleurs galaxy's sheared images match GalSim's true
+    shear where the stamp holds its light (96 px), and not where the stamp cuts its wings
+    and the PSF's (32 px: 0.6 % of the light in the edge rows): the shear of the cut image
+    differs from the cut image of the sheared galaxy over the whole stamp, its core
+    included (``benchmarks/studies/metacal_operation.py``)."""
+    psf = galsim.Kolmogorov(fwhm=4.0).shear(g2=0.03)
+    gal = galsim.DeVaucouleurs(half_light_radius=1.5).shear(g1=0.2, g2=-0.1)
+    c = (0.3, -0.4)
+    dil = galsim.Convolve(psf, galsim.Pixel(1.0)).dilate(1.02)
+    err = {}
+    for n in (32, 96):
+        img = _draw(galsim.Convolve(gal.shift(*c), psf), n=n)
+        mc = metacal_images(img, _draw(psf, n=n), 0.0, step=0.01, types=("1p", "1m"),
+                            centres=(n // 2 + c[0], n // 2 + c[1]))  # fmt: skip
+        ref = [_draw(galsim.Convolve(gal.shear(g1=s).shift(*c), dil), "no_pixel", n)
+               for s in (0.01, -0.01)]  # fmt: skip
+        core = slice(n // 2 - 8, n // 2 + 9)
+        diff = (mc.images["1p"] - mc.images["1m"]) - (ref[0] - ref[1])
+        err[n] = np.abs(diff[core, core]).max() / np.abs(ref[0] - ref[1]).max()
+    assert err[96] < 2e-3
+    assert err[32] > 0.05
+
+
 def test_the_reconvolution_psf_dilation_can_be_given():
     """``dilation`` sets the reconvolution PSF's scale whatever the step (the same
     estimator for two steps), as GalSim renders it; one below ``1 + step`` (which would

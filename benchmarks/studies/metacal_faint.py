@@ -20,6 +20,12 @@ sheared images (all from the same renderings):
 - ``step2``: ``mc`` with the shear ``--step2`` (give ``--mc-option dilation=F`` for the
   same reconvolution PSF, and so the same estimator, at both steps).
 
+The images are sheared about each rendering's fitted centre (as ``metacal_shapes``
+does), or about the galaxy's true centre with ``--about-true-centre``: in ``A`` the
+galaxy alone is sheared, so a shear about the fitted centre moves it against its
+unsheared noise by ``delta`` times the centre's error, which that noise made; in ``mc``
+the noise moves with it.
+
 ``m = sum R_true / sum R - 1`` per component, with the jackknife error over groups of
 galaxies, under five selections (none; a galaxy only if no fit is flagged, as
 ``metacal_shapes`` keeps it; each rendering on the data's flags; on the noshear image's,
@@ -109,8 +115,11 @@ def _block(task: dict) -> dict:
         st = cl + sgn * (flat - cl)
         f0 = fit_stamps(st, psf, sig, config=cfg, size_prior=sp)
         flags0[a] = f0.flags
-        kw = dict(mc_kw, centres=(np.nan_to_num(f0.x, nan=N // 2),
-                                  np.nan_to_num(f0.y, nan=N // 2)))  # fmt: skip
+        if task["true_centre"]:  # the renderings' own centres (each galaxy's offset)
+            cen = tuple(np.repeat(N // 2 + np.asarray(truth[c], float), 4) for c in ("dx", "dy"))
+        else:
+            cen = (np.nan_to_num(f0.x, nan=N // 2), np.nan_to_num(f0.y, nan=N // 2))
+        kw = dict(mc_kw, centres=cen)
         for v in task["variants"]:
             imgs, psf_r, s = _variant_images(v, st, cl, psf, sig, sgn * nf, sgn * wf,
                                              dict(kw, step2=step2) if v == "step2" else kw)
@@ -245,6 +254,8 @@ def main() -> None:
                     help="extra metacal_images keywords (Python literals)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="changes to every fit's configuration (min_snr=0: no S/N cut)")
+    ap.add_argument("--about-true-centre", action="store_true",
+                    help="shear about each galaxy's true centre, not its fitted one")
     ap.add_argument("--save", default=None)
     ap.add_argument("--report", default=None, metavar="NPZ",
                     help="only report a run saved with --save")
@@ -268,7 +279,8 @@ def main() -> None:
     prior, sp = P.population_prior(spec), P.population_size_prior(spec, 0)
     nb = -(-a.ngal // a.block_size)
     tasks = [{"spec": spec, "config": cfg, "mc_config": mcfg, "prior": prior, "size_prior": sp,
-              "block": b, "step": a.step, "variants": a.variants, "mc_kw": mc_kw}
+              "block": b, "step": a.step, "variants": a.variants, "mc_kw": mc_kw,
+              "true_centre": a.about_true_centre}
              for b in range(nb)]  # fmt: skip
     t0 = time.perf_counter()
     res = {}
