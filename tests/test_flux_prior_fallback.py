@@ -140,7 +140,7 @@ def test_negative_power_amplitude_integral_matches_quadrature():
     2.1e-2 in the mean at ``t = 4``, 5.7e-4 and 3.5e-3 from ``t = 8``)."""
     from scipy.integrate import quad
 
-    from pylensfit._kernels_nb import _amplitude_integral
+    from pylensfit.likelihood.amplitude_nb import amplitude_integral
 
     def integrand(u, power, t, m):  # scaled by the Gaussian's value at m
         return u**power * np.exp(-0.5 * (u - t) ** 2 + 0.5 * (m - t) ** 2)
@@ -154,8 +154,8 @@ def test_negative_power_amplitude_integral_matches_quadrature():
                 f0, f1 = (quad(integrand, lo, top, args=(k - beta, t, m), points=pts,
                                limit=400, epsabs=0, epsrel=1e-12)[0] for k in (0, 1))  # fmt: skip
                 want = 0.5 * t * t - 0.5 * (m - t) ** 2 + np.log(f0) - 0.5 * np.log(2 * np.pi)
-                got, mean = _amplitude_integral(t, 4.0, np.log(4.0), 0.5, beta, 0.0,
-                                                lo / 2.0, hi / 2.0)  # fmt: skip
+                got, mean = amplitude_integral(t, 4.0, np.log(4.0), 0.5, beta, 0.0,
+                                               lo / 2.0, hi / 2.0)  # fmt: skip
                 tol, tol_mean = {4.0: (5e-3, 0.03), 6.0: (2e-3, 0.01)}.get(t, (1e-3, 5e-3))
                 assert abs(got - want) < tol, (beta, lo, hi, t, got - want)
                 assert abs(mean - f1 / f0) < tol_mean, (beta, lo, hi, t, mean, f1 / f0)

@@ -9,6 +9,7 @@ Each rule holds for the method (``pylensfit``) and for the validation harness
 * No function is longer than 150 lines, docstring included.
 * No import cycle among the package's modules, counting imports inside functions.
 * No module of the method imports one of a higher layer (:data:`LAYERS`).
+* No numba kernel of the method takes more than :data:`MAX_KERNEL_ARGS` arguments.
 
 And between the layers:
 
@@ -23,6 +24,8 @@ from __future__ import annotations
 
 import ast
 import importlib
+import inspect
+import types
 from pathlib import Path
 
 import pytest
@@ -198,6 +201,34 @@ def layer_violations(modules, layers=LAYERS) -> list[str]:
     return sorted(set(found))
 
 
+#: the most arguments a numba kernel of the method takes: a kernel's inputs come in
+#: bundles (named tuples of arrays, as ngmix passes structured arrays)
+MAX_KERNEL_ARGS = 10
+
+
+def _imported(package: str, src: Path) -> list[types.ModuleType]:
+    """Every module of the package ``package`` (its files under ``src``), imported."""
+    names = [name.removesuffix(".__init__").removesuffix("__init__")
+             for name, _, _ in _package(src)]  # fmt: skip
+    return [importlib.import_module(f"{package}.{n}".rstrip(".")) for n in names]
+
+
+def wide_kernels(modules: list[types.ModuleType], limit: int = MAX_KERNEL_ARGS) -> list[str]:
+    """``"module.kernel: n arguments"`` for every numba dispatcher defined at the top level
+    of one of ``modules`` (its ``py_func`` from that module) that takes more than
+    ``limit`` arguments."""
+    found = []
+    for mod in modules:
+        for name, obj in vars(mod).items():
+            fn = getattr(obj, "py_func", None)
+            if fn is None or getattr(fn, "__module__", None) != mod.__name__:
+                continue
+            n = len(inspect.signature(fn).parameters)
+            if n > limit:
+                found.append(f"{mod.__name__}.{name}: {n} arguments")
+    return sorted(found)
+
+
 def _absolute_imports(tree):
     """``(node, module)`` for every absolute import (``import m``, ``from m import ...``)."""
     for node in ast.walk(tree):
@@ -320,6 +351,23 @@ def test_function_level_imports_say_why(package):
 @pytest.mark.parametrize("package", PACKAGES)
 def test_no_long_functions(package):
     assert long_functions(_package(PACKAGES[package])) == []
+
+
+def test_numba_kernels_take_few_arguments():
+    modules = _imported("pylensfit", SRC)
+    assert any(isinstance(getattr(m, "py_func", None), types.FunctionType)
+               for mod in modules for m in vars(mod).values())  # fmt: skip
+    assert wide_kernels(modules) == []
+
+
+def test_the_kernel_check_finds_a_wide_kernel():
+    mod = types.ModuleType("m")
+    exec("from numba import njit\n"
+         "@njit\ndef wide(a, b, c, d, e, f, g, h, i, j, k):\n    return a\n"
+         "@njit\ndef narrow(a, b, c, d, e, f, g, h, i, j):\n    return a\n"
+         "def plain(a, b, c, d, e, f, g, h, i, j, k):\n    return a\n", mod.__dict__)  # fmt: skip
+    assert wide_kernels([mod]) == ["m.wide: 11 arguments"]
+    assert wide_kernels([mod], limit=9) == ["m.narrow: 10 arguments", "m.wide: 11 arguments"]
 
 
 def test_the_method_imports_nothing_of_the_harness():

@@ -6,9 +6,10 @@ import pytest
 
 from conftest import PSFS, N, draw, galsim_model
 from pylensfit import Config, fit_stamps
-from pylensfit._kernels_nb import _narrow_peak_factor, _run_peak_factor
 from pylensfit.flags import flag_value
-from pylensfit.likelihood import _CHI, _folded_bank, _interior
+from pylensfit.likelihood.bank import interior
+from pylensfit.likelihood.folded import CHI, folded_bank
+from pylensfit.likelihood.radius_nb import _narrow_peak_factor, _run_peak_factor
 from pylensfit.models import half_light_radius, model_bank, rfft_frequencies
 from pylensfit.psf import psf_transform
 
@@ -496,7 +497,7 @@ def test_one_profile_models_ignore_the_bulge_disc_family_settings():
 def test_folded_products_equal_the_direct_products(cfg):
     """The symmetry-folded products give every model's sum over frequencies exactly."""
     bank = model_bank(cfg)
-    fb = _folded_bank(cfg, bank)
+    fb = folded_bank(cfg, bank)
     n = cfg.stamp_size
     kx, ky, w = rfft_frequencies(n)
     rng = np.random.default_rng(1)
@@ -504,14 +505,14 @@ def test_folded_products_equal_the_direct_products(cfg):
     R = rng.normal(size=(5, *kx.shape))
     R[:, :, 0] = 0.5 * (R[:, :, 0] + R[:, (-np.arange(n)) % n, 0])
     R = R.reshape(5, -1)
-    Rw = R * (w / n**2).ravel() * _interior(n, cfg.k_max)
+    Rw = R * (w / n**2).ravel() * interior(n, cfg.k_max)
     if bank.rows is not None:  # the disc |k| <= k_max: the bank holds its frequencies only
         assert not Rw[:, np.setdiff1d(np.arange(Rw.shape[1]), bank.rows)].any()
         Rw = Rw[:, bank.rows]
     direct = Rw @ bank.G.astype(float)
     Rf = R[:, fb.idx]
     A = np.stack([
-        (np.einsum("h,rhk->rk", _CHI[c], Rf[:, :, fb.keep[c]]) * fb.coef[fb.keep[c]])
+        (np.einsum("h,rhk->rk", CHI[c], Rf[:, :, fb.keep[c]]) * fb.coef[fb.keep[c]])
         @ fb.G[c].astype(float) for c in range(4)
     ])  # fmt: skip
     # the mixed bulge fractions: from the pure disc's and pure bulge's columns
@@ -523,12 +524,12 @@ def test_folded_products_equal_the_direct_products(cfg):
     folded = np.full_like(direct, np.nan)
     for h in range(4):
         ok = fb.members[:, h] >= 0
-        folded[:, fb.members[ok, h]] = np.einsum("c,crj->rj", _CHI[:, h], A[:, :, ok])
+        folded[:, fb.members[ok, h]] = np.einsum("c,crj->rj", CHI[:, h], A[:, :, ok])
     assert not np.isnan(folded).any()  # every model is some column's image
     assert np.abs(folded - direct).max() < 1e-6 * np.abs(direct).max()
     # a quarter of the operations: the octant's characters against the half-plane
     n_ops = sum(g.size for g in fb.G)
-    assert n_ops < 0.3 * _interior(n, cfg.k_max).sum() * bank.n_models
+    assert n_ops < 0.3 * interior(n, cfg.k_max).sum() * bank.n_models
 
 
 @pytest.mark.parametrize("ladder", [(), (0.5, 2.0, 4.0)])
@@ -536,13 +537,13 @@ def test_mixed_bulge_fractions_equal_their_own_products(rng, monkeypatch, ladder
     """The kernel's mixed columns (the middle bulge fraction from the pure disc's and
     pure bulge's products; with the Sersic ladder also each half-and-half mixture from
     its two Sersic profiles') give the fits that the runs' own columns give."""
-    import pylensfit.likelihood as lk
+    import pylensfit.likelihood.folded as lk
 
     cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, e_step=0.2, sersic_ladder=ladder)
     bank = model_bank(cfg)
     n_orb = int(((bank.egrid[:, 0] > 0) & (bank.egrid[:, 1] > 0)).sum())
     n_mixed = 4 if ladder else 1  # 0.5 (of 0 and 1); Sersic 0.5+1, 1+2 and 2+4
-    assert lk._folded_bank(cfg, bank).mix_a.size == n_orb * n_mixed * bank.n_sizes
+    assert lk.folded_bank(cfg, bank).mix_a.size == n_orb * n_mixed * bank.n_sizes
     psf = draw(PSFS["moffat_e1"])
     imgs = [draw(galsim.Convolve(galsim_model("bulge+disc", r, *e, bulge_fraction=bf),
                                  PSFS["moffat_e1"]))
@@ -552,10 +553,10 @@ def test_mixed_bulge_fractions_equal_their_own_products(rng, monkeypatch, ladder
     stamps = np.stack([img * f for img, f in zip(imgs, (25.0, 150.0, 80.0), strict=True)])
     stamps += rng.normal(size=stamps.shape)
     mixed = fit_stamps(stamps, psf, 1.0, config=cfg)
-    assert lk._folded_bank(cfg, model_bank(cfg)).mix_a.size > 0
+    assert lk.folded_bank(cfg, model_bank(cfg)).mix_a.size > 0
     lk._FOLDED.clear()
-    monkeypatch.setattr(lk, "_mixed_columns", lambda bank, n_orb: (
-        np.arange(n_orb * bank.n_r + 1), *lk._NO_MIX[:1] * 2, lk._NO_MIX[1]))  # fmt: skip
+    monkeypatch.setattr(lk, "mixed_columns", lambda bank, n_orb: (
+        np.arange(n_orb * bank.n_r + 1), *lk.NO_MIX[:1] * 2, lk.NO_MIX[1]))  # fmt: skip
     own = fit_stamps(stamps, psf, 1.0, config=cfg)
     assert lk._FOLDED[next(iter(lk._FOLDED))][1].mix_a.size == 0
     lk._FOLDED.clear()
@@ -572,7 +573,8 @@ def test_sizes_outside_the_size_prior_are_not_evaluated(rng, monkeypatch):
     a BLAS may round a column's product differently in matrices of other widths: 1e-13
     in ``ln L_star`` with numpy 2.4's OpenBLAS), and ``L(r)`` is 0 at the sizes left
     out."""
-    import pylensfit.likelihood as lk
+    import pylensfit.likelihood.folded as lk
+    import pylensfit.likelihood.priors as priors
     from pylensfit.prior import SizePrior
 
     cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, e_step=0.2, dtype="float64")
@@ -591,8 +593,8 @@ def test_sizes_outside_the_size_prior_are_not_evaluated(rng, monkeypatch):
     stamps = np.stack([img * f for img, f in zip(imgs, (25.0, 150.0, 60.0), strict=True)])
     stamps += rng.normal(size=stamps.shape)
     cut = fit_stamps(stamps, psf, 1.0, config=cfg, size_prior=sp)
-    fb = lk._folded_bank(cfg, bank)
-    sub = lk._active_columns(fb, bank, on)
+    fb = lk.folded_bank(cfg, bank)
+    sub = lk.active_columns(fb, bank, on)
     n_on = on.reshape(3, -1)
     # the kernel's columns: the active sizes' (one per e orbit) and the point source
     n_orb = (fb.members.shape[0] - 1) // bank.n_r
@@ -600,7 +602,7 @@ def test_sizes_outside_the_size_prior_are_not_evaluated(rng, monkeypatch):
     # the products: the pure fractions' active sizes and those the middle one needs
     feeds = (n_on[0] | n_on[1]).sum() + (n_on[2] | n_on[1]).sum()
     assert sub.G[0].shape[1] == n_orb * feeds + 1 < fb.G[0].shape[1]
-    monkeypatch.setattr(lk, "_active_columns", lambda fb, bank, active: fb)
+    monkeypatch.setattr(priors, "active_columns", lambda fb, bank, active: fb)
     every = fit_stamps(stamps, psf, 1.0, config=cfg, size_prior=sp)
     for k in ("lnL", "lnL_bulge", "lnL_r", "lnL_star"):
         np.testing.assert_allclose(getattr(cut, k), getattr(every, k), rtol=1e-12, atol=1e-10)
@@ -728,7 +730,7 @@ def test_amplitude_terms_match_scipy():
     """The positive-flux terms (tabulated between -20 and 7.5) against scipy's ln Phi."""
     from scipy.special import log_ndtr
 
-    from pylensfit._kernels_nb import _amplitude_terms
+    from pylensfit.likelihood.amplitude_nb import _amplitude_terms
 
     t = np.concatenate([np.linspace(-30, 40, 7001), np.linspace(-20.01, -19.99, 101),
                         np.linspace(7.49, 7.51, 101)])  # fmt: skip
@@ -750,7 +752,7 @@ def test_bounded_flux_prior_mass_matches_scipy():
     where ``b`` is -inf) and a central difference."""
     from scipy.special import log_ndtr, ndtr
 
-    from pylensfit._kernels_nb import _bounded_mass
+    from pylensfit.likelihood.amplitude_nb import _bounded_mass
 
     for a, b in [(3.0, -np.inf), (-4.0, -np.inf), (-25.0, -np.inf), (2.0, -1.0),
                  (0.5, -0.5), (-3.0, -9.0), (9.0, 1.0), (6.0, 5.5), (1.0, 0.9),
@@ -778,7 +780,7 @@ def test_power_law_amplitude_integral_matches_quadrature():
     from scipy.integrate import quad
     from scipy.special import log_ndtr, ndtr
 
-    from pylensfit._kernels_nb import _amplitude_integral
+    from pylensfit.likelihood.amplitude_nb import amplitude_integral
 
     def integrand(u, power, t, m):  # scaled by the Gaussian's value at m
         return u**power * np.exp(-0.5 * (u - t) ** 2 + 0.5 * (m - t) ** 2)
@@ -795,8 +797,8 @@ def test_power_law_amplitude_integral_matches_quadrature():
                                limit=400, epsabs=0, epsrel=1e-12)[0] for k in (0, 1))  # fmt: skip
                 want = 0.5 * t * t - 0.5 * (m - t) ** 2 + np.log(f0) - 0.5 * np.log(2 * np.pi)
                 # the flux bounds in S/N units: amp * s * iss with s = 4, iss = 1 / 2
-                got, mean = _amplitude_integral(t, 4.0, np.log(4.0), 0.5, beta, 0.0,
-                                                lo / 2.0, hi / 2.0)  # fmt: skip
+                got, mean = amplitude_integral(t, 4.0, np.log(4.0), 0.5, beta, 0.0,
+                                               lo / 2.0, hi / 2.0)  # fmt: skip
                 # measured worst: 5e-4, 3.4e-3, 1.1e-2 (value); 4.9e-3, 1.5e-2, 6.4e-2 (mean)
                 tol, tol_mean = {4.0: (0.015, 0.08), 6.0: (0.005, 0.02)}.get(t, (1e-3, 6e-3))
                 assert abs(got - want) < tol, (beta, lo, hi, t, got - want)
@@ -911,25 +913,21 @@ def test_max_stamp_size_must_be_a_multiple_of_the_stamp():
 @pytest.mark.parametrize("beta", [0.0, 1.0, 2.0, 2.5, 4.0])
 def test_power_law_table_matches_the_direct_integral(beta):
     """Without flux bounds the power-law amplitude integral depends on the S/N ``t``
-    alone; ``_amplitude_tile`` reads it off a cubic Hermite table from ``t0`` up, and
+    alone; ``amplitude_tile`` reads it off a cubic Hermite table from ``t0`` up, and
     evaluates it directly below ``t0``, above the table and within ``_PT_BOUND_MARGIN``
     of a flux bound in effect. Table and direct evaluation agree on the value and on the
     amplitude's mean (which sets the position curvature) to 1e-7 (measured: 2e-8 and
     8e-8, both worst just above ``t0``); the models off the table are the direct ones
     exactly."""
-    from pylensfit._kernels_nb import (
-        _DL,
-        _HS,
-        _ISS,
-        _NW,
+    from pylensfit.likelihood.amplitude_nb import (
         _PT_BOUND_MARGIN,
         _PT_MAX,
-        _VAL,
-        _amplitude_tile,
-        _power_law_table,
+        amplitude_tile,
+        power_law_table,
     )
+    from pylensfit.likelihood.tile_nb import W_DL, W_HS, W_ISS, W_ROWS, W_VAL
 
-    t0, tab = _power_law_table(beta)
+    t0, tab = power_law_table(beta)
     assert t0 == max(4.0, beta + 1.5)
     rng = np.random.default_rng(11)
     n = 512
@@ -938,15 +936,15 @@ def test_power_law_table_matches_the_direct_integral(beta):
     cm = np.zeros((6, n))
     cm[0] = rng.uniform(0.5, 3.0, n)
     cm[5] = np.log(cm[0])
-    W = np.zeros((_NW, n))
-    W[_ISS] = rng.uniform(0.1, 1.0, n)
-    W[_HS] = t / W[_ISS]
+    W = np.zeros((W_ROWS, n))
+    W[W_ISS] = rng.uniform(0.1, 1.0, n)
+    W[W_HS] = t / W[W_ISS]
     direct = W.copy()
-    _amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, t0, tab, W)
-    _amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, 0.0, np.empty((4, 0)), direct)
+    amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, t0, tab, W)
+    amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, 0.0, np.empty((4, 0)), direct)
     on = (t >= t0) & (t < _PT_MAX - 1)
-    np.testing.assert_allclose(W[_VAL, on], direct[_VAL, on], rtol=0, atol=1e-7)
-    np.testing.assert_allclose(W[_DL, on] / W[_ISS, on], direct[_DL, on] / W[_ISS, on],
+    np.testing.assert_allclose(W[W_VAL, on], direct[W_VAL, on], rtol=0, atol=1e-7)
+    np.testing.assert_allclose(W[W_DL, on] / W[W_ISS, on], direct[W_DL, on] / W[W_ISS, on],
                                rtol=0, atol=1e-7)  # fmt: skip
     np.testing.assert_array_equal(W[:, ~on], direct[:, ~on])
     # flux bounds (in S/N units ``flux S / (sigma sqrt S)``): the models within
@@ -954,9 +952,9 @@ def test_power_law_table_matches_the_direct_integral(beta):
     # read the unbounded table, which is the bounded integral there to the table's error
     for lo, hi in ((3.0, np.inf), (3.0, 150.0), (0.0, 150.0)):
         a, b = W.copy(), W.copy()
-        _amplitude_tile(cm, beta, beta - 1.0, lo, hi, t0, tab, a)
-        _amplitude_tile(cm, beta, beta - 1.0, lo, hi, 0.0, np.empty((4, 0)), b)
-        lo_u, hi_u = lo * cm[0] * W[_ISS], hi * cm[0] * W[_ISS]
+        amplitude_tile(cm, beta, beta - 1.0, lo, hi, t0, tab, a)
+        amplitude_tile(cm, beta, beta - 1.0, lo, hi, 0.0, np.empty((4, 0)), b)
+        lo_u, hi_u = lo * cm[0] * W[W_ISS], hi * cm[0] * W[W_ISS]
         near = ((lo_u > 1.0) & (t - lo_u < _PT_BOUND_MARGIN)) | (hi_u - t < _PT_BOUND_MARGIN)
         inside = on & ~near
         assert near.sum() > 30 and inside.sum() > 100, (near.sum(), inside.sum())
@@ -964,28 +962,29 @@ def test_power_law_table_matches_the_direct_integral(beta):
         # lower bound's own evaluation (the next test); else direct
         low = (lo_u > 1.0) & (hi_u - t >= _PT_BOUND_MARGIN) & (t >= t0) & ~inside
         np.testing.assert_array_equal(a[:, ~inside & ~low], b[:, ~inside & ~low])
-        np.testing.assert_allclose(a[_VAL, low], b[_VAL, low], rtol=0, atol=1e-7)
+        np.testing.assert_allclose(a[W_VAL, low], b[W_VAL, low], rtol=0, atol=1e-7)
         np.testing.assert_array_equal(a[:, inside], W[:, inside])
-        np.testing.assert_allclose(a[_VAL, inside], b[_VAL, inside], rtol=0, atol=1e-7)
-        np.testing.assert_allclose(a[_DL, inside] / W[_ISS, inside],
-                                   b[_DL, inside] / W[_ISS, inside], rtol=0, atol=1e-7)
+        np.testing.assert_allclose(a[W_VAL, inside], b[W_VAL, inside], rtol=0, atol=1e-7)
+        np.testing.assert_allclose(a[W_DL, inside] / W[W_ISS, inside],
+                                   b[W_DL, inside] / W[W_ISS, inside], rtol=0, atol=1e-7)
         # where a bound is near, it changes the integral: the table would be wrong there
         close = on & near & (t > lo_u) & (t < hi_u)
-        assert np.abs(b[_VAL, close] - W[_VAL, close]).max() > 1e-3
+        assert np.abs(b[W_VAL, close] - W[W_VAL, close]).max() > 1e-3
 
 
 @pytest.mark.parametrize("beta", [0.0, 1.0, 2.0, 2.5, 4.0])
 def test_lower_flux_bound_evaluation_matches_the_direct_integral(beta):
     """A model within ``_PT_BOUND_MARGIN`` of the lower flux bound and far below the
-    upper one: ``_amplitude_tile`` evaluates the bounded integral without the upper tail,
+    upper one: ``amplitude_tile`` evaluates the bounded integral without the upper tail,
     with the parts that depend on ``t`` alone off the table where the interior root
     ``u*`` is above the bound (``_amplitude_integral_lo`` elsewhere). Against the
     general direct evaluation, on both sides of ``u* = lo``, on and off the table: the
     value and the amplitude's mean to 1e-7 (the table's 2e-8, the upper tail's 3e-9),
     and the bound does change them there (by more than 1e-3 from the unbounded table)."""
-    from pylensfit import _kernels_nb as K
+    from pylensfit.likelihood import amplitude_nb as K
+    from pylensfit.likelihood import tile_nb as T
 
-    t0, tab = K._power_law_table(beta)
+    t0, tab = K.power_law_table(beta)
     rng = np.random.default_rng(3)
     n = 600
     t = np.concatenate([rng.uniform(t0, 40.0, 500),
@@ -993,24 +992,24 @@ def test_lower_flux_bound_evaluation_matches_the_direct_integral(beta):
     d = rng.uniform(-8.0, K._PT_BOUND_MARGIN, n)  # t - lo in S/N units
     lo_flux = 5.0
     cm = np.zeros((6, n))
-    W = np.zeros((K._NW, n))
-    W[K._ISS] = rng.uniform(0.1, 1.0, n)
+    W = np.zeros((T.W_ROWS, n))
+    W[T.W_ISS] = rng.uniform(0.1, 1.0, n)
     lo_u = np.maximum(t - d, 1.0 + 1e-3)
-    cm[0] = lo_u / (lo_flux * W[K._ISS])  # the model's S, so that lo_flux is lo_u in S/N
+    cm[0] = lo_u / (lo_flux * W[T.W_ISS])  # the model's S, so that lo_flux is lo_u in S/N
     cm[5] = np.log(cm[0])
-    W[K._HS] = t / W[K._ISS]
+    W[T.W_HS] = t / W[T.W_ISS]
     hi = lo_flux * (K._PT_MAX + 200.0) * 10  # far above every model
     a, b, free = W.copy(), W.copy(), W.copy()
-    K._amplitude_tile(cm, beta, beta - 1.0, lo_flux, hi, t0, tab, a)
-    K._amplitude_tile(cm, beta, beta - 1.0, lo_flux, hi, 0.0, np.empty((4, 0)), b)
-    K._amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, t0, tab, free)
+    K.amplitude_tile(cm, beta, beta - 1.0, lo_flux, hi, t0, tab, a)
+    K.amplitude_tile(cm, beta, beta - 1.0, lo_flux, hi, 0.0, np.empty((4, 0)), b)
+    K.amplitude_tile(cm, beta, beta - 1.0, 0.0, np.inf, t0, tab, free)
     ustar = 0.5 * (t + np.sqrt(t * t - 4.0 * beta))
     above = ustar > lo_u
     assert above.sum() > 150 and (~above).sum() > 150
     assert (t < K._PT_MAX).sum() > 400 and (t >= K._PT_MAX).sum() > 20
-    np.testing.assert_allclose(a[K._VAL], b[K._VAL], rtol=0, atol=1e-7)
-    np.testing.assert_allclose(a[K._DL] / W[K._ISS], b[K._DL] / W[K._ISS], rtol=0, atol=1e-7)
-    assert np.abs(a[K._VAL] - free[K._VAL])[d < 2].min() > 1e-3
+    np.testing.assert_allclose(a[T.W_VAL], b[T.W_VAL], rtol=0, atol=1e-7)
+    np.testing.assert_allclose(a[T.W_DL] / W[T.W_ISS], b[T.W_DL] / W[T.W_ISS], rtol=0, atol=1e-7)
+    assert np.abs(a[T.W_VAL] - free[T.W_VAL])[d < 2].min() > 1e-3
 
 
 # --- the tiled kernel against the per-model reference ---------------------------------
@@ -1020,18 +1019,29 @@ def test_lower_flux_bound_evaluation_matches_the_direct_integral(beta):
                                  (1.8, 0.8, 12.0, 80.0), (-0.7, -1.7, 12.0, 80.0)])  # fmt: skip
 def test_tiled_kernel_matches_per_model_laplace(n_chi, cubic, amp):
     """``laplace_grid`` evaluates the Laplace terms a tile of models at a time, without
-    branches; ``_laplace_lnl`` is the same arithmetic one model at a time, with them.
+    branches; ``laplace_lnl`` is the same arithmetic one model at a time, with them.
     Random products that take every branch (data Hessians that are not maxima, Newton
     steps beyond the cap, cubic steps that fail, S/N below 1 and negative), more columns
     than one tile, and slots without a model: every model's ln L, the best model and its
     peak must agree to rounding, except that the kernel reads a power law without flux
-    bounds off a table (``_power_law_table``, within 2e-8 of the direct evaluation).
+    bounds off a table (``power_law_table``, within 2e-8 of the direct evaluation).
     With one size per e cell the kernel's ``ln L_k(e)`` is the model's own ``ln L`` plus
     the node's log weight, so each model is checked."""
-    from pylensfit._kernels_nb import _TILE, _laplace_lnl, laplace_grid
+    from pylensfit.likelihood.grid_nb import (
+        Amplitude,
+        Columns,
+        Galaxies,
+        Laplace,
+        Models,
+        Outputs,
+        Sums,
+        laplace_grid,
+    )
+    from pylensfit.likelihood.laplace_nb import laplace_lnl
+    from pylensfit.likelihood.tile_nb import TILE
 
     rng = np.random.default_rng(7 + n_chi + 2 * cubic)
-    n_gal, n_e = 4, (2 * _TILE + 37) * n_chi
+    n_gal, n_e = 4, (2 * TILE + 37) * n_chi
     n_mod = n_e + 1  # one size per cell, and the point source
     n_cols = -(-n_mod // n_chi) + 3
     slots = rng.permutation(n_cols * n_chi)[:n_mod]
@@ -1057,14 +1067,14 @@ def test_tiled_kernel_matches_per_model_laplace(n_chi, cubic, amp):
     y0 = rng.normal(0, 0.3, n_gal)
     b2, max_step = 0.1, 1.2
     node_w, w_star = np.array([0.7]), 0.3
-    amp_pow, amp_lns, amp_lo, amp_hi = amp
-    outs = (np.empty((n_gal, n_e)), np.empty((n_gal, n_e, 1)), np.empty((n_gal, 1, 2)),
-            np.empty(n_gal, dtype=np.int64), np.empty(n_gal), np.empty(n_gal), np.empty(n_gal))
+    amp_pow = amp[0]
+    outs = Outputs.empty(n_gal, n_e, 1, 1, 1)
     no_mix = np.zeros(0, dtype=np.int64)
-    laplace_grid(prod, members, no_mix, no_mix, np.zeros(0), n_gal, n_e, 1, 1, s_m, mxx,
-                 mxy, myy, sigma, x0, y0, b2, max_step, node_w, w_star, np.zeros(1),
-                 np.full(n_e, 1.0 / n_e), np.zeros(n_e, dtype=np.int64), amp_pow, amp_lns,
-                 amp_lo, amp_hi, cubic, *outs)  # fmt: skip
+    laplace_grid(prod, Columns(members, no_mix, no_mix, np.zeros(0)), Models(s_m, mxx, mxy, myy),
+                 Galaxies(sigma, x0, y0),
+                 Sums(node_w, w_star, np.zeros(1), np.full(n_e, 1.0 / n_e),
+                      np.zeros(n_e, dtype=np.int64), 1),
+                 Amplitude(*amp), Laplace(b2, max_step, cubic), outs)  # fmt: skip
     lnlb, lnlr, best, hbest, xb, yb = outs[1:]
     lnlr = lnlr[:, 0]
     # the reference: the square's four characters folded as the kernel does (float32)
@@ -1086,10 +1096,9 @@ def test_tiled_kernel_matches_per_model_laplace(n_chi, cubic, amp):
                 v = vals[hm, :, g, c]
                 t3 = v[6:] if cubic else np.zeros(4)
                 sj = s_m[j]
-                ref[g, j] = _laplace_lnl(*v[:6], *t3, cubic, sj, np.sqrt(sj), np.log(sj),
-                                         mxx[j], mxy[j], myy[j], sigma[g], x0[g], y0[g], b2,
-                                         max_step**2, amp_pow, amp_lns, amp_lo,
-                                         amp_hi)  # fmt: skip
+                ref[g, j] = laplace_lnl(tuple(v[:6]), tuple(t3), cubic,
+                                        (sj, np.sqrt(sj), np.log(sj), mxx[j], mxy[j], myy[j]),
+                                        (sigma[g], x0[g], y0[g]), b2, max_step**2, amp)
                 det = v[3] * v[5] - v[4] ** 2
                 branches.add("data" if v[3] < 0 and det > 0 else "expected")
     assert branches == {"data", "expected"}

@@ -386,7 +386,7 @@ def wrap_correction(
     (``validate --precision``: galaxies of 1.4-2.5 PSF radii, m2 - m1 ~ +0.02 on a
     32-pixel stamp). The two pixel lines at ``+-n/2`` of an even stamp are one line of
     the periodic model; it is shared half and half so that the correction keeps the
-    square's symmetries (:func:`pylensfit.likelihood._folded_bank`).
+    square's symmetries (:func:`pylensfit.likelihood.folded.folded_bank`).
 
     Parameters
     ----------
@@ -416,35 +416,56 @@ def wrap_correction(
         (without the point source).
     """
     code = MODEL_TYPES.index(model)  # 0 exponential, 1 de Vaucouleurs, 2 bulge + disc
-    *_, b, norm, t, _ = _wing_args(4.0, 1.0)  # the de Vaucouleurs profile's
     eg = np.asarray(egrid, float)
-    rep = (eg[:, 0] > 0) & (eg[:, 1] > 0)
-    ie_rep = np.flatnonzero(rep)
-    fr = np.asarray(fracs, float) if model == "bulge+disc" else np.zeros(1)
-    n_r = radii.size
-    e1r, e2r, rad = eg[ie_rep, 0].copy(), eg[ie_rep, 1].copy(), np.asarray(radii, float)
+    ie_rep = np.flatnonzero((eg[:, 0] > 0) & (eg[:, 1] > 0))
+    rep = (eg[ie_rep, 0].copy(), eg[ie_rep, 1].copy(), np.asarray(radii, float))
     if runs is not None:
-        # each run's wings are linear in its components' (one profile evaluation each)
-        per_e = len(runs) * n_r
-        comp = {}
-        for c in dict.fromkeys(cc for run in runs for cc in run.components):
-            comp[c] = np.zeros((ie_rep.size, n_r, n, n), dtype=np.float32)
-            wrapped_wings(e1r, e2r, rad, *_wing_args(*c), int(n), _WRAP_COPIES, comp[c])
-        w = np.concatenate([(1.0 - run.fraction) * comp[run.components[0]]
-                            + run.fraction * comp[run.components[1]] for run in runs],
-                           axis=1)  # fmt: skip
-        del comp
+        w = _run_wings(rep, runs, n)
     else:
-        per_e = fr.size * n_r
-        # the wings of a bulge+disc model are linear in its fraction: the pure disc's and
-        # the pure bulge's make every fraction's (half the profile evaluations for three)
-        base = np.array([0.0, 1.0]) if model == "bulge+disc" and fr.size > 2 else fr
-        w = np.zeros((ie_rep.size, base.size * n_r, n, n), dtype=np.float32)
-        wrapped_wings(e1r, e2r, rad, base, code, float(bulge_size_ratio), b, norm, t, 0.25,
-                      int(n), _WRAP_COPIES, w)  # fmt: skip
-        if base is not fr:
-            w0, w1 = w[:, :n_r], w[:, n_r:]
-            w = np.concatenate([(1.0 - f) * w0 + f * w1 for f in fr], axis=1)
+        w = _fraction_wings(rep, fracs, model, code, bulge_size_ratio, n)
+    return _wing_transforms(eg, ie_rep, w, n, rows)
+
+
+def _run_wings(rep: tuple, runs: tuple[Run, ...], n: int) -> np.ndarray:
+    """The wrapped wings of every run at the representative ellipticities and sizes
+    ``rep`` (``e1``, ``e2``, ``radii``), ``(n_rep, len(runs) * n_r, n, n)``: each run's
+    are linear in its components' (one profile evaluation each)."""
+    n_r = rep[2].size
+    comp = {}
+    for c in dict.fromkeys(cc for run in runs for cc in run.components):
+        comp[c] = np.zeros((rep[0].size, n_r, n, n), dtype=np.float32)
+        fr, profile = _wing_args(*c)
+        wrapped_wings(*rep, fr, profile, int(n), _WRAP_COPIES, comp[c])
+    return np.concatenate([(1.0 - run.fraction) * comp[run.components[0]]
+                           + run.fraction * comp[run.components[1]] for run in runs],
+                          axis=1)  # fmt: skip
+
+
+def _fraction_wings(rep: tuple, fracs, model: str, code: int, bulge_size_ratio: float,
+                    n: int) -> np.ndarray:  # fmt: skip
+    """The wrapped wings of every bulge fraction of ``fracs`` (one of the other models) at
+    the representative ellipticities and sizes ``rep``, ``(n_rep, n_fracs * n_r, n, n)``."""
+    _, (_, _, b, norm, t, _) = _wing_args(4.0, 1.0)  # the de Vaucouleurs profile's
+    fr = np.asarray(fracs, float) if model == "bulge+disc" else np.zeros(1)
+    n_r = rep[2].size
+    # the wings of a bulge+disc model are linear in its fraction: the pure disc's and
+    # the pure bulge's make every fraction's (half the profile evaluations for three)
+    base = np.array([0.0, 1.0]) if model == "bulge+disc" and fr.size > 2 else fr
+    w = np.zeros((rep[0].size, base.size * n_r, n, n), dtype=np.float32)
+    wrapped_wings(*rep, base, (code, float(bulge_size_ratio), b, norm, t, 0.25), int(n),
+                  _WRAP_COPIES, w)  # fmt: skip
+    if base is not fr:
+        w0, w1 = w[:, :n_r], w[:, n_r:]
+        w = np.concatenate([(1.0 - f) * w0 + f * w1 for f in fr], axis=1)
+    return w
+
+
+def _wing_transforms(eg: np.ndarray, ie_rep: np.ndarray, w: np.ndarray, n: int,
+                     rows: np.ndarray | None) -> np.ndarray:  # fmt: skip
+    """The transforms of the wings ``w`` of the representative cells ``ie_rep`` and of
+    the other cells of ``eg``, their images under the square's symmetries
+    (:func:`wrap_correction`'s result)."""
+    per_e = w.shape[1]
     # the other cells by the square's symmetries: e2 -> -e2 is y -> -y, e1 -> -e1 is the
     # transposition x <-> y (on the periodic lattice of offsets from the centre n // 2)
     flip = (2 * (n // 2) - np.arange(n)) % n
@@ -466,19 +487,20 @@ def wrap_correction(
 
 
 def _wing_args(n_s: float, h: float) -> tuple:
-    """:func:`wrapped_wings`' profile arguments for the Sersic component ``(n_s, h)``
-    (``fracs`` to ``inv_n``): the exponential disc (code 0) or one Sersic component
-    (code 3), untruncated ones cut where the flux beyond is below 1e-10."""
+    """:func:`wrapped_wings`' ``fracs`` and ``profile`` (``(model_code, bsr, b_dev,
+    norm_dev, trunc, inv_n)``) for the Sersic component ``(n_s, h)``: the exponential
+    disc (code 0) or one Sersic component (code 3), untruncated ones cut where the flux
+    beyond is below 1e-10."""
     if n_s == 1.0:
         if h != DISC_HLR:
             raise ValueError(f"an exponential component must be the disc, got size {h}")
-        return np.zeros(1), 0, 1.0, 1.0, 1.0, 1.0, 1.0
+        return np.zeros(1), (0, 1.0, 1.0, 1.0, 1.0, 1.0)
     t = _sersic_trunc(n_s)
     b = _sersic_b(n_s, t)
     frac_in = gammainc(2 * n_s, b * t ** (1 / n_s)) if t > 0 else 1.0
     norm = 2.0 * np.pi * n_s * gamma(2 * n_s) * frac_in / b ** (2 * n_s)
     cut = t if t > 0 else (gammaincinv(2 * n_s, 1.0 - 1e-10) / b) ** n_s
-    return np.ones(1), 3, float(h), float(b), float(norm), float(cut), 1.0 / n_s
+    return np.ones(1), (3, float(h), float(b), float(norm), float(cut), 1.0 / n_s)
 
 
 @lru_cache(maxsize=64)
