@@ -34,8 +34,12 @@ def _amplitude(t):
 
 
 @njit(cache=True, inline="always")
-def _peak(h0, gx, gy, hxx, hxy, hyy, q, mxx, mxy, myy, max2):
-    """The Newton step ``X*`` and the Hessian used (the data's, or the expected one's)."""
+def _peak(A, B, g, j, max2):
+    """The Newton step ``X*`` of model ``j`` of galaxy ``g`` and the Hessian used (the
+    data's, or the expected one's; ``A``, ``B`` as :func:`laplace_models`')."""
+    h0, gx, gy = float(A[0, g, j]), float(A[1, g, j]), float(A[2, g, j])
+    hxx, hxy, hyy = float(A[3, g, j]), float(A[4, g, j]), float(A[5, g, j])
+    q, mxx, mxy, myy = float(B[0, g, j]), float(B[1, g, j]), float(B[2, g, j]), float(B[3, g, j])
     det = hxx * hyy - hxy * hxy
     ok = hxx < 0.0 and det > 0.0
     x = y = 0.0
@@ -79,9 +83,7 @@ def laplace_models(A, B, x0, y0, b2, max_step, lnl, hs, xs, ys):
                 lnl[g, j] = math.nan
                 hs[g, j] = xs[g, j] = ys[g, j] = math.nan
                 continue
-            x, y, hxx, hxy, hyy = _peak(h0, gx, gy, float(A[3, g, j]), float(A[4, g, j]),
-                                        float(A[5, g, j]), q, float(B[1, g, j]),
-                                        float(B[2, g, j]), float(B[3, g, j]), max2)  # fmt: skip
+            x, y, hxx, hxy, hyy = _peak(A, B, g, j, max2)
             h = h0 + gx * x + gy * y + 0.5 * (hxx * x * x + 2.0 * hxy * x * y + hyy * y * y)
             sq = math.sqrt(q)
             t = h / sq
