@@ -6,7 +6,7 @@ Each rule holds for the method (``pylensfit``) and for the validation harness
 * No module imports a private name (``_x``) of another module.
 * An import inside a function says why in a comment (an optional dependency, a heavy
   import, an import cycle), on its line or just above it.
-* No function is longer than 150 lines, docstring included.
+* No function is longer than 150 lines, docstring included (80 in the method).
 * No import cycle among the package's modules, counting imports inside functions.
 * No module of the method imports one of a higher layer (:data:`LAYERS`).
 * No numba kernel of the method takes more than :data:`MAX_KERNEL_ARGS` arguments.
@@ -39,6 +39,8 @@ ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = (ROOT / "benchmarks", ROOT / "benchmarks" / "studies")
 PACKAGES = {"pylensfit": SRC, "pylensfit_validation": HARNESS}
 MAX_LINES = 150
+#: The method's functions are shorter still (docstring included).
+MAX_METHOD_LINES = 80
 FUNCS = (ast.FunctionDef, ast.AsyncFunctionDef)
 
 #: The method's public modules: what they export (``__all__``) may be used by the harness,
@@ -113,10 +115,10 @@ def silent_local_imports(modules) -> list[str]:
     return found
 
 
-def long_functions(modules) -> list[str]:
+def long_functions(modules, limit: int = MAX_LINES) -> list[str]:
     return [f"{name}.{fn.name}: {fn.end_lineno - fn.lineno + 1} lines"
             for name, _, tree in modules for fn in ast.walk(tree)
-            if isinstance(fn, FUNCS) and fn.end_lineno - fn.lineno + 1 > MAX_LINES]
+            if isinstance(fn, FUNCS) and fn.end_lineno - fn.lineno + 1 > limit]
 
 
 def _resolve(name: str, node: ast.ImportFrom, known: set[str]) -> list[str]:
@@ -350,7 +352,8 @@ def test_function_level_imports_say_why(package):
 
 @pytest.mark.parametrize("package", PACKAGES)
 def test_no_long_functions(package):
-    assert long_functions(_package(PACKAGES[package])) == []
+    limit = MAX_METHOD_LINES if package == "pylensfit" else MAX_LINES
+    assert long_functions(_package(PACKAGES[package]), limit) == []
 
 
 def test_numba_kernels_take_few_arguments():

@@ -165,6 +165,64 @@ def _to_image(F: np.ndarray, n: int) -> np.ndarray:
     return np.fft.irfft2(F * shift, s=(n, n), axes=(-2, -1))
 
 
+def _checked_inputs(stamps, psf, noise_sigma, step: float, dilation, types):
+    """:func:`metacal_images`' inputs checked: ``(stamps (n, N, N), single, psf (unit
+    sum), noise sigma, dilation)``; ``ValueError`` naming the first problem."""
+    st = np.asarray(stamps, dtype=np.float64)
+    single = st.ndim == 2
+    st = st[None] if single else st
+    psf = np.asarray(psf, dtype=np.float64)
+    n = st.shape[-1]
+    if st.ndim != 3 or st.shape[-2] != n or psf.shape != (n, n):
+        raise ValueError(f"metacal_images needs square stamps and a PSF of their size, got "
+                         f"{st.shape} and {psf.shape}")  # fmt: skip
+    if not 0.0 < step < 0.2:
+        raise ValueError(f"step must be in (0, 0.2), got {step}")
+    f = 1.0 + 2.0 * step if dilation is None else float(dilation)
+    if not 1.0 + step <= f < 2.0:
+        raise ValueError(f"dilation must be in [1 + step, 2), got {dilation}")
+    unknown = set(types) - set(METACAL_TYPES)
+    if unknown:
+        raise ValueError(f"unknown metacal types {sorted(unknown)}; use {METACAL_TYPES}")
+    if not np.isfinite(st).all() or not np.isfinite(psf).all():
+        raise ValueError("metacal_images got non-finite pixels")
+    sig = np.asarray(noise_sigma, dtype=np.float64)
+    if sig.ndim > 1 or (sig.ndim == 1 and sig.shape != st.shape[:1]) or not (
+            np.isfinite(sig).all() and (sig >= 0).all()):
+        raise ValueError(f"noise_sigma must be >= 0, one value or one per stamp ({st.shape[0]}), "
+                         f"got {noise_sigma!r}")  # fmt: skip
+    return st, single, psf / psf.sum(), sig, f
+
+
+def _rotated_noise(st: np.ndarray, sig: np.ndarray, noise_fields, seed) -> np.ndarray | None:
+    """The added noise field (``noise_fields`` times ``sig``) turned by 90 degrees about
+    the stamps' centre ``[N//2, N//2]``; None for noise-free stamps."""
+    if not bool((sig > 0).any()):
+        return None
+    if noise_fields is None:
+        if seed is None:
+            raise ValueError("metacal_images needs noise_fields or a seed for noisy stamps")
+        noise_fields = np.random.default_rng(seed).standard_normal(st.shape)
+    noise = np.asarray(noise_fields, dtype=np.float64).reshape(st.shape) * (
+        sig[:, None, None] if sig.ndim == 1 else sig)
+    # np.rot90 turns about (N-1)/2: roll by one pixel after it to turn about N//2 on an
+    # even stamp
+    rot = np.rot90(noise, 1, axes=(-2, -1))
+    return np.roll(rot, 1, axis=-2) if st.shape[-1] % 2 == 0 else rot
+
+
+def _centre_offsets(centres, st: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The galaxies' centres from the stamps' centres ``[N//2, N//2]`` (px)."""
+    n = st.shape[-1]
+    if centres is None:
+        return np.zeros(st.shape[0]), np.zeros(st.shape[0])
+    cx = np.broadcast_to(np.asarray(centres[0], float) - n // 2, st.shape[:1])
+    cy = np.broadcast_to(np.asarray(centres[1], float) - n // 2, st.shape[:1])
+    if not (np.isfinite(cx).all() and np.isfinite(cy).all()):
+        raise ValueError("metacal_images got non-finite centres")
+    return cx, cy
+
+
 def metacal_images(
     stamps: np.ndarray,
     psf: np.ndarray,
@@ -219,50 +277,11 @@ def metacal_images(
     MetacalImages
         The images, the reconvolution PSF and the noise level to fit them with.
     """
-    st = np.asarray(stamps, dtype=np.float64)
-    single = st.ndim == 2
-    st = st[None] if single else st
-    psf = np.asarray(psf, dtype=np.float64)
+    st, single, psf, sig, f = _checked_inputs(stamps, psf, noise_sigma, step, dilation, types)
     n = st.shape[-1]
-    if st.ndim != 3 or st.shape[-2] != n or psf.shape != (n, n):
-        raise ValueError(f"metacal_images needs square stamps and a PSF of their size, got "
-                         f"{st.shape} and {psf.shape}")  # fmt: skip
-    if not 0.0 < step < 0.2:
-        raise ValueError(f"step must be in (0, 0.2), got {step}")
-    f = 1.0 + 2.0 * step if dilation is None else float(dilation)
-    if not 1.0 + step <= f < 2.0:
-        raise ValueError(f"dilation must be in [1 + step, 2), got {dilation}")
-    unknown = set(types) - set(METACAL_TYPES)
-    if unknown:
-        raise ValueError(f"unknown metacal types {sorted(unknown)}; use {METACAL_TYPES}")
-    if not np.isfinite(st).all() or not np.isfinite(psf).all():
-        raise ValueError("metacal_images got non-finite pixels")
-    psf = psf / psf.sum()
-    sig = np.asarray(noise_sigma, dtype=np.float64)
-    if sig.ndim > 1 or (sig.ndim == 1 and sig.shape != st.shape[:1]) or not (
-            np.isfinite(sig).all() and (sig >= 0).all()):
-        raise ValueError(f"noise_sigma must be >= 0, one value or one per stamp ({st.shape[0]}), "
-                         f"got {noise_sigma!r}")  # fmt: skip
-    noisy = bool((sig > 0).any())
-    if noisy:
-        if noise_fields is None:
-            if seed is None:
-                raise ValueError("metacal_images needs noise_fields or a seed for noisy stamps")
-            noise_fields = np.random.default_rng(seed).standard_normal(st.shape)
-        noise = np.asarray(noise_fields, dtype=np.float64).reshape(st.shape) * (
-            sig[:, None, None] if sig.ndim == 1 else sig)
-        # the added field rotated by 90 degrees about the centre (np.rot90 turns about
-        # (N-1)/2: roll by one pixel after it to turn about N//2 on an even stamp)
-        rot = np.rot90(noise, 1, axes=(-2, -1))
-        if n % 2 == 0:
-            rot = np.roll(rot, 1, axis=-2)
-    if centres is None:
-        cx = cy = np.zeros(st.shape[0])
-    else:
-        cx = np.broadcast_to(np.asarray(centres[0], float) - n // 2, st.shape[:1])
-        cy = np.broadcast_to(np.asarray(centres[1], float) - n // 2, st.shape[:1])
-        if not (np.isfinite(cx).all() and np.isfinite(cy).all()):
-            raise ValueError("metacal_images got non-finite centres")
+    rot = _rotated_noise(st, sig, noise_fields, seed)
+    noisy = rot is not None
+    cx, cy = _centre_offsets(centres, st)
     kx, ky = _frequencies(n)
     Pr = _transform(psf[None], np.diag([f, f]))[0]
     out = {}
@@ -282,10 +301,8 @@ def metacal_images(
             img += np.rot90(nz, -1, axes=(-2, -1))
         out[t] = (img[0] if single else img).astype(np.float32)
     psf_r = _to_image(Pr[None], n)[0]
-    return MetacalImages(images=out, psf=psf_r / psf_r.sum(),
-                         noise_sigma=(sig if sig.ndim else float(sig)) * (math.sqrt(2.0) if noisy
-                                                                           else 1.0),
-                         step=float(step))  # fmt: skip
+    sig_fit = (sig if sig.ndim else float(sig)) * (math.sqrt(2.0) if noisy else 1.0)
+    return MetacalImages(images=out, psf=psf_r / psf_r.sum(), noise_sigma=sig_fit, step=float(step))
 
 
 def response(e: dict[str, np.ndarray], step: float) -> np.ndarray:
@@ -309,21 +326,11 @@ def response(e: dict[str, np.ndarray], step: float) -> np.ndarray:
 
 
 def metacal_shapes(
-    stamps: np.ndarray,
-    psf: np.ndarray,
-    noise_sigma: float,
-    prior,
-    *,
-    config=None,
-    size_prior=None,
-    bulge_weights: np.ndarray | None = None,
-    step: float = 0.01,
-    noise_fields: np.ndarray | None = None,
-    seed: int | None = None,
-    fits=None,
+    stamps: np.ndarray, psf: np.ndarray, noise_sigma: float, prior, *, config=None,
+    size_prior=None, bulge_weights: np.ndarray | None = None, step: float = 0.01,
+    noise_fields: np.ndarray | None = None, seed: int | None = None, fits=None,
     centres: tuple[np.ndarray, np.ndarray] | None = None,
-    position_prior_sigma: float | None = 2.0,
-    dilation: float | None = None,
+    position_prior_sigma: float | None = 2.0, dilation: float | None = None,
 ) -> Table:
     """lensfit's posterior mean ellipticity of each stamp with its metacalibrated response.
 
@@ -338,8 +345,7 @@ def metacal_shapes(
     ----------
     stamps : numpy.ndarray
         ``(n, N, N)`` background-subtracted stamps, each galaxy near ``[N//2, N//2]``,
-        large enough to hold the galaxies' light (module docstring: on 32 pixels under a
-        Kolmogorov PSF the response of the realistic population is 4.5 % too large).
+        large enough to hold the galaxies' light (module docstring).
     psf : numpy.ndarray
         ``(N, N)`` PSF image (pixel response included), centred on ``[N//2, N//2]``.
     noise_sigma : float or numpy.ndarray
@@ -357,21 +363,15 @@ def metacal_shapes(
         bulge+disc model whose fraction is marginalised.
     step, noise_fields, seed, dilation
         As :func:`metacal_images`.
-    fits : StampFits, optional
-        Fits of ``stamps`` already made (their ``x``, ``y`` are the centres).
-    centres : tuple of numpy.ndarray, optional
-        ``(x, y)``: the galaxies' fitted centres (stamp pixels, element ``[y, x]``),
-        instead of ``fits``.
+    fits, centres : StampFits or tuple of numpy.ndarray, optional
+        Fits of ``stamps`` already made, or the galaxies' fitted centres ``(x, y)``
+        (stamp pixels, element ``[y, x]``); without either the stamps are fitted.
     position_prior_sigma : float or None
         Width (px) of the position prior of the five metacalibration images' fits (None:
         the configuration's). The images are sheared about the fitted centre, whose
-        noise moves the galaxy against the prior's centre by ``delta`` times that noise;
-        under a narrow prior, which pulls the fitted centre towards the catalogue
-        position, the posterior mean responds to that move, a response that is not the
-        shear's. The default 2 px (the paper's prior) leaves it out: on exact exponential
-        models at S/N 10-20 a 0.29 px prior gave m larger by +0.008 +- 0.002
-        (``benchmarks/precision_metacal.py``, paired on the same renderings), and no
-        difference above S/N 20.
+        noise moves the galaxy against the prior's centre by ``delta`` times that noise:
+        a narrow prior adds a response to that move, which is not the shear's; the
+        default is the paper's wide 2 px (``benchmarks/README.md``, precision_metacal).
 
     Returns
     -------
@@ -389,12 +389,7 @@ def metacal_shapes(
     st = np.asarray(stamps, dtype=np.float32)
     st = st[None] if st.ndim == 2 else st
     kw = {"config": config, "size_prior": size_prior}
-    if centres is not None:
-        cx, cy = (np.broadcast_to(np.asarray(c, float), st.shape[:1]) for c in centres)
-    else:
-        if fits is None:
-            fits = fit_stamps(st, psf, noise_sigma, **kw)
-        cx, cy = np.asarray(fits.x, float), np.asarray(fits.y, float)
+    cx, cy = _fitted_centres(st, psf, noise_sigma, kw, fits, centres)
     n = st.shape[-1]
     ok = np.isfinite(cx) & np.isfinite(cy)
     mc = metacal_images(st, psf, noise_sigma, step=step, noise_fields=noise_fields, seed=seed,
@@ -404,20 +399,42 @@ def metacal_shapes(
     refine = cfg.output_refine
     if position_prior_sigma is not None:
         kw["config"] = cfg.replace(position_prior_sigma=float(position_prior_sigma))
-    e = {}
+    e, sens = {}, None
     for t in METACAL_TYPES:
-        f = fit_stamps(mc.images[t], mc.psf, mc.noise_sigma, **kw)
-        lnL = f.lnL
-        if f.lnL_bulge is not None:
-            lnL = mix_bulge_fractions(f.lnL_bulge, f.lnL_star, bulge_weights)
-        good = usable_rows(lnL) & (np.asarray(f.flags) == 0)
-        ok &= good
-        mom = posterior_moments(np.where(good[:, None], lnL, 0.0), f.egrid, prior, refine=refine)
-        e[t] = np.column_stack([mom["e1"], mom["e2"]])
-        if t == "noshear":
-            sens = shear_sensitivity(np.where(good[:, None], lnL, 0.0), f.egrid, prior,
-                                     refine=refine)  # fmt: skip
-    R = response(e, step)
+        e[t], good, sens_t = _posterior_means(mc, t, kw, prior, bulge_weights, refine)
+        ok, sens = ok & good, sens_t if t == "noshear" else sens
+    return _shapes_table(e, response(e, step), sens, ok, step)
+
+
+def _fitted_centres(st: np.ndarray, psf: np.ndarray, noise_sigma, kw: dict, fits,
+                    centres) -> tuple[np.ndarray, np.ndarray]:
+    """The galaxies' centres (stamp pixels): ``centres``, or those of ``fits``, or of a
+    fit of the stamps (with ``kw``)."""
+    if centres is not None:
+        return tuple(np.broadcast_to(np.asarray(c, float), st.shape[:1]) for c in centres)
+    if fits is None:
+        fits = fit_stamps(st, psf, noise_sigma, **kw)
+    return np.asarray(fits.x, float), np.asarray(fits.y, float)
+
+
+def _posterior_means(mc: MetacalImages, t: str, kw: dict, prior, bulge_weights, refine: int):
+    """The posterior means ``(n, 2)`` of the metacalibration image ``t`` (fitted with
+    ``kw``: the configuration and size prior), its usable rows, and, for ``"noshear"``,
+    lensfit's sensitivities ``(s1, s2)`` (None for the others)."""
+    f = fit_stamps(mc.images[t], mc.psf, mc.noise_sigma, **kw)
+    lnL = f.lnL
+    if f.lnL_bulge is not None:
+        lnL = mix_bulge_fractions(f.lnL_bulge, f.lnL_star, bulge_weights)
+    good = usable_rows(lnL) & (np.asarray(f.flags) == 0)
+    lnL = np.where(good[:, None], lnL, 0.0)
+    mom = posterior_moments(lnL, f.egrid, prior, refine=refine)
+    sens = (shear_sensitivity(lnL, f.egrid, prior, refine=refine) if t == "noshear"
+            else None)  # fmt: skip
+    return np.column_stack([mom["e1"], mom["e2"]]), good, sens
+
+
+def _shapes_table(e: dict, R: np.ndarray, sens, ok: np.ndarray, step: float) -> Table:
+    """:func:`metacal_shapes`' table (NaN on the rows not usable in every image)."""
     nan = np.where(ok, 1.0, np.nan)
     out = Table()
     out["e1"], out["e2"] = e["noshear"][:, 0] * nan, e["noshear"][:, 1] * nan

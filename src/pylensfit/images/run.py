@@ -44,8 +44,7 @@ def measure(
     priors: Priors | str | os.PathLike | None = None,
     psf: PSFResult | PSFModel | np.ndarray | str | os.PathLike | Sequence | None = None,
     output: str | os.PathLike | None = None, psf_dir: str | os.PathLike | None = None,
-    overwrite: bool = False, jobs: int = 1, scheduler: str | None = None,
-    progress: bool = True,
+    overwrite: bool = False, jobs: int = 1, scheduler: str | None = None, progress: bool = True,
 ) -> Table:
     """Measure the shapes of every object in FITS images: images in, catalogue out.
 
@@ -55,69 +54,55 @@ def measure(
         FITS images (background need not be subtracted), with ``WEIGHT`` (inverse
         variance) and ``MASK`` (non-zero = bad) HDUs used if present.
     stars : list of str, optional
-        Star-field images; their PSFs are co-added with each image's own (with
-        ``Config.psf_model = "polynomial"`` the model of the most stars is used).
+        Star-field images; their PSFs are co-added with each image's own (a polynomial
+        model: the one of the most stars).
     psf : PSFResult, PSFModel, numpy.ndarray or str, or a list of them, optional
         The PSF instead of stars, for every image or one per image: an image (pixel
         response included, centred on ``[n//2, n//2]``) or its file, a
-        :class:`~pylensfit.psfmodel.PSFModel` (``Config.psf_interpolation``) or a file
-        :func:`~pylensfit.psfmodel.read_psf_model` reads (a Piff model).
-    weights, masks : list of str, optional
-        Weight and mask files, one per image (``None`` entries allowed).
-    catalogues : list of str, optional
-        Input catalogues (FITS or any astropy-readable table with ``x, y`` 0-based or
-        ``X_IMAGE, Y_IMAGE`` 1-based), one per image, instead of detection.
+        :class:`~pylensfit.psfmodel.PSFModel` or its file (a Piff model too).
+    weights, masks, catalogues : list of str, optional
+        Weight, mask and input-catalogue files, one per image (``None`` entries
+        allowed); a catalogue (``x, y`` 0-based or ``X_IMAGE, Y_IMAGE`` 1-based)
+        replaces detection.
     star_column : str, optional
-        Column of the detection / input catalogue that marks the PSF stars (overrides
-        the stellar-locus selection).
+        Column of the input catalogue that marks the PSF stars (no locus selection).
     config : Config, optional
         Settings (default ``Config()``, the recommended method).
     prior, size_prior : Prior, SizePrior or str, optional
-        An ellipticity prior, a size prior (or the path of a saved one) to keep instead
-        of estimating it; the other priors are still estimated.
+        An ellipticity or size prior (or a saved one's path) kept instead of estimated.
     priors : Priors or str, optional
-        Every prior, as :func:`calibrate_images` or an earlier run gives them (or the
-        path of a saved :class:`~pylensfit.Priors`): every image is measured in one pass
-        under them. Without it the calibration recipe (:mod:`pylensfit.calibration`)
-        estimates them first, on a sample of the images (``Config.calibration_sample``,
-        :mod:`pylensfit.images.sample`). The catalogue keeps them (``meta["priors"]``).
+        Every prior (or a saved :class:`~pylensfit.Priors`, as :func:`calibrate_images`
+        writes it): every image is measured in one pass under them. Without it the
+        recipe (:mod:`pylensfit.calibration`) estimates them first, on a sample of the
+        images (``Config.calibration_sample``). Kept in ``meta["priors"]``.
     output : str, optional
-        Catalogue path (FITS). With an output, finished images are kept in
-        ``<output>.parts/`` until the catalogue is written, and a restarted run resumes.
+        Catalogue path (FITS); finished images are kept in ``<output>.parts/`` until it
+        is written, and a restarted run resumes.
     psf_dir : str, optional
-        Write each image's PSF here as ``<image stem>.psf.fits`` with a ``STARS`` table of
-        every star candidate (:meth:`pylensfit.psf.PSFResult.write`; a folder shared with
-        the workers of a dask scheduler).
-    overwrite : bool
-        Replace an existing output.
-    jobs : int
-        Local worker processes (one BLAS / numba thread each); 1 runs in this process.
-    scheduler : str, optional
-        Address of a dask.distributed scheduler to run the images on instead.
-    progress : bool
-        Show a progress bar.
+        Write each image's PSF here as ``<image stem>.psf.fits`` (a folder the dask
+        workers share; :meth:`pylensfit.psf.PSFResult.write`, with a ``STARS`` table).
+    overwrite, progress : bool
+        Replace an existing output; show progress bars.
+    jobs, scheduler : int, str, optional
+        Local worker processes (one BLAS / numba thread each; 1: this process), or the
+        address of a dask.distributed scheduler to run the images on instead.
 
     Returns
     -------
     astropy.table.Table
-        The catalogue (columns: :data:`pylensfit.catalogue.COLUMNS`), with the
-        ``(n, n_e)`` ``lnL`` grids as a 2-D column and ``meta`` holding the ellipticity
-        grid, the prior and the per-image PSF diagnostics.
+        The catalogue (:data:`pylensfit.catalogue.COLUMNS`; ``lnL`` the ``(n, n_e)``
+        grids) with ``meta``: the ellipticity grid, the priors, the PSF diagnostics.
 
     Raises
     ------
     InputError
-        A missing, unreadable or truncated file, an image given twice, an empty image or
-        input catalogue, a star field without usable stars: one line naming the file and
-        the problem. Every input is opened before any work starts.
+        A bad input file (missing, unreadable, truncated, empty, given twice; a star
+        field without stars): one line naming it. Every input is opened first.
     """
     cfg = config if config is not None else Config()
     inp = _measure_inputs(images, stars, weights, masks, catalogues, psf, prior, size_prior,
                           priors, output, overwrite)  # fmt: skip
-    if psf_dir is not None:
-        Path(psf_dir).mkdir(parents=True, exist_ok=True)
-    # one set of workers for every pass; a run failing before it has written a part
-    # leaves no empty <output>.parts/
+    # one set of workers for every pass; a failed run leaves no empty <output>.parts/
     with worker_pool(jobs, scheduler) as pool, parts_dropped_if_unused(inp.parts):
         workers = Workers(jobs=jobs, scheduler=scheduler, progress=progress, pool=pool)
         tasks = _image_tasks(inp, cfg, star_column, psf_dir, workers)
@@ -188,6 +173,8 @@ def _image_tasks(inp: _MeasureInputs, cfg: Config, star_column: str | None,
                  workers: Workers) -> list[ImageTask]:  # fmt: skip
     """The images' tasks, with the PSFs of the star fields (built first: they go to every
     image)."""
+    if psf_dir is not None:
+        Path(psf_dir).mkdir(parents=True, exist_ok=True)
     st_tasks = [StarfieldTask(path=p, index=i, config=cfg) for i, p in enumerate(inp.stars)]
     star_psfs = [res for _, res in workers.run(starfield_task, st_tasks, "star fields")]
     star_psfs.sort(key=lambda r: inp.stars.index(r.source))
