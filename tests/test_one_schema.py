@@ -27,7 +27,7 @@ from astropy.io import fits
 from astropy.table import Table
 
 import pylensfit as plf
-from pylensfit.calibration import STAMP_COLUMNS
+from pylensfit.calibration.stamps import STAMP_COLUMNS
 from pylensfit.catalogue import COLUMNS
 from pylensfit.detection import measure_background
 from pylensfit.psf import psf_from_image
