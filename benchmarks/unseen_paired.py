@@ -595,6 +595,10 @@ def _lower_config():
 CONFIG_OVERRIDES: dict = {}
 
 
+#: ``--response``, ``--metacal-step``, ``--metacal-seed``
+RESPONSE: dict = {"response": "model", "step": 0.01, "seed": 0}
+
+
 def _api_config():
     """``Config()`` with the ``--set`` overrides (None without any: the defaults)."""
     import pylensfit as plf
@@ -665,6 +669,8 @@ def pylensfit_measure(method: str, priors, stamps: np.ndarray, psf_img: np.ndarr
     import pylensfit as plf
 
     t0 = time.perf_counter()
+    if method == "api" and RESPONSE["response"] == "metacal":
+        return _measure_metacal(priors, stamps, psf_img, t0)
     if method == "api":
         tab = plf.measure_stamps(stamps, psf_img, noise_sigma=SIGMA, priors=priors,
                                  config=_api_config())  # fmt: skip
@@ -682,6 +688,47 @@ def pylensfit_measure(method: str, priors, stamps: np.ndarray, psf_img: np.ndarr
     if keep_lnL:
         cols["lnL"] = np.asarray(tab["lnL"], dtype=np.float32)
         cols["meta"] = {k: tab.meta[k] for k in ("egrid", "prior", "refine")}
+    return cols, wall
+
+
+def _columns(tab, e_cols, s_cols) -> dict:
+    """``e``, ``sens`` ``(m, 2)`` and ``ok`` (usable, finite) of a ``measure_stamps`` table."""
+    usable = (np.asarray(tab["flags"]) == 0) & (np.asarray(tab["weight"], dtype=float) > 0)
+    e = np.column_stack([np.asarray(tab[c], dtype=float) for c in e_cols])
+    s = np.column_stack([np.asarray(tab[c], dtype=float) for c in s_cols])
+    return {"e": e, "sens": s,
+            "ok": usable & np.all(np.isfinite(e), axis=1) & np.all(np.isfinite(s), axis=1)}
+
+
+def _measure_metacal(priors, stamps: np.ndarray, psf_img: np.ndarray, t0: float):
+    """``--response metacal``: ``plf.measure_stamps(..., response="metacal")`` on the +g
+    and on the -g renderings in two calls with the same seed, so that a galaxy's +g and
+    -g renderings (which share their pixel noise) also share the metacalibration's added
+    noise field; the shapes ``e1_mcal, e2_mcal`` with the responses ``R11, R22``, and
+    lensfit's own ``e1, e2, sens1, sens2`` of the same fits beside them (``model_*``)."""
+    import pylensfit as plf
+
+    n_r = len(RENDERINGS)
+    st = stamps.reshape(-1, n_r, STAMP, STAMP)
+    plus = np.array([sg > 0 for _, sg in RENDERINGS])
+    parts = {}
+    for sign in (True, False):
+        which = np.flatnonzero(plus == sign)
+        tab = plf.measure_stamps(st[:, which].reshape(-1, STAMP, STAMP), psf_img,
+                                 noise_sigma=SIGMA, priors=priors, config=_api_config(),
+                                 response="metacal", metacal_step=RESPONSE["step"],
+                                 seed=RESPONSE["seed"])  # fmt: skip
+        parts[sign] = (which, _columns(tab, ("e1_mcal", "e2_mcal"), ("R11", "R22")),
+                       _columns(tab, ("e1", "e2"), ("sens1", "sens2")))  # fmt: skip
+    wall = time.perf_counter() - t0
+    cols = {}
+    for key, k in (("", 1), ("model_", 2)):
+        for c in ("e", "sens", "ok"):
+            shape = (len(st), n_r) + parts[True][k][c].shape[1:]
+            out = np.zeros(shape, dtype=parts[True][k][c].dtype)
+            for which, *cc in parts.values():
+                out[:, which] = cc[k - 1][c].reshape((len(st), len(which)) + shape[2:])
+            cols[key + c] = out.reshape((-1,) + shape[2:])
     return cols, wall
 
 
@@ -899,13 +946,19 @@ def _mean_row(method: str, rows: list[dict]) -> dict:
     return out
 
 
+def _add_row(rows: list, name: str, ipsf: int, fit: tuple) -> None:
+    """Append method ``name``'s row of PSF ``ipsf`` (``(values, errors, kept)``)."""
+    v, err, kp = fit
+    r = {"method": name, "psf": PSFS[ipsf][0], "n": int(kp.sum())}
+    for q, x, dx in zip(("m1", "m2", "c1", "c2"), v, err, strict=True):
+        r[q], r[f"{q}_err"] = float(x), float(dx)
+    rows.append(r)
+
+
 def _add_psf_rows(rows: dict[str, list], ipsf: int, plf_fit: tuple, hsm_fit: tuple) -> None:
     """Append PSF ``ipsf``'s rows (``(values, errors, kept)`` of each method) to ``rows``."""
-    for name, (v, err, kp) in (("pylensfit", plf_fit), ("REGAUSS", hsm_fit)):
-        r = {"method": name, "psf": PSFS[ipsf][0], "n": int(kp.sum())}
-        for q, x, dx in zip(("m1", "m2", "c1", "c2"), v, err, strict=True):
-            r[q], r[f"{q}_err"] = float(x), float(dx)
-        rows[name].append(r)
+    for name, fit in (("pylensfit", plf_fit), ("REGAUSS", hsm_fit)):
+        _add_row(rows[name], name, ipsf, fit)
 
 
 def combine(paths: list[str], n_groups: int) -> int:
@@ -964,6 +1017,11 @@ def main(argv=None) -> int:
                     help="pylensfit layer: calibrate+measure_stamps, or fit_stamps+shapes")
     ap.add_argument("--estimator", choices=("ratio", "plf"), default="ratio",
                     help="pylensfit shear: sum e / sum sens, or plf.estimate_shear (api)")
+    ap.add_argument("--response", choices=("model", "metacal"), default="model",
+                    help="pylensfit's response (api): lensfit's sensitivity, or "
+                         "metacalibration (measure_stamps(response='metacal'))")
+    ap.add_argument("--metacal-step", type=float, default=0.01)
+    ap.add_argument("--metacal-seed", type=int, default=0)
     ap.add_argument("--hsm-cuts", choices=("standard", "none"), default="standard",
                     help="REGAUSS cuts beyond failures: resolution >= 0.3 and |e| < 2")
     ap.add_argument("--block", type=int, default=25, help="galaxies per PSF block")
@@ -991,6 +1049,9 @@ def main(argv=None) -> int:
         CONFIG_OVERRIDES[key.strip()] = yaml.safe_load(value)
     if a.combine:
         return combine(a.combine, a.groups)
+    if a.response == "metacal" and (a.method != "api" or a.estimator != "ratio"):
+        ap.error("--response metacal needs --method api and --estimator ratio")
+    RESPONSE.update(response=a.response, step=a.metacal_step, seed=a.metacal_seed)
     if a.estimator == "plf" and a.method != "api":
         ap.error("--estimator plf needs --method api (the table's lnL and meta)")
     if min(a.chunk, a.task, a.jobs, a.block) < 1:
@@ -1025,6 +1086,9 @@ def main(argv=None) -> int:
     ok_plf = np.zeros((a.ngal, n_r), dtype=bool)
     e_hsm = np.full((a.ngal, n_r, 2), np.nan)
     ok_hsm = np.zeros((a.ngal, n_r), dtype=bool)
+    # with --response metacal: lensfit's own sensitivity on the same fits
+    e_mod, s_mod, ok_mod = np.full_like(e_plf, np.nan), np.full_like(s_plf, np.nan), \
+        np.zeros_like(ok_plf)
     lnL, meta = {}, {}
     t_render = t_cal = t_meas = t_hsm = rss_hsm = 0.0
     max_chunk_mib = max_cal_mib = 0.0
@@ -1066,6 +1130,10 @@ def main(argv=None) -> int:
                 e_plf[idx] = cols["e"].reshape(len(idx), n_r, 2)
                 s_plf[idx] = cols["sens"].reshape(len(idx), n_r, 2)
                 ok_plf[idx] = cols["ok"].reshape(len(idx), n_r)
+                if "model_e" in cols:
+                    e_mod[idx] = cols["model_e"].reshape(len(idx), n_r, 2)
+                    s_mod[idx] = cols["model_sens"].reshape(len(idx), n_r, 2)
+                    ok_mod[idx] = cols["model_ok"].reshape(len(idx), n_r)
                 if keep_lnL:
                     if ipsf not in lnL:
                         n_e = cols["lnL"].shape[1]
@@ -1093,8 +1161,17 @@ def main(argv=None) -> int:
             vp, ep = m_c_ratio(e_plf[sel][keep_p], s_plf[sel][keep_p], a.g, a.groups)
         vh, eh = m_c_regauss(e_hsm[sel][keep_h], a.g, a.groups)
         _add_psf_rows(rows, ipsf, (vp, ep, keep_p), (vh, eh, keep_h))
+        if a.response == "metacal":
+            keep_m = np.all(ok_mod[sel], axis=1)
+            vm, em = m_c_ratio(e_mod[sel][keep_m], s_mod[sel][keep_m], a.g, a.groups)
+            _add_row(rows.setdefault("plf-model", []), "plf-model", ipsf, (vm, em, keep_m))
     table_rows = [r for name in rows for r in (*rows[name], _mean_row(name, rows[name]))]
     kind_rows = kind_table(pop, done, e_plf, s_plf, ok_plf, e_hsm, ok_hsm, a.g, a.groups)
+    if a.response == "metacal":
+        kind_rows += [r for r in kind_table(pop, done, e_mod, s_mod, ok_mod, e_hsm, ok_hsm,
+                                            a.g, a.groups) if r["method"] == "pylensfit"]
+        for r in kind_rows[-len(KINDS):]:
+            r["method"] = "plf-model"
 
     n_main = a.ngal * n_r
     n_all = n_main + ncal
@@ -1106,6 +1183,9 @@ def main(argv=None) -> int:
     label = ("calibrate + measure_stamps" if a.method == "api"
              else "fit_stamps + estimate_prior + shapes")  # fmt: skip
     est = "sum e / sum sens" if a.estimator == "ratio" else "plf.estimate_shear"
+    if a.response == "metacal":
+        est = (f"metacalibration, sum e_mcal / sum R (step {a.metacal_step}); plf-model: "
+               "lensfit's sensitivity on the same fits")
     print(f"pylensfit --method {a.method} ({label}; shear {est}); REGAUSS cuts: {a.hsm_cuts}")
     print(f"{'':22s} {'pylensfit':>14s} {'REGAUSS':>14s}")
     print(f"{'stamps per second':22s} {rate_meas:14.1f} {rate_hsm:14.1f}   "
@@ -1142,6 +1222,7 @@ def main(argv=None) -> int:
     if a.columns:
         np.savez_compressed(a.columns, e_plf=e_plf, s_plf=s_plf, ok_plf=ok_plf, e_hsm=e_hsm,
                             ok_hsm=ok_hsm, psfs_run=np.array(sorted(done)), g=a.g,
+                            e_mod=e_mod, s_mod=s_mod, ok_mod=ok_mod, response=a.response,
                             **{f"pop_{k}": getattr(pop, k)
                                for k in pop.__dataclass_fields__})  # fmt: skip
         print(f"wrote {a.columns}")

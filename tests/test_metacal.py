@@ -325,3 +325,76 @@ def test_measure_stamps_metacal_columns_are_the_galaxies_metacalibration():
     assert not np.allclose(other["R11"], t["R11"])
     with pytest.raises(ValueError, match="response must be"):
         plf.measure_stamps(stamps, psf_img, sigma, priors=priors, response="moments")
+
+
+def _wcs_draw(obj, wcs, method: str = "auto", n: int = N) -> np.ndarray:
+    """``obj`` (sky coordinates) through ``wcs`` on ``n x n`` pixels, its origin at
+    element ``[n//2, n//2]``."""
+    return obj.drawImage(nx=n, ny=n, wcs=wcs, offset=(0.5, 0.5), method=method).array
+
+
+#: GalSim's d(u, v)/d(x, y): a rotation by 30 degrees with a flip, and a sheared frame
+JACOBIANS = {"rotated+flipped": (0.2 * np.cos(0.52), 0.2 * np.sin(0.52),
+                                 0.2 * np.sin(0.52), -0.2 * np.cos(0.52)),
+             "sheared": (0.21, 0.05, -0.03, 0.18)}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", sorted(JACOBIANS))
+def test_sky_frame_shears_are_galsims_shear_of_the_sky_under_any_wcs(name):
+    """With the pixels' Jacobian, each image is the galaxy sheared on the sky by +-delta
+    and convolved with the dilated PSF (pixel included), as GalSim renders it through
+    the same WCS (a rotation with a flip; a sheared, non-square pixel). Without it the
+    shears are the pixel frame's, which under these WCSs is another shear: that image
+    misses GalSim's by far more (the error of ngmix issue 72's kind)."""
+    wcs = galsim.JacobianWCS(*JACOBIANS[name])
+    J = np.linalg.inv(wcs.jacobian().getMatrix())  # d(x, y) / d(u, v)
+    psf = galsim.Moffat(beta=3.5, fwhm=0.65).shear(g1=0.06, g2=0.05)
+    gal = galsim.Sersic(n=0.8, half_light_radius=0.45).shear(g1=0.2, g2=-0.1)
+    img = _wcs_draw(galsim.Convolve(gal, psf), wcs)
+    psf_img = _wcs_draw(psf, wcs)
+    sky = metacal_images(img, psf_img, 0.0, step=0.01, jacobian=J)
+    pix = metacal_images(img, psf_img, 0.0, step=0.01, types=("1p", "2p"))
+    dil = galsim.Convolve(psf, wcs.toWorld(galsim.Pixel(1.0))).dilate(1.02)
+    for t in METACAL_TYPES:
+        g1, g2 = SHEARS[t]
+        ref = _wcs_draw(galsim.Convolve(gal.shear(g1=g1, g2=g2), dil), wcs, "no_pixel")
+        assert np.abs(sky.images[t] - ref).max() < 2e-5 * ref.max(), t
+        if t in pix.images:
+            assert np.abs(pix.images[t] - ref).max() > 20 * 2e-5 * ref.max(), t
+
+
+def test_round_reconvolution_is_round_on_the_sky_and_bounded_by_the_psf():
+    """``reconvolution="round"``: for a PSF round on the sky (sampled without the square
+    pixel's response), seen through a sheared WCS, it is that PSF dilated (the round PSF
+    of the construction is the PSF itself); for an elliptical PSF it is round (adaptive
+    moments, pixel frame = sky frame) where the dilated PSF keeps the PSF's ellipticity,
+    and its transform nowhere exceeds the sheared PSF's, so no frequency's noise is
+    amplified."""
+    from pylensfit.metacal import round_reconvolution
+
+    wcs = galsim.JacobianWCS(*JACOBIANS["sheared"])
+    J = np.linalg.inv(wcs.jacobian().getMatrix())
+    img = np.zeros((N, N))
+    round_psf = galsim.Gaussian(fwhm=0.7)
+    p_img = _wcs_draw(round_psf, wcs, "no_pixel")  # the pixel response is not round
+    dil = metacal_images(img, p_img, 0.0, jacobian=J, types=("noshear",))
+    rnd = metacal_images(img, p_img, 0.0, jacobian=J, types=("noshear",),
+                         reconvolution="round")  # fmt: skip
+    assert np.abs(rnd.psf - dil.psf).max() < 3e-3 * dil.psf.max()
+
+    ell = _draw(galsim.Moffat(beta=3.5, fwhm=3.0).shear(g1=0.08, g2=0.06))
+    e = {}
+    for how in ("dilate", "round"):
+        mc = metacal_images(img, ell, 0.0, types=("noshear",), reconvolution=how)
+        m = galsim.hsm.FindAdaptiveMom(galsim.Image(mc.psf.astype(np.float64)))
+        e[how] = np.hypot(m.observed_shape.g1, m.observed_shape.g2)
+    assert e["dilate"] > 0.08 and e["round"] < 2e-3, e
+    Pr = round_reconvolution(ell / ell.sum(), 1.02)
+    for d1, d2 in ((0.01, 0), (-0.01, 0), (0, 0.01), (0, -0.01)):
+        S = np.array([[1 + d1, d2], [d2, 1 - d1]]) / np.sqrt(1 - d1 * d1 - d2 * d2)
+        kx, ky = np.meshgrid(2 * np.pi * np.fft.rfftfreq(N), 2 * np.pi * np.fft.fftfreq(N))
+        qx, qy = S[0, 0] * kx + S[0, 1] * ky, S[1, 0] * kx + S[1, 1] * ky
+        x1 = np.arange(N) - N // 2
+        P = np.abs(np.einsum("yx,ijx,ijy->ij", ell / ell.sum(),
+                             np.exp(-1j * qx[..., None] * x1), np.exp(-1j * qy[..., None] * x1)))
+        assert np.all(Pr <= P * (1 + 1e-6))

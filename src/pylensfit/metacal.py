@@ -55,6 +55,14 @@ on 32-pixel stamps is then 4.5 +- 1.2 % too large in ``e1`` (0.7 +- 0.3 % in ``e
 on 64 pixels exact (``benchmarks/studies/metacal_operation.py``): give the operation
 stamps that hold the galaxies' light (``Config().largest_stamp``; the fits cut them to
 their tiers).
+
+Under a WCS whose local Jacobian ``J = d(x, y) / d(u, v)`` (pixels by sky coordinates,
+any units; :func:`pylensfit.exposures.local_jacobian`) rotates, flips or distorts the
+pixels, the shears are made on the sky: the pixel frequencies go to ``J^-T S J^T k``, so
+that ``R`` is the response of the pixel frame's estimate to the sky's shear, and the
+``"round"`` reconvolution PSF (:func:`round_reconvolution`) is round on the sky, not in
+the pixels (Sheldon & Huff 2017, arXiv:1702.02601; ngmix issue 72 is the error of
+making it round in the pixel frame).
 """
 
 from __future__ import annotations
@@ -72,7 +80,7 @@ from .prior import mix_bulge_fractions, usable_rows
 from .shear import posterior_moments, shear_sensitivity
 
 __all__ = ["METACAL_TYPES", "MetacalImages", "metacal_images", "metacal_shapes", "metacal_shear",
-           "response"]
+           "response", "round_reconvolution"]
 
 #: The images of one metacalibration: unsheared, and sheared by ``+-delta`` in ``e1``
 #: and in ``e2``.
@@ -234,6 +242,8 @@ def metacal_images(
     types: tuple[str, ...] = METACAL_TYPES,
     centres: tuple[np.ndarray, np.ndarray] | None = None,
     dilation: float | None = None,
+    jacobian: np.ndarray | None = None,
+    reconvolution: str = "dilate",
 ) -> MetacalImages:
     """Deconvolve, shear by ``+-step`` and reconvolve a set of stamps (module docstring).
 
@@ -271,6 +281,12 @@ def metacal_images(
         ``1 + |step|`` so that no frequency's noise is amplified (default ``1 + 2 step``):
         give one value to compare steps at the same reconvolution PSF, and so the same
         estimator.
+    jacobian : numpy.ndarray, optional
+        ``(2, 2)`` the pixels' ``J = d(x, y) / d(u, v)`` (any units): the shears are the
+        sky's (module docstring). Default: the pixel frame.
+    reconvolution : {"dilate", "round"}
+        ``P_r``: the PSF dilated by ``f``, or the round PSF of
+        :func:`round_reconvolution` (round on the sky).
 
     Returns
     -------
@@ -278,31 +294,116 @@ def metacal_images(
         The images, the reconvolution PSF and the noise level to fit them with.
     """
     st, single, psf, sig, f = _checked_inputs(stamps, psf, noise_sigma, step, dilation, types)
+    Jn = _normalised_jacobian(jacobian)
     n = st.shape[-1]
     rot = _rotated_noise(st, sig, noise_fields, seed)
     noisy = rot is not None
-    cx, cy = _centre_offsets(centres, st)
-    kx, ky = _frequencies(n)
-    Pr = _transform(psf[None], np.diag([f, f]))[0]
+    centre = _centre_offsets(centres, st)
+    Pr = _reconvolution(psf, f, Jn, reconvolution)
     out = {}
     for t in types:
-        A = _shear_matrix(*_shears(step)[t])
-        Ps = _transform(psf[None], A)[0]
-        good = np.abs(Ps) > 1e-9 * abs(Ps[0, 0])
-        kern = np.where(good, Pr / np.where(good, Ps, 1.0), 0.0)
-        # about the centre c: exp(i (A k - k).c) on the transforms about the stamp's centre
-        qx, qy = A[0, 0] * kx + A[0, 1] * ky - kx, A[1, 0] * kx + A[1, 1] * ky - ky
-        move = np.exp(1j * (qx * cx[:, None, None] + qy * cy[:, None, None])) * kern
-        img = _to_image(_transform(st, A) * move, n)
-        if noisy:  # the rotated field sheared by the same delta, then turned back
-            nz = _to_image(_transform(rot, A) * kern, n)
-            if n % 2 == 0:
-                nz = np.roll(nz, -1, axis=-2)
-            img += np.rot90(nz, -1, axes=(-2, -1))
+        S = _shear_matrix(*_shears(step)[t])
+        A = np.linalg.solve(Jn.T, S @ Jn.T)  # J^-T S J^T: the sky's shear on pixel frequencies
+        img = _sheared(st, rot, psf, Pr, A, centre)
         out[t] = (img[0] if single else img).astype(np.float32)
     psf_r = _to_image(Pr[None], n)[0]
     sig_fit = (sig if sig.ndim else float(sig)) * (math.sqrt(2.0) if noisy else 1.0)
     return MetacalImages(images=out, psf=psf_r / psf_r.sum(), noise_sigma=sig_fit, step=float(step))
+
+
+def _normalised_jacobian(jacobian) -> np.ndarray:
+    """``J / sqrt(|det J|)`` (the identity for None): only the Jacobian's shape matters."""
+    if jacobian is None:
+        return np.eye(2)
+    J = np.asarray(jacobian, dtype=np.float64)
+    det = float(np.linalg.det(J)) if J.shape == (2, 2) and np.isfinite(J).all() else 0.0
+    if det == 0.0:
+        raise ValueError(f"jacobian must be a finite, invertible (2, 2) matrix, got {jacobian!r}")
+    return J / math.sqrt(abs(det))
+
+
+def _transform_at(img: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
+    """``sum_x img(x) exp(-i q.x)`` of one ``(n, n)`` image (``x`` from ``[n//2, n//2]``)
+    at the frequencies ``(qx, qy)`` (any shape, rad / px)."""
+    n = img.shape[-1]
+    x1 = np.arange(n) - n // 2
+    ex = np.exp(-1j * np.multiply.outer(qx.ravel(), x1))  # (q, n) along x
+    ey = np.exp(-1j * np.multiply.outer(qy.ravel(), x1))  # (q, n) along y
+    return np.sum((ey @ img) * ex, axis=1).reshape(qx.shape)
+
+
+def round_reconvolution(psf: np.ndarray, dilation: float,
+                        jacobian: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """A round reconvolution PSF's transform: no larger than the dilated PSF's anywhere.
+
+    On the sky frequencies ``q = J^T k`` (``J`` normalised to ``|det J| = 1``), the
+    transform is ``p(|q|) = min over directions of |P(f J^-T q)|``, made non-increasing
+    in ``|q|``: round on the sky, and, where ``|P|`` falls along every ray from the
+    origin (every PSF without zeros in its transform), ``p <= |P(S k)|`` for the
+    metacalibration's shears ``S`` (``|S k| <= f |k|``), so that no frequency's noise is
+    amplified.
+
+    Parameters
+    ----------
+    psf : numpy.ndarray
+        ``(N, N)`` PSF image of unit sum, centred on ``[N//2, N//2]``.
+    dilation : float
+        ``f``, at least ``1 + |step|``.
+    jacobian : numpy.ndarray, optional
+        ``(2, 2)`` the pixels' ``d(x, y) / d(u, v)`` (default the identity).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N, N/2 + 1)`` real, the transform on the ``rfft2`` frequencies of the stamp
+        (about its centre), 1 at ``k = 0``.
+    """
+    Jn = _normalised_jacobian(jacobian)
+    n = psf.shape[-1]
+    kx, ky = _frequencies(n)
+    q = np.hypot(Jn[0, 0] * kx + Jn[1, 0] * ky, Jn[0, 1] * kx + Jn[1, 1] * ky)
+    rho = np.linspace(0.0, float(q.max()) * 1.001, 2 * n + 1)
+    theta = np.linspace(0.0, np.pi, 4 * n, endpoint=False)  # |P(-k)| = |P(k)|
+    ux, uy = np.cos(theta), np.sin(theta)
+    Jit = np.linalg.inv(Jn.T) * float(dilation)
+    px = np.multiply.outer(rho, Jit[0, 0] * ux + Jit[0, 1] * uy)
+    py = np.multiply.outer(rho, Jit[1, 0] * ux + Jit[1, 1] * uy)
+    amp = np.abs(_transform_at(psf / psf.sum(), px, py)).min(axis=1)
+    amp = np.minimum.accumulate(amp)
+    return np.interp(q, rho, amp / amp[0])
+
+
+def _reconvolution(psf: np.ndarray, f: float, Jn: np.ndarray, how: str) -> np.ndarray:
+    """The reconvolution PSF's transform on the ``rfft2`` frequencies (``how``: "dilate",
+    "round")."""
+    if how == "round":
+        return round_reconvolution(psf, f, Jn)
+    if how != "dilate":
+        raise ValueError(f"reconvolution must be 'dilate' or 'round', got {how!r}")
+    return _transform(psf[None], np.diag([f, f]))[0]
+
+
+def _sheared(st: np.ndarray, rot: np.ndarray | None, psf: np.ndarray, Pr: np.ndarray,
+             A: np.ndarray, centre: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """The stamps ``st`` deconvolved by ``psf``, their frequencies mapped by ``A`` about
+    the galaxies' ``centre`` offsets, reconvolved by ``Pr`` (a transform); with the
+    rotated noise field ``rot`` put through the same and turned back."""
+    n = st.shape[-1]
+    kx, ky = _frequencies(n)
+    cx, cy = centre
+    Ps = _transform(psf[None], A)[0]
+    good = np.abs(Ps) > 1e-9 * abs(Ps[0, 0])
+    kern = np.where(good, Pr / np.where(good, Ps, 1.0), 0.0)
+    # about the centre c: exp(i (A k - k).c) on the transforms about the stamp's centre
+    qx, qy = A[0, 0] * kx + A[0, 1] * ky - kx, A[1, 0] * kx + A[1, 1] * ky - ky
+    move = np.exp(1j * (qx * cx[:, None, None] + qy * cy[:, None, None])) * kern
+    img = _to_image(_transform(st, A) * move, n)
+    if rot is not None:  # the rotated field sheared by the same delta, then turned back
+        nz = _to_image(_transform(rot, A) * kern, n)
+        if n % 2 == 0:
+            nz = np.roll(nz, -1, axis=-2)
+        img += np.rot90(nz, -1, axes=(-2, -1))
+    return img
 
 
 def response(e: dict[str, np.ndarray], step: float) -> np.ndarray:
@@ -331,6 +432,7 @@ def metacal_shapes(
     noise_fields: np.ndarray | None = None, seed: int | None = None, fits=None,
     centres: tuple[np.ndarray, np.ndarray] | None = None,
     position_prior_sigma: float | None = 2.0, dilation: float | None = None,
+    jacobian: np.ndarray | None = None, reconvolution: str = "dilate",
 ) -> Table:
     """lensfit's posterior mean ellipticity of each stamp with its metacalibrated response.
 
@@ -361,7 +463,7 @@ def metacal_shapes(
     bulge_weights : numpy.ndarray, optional
         Prior probabilities of the bulge fractions (uniform if ``None``), with a
         bulge+disc model whose fraction is marginalised.
-    step, noise_fields, seed, dilation
+    step, noise_fields, seed, dilation, jacobian, reconvolution
         As :func:`metacal_images`.
     fits, centres : StampFits or tuple of numpy.ndarray, optional
         Fits of ``stamps`` already made, or the galaxies' fitted centres ``(x, y)``
@@ -382,10 +484,7 @@ def metacal_shapes(
         the response if the galaxy were one of the models) and ``flag`` (0 when all six
         fits are usable; else the values are NaN).
     """
-    if not np.all(np.asarray(noise_sigma) > 0):
-        raise ValueError(f"metacal_shapes needs noise_sigma > 0, got {noise_sigma}")
-    if position_prior_sigma is not None and not position_prior_sigma > 0:
-        raise ValueError(f"position_prior_sigma must be > 0 or None, got {position_prior_sigma}")
+    _check_shapes_inputs(noise_sigma, position_prior_sigma)
     st = np.asarray(stamps, dtype=np.float32)
     st = st[None] if st.ndim == 2 else st
     kw = {"config": config, "size_prior": size_prior}
@@ -394,7 +493,8 @@ def metacal_shapes(
     ok = np.isfinite(cx) & np.isfinite(cy)
     mc = metacal_images(st, psf, noise_sigma, step=step, noise_fields=noise_fields, seed=seed,
                         centres=(np.where(ok, cx, n // 2), np.where(ok, cy, n // 2)),
-                        dilation=dilation)  # fmt: skip
+                        dilation=dilation, jacobian=jacobian,
+                        reconvolution=reconvolution)  # fmt: skip
     cfg = config or Config()
     refine = cfg.output_refine
     if position_prior_sigma is not None:
@@ -404,6 +504,13 @@ def metacal_shapes(
         e[t], good, sens_t = _posterior_means(mc, t, kw, prior, bulge_weights, refine)
         ok, sens = ok & good, sens_t if t == "noshear" else sens
     return _shapes_table(e, response(e, step), sens, ok, step)
+
+
+def _check_shapes_inputs(noise_sigma, position_prior_sigma) -> None:
+    if not np.all(np.asarray(noise_sigma) > 0):
+        raise ValueError(f"metacal_shapes needs noise_sigma > 0, got {noise_sigma}")
+    if position_prior_sigma is not None and not position_prior_sigma > 0:
+        raise ValueError(f"position_prior_sigma must be > 0 or None, got {position_prior_sigma}")
 
 
 def _fitted_centres(st: np.ndarray, psf: np.ndarray, noise_sigma, kw: dict, fits,
