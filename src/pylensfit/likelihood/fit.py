@@ -8,6 +8,7 @@ import numpy as np
 from .._util import per_object
 from ..config import Config
 from ..prior import Prior, SizePrior
+from .device import device_grid, resolve_backend
 from .evaluate import evaluate_grid, products
 from .folded import folded_bank
 from .merge import merge_fits
@@ -145,7 +146,8 @@ def _fit_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Con
 
     The stages: the windows cleaned, transformed and centred (:func:`prepare_window`),
     the kernel's priors (:func:`kernel_weights`), the likelihood on the model grid
-    (:func:`evaluate_grid`), the finer e grid (:func:`refined`) and the result
+    (:func:`evaluate_grid`, or :func:`device_grid` on a JAX device: ``cfg.backend``),
+    the finer e grid (:func:`refined`) and the result
     (:func:`assemble_fits`).
     """
     win = prepare_window(stamps, psf, sigma, cfg, cx, cy)
@@ -154,6 +156,9 @@ def _fit_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Con
                                   lnL_r_groups)  # fmt: skip
     # the buffer holds the products with every column of the bank, coarse ones included
     prod = products(win, cfg, fb_kept, fb.G[0].shape[1])
-    grid = evaluate_grid(win, prod, wts, cfg)
+    if resolve_backend(cfg) == "jax":
+        grid = device_grid(win, prod, wts, cfg)
+    else:
+        grid = evaluate_grid(win, prod, wts, cfg)
     egrid, lnle, lnleb = refined(win, prod, wts, grid, cfg, psf)
     return assemble_fits(win, wts, grid, egrid, lnle, lnleb, cfg)
