@@ -67,6 +67,15 @@ class _Static(NamedTuple):
     cubic_snr: float
 
 
+def _x64():
+    """A context in which JAX makes float64 arrays (``jax.enable_x64``; before JAX 0.8,
+    ``jax.experimental.enable_x64``)."""
+    ctx = getattr(jax, "enable_x64", None)
+    if ctx is None:
+        from jax.experimental import enable_x64 as ctx  # older JAX: the experimental name
+    return ctx(True)
+
+
 @cache
 def _block_function():
     """The compiled block function (compiled again for each new shape or setting)."""
@@ -255,7 +264,7 @@ def device_grid(win: Window, prod: Products, wts: Weights, cfg: Config) -> Grid:
     n = min(cfg.block_size, n_gal)
     D = win.D.reshape(n_gal, -1)
     fn = _block_function()
-    with jax.enable_x64(True):
+    with _x64():
         a = dict(_bank_arrays(win, prod))
         w, st = _weights(wts, cfg, prod.fb.members.shape[0] - prod.fb.mix_a.size)
         a.update(w)

@@ -85,7 +85,12 @@ def amplitude(t, s, lns, iss, amp):
     c = jnp.maximum(1.0 - beta / (u0 * u0), AMP_MIN_CURV)
     mu = u0 + g1 / c
     rc = jnp.sqrt(c)
-    lm, dm = bounded_mass((mu - lo) * rc, (mu - hi) * rc)
+    if amp_hi == math.inf:  # no upper bound (known when compiled): ln Phi(a) alone
+        va, da = amplitude_terms((mu - lo) * rc)
+        a = (mu - lo) * rc
+        lm, dm = va - 0.5 * a * a, da - a
+    else:
+        lm, dm = bounded_mass((mu - lo) * rc, (mu - hi) * rc)
     val = 0.5 * t * t + g0 + 0.5 * g1 * g1 / c - 0.5 * jnp.log(c) + lm + 0.5 * amp_lns * lns
     return val, mu + dm / rc
 
