@@ -114,14 +114,14 @@ def _products(R, a, G, dtype):
 
 def _members(P, a, n_base):
     """The four models of every column from the characters' products ``P`` (with ``a``
-    the mixed columns made from their two base columns first; None: none), float64
-    ``(q, 4, g, n_cols)``."""
+    the mixed columns made from their two base columns first; None: none), ``(q, 4, g,
+    n_cols)`` in the products' precision (the Laplace terms read each row in float64)."""
     if a is not None and a["mix_a"].size:
         mixed = a["mix_fa"] * P[..., a["mix_a"]] + a["mix_fm"] * P[..., a["mix_b"]]
         P = jnp.concatenate([P[..., :n_base], mixed], axis=-1)
     p0, p1, p2, p3 = P[0], P[1], P[2], P[3]
     s02, s13, d02, d13 = p0 + p2, p1 + p3, p0 - p2, p1 - p3
-    return jnp.stack([s02 + s13, s02 - s13, d02 + d13, d02 - d13], axis=1).astype(jnp.float64)
+    return jnp.stack([s02 + s13, s02 - s13, d02 + d13, d02 - d13], axis=1)
 
 
 def _laplace(V, cm, gal, st, cubic_g):
@@ -142,12 +142,13 @@ def _laplace(V, cm, gal, st, cubic_g):
 def _best(lnl, extra, valid):
     """Per galaxy the largest ``ln L`` over the valid slots, its slot (the first in the
     kernel's order: column, then member) and ``extra``'s values there; ``lnl`` and
-    ``extra`` ``(4, g, n_cols)``, slots flattened column-major."""
+    ``extra`` ``(4, g, n_cols)``; returns ``ln L`` as ``(g, slot)`` too, the slots
+    ``column * 4 + member``."""
     flat = jnp.where(valid, lnl, -jnp.inf).transpose(1, 2, 0).reshape(lnl.shape[1], -1)
     s = jnp.argmax(flat, axis=1)
-    pick = [jnp.take_along_axis(e.transpose(1, 2, 0).reshape(flat.shape), s[:, None], 1)[:, 0]
-            for e in extra]  # fmt: skip
-    return flat, s, jnp.take_along_axis(flat, s[:, None], 1)[:, 0], pick
+    g = jnp.arange(flat.shape[0])
+    pick = [e[s % 4, g, s // 4] for e in extra]
+    return flat, s, flat[g, s], pick
 
 
 def _block(a, D, gal, st: _Static):

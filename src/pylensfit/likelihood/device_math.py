@@ -100,7 +100,7 @@ def position(V, cm, sig, max_step2):
     is the data's, of :func:`~pylensfit.likelihood.laplace_nb.position_tile`. ``V``:
     ``(q, ...)`` the products ``h, dh/dx, ...``; ``cm``: ``(6, ...)`` ``S, sqrt S, mxx,
     mxy, myy, ln S``; ``sig`` the noise, broadcast against them."""
-    h0, gx, gy, hxx, hxy, hyy = (V[q] for q in range(6))
+    h0, gx, gy, hxx, hxy, hyy = (V[q].astype(jnp.float64) for q in range(6))
     ss = sig * cm[1]
     det = hxx * hyy - hxy * hxy
     idet = 1.0 / det
@@ -124,9 +124,10 @@ def position(V, cm, sig, max_step2):
     return x, y, hs, (hxx, hxy, hyy), ok
 
 
-def _cubic_hessian(V, x, y):
-    return (V[3] + V[6] * x + V[7] * y, V[4] + V[7] * x + V[8] * y,
-            V[5] + V[8] * x + V[9] * y)  # fmt: skip
+def _cubic_hessian(v, x, y):
+    """The Hessian of the third-order expansion at ``(x, y)``; ``v`` the ten rows."""
+    return (v[3] + v[6] * x + v[7] * y, v[4] + v[7] * x + v[8] * y,
+            v[5] + v[8] * x + v[9] * y)  # fmt: skip
 
 
 def cubic(V, pos, go, max_step2):
@@ -134,11 +135,12 @@ def cubic(V, pos, go, max_step2):
     Hessian used, and the galaxy fitted with the third-order expansion): two Newton
     steps on the cubic expansion, then ``h*`` and the Hessian at the peak. ``pos``:
     :func:`position`'s ``(x, y, h*, hessian)``."""
-    h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy = (V[q] for q in range(10))
+    v = [V[q].astype(jnp.float64) for q in range(10)]
+    h0, gx, gy, hxx, hxy, hyy, txxx, txxy, txyy, tyyy = v
     x, y, hs, hess = pos
     ok = go
     for _ in range(2):
-        ax, axy, ay = _cubic_hessian(V, x, y)
+        ax, axy, ay = _cubic_hessian(v, x, y)
         d3 = ax * ay - axy * axy
         go = go & (ax < 0.0) & (d3 > 0.0)
         rx = gx + hxx * x + hxy * y + 0.5 * (txxx * x * x + 2 * txxy * x * y + txyy * y * y)
@@ -148,7 +150,7 @@ def cubic(V, pos, go, max_step2):
         go = go & ~(nx * nx + ny * ny > max_step2)
         x = jnp.where(go, nx, x)
         y = jnp.where(go, ny, y)
-    ax, axy, ay = _cubic_hessian(V, x, y)
+    ax, axy, ay = _cubic_hessian(v, x, y)
     fin = ok & (ax < 0.0) & (ax * ay - axy * axy > 0.0)
     hc = (h0 + gx * x + gy * y + 0.5 * (hxx * x * x + 2.0 * hxy * x * y + hyy * y * y)
           + (txxx * x * x * x + 3 * txxy * x * x * y + 3 * txyy * x * y * y
