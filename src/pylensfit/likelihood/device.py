@@ -2,16 +2,18 @@
 stages as :func:`~pylensfit.likelihood.evaluate.evaluate_grid`, each block of galaxies
 in one compiled call.
 
-Per block, on the device: the Fourier rows of the galaxies (phase ramp to the centres,
-PSF, frequency factors), the folded matrix products with the coarse models, the centring
-pass's Laplace terms and the move of the centres, the rows again at the new centres, the
-products with every model (the bulge+disc fractions between the pure ones mixed from
-them), the Laplace terms (position, the third-order refinement of the faint galaxies,
-amplitude, position prior: :mod:`~pylensfit.likelihood.device_math`), the most likely
-model, and the sums over size and over e. The host transforms and centres the stamps
-(:func:`~pylensfit.likelihood.windows.prepare_window`), sends each block's transforms
-and receives its ``ln L`` rows; the stamp tiers, the finer e grid (``e_refine > 1``) and
-the rows of the result stay on the host.
+Per block, on the device: the windows' transforms and their centring on the peak of the
+cross-correlation with a round model (:func:`~pylensfit.likelihood.windows.centre`), the
+Fourier rows of the galaxies (phase ramp to the centres, PSF, frequency factors), the
+folded matrix products with the coarse models, the centring pass's Laplace terms and
+the move of the centres, the rows again at the new centres, the products with every
+model (the bulge+disc fractions between the pure ones mixed from them), the Laplace
+terms (position, the third-order refinement of the faint galaxies, amplitude, position
+prior: :mod:`~pylensfit.likelihood.device_math`), the most likely model, and the sums
+over size and over e. The host cuts and cleans the windows
+(:func:`~pylensfit.likelihood.windows.prepare_window` with ``on_device``), sends each
+block's pixels and receives its ``ln L`` rows, centres and transforms; the stamp tiers,
+the finer e grid (``e_refine > 1``) and the rows of the result stay on the host.
 
 The matrix products run in ``Config.dtype`` at the full precision of that type (no
 TF32 on GPUs), the terms after them in float64, as the numba kernels do: the result
@@ -25,12 +27,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .. import flags as flag_bits
 from ..config import Config
+from ..models import rfft_frequencies
 from . import device_math as dm
 from .bank import keep_last
 from .evaluate import Grid, Products
 from .priors import Weights
-from .windows import Window
+from .windows import Window, round_reference
 
 try:  # optional dependency: pip install pylensfit[gpu] (Config.backend "jax")
     import jax
@@ -65,6 +69,7 @@ class _Static(NamedTuple):
     max_step2: float
     amp: tuple
     cubic_snr: float
+    rad2: float  # the square of the centring's search radius
 
 
 def _x64():
@@ -151,10 +156,13 @@ def _best(lnl, extra, valid):
     return flat, s, flat[g, s], pick
 
 
-def _block(a, D, gal, st: _Static):
-    """One block: the centring pass on the coarse models, then every model and the sums
-    (see the module's docstring). ``gal``: ``(xc, yc, x0, y0, sigma, no_peak)``."""
-    xc, yc, x0, y0, sigma, no_peak = gal
+def _block(a, pix, gal, st: _Static):
+    """One block: the windows ``pix`` transformed and centred, the centring pass on the
+    coarse models, then every model and the sums (see the module's docstring). ``gal``:
+    ``(x0, y0, sigma)``."""
+    x0, y0, sigma = gal
+    D3, xc, yc, no_peak = dm.centre(pix, x0, y0, a, st.rad2)
+    D = D3.reshape(pix.shape[0], -1)
     dtype = a["G0"].dtype
     sig = sigma[None, :, None]
     # pass 1: the coarse models' best peak moves the origin
@@ -178,7 +186,8 @@ def _block(a, D, gal, st: _Static):
     sums = (a["node_w"], a["ln_w"], st.w_star, a["ln_pi"], a["e_wg"], st.n_sub)
     lnle, lnlb, lnlr = dm.collapse(buf, best, sums)
     return {"lnle": lnle, "lnlb": lnlb, "lnlr": lnlr, "best": a["model_of_slot"][s],
-            "h": hb, "x": xb, "y": yb, "xc": xc, "yc": yc, "low": low}  # fmt: skip
+            "h": hb, "x": xb, "y": yb, "xc": xc, "yc": yc, "low": low, "D": D3,
+            "no_peak": no_peak}  # fmt: skip
 
 
 def _slot_tables(members: np.ndarray, models) -> tuple[np.ndarray, np.ndarray]:
@@ -239,8 +248,20 @@ def _weights(wts: Weights, cfg: Config, n_base: int) -> tuple[dict, _Static]:
               "ln_pi": jnp.asarray(s.ln_pi, dtype=jnp.float64), "e_wg": jnp.asarray(e_wg)}
     st = _Static(n_base=n_base, n_sub=int(s.n_sub), w_star=float(s.w_star), b2=float(wts.b2),
                  max_step2=float(cfg.max_newton_step) ** 2,
-                 amp=tuple(float(v) for v in wts.amp), cubic_snr=float(cfg.cubic_snr))
+                 amp=tuple(float(v) for v in wts.amp), cubic_snr=float(cfg.cubic_snr),
+                 rad2=max(cfg.max_offset, 0.75) ** 2)
     return arrays, st
+
+
+def _centring(win: Window, cfg: Config) -> dict:
+    """The centring's arrays on the device (:func:`~.device_math.centre`)."""
+    n, c = win.n, win.c
+    kx, ky, w = rfft_frequencies(n)
+    host = {"phase": np.exp(1j * (kx * c + ky * c)),
+            "ref": round_reference(win.pb.P.reshape(kx.shape), cfg),
+            "off": ((np.arange(n) + c) % n - c).astype(float),
+            "kx1": kx[0], "ky1": ky[:, 0], "w": w / n**2}  # fmt: skip
+    return {k: jnp.asarray(v) for k, v in host.items()}
 
 
 def _padded(v: np.ndarray, n: int, fill) -> np.ndarray:
@@ -263,24 +284,30 @@ def device_grid(win: Window, prod: Products, wts: Weights, cfg: Config) -> Grid:
                 xb=np.empty(n_gal), yb=np.empty(n_gal),
                 cubic_g=np.zeros(n_gal, dtype=bool))  # fmt: skip
     n = min(cfg.block_size, n_gal)
-    D = win.D.reshape(n_gal, -1)
     fn = _block_function()
     with _x64():
         a = dict(_bank_arrays(win, prod))
         w, st = _weights(wts, cfg, prod.fb.members.shape[0] - prod.fb.mix_a.size)
         a.update(w)
+        a.update(_centring(win, cfg))
         sent = []
         for s0 in range(0, n_gal, n):
             sl = slice(s0, min(s0 + n, n_gal))
-            gal = tuple(jnp.asarray(_padded(v[sl], n, f)) for v, f in (
-                (win.xc, 0.0), (win.yc, 0.0), (win.x0, 0.0), (win.y0, 0.0),
-                (win.sigma, 1.0), (win.no_peak, True)))  # fmt: skip
-            sent.append((sl, fn(a, jnp.asarray(_padded(D[sl], n, 0.0)), gal, st)))
+            gal = tuple(jnp.asarray(_padded(v[sl], n, f))
+                        for v, f in ((win.x0, 0.0), (win.y0, 0.0), (win.sigma, 1.0)))
+            sent.append((sl, fn(a, jnp.asarray(_padded(win.pixels[sl], n, 0.0)), gal, st)))
         for sl, out in sent:
-            m = sl.stop - sl.start
-            res = {k: np.asarray(v)[:m] for k, v in out.items()}
-            grid.lnle[sl], grid.lnleb[sl], grid.lnlr[sl] = res["lnle"], res["lnlb"], res["lnlr"]
-            grid.best[sl], grid.hbest[sl] = res["best"], res["h"]
-            grid.xb[sl], grid.yb[sl], grid.cubic_g[sl] = res["x"], res["y"], res["low"]
-            win.xc[sl], win.yc[sl] = res["xc"], res["yc"]
+            _unpack(sl, {k: np.asarray(v)[: sl.stop - sl.start] for k, v in out.items()},
+                    grid, win)  # fmt: skip
+    win.flags[win.no_peak & ~win.bad] |= flag_bits.flag_value("NO_PEAK")
     return grid
+
+
+def _unpack(sl: slice, res: dict, grid: Grid, win: Window) -> None:
+    """A block's results ``res`` into ``grid`` and ``win`` (the transforms, centres and
+    peaks that the host did not compute)."""
+    grid.lnle[sl], grid.lnleb[sl], grid.lnlr[sl] = res["lnle"], res["lnlb"], res["lnlr"]
+    grid.best[sl], grid.hbest[sl] = res["best"], res["h"]
+    grid.xb[sl], grid.yb[sl], grid.cubic_g[sl] = res["x"], res["y"], res["low"]
+    win.xc[sl], win.yc[sl], win.no_peak[sl], win.D[sl] = (res["xc"], res["yc"],
+                                                          res["no_peak"], res["D"])  # fmt: skip

@@ -237,3 +237,58 @@ def collapse(buf, best, sums):
     lnlr = jnp.concatenate([lnlr, jnp.broadcast_to(l_star[:, None, None],
                                                    (n_g, e_wg.shape[1], 1))], axis=2)
     return lnle, lnlb, lnlr
+
+
+def newton_peak(D, R, kw, X, Y, n_steps):
+    """:func:`pylensfit._util.newton_peak` (see there) for a block: Newton steps to the
+    peak of the cross-correlation of the transforms ``D`` ``(g, n, n // 2 + 1)`` with
+    ``R``; ``kw`` is ``(kx, ky, w / n^2)`` of the ``rfft2`` frequencies."""
+    kx1, ky1, w = kw
+    base = D * jnp.conj(R)[None] * w[None]
+    for _ in range(n_steps):
+        ex = jnp.exp(1j * kx1[None, :] * X[:, None])
+        ey = jnp.exp(1j * ky1[None, :] * Y[:, None])
+        Dp = base * ey[:, :, None] * ex[:, None, :]
+        re, im = Dp.real, Dp.imag
+        gx = -(im * kx1).sum(axis=(1, 2))
+        hxx = -(re * (kx1 * kx1)).sum(axis=(1, 2))
+        gy = -(im.sum(axis=2) * ky1).sum(axis=1)
+        hyy = -(re.sum(axis=2) * (ky1 * ky1)).sum(axis=1)
+        hxy = -((re * kx1).sum(axis=2) * ky1).sum(axis=1)
+        det = hxx * hyy - hxy * hxy
+        good = (hxx < 0) & (det > 0)
+        sx = jnp.where(good, (hxy * gy - hyy * gx) / det, 0.0)
+        sy = jnp.where(good, (hxy * gx - hxx * gy) / det, 0.0)
+        ok = good & (jnp.hypot(sx, sy) < 1.0)
+        X = jnp.where(ok, X + sx, X)
+        Y = jnp.where(ok, Y + sy, Y)
+    return X, Y
+
+
+def centre(pix, x0, y0, c, rad2):
+    """:func:`pylensfit.likelihood.windows.centre` for a block of cleaned windows
+    ``pix`` ``(g, n, n)``, their transforms included: returns the transforms
+    (phase-referenced to the centre pixel), the centres and the windows with no positive
+    peak. ``c``: the phase ramp to the centre ``phase``, the round model ``ref``, the
+    offsets ``off`` of the pixels from the centre and the frequencies ``kx1, ky1, w``
+    (:func:`newton_peak`); ``rad2`` the square of the search radius about ``(x0, y0)``."""
+    n = pix.shape[-1]
+    g = jnp.arange(pix.shape[0])
+    D = jnp.fft.rfft2(pix) * c["phase"][None]
+    cc = jnp.fft.irfft2(D * jnp.conj(c["ref"])[None], s=(n, n))
+    off = c["off"]
+    d2 = ((off[None, None, :] - x0[:, None, None]) ** 2
+          + (off[None, :, None] - y0[:, None, None]) ** 2)  # fmt: skip
+    flat = jnp.where(d2 <= rad2, cc, -jnp.inf).reshape(pix.shape[0], -1).argmax(axis=1)
+    iy, ix = flat // n, flat % n
+    v0 = cc[g, iy, ix]
+
+    def parabola(vm, vp):
+        den = vm - 2 * v0 + vp
+        return jnp.clip(jnp.where(den < 0, 0.5 * (vm - vp) / den, 0.0), -0.5, 0.5)
+
+    xc = off[ix] + parabola(cc[g, iy, (ix - 1) % n], cc[g, iy, (ix + 1) % n])
+    yc = off[iy] + parabola(cc[g, (iy - 1) % n, ix], cc[g, (iy + 1) % n, ix])
+    xc, yc = newton_peak(D, c["ref"], (c["kx1"], c["ky1"], c["w"]), xc, yc, 3)
+    no_peak = ~(v0 > 0)
+    return D, jnp.where(no_peak, x0, xc), jnp.where(no_peak, y0, yc), no_peak

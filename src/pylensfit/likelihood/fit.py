@@ -150,13 +150,14 @@ def _fit_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Con
     the finer e grid (:func:`refined`) and the result
     (:func:`assemble_fits`).
     """
-    win = prepare_window(stamps, psf, sigma, cfg, cx, cy)
+    on_device = resolve_backend(cfg) == "jax"
+    win = prepare_window(stamps, psf, sigma, cfg, cx, cy, on_device=on_device)
     fb = folded_bank(cfg, win.bank)
     wts, fb_kept = kernel_weights(cfg, win.bank, fb, size_prior, size_marginal_prior,
                                   lnL_r_groups)  # fmt: skip
     # the buffer holds the products with every column of the bank, coarse ones included
     prod = products(win, cfg, fb_kept, fb.G[0].shape[1])
-    if resolve_backend(cfg) == "jax":
+    if on_device:
         grid = device_grid(win, prod, wts, cfg)
     else:
         grid = evaluate_grid(win, prod, wts, cfg)
