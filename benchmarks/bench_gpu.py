@@ -33,7 +33,9 @@ Peak memory: the process's resident high-water mark after each step
 (``ru_maxrss``, which includes everything before it; the baseline after the simulation
 is printed) and, on a GPU, the device's peak bytes in use (``memory_stats()``).
 Agreement: the largest difference of the rows of ``ln L`` within 20 of their peak and of
-the likelihood-mean ellipticities between the backends.
+the likelihood-mean ellipticities between the backends, and with ``--f64-reference``
+between each and the CPU path with float64 products (the scale of the float32 products'
+round-off, which grows with S/N as ``ln L`` does).
 """
 
 from __future__ import annotations
@@ -102,6 +104,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                    help="numba threads of the cpu backend (all CPUs)")  # fmt: skip
     p.add_argument("--no-hsm", action="store_true", help="skip HSM REGAUSS")
+    p.add_argument("--f64-reference", action="store_true",
+                   help="also fit with float64 products on the CPU path (not timed), the "
+                        "scale of the float32 round-off")  # fmt: skip
     args = p.parse_args(argv)
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
 
@@ -127,6 +132,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"pylensfit, backend {backend} ...", flush=True)
         row, fits[backend] = bench_backend(backend, stamps, psf_img, cfg, args.threads, dev)
         rows.append(row)
+    if args.f64_reference:
+        print("pylensfit, cpu backend with float64 products (reference, not timed) ...",
+              flush=True)  # fmt: skip
+        from pylensfit import fit_stamps  # after the timed rows
+
+        fits["cpu float64"] = fit_stamps(stamps, psf_img, NOISE_SIGMA,
+                                         config=cfg.replace(dtype="float64", block_size=128))
     e_hsm = None
     if not args.no_hsm:
         print("HSM REGAUSS ...", flush=True)
@@ -149,14 +161,18 @@ def report(args, rows, fits, e_true, e_hsm, base_rss) -> None:
         print(f"{r['method']:<16} {r['rate']:9.0f} {r['wall']:8.2f} {r['warm']:9.1f} "
               f"{r['rss']:>12} {r['dev']:>15} {r['fail']:8d}")  # fmt: skip
     print(f"(RSS after simulation, before any measurement: {base_rss:.0f} MiB)")
-    if "cpu" in fits and "jax" in fits:
-        a, b = fits["cpu"], fits["jax"]
+    for x, y in (("jax", "cpu"), ("jax", "cpu float64"), ("cpu", "cpu float64")):
+        if x not in fits or y not in fits:
+            continue
+        a, b = fits[y], fits[x]
         near = a.lnL > -20.0
         dmax = np.max(np.abs(a.lnL - b.lnL)[near]) if near.any() else np.nan
         de = np.nanmax(np.abs(likelihood_mean_e(a) - likelihood_mean_e(b)))
-        print(f"jax vs cpu: max |d lnL| where lnL > -20: {dmax:.1e}; max |d <e>|: {de:.1e}; "
+        print(f"{x} vs {y}: max |d lnL| where lnL > -20: {dmax:.1e}; max |d <e>|: {de:.1e}; "
               f"flags equal: {bool((a.flags == b.flags).all())}")  # fmt: skip
     for name, f in fits.items():
+        if name == "cpu float64":
+            continue
         e = likelihood_mean_e(f)
         ok = np.isfinite(e[:, 0])
         c = np.corrcoef(e[ok, 0], e_true[ok, 0])[0, 1]

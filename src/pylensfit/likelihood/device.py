@@ -42,10 +42,6 @@ try:  # optional dependency: pip install pylensfit[gpu] (Config.backend "jax")
 except ImportError:  # the CPU path needs none of this module
     jax = jnp = None
 
-#: the backends that ``Config.backend`` names
-BACKENDS = ("cpu", "jax", "auto")
-
-
 def resolve_backend(cfg: Config) -> str:
     """``"cpu"`` or ``"jax"``: ``cfg.backend``, with ``"auto"`` the device path where
     JAX is installed and its default device is not the CPU (a GPU or TPU)."""
