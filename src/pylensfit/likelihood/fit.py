@@ -94,6 +94,12 @@ def fit_stamps(
     thread count by about 1e-4, which the sky measured again less the models can carry
     much further. So the result is the same bit for bit in a serial run, under
     ``jobs > 1`` and on a cluster's workers.
+
+    With ``config.backend = "jax"`` (or ``"auto"`` where JAX finds a GPU) the windows'
+    transforms and centring, the products and the kernel's terms run on a JAX device
+    (:mod:`pylensfit.likelihood.device`): the same sums, whose float32 products round
+    otherwise, so ``ln L`` differs from the CPU path's by that round-off (to 1e-8 with
+    ``dtype="float64"``).
     """
     with one_blas_thread():
         return _fit_stamps(stamps, psf, noise_sigma, config, centres, size_prior,
@@ -144,7 +150,8 @@ def _fit_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Con
                 lnL_r_groups: np.ndarray | None = None) -> StampFits:  # fmt: skip
     """:func:`fit_stamps` on ``cfg.stamp_size`` windows (one stamp size for all).
 
-    The stages: the windows cleaned, transformed and centred (:func:`prepare_window`),
+    The stages: the windows cleaned, transformed and centred (:func:`prepare_window`;
+    on the device path transformed and centred by :func:`device_grid`),
     the kernel's priors (:func:`kernel_weights`), the likelihood on the model grid
     (:func:`evaluate_grid`, or :func:`device_grid` on a JAX device: ``cfg.backend``),
     the finer e grid (:func:`refined`) and the result
