@@ -81,6 +81,8 @@ def test_float32_products_agree_to_their_round_off():
     assert np.abs(_posterior_means(dev, ok) - _posterior_means(cpu, ok)).max() < 1e-5
     assert (dev.r_best[ok] == cpu.r_best[ok]).all()
     np.testing.assert_allclose(dev.x[ok], cpu.x[ok], atol=1e-4)
+    empty = fit_stamps(stamps[:0], psf, 1.0, config=cfg.replace(backend="jax"))
+    assert empty.lnL.shape == (0, cpu.lnL.shape[1])
 
 
 def test_the_backend_is_chosen_by_the_config(monkeypatch):

@@ -279,7 +279,7 @@ def device_grid(win: Window, prod: Products, wts: Weights, cfg: Config) -> Grid:
                 best=np.empty(n_gal, dtype=np.int64), hbest=np.empty(n_gal),
                 xb=np.empty(n_gal), yb=np.empty(n_gal),
                 cubic_g=np.zeros(n_gal, dtype=bool))  # fmt: skip
-    n = min(cfg.block_size, n_gal)
+    n = max(min(cfg.block_size, n_gal), 1)
     fn = _block_function()
     with _x64():
         a = dict(_bank_arrays(win, prod))

@@ -93,13 +93,8 @@ def fit_stamps(
     float32 ``sgemm`` sums in another order, and ``ln L`` would depend on the machine's
     thread count by about 1e-4, which the sky measured again less the models can carry
     much further. So the result is the same bit for bit in a serial run, under
-    ``jobs > 1`` and on a cluster's workers.
-
-    With ``config.backend = "jax"`` (or ``"auto"`` where JAX finds a GPU) the windows'
-    transforms and centring, the products and the kernel's terms run on a JAX device
-    (:mod:`pylensfit.likelihood.device`): the same sums, whose float32 products round
-    otherwise, so ``ln L`` differs from the CPU path's by that round-off (to 1e-8 with
-    ``dtype="float64"``).
+    ``jobs > 1`` and on a cluster's workers. With ``config.backend = "jax"`` the blocks
+    run on a JAX device (:mod:`pylensfit.likelihood.device`), to round-off.
     """
     with one_blas_thread():
         return _fit_stamps(stamps, psf, noise_sigma, config, centres, size_prior,
