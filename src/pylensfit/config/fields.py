@@ -220,11 +220,14 @@ CENTRING = Section("centring", "Centring", "The search for each galaxy's centre 
       "cross-correlation in position (0: never, inf: always).", "", "[0, inf]"),
 ))
 
-NUMERICS = Section("numerics", "Numerics", "Precision and blocking of the matrix "
+NUMERICS = Section("numerics", "Numerics", "Precision, blocking and device of the matrix "
                    "products.", (
     P("dtype", str, "float32", "Precision of the matrix products.",
       choices=("float32", "float64")),
     P("block_size", int, 128, "Galaxies per block of matrix products.", "", "[1, inf)"),
+    P("backend", str, "cpu", "Where the likelihood on the model grid runs: 'cpu' (numpy and "
+      "numba), 'jax' (a JAX device, e.g. a GPU: pip install pylensfit[gpu]), 'auto' (JAX "
+      "where it finds a GPU or TPU, else 'cpu').", choices=("cpu", "jax", "auto")),
 ))
 
 SHEAR = Section("shear", "Bayesian shear", "The shear sensitivity and its integrals "

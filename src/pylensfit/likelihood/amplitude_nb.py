@@ -103,10 +103,10 @@ def _bounded_mass(a, b):
 AMP_UNIFORM = -math.inf
 #: where no lower bound is given, a power-law amplitude prior starts at this S/N (the
 #: law diverges at 0 for ``beta >= 1``)
-_AMP_FLOOR = 1.0
+AMP_FLOOR = 1.0
 #: floor on the curvature ``1 - beta / u0^2`` of the expansion point: reached only for
 #: models of S/N below ~2, which carry no weight
-_AMP_MIN_CURV = 0.5
+AMP_MIN_CURV = 0.5
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"}, inline="always")
@@ -120,7 +120,7 @@ def amplitude_integral(t, s, lns, iss, amp_pow, amp_lns, amp_lo, amp_hi):
     negative one for counts that rise with flux) in the S/N ``u`` between bounds ``lo <
     hi`` (the flux
     bounds ``amp_lo``, ``amp_hi`` in the model's S/N units, ``lo`` at least
-    ``_AMP_FLOOR``): ``0.5 t^2 + ln int_lo^hi u^-beta phi(u - t) du``, with the log of the
+    ``AMP_FLOOR``): ``0.5 t^2 + ln int_lo^hi u^-beta phi(u - t) du``, with the log of the
     integrand ``g(u) = -beta ln u - (u - t)^2 / 2`` expanded to second order about its
     maximum ``u0`` on ``[lo, hi]`` (the root ``u* = (t + sqrt(t^2 - 4 beta)) / 2`` of
     ``g'``, or the bound it lies beyond) and the Gaussian so made integrated exactly
@@ -137,7 +137,7 @@ def amplitude_integral(t, s, lns, iss, amp_pow, amp_lns, amp_lo, amp_hi):
         val, dl = _amplitude_terms(t)
         return val - 0.5 * lns, dl
     beta = amp_pow
-    lo = max(amp_lo * s * iss, _AMP_FLOOR)  # flux to S/N: sqrt(S) / sigma = S * iss
+    lo = max(amp_lo * s * iss, AMP_FLOOR)  # flux to S/N: sqrt(S) / sigma = S * iss
     hi = amp_hi * s * iss
     disc = t * t - 4.0 * beta
     u0 = lo
@@ -152,7 +152,7 @@ def amplitude_integral(t, s, lns, iss, amp_pow, amp_lns, amp_lo, amp_hi):
                 u0 = u
                 g0 = gu
     g1 = t - u0 - beta / u0
-    c = max(1.0 - beta / (u0 * u0), _AMP_MIN_CURV)
+    c = max(1.0 - beta / (u0 * u0), AMP_MIN_CURV)
     mu = u0 + g1 / c
     rc = math.sqrt(c)
     lm, dm = _bounded_mass((mu - lo) * rc, (mu - hi) * rc)
@@ -176,7 +176,7 @@ def power_law_table(beta):
     """Knots of the unbounded power-law amplitude integral for :func:`amplitude_tile`.
 
     Returns ``(t0, tab)``: ``tab[0]`` is ``val - 0.5 t^2`` of :func:`amplitude_integral`
-    (lower limit ``_AMP_FLOOR``, no upper bound, ``S = 1``), ``tab[2]`` its second value
+    (lower limit ``AMP_FLOOR``, no upper bound, ``S = 1``), ``tab[2]`` its second value
     (the amplitude's posterior mean), ``tab[1]`` and ``tab[3]`` their ``t`` derivatives
     (central differences), at ``t = t0 + i * _PT_STEP``. The interpolant is within 2e-8
     of the direct evaluation (``tests/test_likelihood.py``), and costs what the uniform
@@ -237,7 +237,7 @@ def _amplitude_integral_lo(t, lo, beta):
     ustar = 0.5 * (t + math.sqrt(t * t - 4.0 * beta))
     u0 = ustar if ustar > lo else lo
     g1 = t - u0 - beta / u0
-    c = max(1.0 - beta / (u0 * u0), _AMP_MIN_CURV)
+    c = max(1.0 - beta / (u0 * u0), AMP_MIN_CURV)
     mu = u0 + g1 / c
     rc = math.sqrt(c)
     a = (mu - lo) * rc
@@ -264,12 +264,12 @@ def amplitude_tile(cm, amp_pow, amp_lns, amp_lo, amp_hi, t0, tab, W):
         lo_u = amp_lo * cm[0, k] * iss  # the flux bounds in the model's S/N units
         hi_u = amp_hi * cm[0, k] * iss
         if (n_tab > 0 and t >= t0 and t < t1 and hi_u - t >= _PT_BOUND_MARGIN
-                and (lo_u <= _AMP_FLOOR or t - lo_u >= _PT_BOUND_MARGIN)):
+                and (lo_u <= AMP_FLOOR or t - lo_u >= _PT_BOUND_MARGIN)):
             i, h00, h10, h01, h11 = _hermite((t - t0) * (1.0 / _PT_STEP), _PT_STEP)
             val = (0.5 * t * t + h00 * tab[0, i] + h10 * tab[1, i] + h01 * tab[0, i + 1]
                    + h11 * tab[1, i + 1] + 0.5 * amp_lns * cm[5, k])  # fmt: skip
             dl = h00 * tab[2, i] + h10 * tab[3, i] + h01 * tab[2, i + 1] + h11 * tab[3, i + 1]
-        elif n_tab > 0 and t >= t0 and hi_u - t >= _PT_BOUND_MARGIN and lo_u > _AMP_FLOOR:
+        elif n_tab > 0 and t >= t0 and hi_u - t >= _PT_BOUND_MARGIN and lo_u > AMP_FLOOR:
             ustar = 0.0
             if t < t1:
                 i, h00, h10, h01, h11 = _hermite((t - t0) * (1.0 / _PT_STEP), _PT_STEP)

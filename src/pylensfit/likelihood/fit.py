@@ -8,6 +8,7 @@ import numpy as np
 from .._util import per_object
 from ..config import Config
 from ..prior import Prior, SizePrior
+from .device import device_grid, resolve_backend
 from .evaluate import evaluate_grid, products
 from .folded import folded_bank
 from .merge import merge_fits
@@ -92,7 +93,8 @@ def fit_stamps(
     float32 ``sgemm`` sums in another order, and ``ln L`` would depend on the machine's
     thread count by about 1e-4, which the sky measured again less the models can carry
     much further. So the result is the same bit for bit in a serial run, under
-    ``jobs > 1`` and on a cluster's workers.
+    ``jobs > 1`` and on a cluster's workers. With ``config.backend = "jax"`` the blocks
+    run on a JAX device (:mod:`pylensfit.likelihood.device`), to round-off.
     """
     with one_blas_thread():
         return _fit_stamps(stamps, psf, noise_sigma, config, centres, size_prior,
@@ -143,17 +145,23 @@ def _fit_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Con
                 lnL_r_groups: np.ndarray | None = None) -> StampFits:  # fmt: skip
     """:func:`fit_stamps` on ``cfg.stamp_size`` windows (one stamp size for all).
 
-    The stages: the windows cleaned, transformed and centred (:func:`prepare_window`),
+    The stages: the windows cleaned, transformed and centred (:func:`prepare_window`;
+    on the device path transformed and centred by :func:`device_grid`),
     the kernel's priors (:func:`kernel_weights`), the likelihood on the model grid
-    (:func:`evaluate_grid`), the finer e grid (:func:`refined`) and the result
+    (:func:`evaluate_grid`, or :func:`device_grid` on a JAX device: ``cfg.backend``),
+    the finer e grid (:func:`refined`) and the result
     (:func:`assemble_fits`).
     """
-    win = prepare_window(stamps, psf, sigma, cfg, cx, cy)
+    on_device = resolve_backend(cfg) == "jax"
+    win = prepare_window(stamps, psf, sigma, cfg, cx, cy, on_device=on_device)
     fb = folded_bank(cfg, win.bank)
     wts, fb_kept = kernel_weights(cfg, win.bank, fb, size_prior, size_marginal_prior,
                                   lnL_r_groups)  # fmt: skip
     # the buffer holds the products with every column of the bank, coarse ones included
     prod = products(win, cfg, fb_kept, fb.G[0].shape[1])
-    grid = evaluate_grid(win, prod, wts, cfg)
+    if on_device:
+        grid = device_grid(win, prod, wts, cfg)
+    else:
+        grid = evaluate_grid(win, prod, wts, cfg)
     egrid, lnle, lnleb = refined(win, prod, wts, grid, cfg, psf)
     return assemble_fits(win, wts, grid, egrid, lnle, lnleb, cfg)

@@ -33,6 +33,13 @@ def cut_windows(stamps: np.ndarray, n: int, cx: np.ndarray, cy: np.ndarray):
     return out, cx - ix, cy - iy
 
 
+def round_reference(P: np.ndarray, config: Config) -> np.ndarray:
+    """The round exponential of scale ``config.centring_scale`` convolved with the PSF
+    transform ``P`` (``(n, n // 2 + 1)``): what :func:`centre` cross-correlates with."""
+    kx, ky, _ = rfft_frequencies(config.stamp_size)
+    return fourier_profile(np.hypot(kx, ky) * config.centring_scale, "exponential") * P
+
+
 def centre(D: np.ndarray, P: np.ndarray, config: Config, x0: np.ndarray, y0: np.ndarray):
     """Integer-then-parabola peak of the cross-correlation with a round model.
 
@@ -40,8 +47,7 @@ def centre(D: np.ndarray, P: np.ndarray, config: Config, x0: np.ndarray, y0: np.
     offsets from it. Returns the offsets of the peak and a flag for "no positive peak".
     """
     n = config.stamp_size
-    kx, ky, _ = rfft_frequencies(n)
-    ref = fourier_profile(np.hypot(kx, ky) * config.centring_scale, "exponential") * P
+    ref = round_reference(P, config)
     cc = np.fft.irfft2(D * np.conj(ref)[None], s=(n, n))  # cc[g, iy, ix] = h(X=(ix, iy))
     off = (np.arange(n) + n // 2) % n - n // 2
     rad = max(config.max_offset, 0.75)
@@ -80,7 +86,11 @@ class Window:
     ``xc, yc`` (the origin of the expansion in position, offsets from the centre pixel
     ``c``) are moved in place by the centring pass
     (:func:`pylensfit.likelihood.evaluate.evaluate_grid`), and ``flags`` gains bits in
-    place.
+    place. On the device path (:func:`prepare_window` with ``on_device``) ``pixels``
+    holds the cleaned windows, and ``D``, ``xc``, ``yc``, ``no_peak`` and the
+    ``NO_PEAK`` flags are filled by
+    :func:`~pylensfit.likelihood.device.device_grid`, which transforms and centres them
+    there.
     """
 
     n_gal: int
@@ -101,6 +111,7 @@ class Window:
     xc: np.ndarray
     yc: np.ndarray
     no_peak: np.ndarray  # no positive peak of the cross-correlation
+    pixels: np.ndarray | None = None  # (n_gal, n, n) the cleaned windows (device path)
 
     def galaxies(self, sel: slice | np.ndarray) -> Galaxies:
         """The galaxies ``sel`` as the kernel reads them
@@ -130,8 +141,9 @@ def _clean_stamps(stamps: np.ndarray, sigma: np.ndarray
 
 
 def prepare_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Config,
-                   cx: np.ndarray, cy: np.ndarray) -> Window:  # fmt: skip
-    """Cut and clean the windows, their transforms, the PSF bank and the centres."""
+                   cx: np.ndarray, cy: np.ndarray, on_device: bool = False) -> Window:  # fmt: skip
+    """Cut and clean the windows, their transforms, the PSF bank and the centres (with
+    ``on_device``, the windows only: the device transforms and centres them)."""
     n_gal = stamps.shape[0]
     n = cfg.stamp_size
     bank = model_bank(cfg)
@@ -143,9 +155,14 @@ def prepare_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: 
     c = n // 2
     x0 = cx - c
     y0 = cy - c
-    D = np.fft.rfft2(stamps) * np.exp(1j * (kx * c + ky * c))[None]
-    xc, yc, no_peak = centre(D, pb.P.reshape(kx.shape), cfg, x0, y0)
-    flags[no_peak & ~bad] |= _flags.flag_value("NO_PEAK")
+    if on_device:
+        D = np.zeros((n_gal, *kx.shape), dtype=complex)
+        xc, yc, no_peak = x0.copy(), y0.copy(), np.zeros(n_gal, dtype=bool)
+    else:
+        D = np.fft.rfft2(stamps) * np.exp(1j * (kx * c + ky * c))[None]
+        xc, yc, no_peak = centre(D, pb.P.reshape(kx.shape), cfg, x0, y0)
+        flags[no_peak & ~bad] |= _flags.flag_value("NO_PEAK")
     return Window(n_gal=n_gal, n=n, c=c, bank=bank, pb=pb, sigma=sigma, flags=flags, bad=bad,
                   shift_x=cx_in - cx, shift_y=cy_in - cy, x0=x0, y0=y0, kx=kx, ky=ky, D=D,
-                  xc=xc, yc=yc, no_peak=no_peak)  # fmt: skip
+                  xc=xc, yc=yc, no_peak=no_peak,
+                  pixels=np.asarray(stamps, dtype=float) if on_device else None)  # fmt: skip
