@@ -79,8 +79,9 @@ from .likelihood import fit_stamps
 from .prior import mix_bulge_fractions, usable_rows
 from .shear import posterior_moments, shear_sensitivity
 
-__all__ = ["METACAL_TYPES", "MetacalImages", "metacal_images", "metacal_shapes", "metacal_shear",
-           "response", "round_reconvolution"]
+__all__ = ["METACAL_TYPES", "MetacalBranches", "MetacalImages", "metacal_branches",
+           "metacal_fits", "metacal_images", "metacal_shapes", "metacal_shear", "response",
+           "round_reconvolution"]
 
 #: The images of one metacalibration: unsheared, and sheared by ``+-delta`` in ``e1``
 #: and in ``e2``.
@@ -437,11 +438,11 @@ def metacal_shapes(
     """lensfit's posterior mean ellipticity of each stamp with its metacalibrated response.
 
     The stamps are fitted (or ``fits`` given) for their galaxies' centres; the five
-    metacalibration images are made about those centres (:func:`metacal_images`) and
-    fitted with the reconvolution PSF and the doubled noise variance; the posterior means
-    under ``prior`` (:func:`pylensfit.shear.posterior_moments`) of the unsheared image
-    are the measurement, those of the sheared ones give the response (:func:`response`).
-    The shear of a sample is then :func:`metacal_shear`.
+    metacalibration images are made about those centres and fitted
+    (:func:`metacal_fits`); the posterior means under ``prior``
+    (:func:`pylensfit.shear.posterior_moments`) of the unsheared image are the
+    measurement, those of the sheared ones give the response (:func:`response`). The
+    shear of a sample is then :func:`metacal_shear`.
 
     Parameters
     ----------
@@ -469,11 +470,7 @@ def metacal_shapes(
         Fits of ``stamps`` already made, or the galaxies' fitted centres ``(x, y)``
         (stamp pixels, element ``[y, x]``); without either the stamps are fitted.
     position_prior_sigma : float or None
-        Width (px) of the position prior of the five metacalibration images' fits (None:
-        the configuration's). The images are sheared about the fitted centre, whose
-        noise moves the galaxy against the prior's centre by ``delta`` times that noise:
-        a narrow prior adds a response to that move, which is not the shear's; the
-        default is the paper's wide 2 px (``benchmarks/README.md``, precision_metacal).
+        As :func:`metacal_fits`.
 
     Returns
     -------
@@ -489,21 +486,134 @@ def metacal_shapes(
     st = st[None] if st.ndim == 2 else st
     kw = {"config": config, "size_prior": size_prior}
     cx, cy = _fitted_centres(st, psf, noise_sigma, kw, fits, centres)
+    ok = np.isfinite(cx) & np.isfinite(cy)
+    mf = metacal_fits(st, psf, noise_sigma, config=config, size_prior=size_prior, step=step,
+                      noise_fields=noise_fields, seed=seed, centres=(cx, cy),
+                      position_prior_sigma=position_prior_sigma, dilation=dilation,
+                      jacobian=jacobian, reconvolution=reconvolution)  # fmt: skip
+    refine = (config or Config()).output_refine
+    e, sens = {}, None
+    for t in METACAL_TYPES:
+        e[t], good, sens_t = _posterior_means(mf[t], prior, bulge_weights, refine,
+                                              t == "noshear")  # fmt: skip
+        ok, sens = ok & good, sens_t if t == "noshear" else sens
+    return _shapes_table(e, response(e, step), sens, ok, step)
+
+
+def metacal_fits(
+    stamps: np.ndarray, psf: np.ndarray, noise_sigma, *, config=None, size_prior=None,
+    step: float = 0.01, noise_fields: np.ndarray | None = None, seed: int | None = None,
+    centres: tuple[np.ndarray, np.ndarray], position_prior_sigma: float | None = 2.0,
+    dilation: float | None = None, jacobian: np.ndarray | None = None,
+    reconvolution: str = "dilate",
+) -> dict:
+    """The fits of the five metacalibration images of a set of stamps, about their centres.
+
+    The images of :func:`metacal_images` about ``centres`` (a centre that is not finite:
+    the stamp's centre), each fitted (:func:`pylensfit.likelihood.fit_stamps`) with the
+    reconvolution PSF and the noise level of the images (``sqrt(2)`` times the input's)
+    on the whole stamp, under the configuration with ``position_prior_sigma``.
+
+    Parameters
+    ----------
+    stamps, psf, noise_sigma
+        As :func:`metacal_images` (``noise_sigma > 0``).
+    config, size_prior
+        As :func:`pylensfit.likelihood.fit_stamps` (default ``Config()``).
+    step, noise_fields, seed, dilation, jacobian, reconvolution
+        As :func:`metacal_images`.
+    centres : tuple of numpy.ndarray
+        ``(x, y)`` per stamp (stamp pixels, element ``[y, x]``): the galaxies' fitted
+        centres, about which the images are sheared.
+    position_prior_sigma : float or None
+        Width (px) of the position prior of the five fits (None: the configuration's).
+        The images are sheared about the fitted centre, whose noise moves the galaxy
+        against the prior's centre by ``delta`` times that noise: a narrow prior adds a
+        response to that move, which is not the shear's; the default is the paper's wide
+        2 px (``benchmarks/README.md``, precision_metacal).
+
+    Returns
+    -------
+    dict of StampFits
+        The fits per type of :data:`METACAL_TYPES`.
+    """
+    if position_prior_sigma is not None and not position_prior_sigma > 0:
+        raise ValueError(f"position_prior_sigma must be > 0 or None, got {position_prior_sigma}")
+    st = np.asarray(stamps, dtype=np.float32)
+    st = st[None] if st.ndim == 2 else st
     n = st.shape[-1]
+    cx, cy = (np.broadcast_to(np.asarray(c, float), st.shape[:1]) for c in centres)
     ok = np.isfinite(cx) & np.isfinite(cy)
     mc = metacal_images(st, psf, noise_sigma, step=step, noise_fields=noise_fields, seed=seed,
                         centres=(np.where(ok, cx, n // 2), np.where(ok, cy, n // 2)),
                         dilation=dilation, jacobian=jacobian,
                         reconvolution=reconvolution)  # fmt: skip
     cfg = config or Config()
-    refine = cfg.output_refine
     if position_prior_sigma is not None:
-        kw["config"] = cfg.replace(position_prior_sigma=float(position_prior_sigma))
-    e, sens = {}, None
+        cfg = cfg.replace(position_prior_sigma=float(position_prior_sigma))
+    return {t: fit_stamps(mc.images[t], mc.psf, mc.noise_sigma, config=cfg,
+                          size_prior=size_prior) for t in METACAL_TYPES}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class MetacalBranches:
+    """Each metacalibration image's posterior means and what a selection cuts on.
+
+    Attributes
+    ----------
+    e : dict of numpy.ndarray
+        ``(n, 2)`` posterior means per type of :data:`METACAL_TYPES` (NaN where the
+        fit is not usable).
+    snr : dict of numpy.ndarray
+        ``(n,)`` the matched-filter S/N of each image's most likely model.
+    usable : dict of numpy.ndarray
+        ``(n,)`` bool: the fit is usable (a finite ``ln L`` row, no fit flag) and not a
+        point source.
+    step : float
+        The images' shear ``delta``.
+    """
+
+    e: dict[str, np.ndarray]
+    snr: dict[str, np.ndarray]
+    usable: dict[str, np.ndarray]
+    step: float
+
+    @property
+    def R(self) -> np.ndarray:
+        """``(n, 2, 2)`` each galaxy's response (:func:`response`; NaN where a sheared
+        image's fit is not usable)."""
+        return response(self.e, self.step)
+
+
+def metacal_branches(fits: dict, prior, *, bulge_weights: np.ndarray | None = None,
+                     refine: int = 4, step: float = 0.01) -> MetacalBranches:  # fmt: skip
+    """The posterior means, S/N and usability of the fits of :func:`metacal_fits`.
+
+    Parameters
+    ----------
+    fits : dict of StampFits
+        The fits per type of :data:`METACAL_TYPES`.
+    prior : pylensfit.prior.Prior
+        The ellipticity prior of the posterior means.
+    bulge_weights : numpy.ndarray, optional
+        As :func:`metacal_shapes`.
+    refine : int
+        The integrals' grid refinement (``Config.output_refine``).
+    step : float
+        The images' shear ``delta``.
+
+    Returns
+    -------
+    MetacalBranches
+    """
+    e, snr, usable = {}, {}, {}
     for t in METACAL_TYPES:
-        e[t], good, sens_t = _posterior_means(mc, t, kw, prior, bulge_weights, refine)
-        ok, sens = ok & good, sens_t if t == "noshear" else sens
-    return _shapes_table(e, response(e, step), sens, ok, step)
+        f = fits[t]
+        mean, good, _ = _posterior_means(f, prior, bulge_weights, refine, False)
+        e[t] = np.where(good[:, None], mean, np.nan)
+        snr[t] = np.asarray(f.snr, dtype=float)
+        usable[t] = good & ~np.asarray(f.is_star, dtype=bool)
+    return MetacalBranches(e=e, snr=snr, usable=usable, step=float(step))
 
 
 def _check_shapes_inputs(noise_sigma, position_prior_sigma) -> None:
@@ -524,18 +634,17 @@ def _fitted_centres(st: np.ndarray, psf: np.ndarray, noise_sigma, kw: dict, fits
     return np.asarray(fits.x, float), np.asarray(fits.y, float)
 
 
-def _posterior_means(mc: MetacalImages, t: str, kw: dict, prior, bulge_weights, refine: int):
-    """The posterior means ``(n, 2)`` of the metacalibration image ``t`` (fitted with
-    ``kw``: the configuration and size prior), its usable rows, and, for ``"noshear"``,
-    lensfit's sensitivities ``(s1, s2)`` (None for the others)."""
-    f = fit_stamps(mc.images[t], mc.psf, mc.noise_sigma, **kw)
+def _posterior_means(f, prior, bulge_weights, refine: int, sensitivities: bool):
+    """The posterior means ``(n, 2)`` of the fits ``f`` of a metacalibration image, its
+    usable rows, and, with ``sensitivities``, lensfit's sensitivities ``(s1, s2)`` (else
+    None)."""
     lnL = f.lnL
     if f.lnL_bulge is not None:
         lnL = mix_bulge_fractions(f.lnL_bulge, f.lnL_star, bulge_weights)
     good = usable_rows(lnL) & (np.asarray(f.flags) == 0)
     lnL = np.where(good[:, None], lnL, 0.0)
     mom = posterior_moments(lnL, f.egrid, prior, refine=refine)
-    sens = (shear_sensitivity(lnL, f.egrid, prior, refine=refine) if t == "noshear"
+    sens = (shear_sensitivity(lnL, f.egrid, prior, refine=refine) if sensitivities
             else None)  # fmt: skip
     return np.column_stack([mom["e1"], mom["e2"]]), good, sens
 

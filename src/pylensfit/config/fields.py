@@ -237,6 +237,16 @@ SHEAR = Section("shear", "Bayesian shear", "The shear sensitivity and its integr
       choices=("exact", "paper")),
     P("integration_refine", int, 4, "The Bayesian integrals run on an e grid this many "
       "times finer (ln L interpolated).", "", "[1, inf)"),
+    P("response", str, "model", "The shear response of measure's catalogue: 'model' (sens1, "
+      "sens2: lensfit's exact response if the galaxy is one of the models) or 'metacal' "
+      "(also each galaxy's response measured on itself by metacalibration, with the "
+      "quantities the selection response needs: the columns e1_mcal ... mcal_flags; "
+      "metacal module).", choices=("model", "metacal")),
+    P("metacal_step", float, 0.01, "With response 'metacal': the shear +-delta of the "
+      "metacalibration images.", "", "(0, 0.2)"),
+    P("metacal_seed", int, 0, "With response 'metacal': seed of the added noise fields "
+      "(each object's from this seed, its image's index in the run and its row in the "
+      "image).", "", "[0, inf)"),
 ))
 
 SELECTION = Section("selection", "Selection", "Which measured rows are used.", (
