@@ -38,6 +38,7 @@ __all__ = [
     "COLUMNS",
     "FITCLASS",
     "HDUS",
+    "METACAL_COLUMNS",
     "atomic_write",
     "column_table",
     "flag_cards",
@@ -58,7 +59,8 @@ HDUS: dict[str, str] = {
                "FLAGn = its name for the bit of value n (FLAG1 = 'STAR'; a HIERARCH card from "
                "16384 on), the card's comment its meaning",
     "CATALOG": "one row per object that entered the pipeline, measured or flagged, with the "
-               "columns of COLUMNS; the file's first table (extension 1)",
+               "columns of COLUMNS (those of the metacalibration with Config.response "
+               "'metacal' only); the file's first table (extension 1)",
     "LNL": "(n_objects, n_e) float32 ln L(e) grids, row i for catalogue row i (each row's "
            "maximum 0, NaN for an object not measured), so that the prior can be estimated "
            "again, or per bin, without refitting",
@@ -171,7 +173,38 @@ COLUMNS: dict[str, tuple[str, str]] = {
     "lnL_star": ("", "bulge fraction marginalised: the point source's ln L on the scale of "
                  "the LNLB planes (each fraction's ln L(e), HDU LNLB), which lnL mixes with "
                  "the bulge-fraction prior (header BULGEW; uniform if absent)"),
+    "e1_mcal": ("", "Config.response 'metacal': the posterior mean <e1> of the unsheared "
+                "metacalibration image (deconvolved by the PSF, reconvolved with it dilated, "
+                "its noise made isotropic; pylensfit.metacal), sky frame as e1; NaN where "
+                "that image's fit is not usable"),
+    "e2_mcal": ("", "Config.response 'metacal': <e2> of the unsheared metacalibration "
+                "image, as e1_mcal"),
+    "R11": ("", "Config.response 'metacal': the response d<e1>/dg1 measured on the galaxy "
+            "itself, (<e1>(+delta) - <e1>(-delta)) / (2 delta) of its metacalibration "
+            "images sheared by +-delta in g1 (Config.metacal_step), sky frame; NaN where a "
+            "sheared image's fit is not usable"),
+    "R12": ("", "Config.response 'metacal': the measured response d<e1>/dg2, as R11"),
+    "R21": ("", "Config.response 'metacal': the measured response d<e2>/dg1, as R11"),
+    "R22": ("", "Config.response 'metacal': the measured response d<e2>/dg2, as R11"),
+    "mcal_snr_noshear": ("", "Config.response 'metacal': the matched-filter S/N of the most "
+                         "likely model of the unsheared metacalibration image (its noise "
+                         "sqrt(2) times the image's): the S/N of the selection"),
+    "mcal_snr_1p": ("", "Config.response 'metacal': as mcal_snr_noshear, the image sheared "
+                    "by +delta in g1 (for the selection response)"),
+    "mcal_snr_1m": ("", "Config.response 'metacal': as mcal_snr_1p, sheared by -delta in g1"),
+    "mcal_snr_2p": ("", "Config.response 'metacal': as mcal_snr_1p, sheared by +delta in g2"),
+    "mcal_snr_2m": ("", "Config.response 'metacal': as mcal_snr_1p, sheared by -delta in g2"),
+    "mcal_flags": ("", "Config.response 'metacal': bit mask of the metacalibration images "
+                   "whose fit a selection leaves out, and of rows not metacalibrated "
+                   "(pylensfit.flags.METACAL_FLAGS; 0: every image usable)"),
 }
+
+#: the columns of :data:`COLUMNS` that only a catalogue measured with ``Config.response =
+#: "metacal"`` has (:func:`pylensfit.measure`); every other column is in every catalogue
+#: (``lnL_star`` where the bulge fraction is marginalised)
+METACAL_COLUMNS: tuple[str, ...] = (
+    "e1_mcal", "e2_mcal", "R11", "R12", "R21", "R22", "mcal_snr_noshear", "mcal_snr_1p",
+    "mcal_snr_1m", "mcal_snr_2p", "mcal_snr_2m", "mcal_flags")  # fmt: skip
 
 #: fitclass codes (KiDS-like)
 FITCLASS = {"galaxy": 0, "star": 1, "not_measured": -1}

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["BAD", "FLAGS", "describe", "flag_value"]
+__all__ = ["BAD", "FLAGS", "METACAL_FLAGS", "describe", "flag_value"]
 
 #: name -> (bit value, description)
 FLAGS: dict[str, tuple[int, str]] = {
@@ -45,6 +45,22 @@ FLAGS: dict[str, tuple[int, str]] = {
                     "pipeline.PSF_SUSPECT_CHI2 times their noise's, beyond chance "
                     "(pipeline.PSF_SUSPECT_PVALUE; most often galaxies taken for stars); "
                     "the object is measured with it all the same"),
+}
+
+#: name -> (bit value, description) of the ``mcal_flags`` column of a catalogue measured
+#: with ``Config.response = "metacal"``: one bit per metacalibration image whose fit a
+#: selection of that image's branch leaves out, and one for a row not metacalibrated
+METACAL_FLAGS: dict[str, tuple[int, str]] = {
+    "noshear": (1, "the unsheared image's fit is not usable (no finite ln L row, a fit "
+                "flag) or is a point source"),
+    "1p": (2, "as noshear, the image sheared by +delta in g1"),
+    "1m": (4, "as noshear, the image sheared by -delta in g1"),
+    "2p": (8, "as noshear, the image sheared by +delta in g2"),
+    "2m": (16, "as noshear, the image sheared by -delta in g2"),
+    "NOT_METACALIBRATED": (32, "not metacalibrated: not measured, flagged before the shapes "
+                           "(flags other than STAR), or its largest stamp "
+                           "(Config.largest_stamp) crosses the image's edge or holds bad "
+                           "pixels"),
 }
 
 #: flags that make a row unusable for shear

@@ -16,7 +16,7 @@ from ..calibration import Priors
 from ..catalogue import atomic_write, column_table, flag_cards
 from ..config import Config
 from ..prior import Prior, SizePrior, SplinePrior
-from ..skyframe import SkyFrame, frame_of_table, to_sky
+from ..skyframe import SkyFrame, frame_of_table, spin2_matrix, to_sky
 from .inputs import InputError, open_input
 
 __all__ = ["catalogue_frame", "psf_to_sky", "write_catalogue", "read_catalogue"]
@@ -38,6 +38,25 @@ def psf_to_sky(cat: Table, frame: SkyFrame) -> None:
     cat["PSF_e1"], cat["PSF_e2"] = to_sky(cat["PSF_e1"], cat["PSF_e2"], frame)
     cat.meta["frame"] = ("sky" if frame.has_wcs.all() and frame.n else
                          "pixel" if not frame.has_wcs.any() else "mixed")  # fmt: skip
+
+
+def metacal_to_sky(cat: Table, frame: SkyFrame) -> None:
+    """The metacalibration's ``e1_mcal, e2_mcal`` (as :func:`pylensfit.skyframe.to_sky`
+    turns ``e1, e2``) and response ``R`` (a spin-2 tensor: ``M R M^T``, ``M`` the rotation
+    and flip of :func:`pylensfit.skyframe.spin2_matrix`) from the pixel frame to the sky
+    frame, where the catalogue has them."""
+    if "e1_mcal" not in cat.colnames:
+        return
+    cat["e1_mcal"], cat["e2_mcal"] = to_sky(cat["e1_mcal"], cat["e2_mcal"], frame)
+    M = spin2_matrix(frame)
+    R = np.empty((len(cat), 2, 2))
+    for i in range(2):
+        for j in range(2):
+            R[:, i, j] = np.asarray(cat[f"R{i + 1}{j + 1}"], dtype=float)
+    R = M @ R @ np.transpose(M, (0, 2, 1))
+    for i in range(2):
+        for j in range(2):
+            cat[f"R{i + 1}{j + 1}"] = R[:, i, j]
 
 
 # ----------------------------------------------------------------------------------------

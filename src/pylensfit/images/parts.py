@@ -49,11 +49,13 @@ def _task_key(task: ImageTask) -> str:
     given = task.psf  # a given PSF (its image), else the star fields' PSFs
     psfs = [given] if given is not None else task.star_psfs
     sp = None if task.size_prior is None else task.size_prior.to_dict()
-    blob = json.dumps(
-        [stamp, task.config.to_dict(), task.star_column, given is not None,
-         [r.digest for r in psfs], sp,
-         __version__], sort_keys=True, default=str,
-    )  # fmt: skip
+    key = [stamp, task.config.to_dict(), task.star_column, given is not None,
+           [r.digest for r in psfs], sp, __version__]
+    mp = task.metacal_priors  # the metacalibration's posterior means depend on them
+    if mp is not None:
+        key.append([mp.ellipticity.to_dict(), None if mp.bulge_weights is None
+                    else [float(w) for w in mp.bulge_weights]])  # fmt: skip
+    blob = json.dumps(key, sort_keys=True, default=str)
     return hashlib.sha1(blob.encode()).hexdigest()[:16]
 
 

@@ -20,7 +20,7 @@ from ..config import Config
 from ..prior import Prior, SizePrior
 from ..psf import centre_on_stamp
 from ..runner import run_tasks
-from .catalogue_io import catalogue_frame, psf_to_sky
+from .catalogue_io import catalogue_frame, metacal_to_sky, psf_to_sky
 from .parts import part_path, pass_key, resumed_results, write_part
 from .records import HELDOUT_KEYS, PSF_KEYS, ImageResult, ImageTask
 from .task import image_task
@@ -69,8 +69,10 @@ def measure_pass(tasks: list[ImageTask], cfg: Config, priors: Priors, last: Last
     """
     results: dict[int, ImageResult] = {}
     run_cfg = priors.apply(cfg)
-    final = [replace(t, config=run_cfg, size_prior=priors.size) for t in tasks]
-    if last.key == pass_key(run_cfg, priors.size, False):
+    metacal = run_cfg.response == "metacal"  # the image's task metacalibrates, under priors
+    final = [replace(t, config=run_cfg, size_prior=priors.size,
+                     metacal_priors=priors if metacal else None) for t in tasks]  # fmt: skip
+    if last.key == pass_key(run_cfg, priors.size, False) and not metacal:
         results = dict(last.results)  # the recipe's last pass is the measurement
     last.clear()
     if parts is not None:
@@ -185,6 +187,7 @@ def assemble_results(results: list[ImageResult], cfg: Config, priors: Priors) ->
     for c, v in out.columns.items():
         cat[c] = v
     psf_to_sky(cat, ctx.frame)
+    metacal_to_sky(cat, ctx.frame)
     cat["lnL"] = out.lnL
     if lnL_bulge is not None:
         cat["lnL_bulge"] = lnL_bulge
@@ -221,6 +224,8 @@ def assemble_results(results: list[ImageResult], cfg: Config, priors: Priors) ->
         np.zeros((side, side)) if r.psf is None
         else centre_on_stamp(r.psf.image, side) for r in results])  # fmt: skip
     cat.meta["config"] = cfg
+    if "e1_mcal" in cat.colnames:
+        cat.meta["metacal_step"] = float(cfg.metacal_step)
     cat.meta["timing"] = {k: float(sum(r.timing[k] for r in results))
                           for k in results[0].timing}  # fmt: skip
     return cat

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from ..calibration import Priors
 from ..config import Config
 from ..prior import SizePrior
 from ..psf import PSFResult
@@ -51,6 +52,9 @@ class ImageTask:
     size_prior: SizePrior | None = None
     keep_lnL_r: bool | str = False  # keep L(r): True, or "annuli" (per ring of |e|)
     size_marginal_prior: Any = None
+    # the measurement's priors, with Config.response "metacal": the metacalibration's
+    # posterior means need them in the image's task (images/metacal_rows.py)
+    metacal_priors: Priors | None = None
     single_thread: bool = False  # set by the runner on its workers
 
 

@@ -23,6 +23,7 @@ from ..runner import single_thread
 from ..skyframe import local_frame, pixel_frame, wcs_from_header
 from .image_psf import CellPSFs, cell_psfs, image_psf, psf_source_of
 from .inputs import Image, detect_objects, mask_saturated, read_image, read_positions, value_at
+from .metacal_rows import MetacalInputs, metacal_columns
 from .neighbours import (
     NeighbourScene,
     implausible_models,
@@ -72,13 +73,17 @@ def image_task(task: ImageTask) -> ImageResult:
         det["forced_SNratio"] = forced_snrs(st, np.asarray(det["noise_sigma"], dtype=float),
                                             psf, cells)  # fmt: skip
     t_stamps = time.perf_counter()
-    res, back, redo = _fit_objects(task, img, sub, det, bkg, st, psf, cells, flags)
+    res, back, redo, taken = _fit_objects(task, img, sub, det, bkg, st, psf, cells, flags)
     t_fit = time.perf_counter()
+    mcal = _metacal(task, st, res, taken, det, psf, cells)
     rows = _image_rows(task, img, det, res, back, psf, cells, own_stars, redo, lost)
+    rows.update(mcal)
     if field_model is not None and field_model.diagnostics.get("heldout_suspect") == 1.0:
         rows["flags"] = rows["flags"] | _flags.flag_value("PSF_SUSPECT")
     timing = {"read+detect": t_detect - t0, "psf": t_psf - t_detect,
               "stamps": t_stamps - t_psf, "fit": t_fit - t_stamps}  # fmt: skip
+    if task.metacal_priors is not None:
+        timing["metacal"] = time.perf_counter() - t_fit
     return ImageResult(
         index=task.index, path=path, rows=rows, lnL=res.lnL, lnL_bulge=res.lnL_bulge,
         lnL_r=res.lnL_r, egrid=ellipticity_grid(cfg.output_e_step, emax=cfg.e_max),
@@ -87,12 +92,13 @@ def image_task(task: ImageTask) -> ImageResult:
 
 
 def _fit_objects(task: ImageTask, img: Image, sub: np.ndarray, det: Table, bkg,
-                 st, psf: PSFResult | None, cells: CellPSFs | None,
-                 flags: np.ndarray) -> tuple[ImageResults, np.ndarray, np.ndarray]:  # fmt: skip
+                 st, psf: PSFResult | None, cells: CellPSFs | None, flags: np.ndarray,
+                 ) -> tuple[ImageResults, np.ndarray, np.ndarray, np.ndarray | None]:  # fmt: skip
     """Fit every object of ``flags == 0``, again with its neighbours and the sky's change
     taken out (:func:`subtract_neighbours`), and flag ``DEFECT`` (in ``flags``) the
     objects whose model does not fit their stamp: the fits, the background map they end
-    on, and the objects refitted with their neighbours taken out."""
+    on, the objects refitted with their neighbours taken out and, to be metacalibrated,
+    the light each object's last fit took out of its largest stamp (else None)."""
     cfg = task.config
     x = np.asarray(det["x"], dtype=float)
     y = np.asarray(det["y"], dtype=float)
@@ -104,7 +110,9 @@ def _fit_objects(task: ImageTask, img: Image, sub: np.ndarray, det: Table, bkg,
     fit = ImageFitter(
         st=st, noise=noise, cfg=cfg, psf_image=None if psf is None else psf.image,
         cells=cells, size_prior=task.size_prior, rings=rings,
-        size_marginal_prior=task.size_marginal_prior)  # fmt: skip
+        size_marginal_prior=task.size_marginal_prior,
+        taken_out=None if task.metacal_priors is None else np.zeros(st.bstamps.shape,
+                                                                    np.float32))  # fmt: skip
     todo = np.flatnonzero(flags == 0)
     # the PSF the neighbours are rendered with: each object's heaviest node's, or the image's
     render_psf = (cells.images, cells.nearest) if cells is not None else (
@@ -115,7 +123,7 @@ def _fit_objects(task: ImageTask, img: Image, sub: np.ndarray, det: Table, bkg,
     redo = np.zeros(0, dtype=np.int64)
     back = bkg.back
     if not todo.size:
-        return res, back, redo
+        return res, back, redo, fit.taken_out
     fits_ = fit(todo)
     res.store(fits_, todo)
     scene = NeighbourScene(shape=sub.shape, x=x, y=y, xf=res.xf, yf=res.yf, noise=noise,
@@ -140,7 +148,24 @@ def _fit_objects(task: ImageTask, img: Image, sub: np.ndarray, det: Table, bkg,
         log.info("%s: %d object(s) whose best model does not fit the stamp flagged DEFECT "
                  "(Config.max_reduced_chi2, max_residual_fraction)", task.path,
                  int(defect.sum()))  # fmt: skip
-    return res, back, redo
+    return res, back, redo, fit.taken_out
+
+
+def _metacal(task: ImageTask, st, res: ImageResults, taken: np.ndarray | None, det: Table,
+             psf: PSFResult | None, cells: CellPSFs | None) -> dict[str, np.ndarray]:
+    """The metacalibration columns (:mod:`.metacal_rows`) where the task carries the
+    measurement's priors, else none: every fitted object without a flag but ``STAR``, on
+    its largest stamp as its last fit saw it, about its fitted centre."""
+    if task.metacal_priors is None:
+        return {}
+    star = _flags.flag_value("STAR")
+    full = st.use_big | (st.bstamps.shape[1] == task.config.stamp_size)
+    inp = MetacalInputs(
+        stamps=st.bstamps, taken_out=taken, full=full,
+        cx=res.xf - res.x + st.fcx, cy=res.yf - res.y + st.fcy,
+        noise=np.asarray(det["noise_sigma"], dtype=float),
+        todo=np.isfinite(res.lnL).all(axis=1) & ((res.flags & ~star) == 0))  # fmt: skip
+    return metacal_columns(inp, task.config, task.metacal_priors, task.index, psf, cells)
 
 
 def _image_rows(task: ImageTask, img: Image, det: Table, res: ImageResults,

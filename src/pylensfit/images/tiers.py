@@ -119,11 +119,16 @@ class ImageFitter:
     size_prior: SizePrior | None
     rings: np.ndarray | None  # fit_stamps' lnL_r_groups
     size_marginal_prior: Any
+    #: ``(n, n_big, n_big)`` where given: the light each object's last fit took out of
+    #: its stamp (``less``), kept for the metacalibration of the stamp its fit saw
+    taken_out: np.ndarray | None = None
 
     def __call__(self, idx: np.ndarray, less: np.ndarray | None = None) -> StampFits:
         """Fit the stamps of objects ``idx``, less ``less`` (``(len(idx), n_big, n_big)``:
         the neighbours' light and the sky's change, about each object)."""
         cp = self.cells
+        if less is not None and self.taken_out is not None:
+            self.taken_out[idx] = less
         if less is None:  # a first fit: the run's object bar (a refit is not counted)
             report_progress("planned", idx.size)
         if cp is None:
