@@ -28,8 +28,9 @@ from pathlib import Path
 from typing import NoReturn
 
 import numpy as np
-from astropy.table import vstack
+from astropy.table import Table, vstack
 
+from .catalogue import METACAL_COLUMNS
 from .config import PRESETS, Config
 from .images import InputError, calibrate_images, catalogue_frame, measure, read_catalogue
 from .prior import RadialPrior, estimate_prior
@@ -55,9 +56,12 @@ def _config(args: argparse.Namespace):
 
 
 def _measure(args: argparse.Namespace) -> int:
+    cfg = _config(args)
+    if args.response is not None:
+        cfg = cfg.replace(response=args.response)
     cat = measure(
         args.images, stars=args.stars, weights=args.weights, masks=args.masks,
-        catalogues=args.catalogues, star_column=args.star_column, config=_config(args),
+        catalogues=args.catalogues, star_column=args.star_column, config=cfg,
         prior=args.prior, size_prior=args.size_prior, priors=args.priors, output=args.output,
         psf_dir=args.psf_dir,
         psf=_psf_arg(args.psf), overwrite=args.overwrite,
@@ -171,7 +175,34 @@ def _prior(args: argparse.Namespace) -> int:
     return 0
 
 
+def _metacal_shear(args: argparse.Namespace) -> Table:
+    """``shear --estimator metacal``'s table: the metacalibration's estimator with the
+    selection response on the catalogue's metacalibration columns (sky frame)."""
+    per_image = () if args.no_per_image else ("image",)
+    cat = _read_catalogues(args.catalogs, need=("flags", *METACAL_COLUMNS, *per_image),
+                           bin_column=args.bin_column)  # fmt: skip
+    if args.weighted:
+        raise ValueError("--estimator metacal weighs every selected galaxy equally: drop "
+                         "--weighted")  # fmt: skip
+    return shear_table(cat, by=None if args.no_per_image else "image",
+                       column=args.bin_column, edges=args.bin_edges, estimator="metacal",
+                       min_snr=args.min_snr)  # fmt: skip
+
+
+def _print_shear(tab: Table, output: str | None) -> int:
+    for c in ("g1", "g2"):
+        tab[c].format = "+.5f"
+    for c in ("g1_err", "g2_err"):
+        tab[c].format = ".5f"
+    tab.pprint_all()
+    if output:
+        tab.write(output, overwrite=True)
+    return 0
+
+
 def _shear(args: argparse.Namespace) -> int:
+    if args.estimator == "metacal":
+        return _print_shear(_metacal_shear(args), args.output)
     per_image = () if args.no_per_image else ("image",)
     cat = _read_catalogues(args.catalogs, need=("flags", "fitclass", *per_image),
                            bin_column=args.bin_column)  # fmt: skip
@@ -201,14 +232,7 @@ def _shear(args: argparse.Namespace) -> int:
                       column=args.bin_column, edges=args.bin_edges, estimator=args.estimator,
                       prior=prior, egrid=cat.meta["egrid"], refine=refine,
                       weighted=args.weighted)  # fmt: skip
-    for c in ("g1", "g2"):
-        tab[c].format = "+.5f"
-    for c in ("g1_err", "g2_err"):
-        tab[c].format = ".5f"
-    tab.pprint_all()
-    if args.output:
-        tab.write(args.output, overwrite=True)
-    return 0
+    return _print_shear(tab, args.output)
 
 
 def _dump_config(args: argparse.Namespace) -> int:
@@ -349,6 +373,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "them; default: estimated from the run (Config.calibration_sample)")
     m.add_argument("-o", "--output", required=True, help="output catalogue (FITS)")
     m.add_argument("--psf-dir", help="write each image's PSF and star diagnostics here")
+    m.add_argument("--response", choices=("model", "metacal"), help="Config.response: "
+                   "'metacal' also measures each galaxy's response on itself "
+                   "(metacalibration, with the selection response's columns; about 6 times "
+                   "the fit's cost); default the configuration's ('model')")  # fmt: skip
     m.set_defaults(func=_measure)
 
     _add_prior_parser(sub)
@@ -359,10 +387,17 @@ def build_parser() -> argparse.ArgumentParser:
     sh.add_argument("--bin-by", type=_bin_by, metavar="COLUMN:EDGES",
                     help="also bin by a column, e.g. mag:20,22,24")  # fmt: skip
     sh.add_argument("--sensitivity", choices=("exact", "paper"), help="sensitivity formula")
-    sh.add_argument("--estimator", choices=("fixed-point", "key2"), default="fixed-point",
+    sh.add_argument("--estimator", choices=("fixed-point", "key2", "metacal"),
+                    default="fixed-point",
                     help="the sheared-prior fixed point (default), exact to all orders in g, "
-                    "or Kitching et al. (2008)'s mean shear over mean sensitivity (docs: method, "
-                    "eq-key2), high by a factor 1 + |g|^2")  # fmt: skip
+                    "Kitching et al. (2008)'s mean shear over mean sensitivity (docs: method, "
+                    "eq-key2), high by a factor 1 + |g|^2, or (a catalogue measured with "
+                    "--response metacal) the metacalibration's <R_gamma + R_S>^-1 <e_mcal>, "
+                    "its cut made on each sheared image's S/N and fit (the selection "
+                    "response, R_S)")  # fmt: skip
+    sh.add_argument("--min-snr", type=float, help="--estimator metacal: the S/N cut on each "
+                    "metacalibration image's mcal_snr_* (default the catalogue's "
+                    "Config.min_snr)")  # fmt: skip
     sh.add_argument("--weighted", action="store_true",
                     help="weight the galaxies by the catalogue's weight column (default: "
                     "equal weights, within 1%% of the same error for posterior means)")

@@ -27,7 +27,8 @@ The package holds one module per step: ``reduced`` (the reduced-shear map,
 ``posterior`` (:func:`posterior_moments`, :func:`shear_sensitivity`, :func:`shapes`),
 ``frames`` (the sky frames of a catalogue's rows and images), ``fixed_point``
 (:func:`shear_fixed_point`, :class:`ShearEstimate`), ``estimate``
-(:func:`estimate_shear`) and ``table`` (:func:`shear_table`).
+(:func:`estimate_shear`), ``selection`` (the metacalibration's estimator with the
+selection response, :class:`MetacalSample`) and ``table`` (:func:`shear_table`).
 """
 
 import warnings
@@ -45,18 +46,23 @@ from .posterior import (
     shear_sensitivity,
 )
 from .reduced import apply_shear, sheared_prior_columns
+from .selection import MetacalSample, MetacalShear, metacal_selections, selection_response
 from .sums import kernel_columns, sums_with
 from .table import shear_table
 
 __all__ = [
     "FLAG_BAD_LIKELIHOOD",
     "FLAG_NAMES",
+    "MetacalSample",
+    "MetacalShear",
     "ShearEstimate",
     "apply_shear",
     "estimate_shear",
     "kernel_columns",
+    "metacal_selections",
     "moments_from_sums",
     "posterior_moments",
+    "selection_response",
     "sensitivity_from_sums",
     "shapes",
     "shear_fixed_point",

@@ -16,6 +16,7 @@ from astropy.table import Table
 from ..prior import Prior
 from .estimate import FixedPointSample, estimate_shear
 from .fixed_point import ShearEstimate
+from .selection import MetacalSample
 
 
 class Group(NamedTuple):
@@ -37,6 +38,8 @@ def shear_table(
     egrid: np.ndarray | None = None,
     refine: int | None = None,
     weighted: bool = False,
+    min_snr: float | None = None,
+    step: float | None = None,
 ) -> Table:
     """Shear of every group of a catalogue, with errors (:func:`estimate_shear` per group).
 
@@ -51,16 +54,23 @@ def shear_table(
         Bin the rows by ``column`` with bin ``edges`` (e.g. magnitude bins); rows
         outside the edges are left out of the binned rows.
 
-    estimator : {"fixed-point", "key2"}
+    estimator : {"fixed-point", "key2", "metacal"}
         ``"fixed-point"`` (default): :func:`shear_fixed_point` on its ``lnL`` column (a
         2-D column of ln L grids, as in :func:`pylensfit.measure`'s catalogue) with
         ``prior`` and ``egrid``, rows with ``flags != 0`` (or ``weight == 0``) left out;
         ``"key2"``: :func:`estimate_shear` with ``estimator="key2"`` on the table's ``e1,
-        e2, sens1, sens2``.
+        e2, sens1, sens2``; ``"metacal"``: the metacalibration's ``<R_gamma + R_S>^-1
+        <e_mcal>`` with the selection response, the cut made on each metacalibration
+        image's S/N and fit (:mod:`pylensfit.shear.selection`; a catalogue measured with
+        ``Config.response = "metacal"``).
     prior, egrid, refine
         For ``"fixed-point"`` (default: the table's ``meta``).
     weighted : bool
-        Weight the galaxies by the ``weight`` column (:func:`estimate_shear`).
+        Weight the galaxies by the ``weight`` column (:func:`estimate_shear`; not with
+        ``"metacal"``).
+    min_snr, step : float, optional
+        For ``"metacal"``: the S/N cut and the images' shear (default: the table's
+        configuration's ``min_snr`` and ``metacal_step``).
 
     Returns
     -------
@@ -70,8 +80,14 @@ def shear_table(
     """
     groups = [*_groups_by(shapes_table, by), *_bins_of(shapes_table, column, edges),
               Group("all", np.ones(len(shapes_table), dtype=bool))]  # fmt: skip
-    if estimator not in ("key2", "fixed-point"):
-        raise ValueError(f"estimator must be 'key2' or 'fixed-point', got {estimator!r}")
+    if estimator not in ("key2", "fixed-point", "metacal"):
+        raise ValueError(f"estimator must be 'key2', 'fixed-point' or 'metacal', got "
+                         f"{estimator!r}")  # fmt: skip
+    if estimator == "metacal":
+        if weighted:
+            raise ValueError("the metacal estimator weighs every selected galaxy equally")
+        return _shear_rows(groups, MetacalSample.of(shapes_table, min_snr=min_snr,
+                                                    step=step).estimate)  # fmt: skip
     if estimator == "fixed-point":
         sample = FixedPointSample.of(shapes_table, prior=prior, egrid=egrid, refine=refine,
                                      weighted=weighted)  # fmt: skip
