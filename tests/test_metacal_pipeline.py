@@ -110,6 +110,28 @@ def test_the_same_input_gives_the_same_metacal_columns(field):
                               equal_nan=True)  # fmt: skip
 
 
+def test_a_resumed_run_gives_the_same_catalogue(field, tmp_path, monkeypatch):
+    import pylensfit.images.passes as passes  # the image tasks, to kill one
+
+    paths, kw, mcal, _, _ = field
+    real, out = passes.image_task, tmp_path / "resumed.fits"
+
+    def killed(t):
+        if t.path.endswith("field1.fits"):
+            raise KeyboardInterrupt("killed")
+        return real(t)
+
+    monkeypatch.setattr(passes, "image_task", killed)
+    with pytest.raises(KeyboardInterrupt):
+        plf.measure(paths, config=CFG.replace(response="metacal"), output=out, **kw)
+    assert len(list((tmp_path / "resumed.fits.parts").glob("*field0*.fits"))) == 1
+    monkeypatch.setattr(passes, "image_task", real)
+    again = plf.measure(paths, config=CFG.replace(response="metacal"), output=out, **kw)
+    assert len(again) == len(mcal)
+    for c in (*METACAL_COLUMNS, "e1", "weight"):
+        assert np.array_equal(np.asarray(again[c]), np.asarray(mcal[c]), equal_nan=True), c
+
+
 def test_the_shear_command_gives_the_metacal_estimate(field, tmp_path, capsys):
     _, _, mcal, _, out = field
     back = plf.read_catalogue(out)

@@ -14,7 +14,9 @@
 5. compute every object's ``ln L(e)`` grid (:func:`pylensfit.fit_stamps`), again with
    the neighbours' models and the sky's change taken out; an object whose model does not
    fit its stamp (a defect) is flagged ``DEFECT`` and left out of the others' stamps and
-   the sky.
+   the sky;
+6. with ``Config.response = "metacal"``, metacalibrate every galaxy fitted on its
+   largest stamp as its last fit saw it (:mod:`~pylensfit.images.metacal_rows`).
 
 The images are independent and run in parallel: in a local process pool (``jobs``, one
 BLAS and numba thread per worker) or on a dask.distributed cluster (``scheduler``).
@@ -31,6 +33,7 @@ weights, masks and positions; the up-front checks), :mod:`~pylensfit.images.imag
 :mod:`~pylensfit.images.records` (the tasks and their typed results),
 :mod:`~pylensfit.images.tiers` (an image's stamps and their tiers),
 :mod:`~pylensfit.images.neighbours` (:func:`subtract_neighbours`, the method),
+:mod:`~pylensfit.images.metacal_rows` (an image's metacalibration columns),
 :mod:`~pylensfit.images.task` (one image's task and its rows),
 :mod:`~pylensfit.images.parts` (resuming: task keys, part files, temporaries),
 :mod:`~pylensfit.images.passes` (the recipe's glue: calibration and measuring passes,

@@ -64,8 +64,9 @@ def measure_pass(tasks: list[ImageTask], cfg: Config, priors: Priors, last: Last
                  parts: Path | None, pr_file: Path | None,
                  workers: Workers) -> dict[int, ImageResult]:  # fmt: skip
     """The measurement: every image under ``priors``, the recipe's last pass reused where
-    it was made under them (its images, where the recipe ran on a sample of them),
-    finished images kept in ``parts`` (a resumed run reads them).
+    it was made under them (its images, where the recipe ran on a sample of them; not
+    with ``Config.response = "metacal"``, whose images' tasks need the priors), finished
+    images kept in ``parts`` (a resumed run reads them).
     """
     results: dict[int, ImageResult] = {}
     run_cfg = priors.apply(cfg)
