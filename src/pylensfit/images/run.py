@@ -67,8 +67,7 @@ def measure(
     star_column : str, optional
         Column of the input catalogue that marks the PSF stars (no locus selection).
     config : Config, optional
-        Settings (default ``Config()``, the recommended method); ``response="metacal"``
-        adds each galaxy's metacalibration (:mod:`pylensfit.images.metacal_rows`).
+        Settings (default ``Config()``, the recommended method; ``response="metacal"``).
     prior, size_prior : Prior, SizePrior or str, optional
         An ellipticity or size prior (or a saved one's path) kept instead of estimated.
     priors : Priors or str, optional
