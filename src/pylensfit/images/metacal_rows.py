@@ -67,9 +67,11 @@ class MetacalInputs:
 def noise_fields(seed: int, image_index: int, rows: np.ndarray, side: int) -> np.ndarray:
     """``(len(rows), side, side)`` unit-variance noise fields, each drawn from its own
     generator seeded by ``(seed, image_index, row)``: independent of the blocks."""
-    return np.stack([np.random.default_rng([int(seed), int(image_index), int(r)])
-                     .standard_normal((side, side)) for r in rows]) if len(rows) else (
-        np.zeros((0, side, side)))  # fmt: skip
+    out = np.empty((len(rows), side, side))
+    for k, r in enumerate(rows):
+        out[k] = np.random.default_rng([int(seed), int(image_index), int(r)]).standard_normal(
+            (side, side))
+    return out
 
 
 def _empty(n: int) -> dict[str, np.ndarray]:
