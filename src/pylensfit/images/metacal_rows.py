@@ -9,8 +9,10 @@ the PSF the fit used: the image's, or, where the PSF varies, its cell's (the PSF
 cell's corners, the fits blended with its position's weights as the fit blends them,
 :func:`pylensfit.likelihood.blend_fits`). The posterior means are those of the
 measurement's priors (:func:`pylensfit.metacal.metacal_branches`). Each galaxy's added
-noise field is drawn from ``(Config.metacal_seed, image index, row)``: the same input
-gives the same columns, in one run or a resumed one.
+noise field is drawn from ``(Config.metacal_seed, image index, row)``, and the
+operation's matrix products run on one BLAS thread (a product's sums in one order): the
+same input gives the same columns, bit for bit, in one run or a resumed one, in this
+process or in workers.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .. import flags as _flags
 from ..calibration import Priors
@@ -125,21 +128,32 @@ def metacal_columns(inp: MetacalInputs, cfg: Config, priors: Priors, image_index
     if psf is None or not rows.size:
         return cols
     mcfg = cfg.replace(stamp_size=side, max_stamp_size=0)  # the whole stamp, one tier
-    for grp, images, weights in _psf_groups(rows, psf, cells):
-        for s0 in range(0, grp.size, METACAL_BLOCK):
-            r, w = grp[s0 : s0 + METACAL_BLOCK], weights[:, s0 : s0 + METACAL_BLOCK]
-            data = inp.stamps[r] if inp.taken_out is None else inp.stamps[r] - inp.taken_out[r]
-            fields = noise_fields(cfg.metacal_seed, image_index, r, side)
-            per_psf = [metacal_fits(data, centre_on_stamp(p, side), inp.noise[r], config=mcfg,
-                                    size_prior=priors.size, step=cfg.metacal_step,
-                                    noise_fields=fields, centres=(inp.cx[r], inp.cy[r]))
-                       for p in images]  # fmt: skip
-            fits = {t: per_psf[0][t] if len(per_psf) == 1 else
-                    blend_fits([f[t] for f in per_psf], w) for t in METACAL_TYPES}  # fmt: skip
-            _store(cols, r, metacal_branches(fits, priors.ellipticity,
-                                             bulge_weights=priors.bulge_weights,
-                                             refine=cfg.output_refine, step=cfg.metacal_step))
+    with threadpool_limits(limits=1, user_api="blas"):  # the same bits in any worker
+        for grp, images, weights in _psf_groups(rows, psf, cells):
+            _metacal_group(cols, inp, grp, images, weights, mcfg, priors, image_index)
     return cols
+
+
+def _metacal_group(cols: dict[str, np.ndarray], inp: MetacalInputs, grp: np.ndarray,
+                   images: list, weights: np.ndarray, mcfg: Config, priors: Priors,
+                   image_index: int) -> None:  # fmt: skip
+    """Metacalibrate the rows ``grp`` fitted with the PSF ``images`` (blended with
+    ``weights``) in blocks, into ``cols``."""
+    side = inp.stamps.shape[-1]
+    for s0 in range(0, grp.size, METACAL_BLOCK):
+        r, w = grp[s0 : s0 + METACAL_BLOCK], weights[:, s0 : s0 + METACAL_BLOCK]
+        data = inp.stamps[r] if inp.taken_out is None else inp.stamps[r] - inp.taken_out[r]
+        fields = noise_fields(mcfg.metacal_seed, image_index, r, side)
+        per_psf = [metacal_fits(data, centre_on_stamp(p, side), inp.noise[r], config=mcfg,
+                                size_prior=priors.size, step=mcfg.metacal_step,
+                                noise_fields=fields, centres=(inp.cx[r], inp.cy[r]))
+                   for p in images]  # fmt: skip
+        fits = {t: per_psf[0][t] if len(per_psf) == 1 else
+                blend_fits([f[t] for f in per_psf], w) for t in METACAL_TYPES}  # fmt: skip
+        _store(cols, r, metacal_branches(fits, priors.ellipticity,
+                                         bulge_weights=priors.bulge_weights,
+                                         refine=mcfg.output_refine,
+                                         step=mcfg.metacal_step))
 
 
 def _store(cols: dict[str, np.ndarray], r: np.ndarray, br) -> None:
