@@ -375,8 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--psf-dir", help="write each image's PSF and star diagnostics here")
     m.add_argument("--response", choices=("model", "metacal"), help="Config.response: "
                    "'metacal' also measures each galaxy's response on itself "
-                   "(metacalibration, with the selection response's columns; about 6 times "
-                   "the fit's cost); default the configuration's ('model')")  # fmt: skip
+                   "(metacalibration, with the selection response's columns; five more fits "
+                   "of each galaxy); default the configuration's ('model')")  # fmt: skip
     m.set_defaults(func=_measure)
 
     _add_prior_parser(sub)
