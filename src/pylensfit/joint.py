@@ -55,11 +55,12 @@ from scipy.special import logsumexp
 from threadpoolctl import threadpool_limits
 
 from . import flags as _flags
-from ._joint_nb import laplace_models
 from .bankruns import bank_runs
 from .config import Config
 from .exposures import ExposureStamps
 from .grid import ellipticity_grid
+from .joint_nb import ModelOutputs, Norms, laplace_models
+from .likelihood.grid_nb import Galaxies, Laplace
 from .models import (
     fourier_profile,
     half_light_radius,
@@ -368,33 +369,35 @@ def _rows(D: np.ndarray, ex: _Exposure, xc: np.ndarray, yc: np.ndarray) -> np.nd
     return np.stack([r, -qx * i, -qy * i, -qx * qx * r, -qx * qy * r, -qy * qy * r])
 
 
-def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None):
-    """``(6, m, c)`` products of ``H`` and ``(4, m, c)`` of ``Q`` and the expected
-    Hessian, summed over the exposures (``cols``: those columns only). With one PSF per
-    exposure the norms are one product per exposure, scaled per galaxy."""
-    A = B = 0.0
-    for D, W, w2, ex in zip(blk.D, blk.W, blk.w2, exps, strict=True):
+def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None) -> tuple[np.ndarray, Norms]:
+    """``(6, m, c)`` products of ``H`` summed over the exposures, and the models' norms
+    per exposure (:class:`~pylensfit.joint_nb.Norms`: ``Q`` and the expected Hessian per
+    unit weight, one product per exposure and PSF) (``cols``: those columns only)."""
+    A = 0.0
+    S = []
+    for D, W, ex in zip(blk.D, blk.W, exps, strict=True):
         G = ex.G if cols is None else ex.G[:, cols]
         G2 = ex.G2 if cols is None else ex.G2[:, cols]
         R = _rows(D, ex, xc, yc).astype(G.dtype)
         A = A + np.matmul(R, G).astype(np.float64)
         q = np.stack([W, -W * ex.qx * ex.qx, -W * ex.qx * ex.qy, -W * ex.qy * ex.qy])
-        B = B + np.matmul(q.astype(G.dtype), G2).astype(np.float64) * w2[None, :, None]
-    return A, B
+        S.append(np.matmul(q.astype(G.dtype), G2))
+    return A, Norms(np.stack(S), np.stack(blk.w2))
 
 
-def _laplace(A: np.ndarray, B: np.ndarray, x0, y0, b2: float, max_step: float):
+def _laplace(A: np.ndarray, norms: Norms, x0, y0, b2: float, max_step: float) -> ModelOutputs:
     """``ln L(e, r)`` of every model, marginalised over the amplitude and the position
-    (module docstring), and its ``H*``, ``X*`` (from the origin): the Newton step with
-    the data's Hessian of ``H`` where it is a maximum and the step no longer than
-    ``max_step`` (arcsec), else with the expected Hessian ``max(H, sqrt Q) / Q`` times
-    that of the models' autocorrelations (the step then clipped to ``max_step``), as the
-    single-exposure fit does. ``x0, y0``: the catalogue position from the origin."""
+    (module docstring), and the most likely model's ``H*``, ``X*`` (from the origin):
+    the single-exposure fit's Newton step, expected-Hessian fallback (the step then
+    clipped to ``max_step``, arcsec), amplitude integral and position prior, on the
+    sums over the exposures (:func:`pylensfit.joint_nb.laplace_models`). ``x0, y0``:
+    the catalogue position from the origin, arcsec."""
     m, c = A.shape[1:]
-    out = [np.empty((m, c)) for _ in range(4)]
-    laplace_models(A, B, np.ascontiguousarray(x0, dtype=float),
-                   np.ascontiguousarray(y0, dtype=float), float(b2), float(max_step), *out)
-    return tuple(out)
+    out = ModelOutputs.empty(m, c)
+    gals = Galaxies(np.ones(m), np.ascontiguousarray(x0, dtype=float),
+                    np.ascontiguousarray(y0, dtype=float))  # fmt: skip
+    laplace_models(A, norms, gals, Laplace(float(b2), float(max_step), False), out)
+    return out
 
 
 def _peak_factor(lw: np.ndarray) -> np.ndarray:
@@ -486,19 +489,17 @@ def _fit_block(inp: _Inputs, exps: list[_Exposure], cols: _Columns, cfg: Config,
     step = cfg.max_newton_step * scale
     xc, yc, no_peak = _round_centre(inp, blk, exps, sl, cfg, scale)
     cc = _coarse_columns(cols, cfg.e_step)
-    A, B = _products(blk, exps, xc, yc, cc)
-    lnl, _, x, y = _laplace(A, B, -xc, -yc, b2, step)
-    ib = np.argmax(np.where(np.isfinite(lnl), lnl, -np.inf), axis=1)
-    g = np.arange(lnl.shape[0])
-    xc = xc + np.nan_to_num(x[g, ib])
-    yc = yc + np.nan_to_num(y[g, ib])
-    A, B = _products(blk, exps, xc, yc)
-    lnl, hs, x, y = _laplace(A, B, -xc, -yc, b2, step)
-    lnle, lnlb, star = _collapse(lnl, cols)
-    best = np.argmax(np.where(np.isfinite(lnl), lnl, -np.inf), axis=1)
-    return {"lnle": lnle, "lnlb": lnlb, "star": star, "best": best, "no_peak": no_peak,
-            "h": hs[g, best], "Q": B[0][g, best], "x": xc + x[g, best],
-            "y": yc + y[g, best]}  # fmt: skip
+    out = _laplace(*_products(blk, exps, xc, yc, cc), -xc, -yc, b2, step)
+    xc = xc + np.nan_to_num(out.x)
+    yc = yc + np.nan_to_num(out.y)
+    A, norms = _products(blk, exps, xc, yc)
+    out = _laplace(A, norms, -xc, -yc, b2, step)
+    lnle, lnlb, star = _collapse(out.lnl, cols)
+    g = np.arange(out.best.size)
+    p = g if norms.S.shape[2] > 1 else 0
+    Q = (norms.w2 * norms.S[:, 0, p, out.best].astype(np.float64)).sum(axis=0)
+    return {"lnle": lnle, "lnlb": lnlb, "star": star, "best": out.best, "no_peak": no_peak,
+            "h": out.h, "Q": Q, "x": xc + out.x, "y": yc + out.y}  # fmt: skip
 
 
 def fit_exposures(
