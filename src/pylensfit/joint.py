@@ -48,10 +48,9 @@ read in units of a reference pixel scale (``pixel_scale``, arcsec): with one exp
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.special import logsumexp
 from threadpoolctl import threadpool_limits
 
 from . import flags as _flags
@@ -59,8 +58,9 @@ from .bankruns import bank_runs
 from .config import Config
 from .exposures import ExposureStamps
 from .grid import ellipticity_grid
-from .joint_nb import ModelOutputs, Norms, laplace_models
-from .likelihood.grid_nb import Galaxies, Laplace
+from .joint_nb import Norms, laplace_grid, unfold
+from .likelihood.bank import keep_last
+from .likelihood.grid_nb import Galaxies, Laplace, Outputs, Sums
 from .models import (
     fourier_profile,
     half_light_radius,
@@ -71,7 +71,7 @@ from .models import (
 )
 from .psf import psf_transform
 
-__all__ = ["JointFits", "fit_exposures", "fit_views", "sky_frequencies"]
+__all__ = ["JointFits", "fit_exposures", "fit_views", "lattice_symmetries", "sky_frequencies"]
 
 #: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 64 x n_r)
 _E_CHUNK = 64
@@ -169,6 +169,13 @@ class _Columns:
     def n_cols(self) -> int:
         return self.n_e * self.n_b * self.n_sub + 1
 
+    def sums(self) -> Sums:
+        """The weights of the sum over r (the runs of sizes equally likely a priori),
+        the kernel's :class:`~pylensfit.likelihood.grid_nb.Sums`."""
+        return Sums(self.node_w, self.w_star, np.full(self.n_b, -np.log(self.n_b)),
+                    np.full(self.n_e, 1.0 / self.n_e), np.zeros(self.n_e, dtype=np.int64),
+                    self.n_sub)  # fmt: skip
+
 
 def _columns(cfg: Config, scale: float) -> _Columns:
     """The configuration's grid with its sizes in arcsec (``scale`` arcsec per pixel)."""
@@ -241,24 +248,179 @@ def _bank(cols: _Columns, qx: np.ndarray, qy: np.ndarray, dtype) -> np.ndarray:
     return G
 
 
+#: the square pixel grid's symmetries ``h = 1, s1, s2, s1 s2`` (modulo ``k -> -k``) as
+#: matrices on the frequencies ``(kx, ky)``: ``s1`` flips ``ky``, ``s2`` swaps the axes.
+#: The same matrices on the sky frequencies map a model ``(e1, e2)`` to ``(e1, -e2)``,
+#: ``(-e1, e2)``, ``(-e1, -e2)`` (``G_{s e}(q) = G_e(s q)``,
+#: :class:`pylensfit.likelihood.folded.FoldedBank`), the signs :data:`_E_SIGNS`
+_SYMMETRIES = np.array([[[1, 0], [0, 1]], [[1, 0], [0, -1]], [[0, 1], [1, 0]],
+                        [[0, 1], [-1, 0]]])  # fmt: skip
+_E_SIGNS = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]])
+#: the characters of the group, ``chi_c(h) = (-1)^{popcount(c & h)}``
+_CHI = np.array([[(-1) ** bin(c & h).count("1") for h in range(4)] for c in range(4)], float)
+
+
+def lattice_symmetries(jacobian: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """The square pixel grid's symmetries that an exposure's Jacobian keeps as symmetries
+    of the sky-frame model grid.
+
+    A symmetry ``h`` of the pixel frequencies (:data:`_SYMMETRIES`) is seen on the sky as
+    ``J^T h J^-T``; where that is (up to sign) one of the same matrices ``s``, the model
+    ``e`` seen at ``h k`` is the model ``s e`` seen at ``k``, and the exposure's products
+    fold by ``h`` as the single fit's do. Every Jacobian keeps ``h = 1``; a rotation (or
+    a mirror image) times a scale keeps the quarter turn ``s1 s2`` (``e -> -e``); one
+    that maps the pixel axes onto the sky's axes or diagonals
+    keeps all four.
+
+    Parameters
+    ----------
+    jacobian : numpy.ndarray
+        ``(2, 2)`` ``J = d(x, y)/d(W, N)``, pixels per arcsec.
+    tol : float
+        Tolerance on the entries of ``J^T h J^-T`` (dimensionless).
+
+    Returns
+    -------
+    h, s : numpy.ndarray
+        The kept symmetries (indices into :data:`_SYMMETRIES`, a subgroup, ``h[0] = 0``)
+        and the model symmetry ``s`` that each is on the sky.
+    """
+    Jt = np.asarray(jacobian, dtype=float).T
+    hs, ss = [], []
+    for h, M in enumerate(_SYMMETRIES):
+        on_sky = Jt @ M @ np.linalg.inv(Jt)
+        for s, S in enumerate(_SYMMETRIES):
+            if np.abs(on_sky - S).max() < tol or np.abs(on_sky + S).max() < tol:
+                hs.append(h)
+                ss.append(s)
+                break
+    return np.array(hs), np.array(ss)
+
+
+@dataclass(frozen=True)
+class _Fold:
+    """One exposure's bank folded by the lattice symmetries ``H`` its Jacobian keeps.
+
+    On the interior frequencies modulo ``+-H`` (orbit representatives ``k0``), the
+    characters ``chi`` of ``H`` split each product ``h_e = sum_k f(k) G_e(k)`` into
+    ``h_{s(g) e} = sum_chi chi(g) A_chi[e]``, ``A_chi[e] = sum_k0 w(k0) fhat_chi(k0)
+    Ghat_chi,e(k0)`` with ``fhat_chi(k0) = sum_h chi(h) f(h k0)`` (likewise ``Ghat``) and
+    ``w = |orbit| / |H|^2``: ``|H|`` products over ``1 / |H|`` of the frequencies, for
+    the ``|H|`` models ``s(g) e``, as :class:`pylensfit.likelihood.folded.FoldedBank`
+    does for ``H`` the whole group. ``|H| = 1`` is the half-plane, unfolded.
+    """
+
+    idx: np.ndarray  # (n_h, n_k0) position of h k0 (or -h k0) in the exposure's sel
+    w: np.ndarray  # (n_k0,) orbit weights
+    chi: np.ndarray  # (n_h, n_h) characters of H: chi[c, slot of h]
+    keep: tuple  # per character, the k0 where it can be non-zero
+    G: tuple  # per character, (len(keep), n_fc) folded model transforms
+    G2: tuple  # per character, those of the squared transforms (the norms)
+    members: np.ndarray  # (n_fc, n_h) the model s(h) e of folded column c, slot h
+
+    def columns(self, cols: np.ndarray | None, n_cols: int) -> tuple[tuple, tuple, np.ndarray]:
+        """``G``, ``G2`` and ``members`` of the models ``cols`` (a set closed under the
+        symmetries; None: all), the members numbered in ``cols``."""
+        if cols is None:
+            return self.G, self.G2, self.members
+        pos = np.full(n_cols, -1, dtype=np.int64)
+        pos[cols] = np.arange(cols.size)
+        fc = np.flatnonzero(pos[self.members[:, 0]] >= 0)
+        mem = np.where(self.members[fc] >= 0, pos[self.members[fc]], -1)
+        return (tuple(g[:, fc] for g in self.G), tuple(g[:, fc] for g in self.G2),
+                np.ascontiguousarray(mem))  # fmt: skip
+
+
+def _frequency_orbits(n: int, H: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The interior frequencies of an ``n x n`` stamp modulo ``+-H``: each orbit's
+    representative ``k0`` (integer ``(jx, jy)``, ``(n_k0, 2)``), its images ``h k0``
+    (``(n_h, n_k0, 2)``) and the orbit's size."""
+    jmax = (n - 1) // 2
+    jy, jx = np.mgrid[-jmax : jmax + 1, -jmax : jmax + 1]
+    pts = np.stack([jx.ravel(), jy.ravel()], axis=1)
+    key = lambda p: (p[..., 1] + jmax) * (2 * jmax + 1) + p[..., 0] + jmax  # noqa: E731
+    imgs = np.einsum("hab,pb->hpa", _SYMMETRIES[H], pts)
+    both = np.concatenate([key(imgs), key(-imgs)])  # (2 n_h, n_pts) the orbit's keys
+    rep = both.min(axis=0) == key(pts)
+    size = np.array([np.unique(both[:, i]).size for i in np.flatnonzero(rep)])
+    return pts[rep], imgs[:, rep], size
+
+
+def _sel_positions(n: int, sel: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Position in ``sel`` (flattened ``rfft2`` indices) of the frequencies ``k`` (integer
+    ``(..., 2)``), or of ``-k`` where ``k`` lies in the other half-plane."""
+    flip = k[..., 0] < 0
+    k = np.where(flip[..., None], -k, k)
+    flat = (k[..., 1] % n) * (n // 2 + 1) + k[..., 0]
+    pos = np.full(n * (n // 2 + 1), -1, dtype=np.int64)
+    pos[sel] = np.arange(sel.size)
+    return pos[flat]
+
+
+def _model_orbits(cols: _Columns, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The e cells in orbits of the model symmetries ``S``: the representatives (the
+    first cell of each orbit) and, per slot, the cell of ``s e`` for each of them."""
+    eg = cols.egrid
+    cell = {(round(a, 9), round(b, 9)): i for i, (a, b) in enumerate(eg)}
+    img = np.array([[cell[(round(a * sa, 9), round(b * sb, 9))] for a, b in eg]
+                    for sa, sb in _E_SIGNS[S]])  # fmt: skip
+    rep = np.flatnonzero(img.min(axis=0) == np.arange(eg.shape[0]))
+    return rep, img[:, rep]
+
+
+def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype) -> _Fold:
+    """The exposure's bank folded by the symmetries its Jacobian keeps."""
+    H, S = lattice_symmetries(J)
+    k0, imgs, size = _frequency_orbits(n, H)
+    chi = _CHI[np.unique(_CHI[:, H], axis=0, return_index=True)[1]][:, H]
+    stab = (imgs == k0[None]).all(-1) | (imgs == -k0[None]).all(-1)  # (n_h, n_k0)
+    keep = tuple(np.flatnonzero(~(stab & (c[:, None] < 0)).any(axis=0)) for c in chi)
+    rep, img = _model_orbits(cols, S)
+    q = 2 * np.pi / n * imgs.reshape(-1, 2) @ np.asarray(J, dtype=float)  # J^T k per row
+    G = _bank(replace(cols, egrid=cols.egrid[rep]), q[:, 0], q[:, 1], np.float64)
+    G = G.reshape(H.size, k0.shape[0], -1)
+    per_e = cols.n_b * cols.n_sub
+    members = (img.T[:, None, :] * per_e + np.arange(per_e)[None, :, None]).reshape(-1, H.size)
+    members = np.vstack([members, np.r_[cols.n_cols - 1, np.full(H.size - 1, -1)]])
+    fold = [(np.einsum("h,hkc->kc", c, G[:, kp]), np.einsum("h,hkc->kc", c, G[:, kp] ** 2))
+            for c, kp in zip(chi, keep, strict=True)]  # fmt: skip
+    return _Fold(idx=_sel_positions(n, sel, imgs), w=size / H.size**2, chi=chi, keep=keep,
+                 G=tuple(np.ascontiguousarray(g, dtype=dtype) for g, _ in fold),
+                 G2=tuple(np.ascontiguousarray(g2, dtype=dtype) for _, g2 in fold),
+                 members=np.ascontiguousarray(members, dtype=np.int64))  # fmt: skip
+
+
 @dataclass(frozen=True)
 class _Exposure:
-    """One exposure's part of the block: its bank and its frequencies."""
+    """One exposure's part of the block: its folded bank and its frequencies."""
 
-    G: np.ndarray  # (n_f, n_cols) model transforms
-    G2: np.ndarray  # their squares
-    qx: np.ndarray  # (n_f,) sky frequencies of the summed terms
+    fold: _Fold
+    qx: np.ndarray  # (n_f,) sky frequencies of the interior half-plane
     qy: np.ndarray
-    coef: np.ndarray  # (n_f,) Hermitian weight / n^2
+    coef: np.ndarray  # (n_f,) 1 / n^2
+    herm: np.ndarray  # (n_f,) Hermitian weight: 2, or 1 on the ky axis
     sel: np.ndarray  # (n_f,) their flattened rfft2 indices
 
 
+#: the last exposures' banks (an exposure's galaxies come in several calls or blocks)
+_BANKS: dict = {}
+_BANKS_KEPT = 8
+
+
 def _exposure(cols: _Columns, J: np.ndarray, n: int, dtype) -> _Exposure:
-    sel = _interior(n)
-    qx, qy = (a.ravel()[sel] for a in sky_frequencies(J, n))
-    _, _, w = rfft_frequencies(n)
-    G = _bank(cols, qx, qy, dtype)
-    return _Exposure(G=G, G2=np.square(G), qx=qx, qy=qy, coef=w.ravel()[sel] / n**2, sel=sel)
+    """The bank of the exposure of Jacobian ``J`` (cached: the last ``_BANKS_KEPT``)."""
+    key = (np.asarray(J, dtype=float).tobytes(), n, np.dtype(dtype).str, cols.model, cols.runs,
+           cols.egrid.tobytes(), cols.radii.tobytes())  # fmt: skip
+    hit = _BANKS.get(key)
+    if hit is None:
+        sel = _interior(n)
+        qx, qy = (a.ravel()[sel] for a in sky_frequencies(J, n))
+        _, _, w = rfft_frequencies(n)
+        hit = _Exposure(fold=_fold(cols, J, n, sel, dtype), qx=qx, qy=qy,
+                        coef=np.full(sel.size, 1.0 / n**2), herm=w.ravel()[sel],
+                        sel=sel)  # fmt: skip
+        keep_last(_BANKS, key, hit, _BANKS_KEPT)
+    return hit
 
 
 @dataclass(frozen=True)
@@ -369,66 +531,53 @@ def _rows(D: np.ndarray, ex: _Exposure, xc: np.ndarray, yc: np.ndarray) -> np.nd
     return np.stack([r, -qx * i, -qy * i, -qx * qx * r, -qx * qy * r, -qy * qy * r])
 
 
+def _folded(fold: _Fold, R: np.ndarray, Gs: tuple, members: np.ndarray, out: np.ndarray):
+    """``out[r, members[c, h]] += sum_chi chi(h) (fhat_chi R) Ghat_chi``: the products of
+    the rows ``R`` (``(rows, n_f)``, on the exposure's frequencies) with the folded
+    transforms ``Gs`` (one per character), unfolded into ``out`` (``(rows, c)``)."""
+    P = np.empty((len(Gs), R.shape[0], Gs[0].shape[1]), dtype=Gs[0].dtype)
+    for c, (chi, kp, G) in enumerate(zip(fold.chi, fold.keep, Gs, strict=True)):
+        F = np.einsum("h,rhk->rk", chi, R[:, fold.idx[:, kp]]) * fold.w[kp]
+        np.matmul(F.astype(G.dtype), G, out=P[c])
+    unfold(P, fold.chi, members, out)
+
+
 def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None) -> tuple[np.ndarray, Norms]:
     """``(6, m, c)`` products of ``H`` summed over the exposures, and the models' norms
     per exposure (:class:`~pylensfit.joint_nb.Norms`: ``Q`` and the expected Hessian per
-    unit weight, one product per exposure and PSF) (``cols``: those columns only)."""
-    A = 0.0
-    S = []
-    for D, W, ex in zip(blk.D, blk.W, exps, strict=True):
-        G = ex.G if cols is None else ex.G[:, cols]
-        G2 = ex.G2 if cols is None else ex.G2[:, cols]
-        R = _rows(D, ex, xc, yc).astype(G.dtype)
-        A = A + np.matmul(R, G).astype(np.float64)
+    unit weight, one product per exposure and PSF) (``cols``: those columns only, a set
+    closed under the symmetries), each exposure's folded by its symmetries."""
+    m = xc.size
+    n_cols = exps[0].fold.members.max() + 1
+    c = n_cols if cols is None else cols.size
+    A = np.zeros((6 * m, c))
+    S = np.zeros((len(exps), 4 * blk.W[0].shape[0], c))
+    for k, (D, W, ex) in enumerate(zip(blk.D, blk.W, exps, strict=True)):
+        G, G2, members = ex.fold.columns(cols, n_cols)
+        _folded(ex.fold, _rows(D, ex, xc, yc).reshape(6 * m, -1), G, members, A)
         q = np.stack([W, -W * ex.qx * ex.qx, -W * ex.qx * ex.qy, -W * ex.qy * ex.qy])
-        S.append(np.matmul(q.astype(G.dtype), G2))
-    return A, Norms(np.stack(S), np.stack(blk.w2))
+        _folded(ex.fold, q.reshape(-1, q.shape[-1]), G2, members, S[k])
+    return A.reshape(6, m, c), Norms(S.reshape(len(exps), 4, -1, c), np.stack(blk.w2))
 
 
-def _laplace(A: np.ndarray, norms: Norms, x0, y0, b2: float, max_step: float) -> ModelOutputs:
-    """``ln L(e, r)`` of every model, marginalised over the amplitude and the position
-    (module docstring), and the most likely model's ``H*``, ``X*`` (from the origin):
-    the single-exposure fit's Newton step, expected-Hessian fallback (the step then
-    clipped to ``max_step``, arcsec), amplitude integral and position prior, on the
-    sums over the exposures (:func:`pylensfit.joint_nb.laplace_models`). ``x0, y0``:
-    the catalogue position from the origin, arcsec."""
-    m, c = A.shape[1:]
-    out = ModelOutputs.empty(m, c)
+def _laplace(A: np.ndarray, norms: Norms, x0, y0, sums: Sums, cfg: Config,
+             scale: float) -> Outputs:  # fmt: skip
+    """``ln L(e)``, ``ln L_b(e)`` per run and the most likely model's ``H*``, ``X*`` (from
+    the origin; arcsec) of the block, the models marginalised over the amplitude and the
+    position (module docstring) and summed over r with ``sums``
+    (:func:`pylensfit.joint_nb.laplace_grid`: the single-exposure fit's Newton step,
+    expected-Hessian fallback, amplitude integral, position prior and sum over r, on
+    the sums over the exposures). ``x0, y0``: the catalogue position from the origin,
+    arcsec."""
+    m = A.shape[1]
+    n_e, n_r = sums.e_w.size, sums.node_w.size
+    out = Outputs.empty(m, n_e, n_r // sums.n_sub, 1, n_r)
+    out.h[:] = out.x[:] = out.y[:] = np.nan
     gals = Galaxies(np.ones(m), np.ascontiguousarray(x0, dtype=float),
                     np.ascontiguousarray(y0, dtype=float))  # fmt: skip
-    laplace_models(A, norms, gals, Laplace(float(b2), float(max_step), False), out)
+    pos = Laplace((cfg.position_prior_sigma * scale) ** 2, cfg.max_newton_step * scale, False)
+    laplace_grid(A, norms, gals, sums, pos, out)
     return out
-
-
-def _peak_factor(lw: np.ndarray) -> np.ndarray:
-    """``ln`` of the correction of the sum over a run of sizes for a peak narrower than
-    the grid step (the single fit's): the ratio of the Gaussian through the largest
-    ``ln(w L)`` and its neighbours to its grid sum, where the peak is inside the run."""
-    n_sub = lw.shape[-1]
-    km = np.argmax(lw, axis=-1)[..., None]
-    lm, l0, lp = (np.take_along_axis(lw, np.clip(km + d, 0, n_sub - 1), -1)[..., 0]
-                  for d in (-1, 0, 1))  # fmt: skip
-    a = lm - 2 * l0 + lp
-    narrow = (km[..., 0] > 0) & (km[..., 0] < n_sub - 1) & (a < -1.0) & np.isfinite(a)
-    a = np.where(narrow, a, -2.0)
-    s2 = -1.0 / a
-    d = 0.5 * (lm - lp) / a
-    j = np.arange(-7, 8)
-    gsum = np.exp(-0.5 * (j - d[..., None]) ** 2 / s2[..., None]).sum(-1)
-    good = narrow & (gsum > 1e-300)
-    return np.where(good, np.log(np.sqrt(2 * np.pi * s2) / np.where(good, gsum, 1.0)), 0.0)
-
-
-def _collapse(lnl: np.ndarray, cols: _Columns) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``ln L(e)``, ``ln L_b(e)`` per run and the point source's weighted ``ln L``."""
-    m = lnl.shape[0]
-    with np.errstate(divide="ignore", invalid="ignore"):  # NaN rows: no usable exposure
-        lw = (lnl[:, :-1].reshape(m, cols.n_e, cols.n_b, cols.n_sub)
-              + np.log(cols.node_w).reshape(cols.n_b, cols.n_sub))  # fmt: skip
-        lnlb = logsumexp(lw, axis=-1) + _peak_factor(lw)
-        star = lnl[:, -1] + np.log(cols.w_star)
-        lnle = np.logaddexp(logsumexp(lnlb, axis=-1) - np.log(cols.n_b), star[:, None])
-    return lnle, lnlb, star
 
 
 def _round_centre(inp: _Inputs, blk: _Block, exps: list[_Exposure], sl: slice, cfg: Config,
@@ -446,7 +595,7 @@ def _round_centre(inp: _Inputs, blk: _Block, exps: list[_Exposure], sl: slice, c
     for k, ex in enumerate(exps):
         qx, qy = sky_frequencies(inp.J[k], N)
         ref = fourier_profile(np.hypot(qx, qy) * cfg.centring_scale * scale, "exponential")
-        refs.append(ref.ravel()[ex.sel])
+        refs.append(ref.ravel()[ex.sel] * ex.herm)  # the half-plane's sums: the plane's
         full = np.zeros((m, N * (N // 2 + 1)), dtype=complex)
         full[:, ex.sel] = blk.D[k] / ex.coef
         cc = np.fft.irfft2(full.reshape(m, N, -1) * ref, s=(N, N))
@@ -470,14 +619,17 @@ def _round_centre(inp: _Inputs, blk: _Block, exps: list[_Exposure], sl: slice, c
     return xc, yc, ~(den > 0)
 
 
-def _coarse_columns(cols: _Columns, e_step: float) -> np.ndarray:
+def _coarse_columns(cols: _Columns, e_step: float) -> tuple[np.ndarray, Sums]:
     """The centring pass's models, the single fit's: the e cells at every other lattice
-    step in both components, every 5th size from the third, the point source."""
+    step in both components, every 5th size from the third, the point source; and the
+    (unused but for their shape) weights of their sums over r."""
     lat = np.rint(np.abs(cols.egrid) / e_step - 0.5).astype(int)
     ie = np.flatnonzero((lat % 2 == 0).all(axis=1))
     n_r = cols.n_b * cols.n_sub
     ir = np.arange(min(2, n_r - 1), n_r, 5)
-    return np.append((ie[:, None] * n_r + ir[None, :]).ravel(), cols.n_cols - 1)
+    sums = Sums(np.ones(ir.size), 1.0, np.zeros(1), np.full(ie.size, 1.0 / ie.size),
+                np.zeros(ie.size, dtype=np.int64), ir.size)  # fmt: skip
+    return np.append((ie[:, None] * n_r + ir[None, :]).ravel(), cols.n_cols - 1), sums
 
 
 def _fit_block(inp: _Inputs, exps: list[_Exposure], cols: _Columns, cfg: Config,
@@ -485,21 +637,19 @@ def _fit_block(inp: _Inputs, exps: list[_Exposure], cols: _Columns, cfg: Config,
     """Every model for the block's galaxies: centring, the coarse pass that moves the
     origin to the best round model's peak, then the whole grid."""
     blk = _block(inp, exps, sl)
-    b2 = (cfg.position_prior_sigma * scale) ** 2
-    step = cfg.max_newton_step * scale
     xc, yc, no_peak = _round_centre(inp, blk, exps, sl, cfg, scale)
-    cc = _coarse_columns(cols, cfg.e_step)
-    out = _laplace(*_products(blk, exps, xc, yc, cc), -xc, -yc, b2, step)
+    cc, sums_c = _coarse_columns(cols, cfg.e_step)
+    out = _laplace(*_products(blk, exps, xc, yc, cc), -xc, -yc, sums_c, cfg, scale)
     xc = xc + np.nan_to_num(out.x)
     yc = yc + np.nan_to_num(out.y)
     A, norms = _products(blk, exps, xc, yc)
-    out = _laplace(A, norms, -xc, -yc, b2, step)
-    lnle, lnlb, star = _collapse(out.lnl, cols)
+    out = _laplace(A, norms, -xc, -yc, cols.sums(), cfg, scale)
     g = np.arange(out.best.size)
     p = g if norms.S.shape[2] > 1 else 0
     Q = (norms.w2 * norms.S[:, 0, p, out.best].astype(np.float64)).sum(axis=0)
-    return {"lnle": lnle, "lnlb": lnlb, "star": star, "best": out.best, "no_peak": no_peak,
-            "h": out.h, "Q": Q, "x": xc + out.x, "y": yc + out.y}  # fmt: skip
+    return {"lnle": out.lnle, "lnlb": out.lnlb, "star": out.lnlr[:, 0, -1] + np.log(cols.w_star),
+            "best": out.best, "no_peak": no_peak, "h": out.h, "Q": Q, "x": xc + out.x,
+            "y": yc + out.y}  # fmt: skip
 
 
 def fit_exposures(

@@ -10,7 +10,9 @@ and the expected-Hessian fallback
 with the noise ``sigma = 1`` and the model's ``S`` replaced by the galaxy's ``Q = sum_k
 f_k^2 S_k / sigma_k^2`` (the module docstring of :mod:`pylensfit.joint`). The per-model
 constants that the single fit reads from its PSF bank are here summed over the exposures
-per galaxy; nothing of the block's size is written but ``ln L``.
+per galaxy. Then the single fit's sum over r
+(:func:`~pylensfit.likelihood.radius_nb.collapse_models`): nothing of the block's size
+is written back.
 
 numba caches a compiled kernel by its own file: after editing the likelihood's kernels
 remove the caches (``find src -name '*.nb[ic]' -delete``).
@@ -26,9 +28,10 @@ from numba import njit, prange
 
 from .likelihood.amplitude_nb import AMP_UNIFORM, amplitude_tile
 from .likelihood.laplace_nb import fisher_tile, position_tile
+from .likelihood.radius_nb import collapse_models
 from .likelihood.tile_nb import TILE, W_DETM, W_HS, W_QUAD, W_ROWS, W_VAL, W_X, W_Y
 
-__all__ = ["Norms", "ModelOutputs", "laplace_models"]
+__all__ = ["Norms", "laplace_grid", "unfold"]
 
 
 class Norms(NamedTuple):
@@ -40,22 +43,6 @@ class Norms(NamedTuple):
 
     S: np.ndarray  # (K, 4, n_psf, c), arcsec^-2 for the Hessian
     w2: np.ndarray  # (K, m)
-
-
-class ModelOutputs(NamedTuple):
-    """The kernel's results: ``ln L`` of every model and the most likely model's."""
-
-    lnl: np.ndarray  # (m, c) ln L(e, r); NaN where no exposure is usable
-    best: np.ndarray  # (m,) int: the most likely model (the first of equal ones)
-    h: np.ndarray  # (m,) its H*
-    x: np.ndarray  # (m,) its peak X*, from the origin, arcsec
-    y: np.ndarray
-
-    @classmethod
-    def empty(cls, m: int, c: int) -> ModelOutputs:
-        """Arrays for ``m`` galaxies and ``c`` models."""
-        return cls(np.empty((m, c)), np.zeros(m, dtype=np.int64), np.full(m, np.nan),
-                   np.full(m, np.nan), np.full(m, np.nan))  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
@@ -90,47 +77,55 @@ def _read_tile(A, norms, g, t0, nt, V, cm):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def _store_tile(W, cm, g, t0, nt, best, out):
-    """The tile's ``ln L`` into ``out.lnl[g]`` (NaN where ``Q = 0``: no usable exposure),
-    the most likely model so far into ``out`` (its ``ln L`` is ``best``, returned)."""
+def _store_tile(W, cm, g, t0, nt, best, buf, hxy):
+    """The tile's ``ln L`` into ``buf`` (NaN where ``Q = 0``: no usable exposure); the most
+    likely model so far (its ``ln L`` is ``best``, returned) and its ``H*`` and peak into
+    ``hxy = (best, h, x, y)`` at ``g`` (the first model's where none is finite)."""
     for k in range(nt):
         j = t0 + k
-        if cm[0, k] > 0.0:
-            lnl = W[W_VAL, k] - 0.5 * math.log(W[W_DETM, k]) - 0.5 * W[W_QUAD, k]
-        else:
-            lnl = math.nan
-        out.lnl[g, j] = lnl
+        ok = cm[0, k] > 0.0
+        lnl = W[W_VAL, k] - 0.5 * math.log(W[W_DETM, k]) - 0.5 * W[W_QUAD, k] if ok else math.nan
+        buf[j] = lnl
         if j == 0 or lnl > best:
-            out.best[g] = j
-            out.h[g] = W[W_HS, k] if cm[0, k] > 0.0 else math.nan
-            out.x[g] = W[W_X, k] if cm[0, k] > 0.0 else math.nan
-            out.y[g] = W[W_Y, k] if cm[0, k] > 0.0 else math.nan
+            hxy[0][g] = j
+            hxy[1][g] = W[W_HS, k] if ok else math.nan
+            hxy[2][g] = W[W_X, k] if ok else math.nan
+            hxy[3][g] = W[W_Y, k] if ok else math.nan
             if lnl > best:
                 best = lnl
     return best
 
 
 @njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def laplace_models(A, norms, gals, laplace, out):
-    """``ln L(e, r)`` of every model of a block and the most likely model's ``H*`` and
-    ``X*``, into ``out`` (:class:`ModelOutputs`).
+def laplace_grid(A, norms, gals, sums, laplace, out):
+    """``ln L(e)`` summed over r, per run of sizes, and the most likely model's ``H*`` and
+    ``X*`` of every galaxy of a block, into ``out``.
 
     ``A`` ``(6, m, c)``: ``H``, its gradient and Hessian at the origin (the joint
-    products, any float type); ``norms``: :class:`Norms`; ``gals``: the likelihood's
+    products, any float type), the models in the single fit's order (cell ``ie``'s
+    sizes at ``ie * n_r``, the point source last); ``norms``: :class:`Norms`; ``gals``,
+    ``sums``, ``laplace`` and ``out``: the likelihood's
     :class:`~pylensfit.likelihood.grid_nb.Galaxies` (``sigma`` 1: the weights are in
-    ``A`` and ``norms``; ``x0, y0`` the catalogue position from the origin, arcsec);
-    ``laplace``: its :class:`~pylensfit.likelihood.grid_nb.Laplace` (``b2`` arcsec^2,
-    ``max_step`` arcsec; ``cubic`` is not read: second order).
+    ``A`` and ``norms``; ``x0, y0`` the catalogue position from the origin, arcsec),
+    :class:`~pylensfit.likelihood.grid_nb.Sums`,
+    :class:`~pylensfit.likelihood.grid_nb.Laplace` (``b2`` arcsec^2, ``max_step``
+    arcsec; ``cubic`` is not read: second order) and
+    :class:`~pylensfit.likelihood.grid_nb.Outputs`. The sum over r is the single fit's
+    (:func:`~pylensfit.likelihood.radius_nb.collapse_models`).
     """
     sigma, x0, y0 = gals
+    node_w, w_star, ln_pi, e_w, e_grp, n_sub = sums
+    rsums = (node_w, np.log(node_w), w_star, ln_pi, np.exp(ln_pi), e_w, e_grp, n_sub)
     b2 = laplace[0]
     max2 = laplace[1] * laplace[1]
     m, c = A.shape[1], A.shape[2]
     tab = np.empty((4, 0))
+    hxy = (out.best, out.h, out.x, out.y)
     for g in prange(m):
         V = np.zeros((6, TILE))
         cm = np.empty((6, TILE))
         W = np.empty((W_ROWS, TILE))
+        buf = np.empty(c)
         best = -np.inf
         for t0 in range(0, c, TILE):
             nt = min(TILE, c - t0)
@@ -138,4 +133,25 @@ def laplace_models(A, norms, gals, laplace, out):
             position_tile(V, cm, sigma[g], max2, W)
             amplitude_tile(cm, AMP_UNIFORM, 0.0, 0.0, math.inf, 0.0, tab, W)
             fisher_tile(x0[g], y0[g], b2, W)
-            best = _store_tile(W, cm, g, t0, nt, best, out)
+            best = _store_tile(W, cm, g, t0, nt, best, buf, hxy)
+        collapse_models(g, buf, best, rsums, (out.lnle, out.lnlb, out.lnlr))
+
+
+@njit(parallel=True, cache=True)
+def unfold(P, chi, members, out):
+    """Add the folded products ``P`` (``(n_chi, rows, n_fc)``) to ``out`` (``(rows, c)``,
+    float64) model by model: ``out[r, members[f, h]] += sum_c chi[c, h] P[c, r, f]``
+    (``members[f, h] = -1``: no model), the models of an exposure's folded columns
+    (:func:`pylensfit.joint.lattice_symmetries`)."""
+    n_chi, n_rows, n_fc = P.shape
+    n_h = members.shape[1]
+    for r in prange(n_rows):
+        for f in range(n_fc):
+            for h in range(n_h):
+                j = members[f, h]
+                if j < 0:
+                    continue
+                v = 0.0
+                for c in range(n_chi):
+                    v += chi[c, h] * P[c, r, f]
+                out[r, j] += v
