@@ -58,7 +58,7 @@ from .bankruns import bank_runs
 from .config import Config
 from .exposures import ExposureStamps
 from .grid import ellipticity_grid
-from .joint_nb import Norms, laplace_grid, unfold
+from .joint_nb import Folds, Norms, laplace_grid, unfold
 from .likelihood.bank import keep_last
 from .likelihood.grid_nb import Galaxies, Laplace, Outputs, Sums
 from .models import (
@@ -531,36 +531,58 @@ def _rows(D: np.ndarray, ex: _Exposure, xc: np.ndarray, yc: np.ndarray) -> np.nd
     return np.stack([r, -qx * i, -qy * i, -qx * qx * r, -qx * qy * r, -qy * qy * r])
 
 
-def _folded(fold: _Fold, R: np.ndarray, Gs: tuple, members: np.ndarray, out: np.ndarray):
-    """``out[r, members[c, h]] += sum_chi chi(h) (fhat_chi R) Ghat_chi``: the products of
-    the rows ``R`` (``(rows, n_f)``, on the exposure's frequencies) with the folded
-    transforms ``Gs`` (one per character), unfolded into ``out`` (``(rows, c)``)."""
-    P = np.empty((len(Gs), R.shape[0], Gs[0].shape[1]), dtype=Gs[0].dtype)
+def _folded(fold: _Fold, R: np.ndarray, Gs: tuple, out: np.ndarray) -> None:
+    """The products of the rows ``R`` (``(rows, n_f)``, on the exposure's frequencies)
+    with the folded transforms ``Gs`` (one per character), ``(fhat_chi R) Ghat_chi``,
+    into ``out`` (``(n_chi, rows, n_fc)``)."""
     for c, (chi, kp, G) in enumerate(zip(fold.chi, fold.keep, Gs, strict=True)):
         F = np.einsum("h,rhk->rk", chi, R[:, fold.idx[:, kp]]) * fold.w[kp]
-        np.matmul(F.astype(G.dtype), G, out=P[c])
-    unfold(P, fold.chi, members, out)
+        np.matmul(F.astype(G.dtype), G, out=out[c])
 
 
-def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None) -> tuple[np.ndarray, Norms]:
-    """``(6, m, c)`` products of ``H`` summed over the exposures, and the models' norms
-    per exposure (:class:`~pylensfit.joint_nb.Norms`: ``Q`` and the expected Hessian per
-    unit weight, one product per exposure and PSF) (``cols``: those columns only, a set
-    closed under the symmetries), each exposure's folded by its symmetries."""
-    m = xc.size
+def _places(members: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
+    """The folded column and the slot of each of the ``c`` models of ``members``."""
+    f, h = np.nonzero(members >= 0)
+    col, slot = np.zeros(c, dtype=np.int64), np.zeros(c, dtype=np.int64)
+    col[members[f, h]] = f
+    slot[members[f, h]] = h
+    return col, slot
+
+
+def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None) -> tuple[Folds, Norms]:
+    """The products of ``H`` and its derivatives with every exposure's folded bank
+    (:class:`~pylensfit.joint_nb.Folds`, the rows ``q * m + g``), and the models' norms
+    per exposure (:class:`~pylensfit.joint_nb.Norms`: ``Q`` and the expected Hessian
+    per unit weight, one product per exposure and PSF, unfolded) (``cols``: those
+    models only, a set closed under the symmetries)."""
+    m, K = xc.size, len(exps)
     n_cols = exps[0].fold.members.max() + 1
     c = n_cols if cols is None else cols.size
-    A = np.zeros((6 * m, c))
-    S = np.zeros((len(exps), 4 * blk.W[0].shape[0], c))
-    for k, (D, W, ex) in enumerate(zip(blk.D, blk.W, exps, strict=True)):
-        G, G2, members = ex.fold.columns(cols, n_cols)
-        _folded(ex.fold, _rows(D, ex, xc, yc).reshape(6 * m, -1), G, members, A)
+    parts = [ex.fold.columns(cols, n_cols) for ex in exps]
+    sizes = np.array([[len(G), G[0].shape[1]] for G, _, _ in parts])  # (n_chi, n_fc)
+    off = np.zeros((K, 4), dtype=np.int64)
+    off[:, :] = np.r_[0, np.cumsum(sizes.prod(1) * 6 * m)[:-1]][:, None]
+    off += np.arange(4)[None, :] * sizes[:, 1:] * 6 * m
+    P = np.empty(int((sizes.prod(1) * 6 * m).sum()), dtype=parts[0][0][0].dtype)
+    sgn, col = np.zeros((K, 4, c)), np.zeros((K, c), dtype=np.int64)
+    S = np.zeros((K, 4 * blk.W[0].shape[0], c))
+    for k, (D, W, ex, (G, G2, members)) in enumerate(zip(blk.D, blk.W, exps, parts,
+                                                         strict=True)):  # fmt: skip
+        n_chi, n_fc = sizes[k]
+        view = P[off[k, 0] : off[k, 0] + n_chi * 6 * m * n_fc].reshape(n_chi, 6 * m, n_fc)
+        _folded(ex.fold, _rows(D, ex, xc, yc).reshape(6 * m, -1), G, view)
+        col[k], slot = _places(members, c)
+        sgn[k, :n_chi] = ex.fold.chi[:, slot]
         q = np.stack([W, -W * ex.qx * ex.qx, -W * ex.qx * ex.qy, -W * ex.qy * ex.qy])
-        _folded(ex.fold, q.reshape(-1, q.shape[-1]), G2, members, S[k])
-    return A.reshape(6, m, c), Norms(S.reshape(len(exps), 4, -1, c), np.stack(blk.w2))
+        q = q.reshape(-1, q.shape[-1])
+        Sf = np.empty((n_chi, q.shape[0], n_fc), dtype=P.dtype)
+        _folded(ex.fold, q, G2, Sf)
+        unfold(Sf, ex.fold.chi, members, S[k])
+    folds = Folds(P, off, sizes[:, 1].copy(), sizes[:, 0].copy(), sgn, col)
+    return folds, Norms(S.reshape(K, 4, -1, c), np.stack(blk.w2))
 
 
-def _laplace(A: np.ndarray, norms: Norms, x0, y0, sums: Sums, cfg: Config,
+def _laplace(folds: Folds, norms: Norms, x0, y0, sums: Sums, cfg: Config,
              scale: float) -> Outputs:  # fmt: skip
     """``ln L(e)``, ``ln L_b(e)`` per run and the most likely model's ``H*``, ``X*`` (from
     the origin; arcsec) of the block, the models marginalised over the amplitude and the
@@ -569,14 +591,14 @@ def _laplace(A: np.ndarray, norms: Norms, x0, y0, sums: Sums, cfg: Config,
     expected-Hessian fallback, amplitude integral, position prior and sum over r, on
     the sums over the exposures). ``x0, y0``: the catalogue position from the origin,
     arcsec."""
-    m = A.shape[1]
+    m = np.asarray(x0).size
     n_e, n_r = sums.e_w.size, sums.node_w.size
     out = Outputs.empty(m, n_e, n_r // sums.n_sub, 1, n_r)
     out.h[:] = out.x[:] = out.y[:] = np.nan
     gals = Galaxies(np.ones(m), np.ascontiguousarray(x0, dtype=float),
                     np.ascontiguousarray(y0, dtype=float))  # fmt: skip
     pos = Laplace((cfg.position_prior_sigma * scale) ** 2, cfg.max_newton_step * scale, False)
-    laplace_grid(A, norms, gals, sums, pos, out)
+    laplace_grid(folds, norms, gals, sums, pos, out)
     return out
 
 
@@ -642,8 +664,8 @@ def _fit_block(inp: _Inputs, exps: list[_Exposure], cols: _Columns, cfg: Config,
     out = _laplace(*_products(blk, exps, xc, yc, cc), -xc, -yc, sums_c, cfg, scale)
     xc = xc + np.nan_to_num(out.x)
     yc = yc + np.nan_to_num(out.y)
-    A, norms = _products(blk, exps, xc, yc)
-    out = _laplace(A, norms, -xc, -yc, cols.sums(), cfg, scale)
+    folds, norms = _products(blk, exps, xc, yc)
+    out = _laplace(folds, norms, -xc, -yc, cols.sums(), cfg, scale)
     g = np.arange(out.best.size)
     p = g if norms.S.shape[2] > 1 else 0
     Q = (norms.w2 * norms.S[:, 0, p, out.best].astype(np.float64)).sum(axis=0)

@@ -31,7 +31,26 @@ from .likelihood.laplace_nb import fisher_tile, position_tile
 from .likelihood.radius_nb import collapse_models
 from .likelihood.tile_nb import TILE, W_DETM, W_HS, W_QUAD, W_ROWS, W_VAL, W_X, W_Y
 
-__all__ = ["Norms", "laplace_grid", "unfold"]
+__all__ = ["Folds", "Norms", "laplace_grid", "unfold"]
+
+
+class Folds(NamedTuple):
+    """The products of a block's rows with each exposure's folded bank, and where each
+    model lies in them (:func:`pylensfit.joint.lattice_symmetries`).
+
+    Exposure ``e``'s product of character ``c`` with folded column ``f`` in row ``r``
+    (``r = q * m + g`` for galaxy ``g`` and ``q`` = ``H``, its gradient ``x, y``, its
+    Hessian ``xx, xy, yy``) is ``P[off[e, c] + r * n_fc[e] + f]``; model ``j``'s
+    product is ``sum_c sgn[e, c, j]`` times those of its column ``col[e, j]`` (``sgn``
+    the character ``c`` of its slot in the column).
+    """
+
+    P: np.ndarray  # flat float32 (or float64) products
+    off: np.ndarray  # (K, 4) int: where each exposure's character starts
+    n_fc: np.ndarray  # (K,) int: folded columns per exposure
+    n_chi: np.ndarray  # (K,) int: characters per exposure (1, 2 or 4)
+    sgn: np.ndarray  # (K, 4, n_models) float +-1 (0 for c >= n_chi)
+    col: np.ndarray  # (K, n_models) int
 
 
 class Norms(NamedTuple):
@@ -46,17 +65,39 @@ class Norms(NamedTuple):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def _read_tile(A, norms, g, t0, nt, V, cm):
-    """Galaxy ``g``'s products of the columns ``t0 .. t0 + nt`` into ``V`` (``(6, TILE)``)
-    and the models' constants ``(Q, sqrt Q, mxx, mxy, myy, ln Q)`` summed over the
-    exposures into ``cm`` (``(6, TILE)``); the rest of the tile a harmless model."""
+def _read_tile(folds, norms, g, t0, nt, V, cm):
+    """Galaxy ``g``'s products of the models ``t0 .. t0 + nt``, summed over the exposures,
+    into ``V`` (``(6, TILE)``) and the models' constants ``(Q, sqrt Q, mxx, mxy, myy, ln
+    Q)`` into ``cm`` (``(6, TILE)``); the rest of the tile a harmless model."""
+    P, off, n_fc, n_chi, sgn, col = folds
     S, w2 = norms
     p = g % S.shape[2]  # one PSF for all (0) or one per galaxy
+    m = w2.shape[1]
     for q in range(6):
-        for k in range(nt):
-            V[q, k] = A[q, g, t0 + k]
-        for k in range(nt, TILE):
+        for k in range(TILE):
             V[q, k] = 0.0
+    for e in range(off.shape[0]):
+        nc = n_chi[e]
+        for q in range(6):
+            at = (q * m + g) * n_fc[e]
+            o0 = off[e, 0] + at
+            o1 = off[e, 1] + at
+            o2 = off[e, 2] + at
+            o3 = off[e, 3] + at
+            if nc == 4:
+                for k in range(nt):
+                    j = t0 + k
+                    f = col[e, j]
+                    V[q, k] += (sgn[e, 0, j] * P[o0 + f] + sgn[e, 1, j] * P[o1 + f]
+                                + sgn[e, 2, j] * P[o2 + f] + sgn[e, 3, j] * P[o3 + f])  # fmt: skip
+            elif nc == 2:
+                for k in range(nt):
+                    j = t0 + k
+                    f = col[e, j]
+                    V[q, k] += sgn[e, 0, j] * P[o0 + f] + sgn[e, 1, j] * P[o1 + f]
+            else:
+                for k in range(nt):
+                    V[q, k] += P[o0 + col[e, t0 + k]]
     for r in range(4):
         row = 0 if r == 0 else r + 1  # Q, then the Hessian after sqrt Q
         for k in range(nt):
@@ -97,13 +138,13 @@ def _store_tile(W, cm, g, t0, nt, best, buf, hxy):
 
 
 @njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def laplace_grid(A, norms, gals, sums, laplace, out):
+def laplace_grid(folds, norms, gals, sums, laplace, out):
     """``ln L(e)`` summed over r, per run of sizes, and the most likely model's ``H*`` and
     ``X*`` of every galaxy of a block, into ``out``.
 
-    ``A`` ``(6, m, c)``: ``H``, its gradient and Hessian at the origin (the joint
-    products, any float type), the models in the single fit's order (cell ``ie``'s
-    sizes at ``ie * n_r``, the point source last); ``norms``: :class:`Norms`; ``gals``,
+    ``folds``: :class:`Folds`, the products of ``H``, its gradient and Hessian at the
+    origin, the models in the single fit's order (cell ``ie``'s sizes at ``ie * n_r``,
+    the point source last); ``norms``: :class:`Norms`; ``gals``,
     ``sums``, ``laplace`` and ``out``: the likelihood's
     :class:`~pylensfit.likelihood.grid_nb.Galaxies` (``sigma`` 1: the weights are in
     ``A`` and ``norms``; ``x0, y0`` the catalogue position from the origin, arcsec),
@@ -118,7 +159,7 @@ def laplace_grid(A, norms, gals, sums, laplace, out):
     rsums = (node_w, np.log(node_w), w_star, ln_pi, np.exp(ln_pi), e_w, e_grp, n_sub)
     b2 = laplace[0]
     max2 = laplace[1] * laplace[1]
-    m, c = A.shape[1], A.shape[2]
+    m, c = sigma.size, folds.col.shape[1]
     tab = np.empty((4, 0))
     hxy = (out.best, out.h, out.x, out.y)
     for g in prange(m):
@@ -129,7 +170,7 @@ def laplace_grid(A, norms, gals, sums, laplace, out):
         best = -np.inf
         for t0 in range(0, c, TILE):
             nt = min(TILE, c - t0)
-            _read_tile(A, norms, g, t0, nt, V, cm)
+            _read_tile(folds, norms, g, t0, nt, V, cm)
             position_tile(V, cm, sigma[g], max2, W)
             amplitude_tile(cm, AMP_UNIFORM, 0.0, 0.0, math.inf, 0.0, tab, W)
             fisher_tile(x0[g], y0[g], b2, W)
