@@ -78,26 +78,28 @@ def _read_tile(folds, norms, g, t0, nt, V, cm):
             V[q, k] = 0.0
     for e in range(off.shape[0]):
         nc = n_chi[e]
-        for q in range(6):
-            at = (q * m + g) * n_fc[e]
-            o0 = off[e, 0] + at
-            o1 = off[e, 1] + at
-            o2 = off[e, 2] + at
-            o3 = off[e, 3] + at
+        step = m * n_fc[e]  # from one row q to the next
+        o0 = off[e, 0] + g * n_fc[e]
+        o1 = off[e, 1] + g * n_fc[e]
+        o2 = off[e, 2] + g * n_fc[e]
+        o3 = off[e, 3] + g * n_fc[e]
+        for k in range(nt):
+            j = t0 + k
+            f = col[e, j]
             if nc == 4:
-                for k in range(nt):
-                    j = t0 + k
-                    f = col[e, j]
-                    V[q, k] += (sgn[e, 0, j] * P[o0 + f] + sgn[e, 1, j] * P[o1 + f]
-                                + sgn[e, 2, j] * P[o2 + f] + sgn[e, 3, j] * P[o3 + f])  # fmt: skip
+                s0, s1, s2, s3 = sgn[e, 0, j], sgn[e, 1, j], sgn[e, 2, j], sgn[e, 3, j]
+                for q in range(6):
+                    a = q * step + f
+                    V[q, k] += (s0 * P[o0 + a] + s1 * P[o1 + a] + s2 * P[o2 + a]
+                                + s3 * P[o3 + a])  # fmt: skip
             elif nc == 2:
-                for k in range(nt):
-                    j = t0 + k
-                    f = col[e, j]
-                    V[q, k] += sgn[e, 0, j] * P[o0 + f] + sgn[e, 1, j] * P[o1 + f]
+                s0, s1 = sgn[e, 0, j], sgn[e, 1, j]
+                for q in range(6):
+                    a = q * step + f
+                    V[q, k] += s0 * P[o0 + a] + s1 * P[o1 + a]
             else:
-                for k in range(nt):
-                    V[q, k] += P[o0 + col[e, t0 + k]]
+                for q in range(6):
+                    V[q, k] += P[o0 + q * step + f]
     for r in range(4):
         row = 0 if r == 0 else r + 1  # Q, then the Hessian after sqrt Q
         for k in range(nt):
@@ -107,7 +109,7 @@ def _read_tile(folds, norms, g, t0, nt, V, cm):
             cm[row, k] = acc
     for k in range(nt):
         cm[1, k] = math.sqrt(cm[0, k])
-        cm[5, k] = math.log(cm[0, k])
+        cm[5, k] = 0.0  # ln Q: in _store_tile, with det M's log
     for k in range(nt, TILE):
         cm[0, k] = 1.0
         cm[1, k] = 1.0
@@ -125,7 +127,9 @@ def _store_tile(W, cm, g, t0, nt, best, buf, hxy):
     for k in range(nt):
         j = t0 + k
         ok = cm[0, k] > 0.0
-        lnl = W[W_VAL, k] - 0.5 * math.log(W[W_DETM, k]) - 0.5 * W[W_QUAD, k] if ok else math.nan
+        # the amplitude integral's -ln(Q) / 2 (cm's ln Q is 0) and det M's in one log
+        lnl = (W[W_VAL, k] - 0.5 * math.log(W[W_DETM, k] * cm[0, k]) - 0.5 * W[W_QUAD, k]
+               if ok else math.nan)  # fmt: skip
         buf[j] = lnl
         if j == 0 or lnl > best:
             hxy[0][g] = j
