@@ -317,6 +317,7 @@ class _Fold:
     G: tuple  # per character, (len(keep), n_fc) folded model transforms
     G2: tuple  # per character, those of the squared transforms (the norms)
     members: np.ndarray  # (n_fc, n_h) the model s(h) e of folded column c, slot h
+    kind: tuple  # (H, s): exposures of one kind have the same folded columns
 
     def columns(self, cols: np.ndarray | None, n_cols: int) -> tuple[tuple, tuple, np.ndarray]:
         """``G``, ``G2`` and ``members`` of the models ``cols`` (a set closed under the
@@ -387,7 +388,8 @@ def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype) -> _Fol
     return _Fold(idx=_sel_positions(n, sel, imgs), w=size / H.size**2, chi=chi, keep=keep,
                  G=tuple(np.ascontiguousarray(g, dtype=dtype) for g, _ in fold),
                  G2=tuple(np.ascontiguousarray(g2, dtype=dtype) for _, g2 in fold),
-                 members=np.ascontiguousarray(members, dtype=np.int64))  # fmt: skip
+                 members=np.ascontiguousarray(members, dtype=np.int64),
+                 kind=(tuple(H), tuple(S)))  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -531,12 +533,16 @@ def _rows(D: np.ndarray, ex: _Exposure, xc: np.ndarray, yc: np.ndarray) -> np.nd
     return np.stack([r, -qx * i, -qy * i, -qx * qx * r, -qx * qy * r, -qy * qy * r])
 
 
-def _folded(fold: _Fold, R: np.ndarray, Gs: tuple, out: np.ndarray) -> None:
-    """The products of the rows ``R`` (``(rows, n_f)``, on the exposure's frequencies)
-    with the folded transforms ``Gs`` (one per character), ``(fhat_chi R) Ghat_chi``,
-    into ``out`` (``(n_chi, rows, n_fc)``)."""
-    for c, (chi, kp, G) in enumerate(zip(fold.chi, fold.keep, Gs, strict=True)):
-        F = np.einsum("h,rhk->rk", chi, R[:, fold.idx[:, kp]]) * fold.w[kp]
+def _folded(folds: list[_Fold], Rs: list[np.ndarray], Gs: list[tuple], out: np.ndarray) -> None:
+    """The products of the rows ``Rs`` (each ``(rows, n_f)``, on its exposure's
+    frequencies) with the folded transforms ``Gs`` (one per character), ``sum_e (fhat_chi
+    R_e) Ghat_chi,e``, summed over exposures of one kind (``folds``) as one matrix
+    product over all of their frequencies, into ``out`` (``(n_chi, rows, n_fc)``)."""
+    for c in range(len(Gs[0])):
+        F = np.concatenate([np.einsum("h,rhk->rk", f.chi[c], R[:, f.idx[:, f.keep[c]]])
+                            * f.w[f.keep[c]] for f, R in zip(folds, Rs, strict=True)],
+                           axis=1)  # fmt: skip
+        G = Gs[0][c] if len(Gs) == 1 else np.concatenate([g[c] for g in Gs])
         np.matmul(F.astype(G.dtype), G, out=out[c])
 
 
@@ -549,37 +555,47 @@ def _places(members: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
     return col, slot
 
 
+def _norms(blk: _Block, exps: list[_Exposure], parts: list[tuple], c: int) -> Norms:
+    """The models' norms per exposure (:class:`~pylensfit.joint_nb.Norms`: ``Q`` and the
+    expected Hessian per unit weight, one product per exposure and PSF, unfolded)."""
+    S = np.zeros((len(exps), 4 * blk.W[0].shape[0], c))
+    for k, (W, ex, (_, G2, members)) in enumerate(zip(blk.W, exps, parts, strict=True)):
+        q = np.stack([W, -W * ex.qx * ex.qx, -W * ex.qx * ex.qy, -W * ex.qy * ex.qy])
+        q = q.reshape(-1, q.shape[-1])
+        Sf = np.empty((len(G2), q.shape[0], G2[0].shape[1]), dtype=G2[0].dtype)
+        _folded([ex.fold], [q], [G2], Sf)
+        unfold(Sf, ex.fold.chi, members, S[k])
+    return Norms(S.reshape(len(exps), 4, -1, c), np.stack(blk.w2))
+
+
 def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None) -> tuple[Folds, Norms]:
-    """The products of ``H`` and its derivatives with every exposure's folded bank
-    (:class:`~pylensfit.joint_nb.Folds`, the rows ``q * m + g``), and the models' norms
-    per exposure (:class:`~pylensfit.joint_nb.Norms`: ``Q`` and the expected Hessian
-    per unit weight, one product per exposure and PSF, unfolded) (``cols``: those
-    models only, a set closed under the symmetries)."""
-    m, K = xc.size, len(exps)
+    """The products of ``H`` and its derivatives with the exposures' folded banks
+    (:class:`~pylensfit.joint_nb.Folds`, the rows ``q * m + g``), summed over the
+    exposures of each kind (the same folded columns), and the models' norms per
+    exposure (:func:`_norms`) (``cols``: those models only, a set closed under the
+    symmetries)."""
+    m = xc.size
     n_cols = exps[0].fold.members.max() + 1
     c = n_cols if cols is None else cols.size
     parts = [ex.fold.columns(cols, n_cols) for ex in exps]
-    sizes = np.array([[len(G), G[0].shape[1]] for G, _, _ in parts])  # (n_chi, n_fc)
-    off = np.zeros((K, 4), dtype=np.int64)
+    kinds = list(dict.fromkeys(ex.fold.kind for ex in exps))
+    groups = [[k for k, ex in enumerate(exps) if ex.fold.kind == kind] for kind in kinds]
+    sizes = np.array([[len(parts[g[0]][0]), parts[g[0]][0][0].shape[1]] for g in groups])
+    n_k = len(groups)
+    off = np.zeros((n_k, 4), dtype=np.int64)
     off[:, :] = np.r_[0, np.cumsum(sizes.prod(1) * 6 * m)[:-1]][:, None]
     off += np.arange(4)[None, :] * sizes[:, 1:] * 6 * m
     P = np.empty(int((sizes.prod(1) * 6 * m).sum()), dtype=parts[0][0][0].dtype)
-    sgn, col = np.zeros((K, 4, c)), np.zeros((K, c), dtype=np.int64)
-    S = np.zeros((K, 4 * blk.W[0].shape[0], c))
-    for k, (D, W, ex, (G, G2, members)) in enumerate(zip(blk.D, blk.W, exps, parts,
-                                                         strict=True)):  # fmt: skip
-        n_chi, n_fc = sizes[k]
-        view = P[off[k, 0] : off[k, 0] + n_chi * 6 * m * n_fc].reshape(n_chi, 6 * m, n_fc)
-        _folded(ex.fold, _rows(D, ex, xc, yc).reshape(6 * m, -1), G, view)
-        col[k], slot = _places(members, c)
-        sgn[k, :n_chi] = ex.fold.chi[:, slot]
-        q = np.stack([W, -W * ex.qx * ex.qx, -W * ex.qx * ex.qy, -W * ex.qy * ex.qy])
-        q = q.reshape(-1, q.shape[-1])
-        Sf = np.empty((n_chi, q.shape[0], n_fc), dtype=P.dtype)
-        _folded(ex.fold, q, G2, Sf)
-        unfold(Sf, ex.fold.chi, members, S[k])
+    sgn, col = np.zeros((n_k, 4, c)), np.zeros((n_k, c), dtype=np.int64)
+    for i, g in enumerate(groups):
+        (n_chi, n_fc), fold = sizes[i], exps[g[0]].fold
+        view = P[off[i, 0] : off[i, 0] + n_chi * 6 * m * n_fc].reshape(n_chi, 6 * m, n_fc)
+        Rs = [_rows(blk.D[k], exps[k], xc, yc).reshape(6 * m, -1) for k in g]
+        _folded([exps[k].fold for k in g], Rs, [parts[k][0] for k in g], view)
+        col[i], slot = _places(parts[g[0]][2], c)
+        sgn[i, :n_chi] = fold.chi[:, slot]
     folds = Folds(P, off, sizes[:, 1].copy(), sizes[:, 0].copy(), sgn, col)
-    return folds, Norms(S.reshape(K, 4, -1, c), np.stack(blk.w2))
+    return folds, _norms(blk, exps, parts, c)
 
 
 def _laplace(folds: Folds, norms: Norms, x0, y0, sums: Sums, cfg: Config,

@@ -35,10 +35,11 @@ __all__ = ["Folds", "Norms", "laplace_grid", "unfold"]
 
 
 class Folds(NamedTuple):
-    """The products of a block's rows with each exposure's folded bank, and where each
-    model lies in them (:func:`pylensfit.joint.lattice_symmetries`).
+    """The products of a block's rows with the exposures' folded banks, summed over the
+    exposures of each kind (the same folded columns), and where each model lies in them
+    (:func:`pylensfit.joint.lattice_symmetries`).
 
-    Exposure ``e``'s product of character ``c`` with folded column ``f`` in row ``r``
+    Kind ``e``'s product of character ``c`` with folded column ``f`` in row ``r``
     (``r = q * m + g`` for galaxy ``g`` and ``q`` = ``H``, its gradient ``x, y``, its
     Hessian ``xx, xy, yy``) is ``P[off[e, c] + r * n_fc[e] + f]``; model ``j``'s
     product is ``sum_c sgn[e, c, j]`` times those of its column ``col[e, j]`` (``sgn``
@@ -46,11 +47,11 @@ class Folds(NamedTuple):
     """
 
     P: np.ndarray  # flat float32 (or float64) products
-    off: np.ndarray  # (K, 4) int: where each exposure's character starts
-    n_fc: np.ndarray  # (K,) int: folded columns per exposure
-    n_chi: np.ndarray  # (K,) int: characters per exposure (1, 2 or 4)
-    sgn: np.ndarray  # (K, 4, n_models) float +-1 (0 for c >= n_chi)
-    col: np.ndarray  # (K, n_models) int
+    off: np.ndarray  # (n_kinds, 4) int: where each kind's character starts
+    n_fc: np.ndarray  # (n_kinds,) int: folded columns per kind
+    n_chi: np.ndarray  # (n_kinds,) int: characters per kind (1, 2 or 4)
+    sgn: np.ndarray  # (n_kinds, 4, n_models) float +-1 (0 for c >= n_chi)
+    col: np.ndarray  # (n_kinds, n_models) int
 
 
 class Norms(NamedTuple):
