@@ -27,9 +27,15 @@ and ``Q = sum_k f_k^2 S_k / sigma_k^2``:
   G`` with ``D'_k = f_k D_k conj(P_k) / sigma_k^2`` (the data re-centred on the catalogue
   position by a phase ramp): matrix products of the block's rows with each exposure's
   bank, summed over the exposures; ``Q`` and the expected Hessian likewise from
-  ``f_k^2 |P_k|^2 / sigma_k^2``. One Newton step gives ``X*`` and ``H*``, and the
-  Laplace approximation with the Gaussian position prior of width ``b`` (arcsec) about
-  the catalogue position is that of the single-exposure fit::
+  ``f_k^2 |P_k|^2 / sigma_k^2``. Each exposure's products are folded by the symmetries
+  of the square pixel grid that its Jacobian keeps as symmetries of the model grid
+  (:func:`lattice_symmetries`): all four where ``J`` maps the pixel axes onto the sky's
+  axes or diagonals (a quarter of the operations, as the single fit's), the quarter turn
+  ``e -> -e`` for any rotation or mirror image times a scale (half), none for a sheared
+  ``J``; the exposures of one kind are summed in one matrix product, and the kernel
+  reads each model's products from its folded column. One Newton step gives ``X*`` and
+  ``H*``, and the Laplace approximation with the Gaussian position prior of width ``b``
+  (arcsec) about the catalogue position is that of the single-exposure fit::
 
       ln L(e, r) = l* - ln det(I + b^2 F) / 2 - X*^T (F^-1 + b^2 I)^-1 X* / 2,
       F = -(dl/dH) Hess H;
@@ -275,7 +281,7 @@ def lattice_symmetries(jacobian: np.ndarray, tol: float = 1e-9) -> tuple[np.ndar
     Parameters
     ----------
     jacobian : numpy.ndarray
-        ``(2, 2)`` ``J = d(x, y)/d(W, N)``, pixels per arcsec.
+        ``(2, 2)`` ``J = d(x, y)/d(W, N)``, pixels per arcsec (invertible).
     tol : float
         Tolerance on the entries of ``J^T h J^-T`` (dimensionless).
 
@@ -286,8 +292,8 @@ def lattice_symmetries(jacobian: np.ndarray, tol: float = 1e-9) -> tuple[np.ndar
         and the model symmetry ``s`` that each is on the sky.
     """
     Jt = np.asarray(jacobian, dtype=float).T
-    hs, ss = [], []
-    for h, M in enumerate(_SYMMETRIES):
+    hs, ss = [0], [0]
+    for h, M in enumerate(_SYMMETRIES[1:], start=1):
         on_sky = Jt @ M @ np.linalg.inv(Jt)
         for s, S in enumerate(_SYMMETRIES):
             if np.abs(on_sky - S).max() < tol or np.abs(on_sky + S).max() < tol:
@@ -707,7 +713,8 @@ def fit_exposures(
     One sky-frame (e, r) grid serves every exposure: each exposure's models are the
     sky-frame models at its frequencies ``J_k^T k``; flux and position are shared and
     marginalised once over the sum of the exposures (module docstring). The matrix
-    products run block by block (``config.block_size`` galaxies), one bank per exposure.
+    products run block by block (``config.block_size`` galaxies), one bank per
+    Jacobian (folded: :func:`lattice_symmetries`; kept for later calls, the last eight).
 
     Parameters
     ----------
@@ -750,10 +757,9 @@ def fit_exposures(
 
     Notes
     -----
-    The stamps are fitted whole, on their ``N x N`` frequencies (``config.stamp_size`` is
-    not read). The matrix products run on one BLAS thread, as
-    :func:`pylensfit.likelihood.fit_stamps`'s, so that the result does not depend on the
-    machine's thread count; the Laplace terms run on numba's threads, one galaxy each.
+    The stamps are fitted whole (``config.stamp_size`` is not read). The matrix products
+    run on one BLAS thread, as :func:`pylensfit.likelihood.fit_stamps`'s (the result does
+    not depend on the thread count); the Laplace terms on numba's, one galaxy each.
     """
     cfg = config if config is not None else Config()
     inp = _inputs(stamps, psf, noise_sigma, jacobian, flux_scale, usable, centres)
