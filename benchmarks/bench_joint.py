@@ -5,17 +5,23 @@ degrees, the last a mirror image, each with its own Gaussian PSF; not timed), th
 in the same process, each after a warm-up call on a few galaxies:
 
 * ``fit_stamps`` of every galaxy on exposure 0 (one single-exposure fit per galaxy);
-* ``fit_exposures`` of every galaxy on its first K = 1, 2, 4 exposures.
+* ``fit_exposures`` of every galaxy on its first K = 1, 2, 4 exposures (the exposures'
+  model banks, built in the warm-up, reused as ``fit_stamps`` reuses its bank);
+* ``fit_exposures`` on the 4 exposures with Jacobians new to the process (scaled by
+  ``1 + 1e-9``): the call builds their banks.
 
 Both on the same grid (``--model``, de = 0.1, sizes 0-10 px in 0.2 px: the paper's
 grid), the uniform amplitude prior, untruncated models, float32 products, BLAS on one
-thread. Prints galaxies per second, microseconds per (galaxy, exposure) and the peak of
-the memory numpy allocates during the call (``tracemalloc``, bank included).
+thread. Prints microseconds per (galaxy, exposure), of wall-clock time and of the
+process's CPU time (all threads; on a machine that other jobs share it varies less than
+the wall clock, with ``NUMBA_NUM_THREADS=1`` the two agree), and the peak of the memory
+numpy allocates during the call (``tracemalloc``, banks included).
 
 Usage::
 
-    python benchmarks/bench_joint.py                 # 512 galaxies, ~1-2 min
+    python benchmarks/bench_joint.py                 # 512 galaxies, ~1 min
     python benchmarks/bench_joint.py --ngal 256 --model devaucouleurs
+    NUMBA_NUM_THREADS=1 python benchmarks/bench_joint.py --ngal 256   # one thread
 """
 
 from __future__ import annotations
@@ -70,14 +76,20 @@ def simulate(ngal: int, model: str, rng: np.random.Generator):
 
 
 def timed(fn):
-    """``(seconds, peak MiB of traced allocations)`` of one call."""
+    """``(seconds, CPU seconds of the process, peak MiB of traced allocations)`` of one
+    call."""
     tracemalloc.start()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     fn()
-    dt = time.perf_counter() - t0
+    dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     peak = tracemalloc.get_traced_memory()[1] / 2**20
     tracemalloc.stop()
-    return dt, peak
+    return dt, cpu, peak
+
+
+def row(name: str, n: int, dt: float, cpu: float, peak: float) -> str:
+    """One line of the table: ``n`` (galaxy, exposure) pairs in ``dt`` s (``cpu`` s)."""
+    return f"{name:<28}{1e6 * dt / n:14.0f}{1e6 * cpu / n:14.0f}{peak:10.0f}"
 
 
 def main() -> None:
@@ -92,18 +104,21 @@ def main() -> None:
                            dtype="float32")  # fmt: skip
     stamps, psfs, J = simulate(args.ngal, args.model, np.random.default_rng(args.seed))
     print(f"{args.ngal} galaxies, {args.model}, 32x32 stamps, load {os.getloadavg()[0]:.2f}")
-    print(f"{'fit':<28}{'gal/s':>9}{'us/(gal exp)':>14}{'peak MiB':>10}")
+    print(f"{'fit':<28}{'us/(gal exp)':>14}{'cpu us':>14}{'peak MiB':>10}")
     with threadpool_limits(limits=1, user_api="blas"):
         fit_stamps(stamps[0, :4], psfs[0], 1.0, config=cfg)  # warm-up: numba, bank
-        dt, peak = timed(lambda: fit_stamps(stamps[0], psfs[0], 1.0, config=cfg))
-        print(f"{'fit_stamps (1 exposure)':<28}{args.ngal / dt:9.1f}{1e6 * dt / args.ngal:14.0f}"
-              f"{peak:10.0f}")  # fmt: skip
+        t = timed(lambda: fit_stamps(stamps[0], psfs[0], 1.0, config=cfg))
+        print(row("fit_stamps (1 exposure)", args.ngal, *t))
         for K in (1, 2, 4):
             fit_exposures(stamps[:K, :4], psfs[:K], 1.0, J[:K], config=cfg, pixel_scale=SCALE)
-            dt, peak = timed(lambda K=K: fit_exposures(stamps[:K], psfs[:K], 1.0, J[:K],
-                                                       config=cfg, pixel_scale=SCALE))
-            print(f"{f'fit_exposures K={K}':<28}{args.ngal / dt:9.1f}"
-                  f"{1e6 * dt / (args.ngal * K):14.0f}{peak:10.0f}")  # fmt: skip
+            t = timed(lambda K=K: fit_exposures(stamps[:K], psfs[:K], 1.0, J[:K], config=cfg,
+                                                pixel_scale=SCALE))  # fmt: skip
+            print(row(f"fit_exposures K={K}", args.ngal * K, *t))
+        # Jacobians new to the call (scaled by 1 + 1e-9: the same symmetries), whose
+        # banks the call builds
+        t = timed(lambda: fit_exposures(stamps, psfs, 1.0, J * (1 + 1e-9), config=cfg,
+                                        pixel_scale=SCALE))  # fmt: skip
+        print(row("fit_exposures K=4, new J", args.ngal * 4, *t))
     print(f"load at the end {os.getloadavg()[0]:.2f}")
 
 

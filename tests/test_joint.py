@@ -9,7 +9,7 @@ import pytest
 from pylensfit.config import Config
 from pylensfit.exposures import Exposure, cut_exposures
 from pylensfit.flags import flag_value
-from pylensfit.joint import fit_exposures, fit_views, sky_frequencies
+from pylensfit.joint import fit_exposures, fit_views, lattice_symmetries, sky_frequencies
 from pylensfit.likelihood import fit_stamps
 from pylensfit.models import fourier_profile, render_models, sheared_k
 from pylensfit.psf import psf_transform
@@ -262,3 +262,37 @@ def test_fit_views_on_a_dithered_set(tmp_path):
     assert np.abs(mean - truth).max() < 0.06, np.c_[mean, truth]
     assert np.hypot(fits.x, fits.y).max() < 0.02  # arcsec
     np.testing.assert_allclose(fits.flux, s.truth["flux"], rtol=0.05)
+
+
+def test_lattice_symmetries():
+    """A Jacobian that maps the pixel axes onto the sky's axes or diagonals keeps the
+    square's four symmetries, a rotation times a scale (or its mirror image) the quarter
+    turn, a sheared one none; ``e -> s e`` as the single fit's folded bank reads it."""
+    flip = np.diag([-1.0, 1.0])
+    for J, kept in ((np.eye(2) / SCALE, [0, 1, 2, 3]), (flip @ rotation(90.0) / SCALE,
+                    [0, 1, 2, 3]), (rotation(45.0) * 3.0, [0, 1, 2, 3]),
+                    (rotation(30.0) / SCALE, [0, 3]), (flip @ rotation(-65.0), [0, 3]),
+                    (JACOBIANS[2], [0]), (np.diag([1.0, 2.0]), [0, 1])):  # fmt: skip
+        h, s = lattice_symmetries(J)
+        np.testing.assert_array_equal(h, kept)
+    assert list(lattice_symmetries(rotation(45.0))[1]) == [0, 2, 1, 3]  # s1 <-> s2 on the sky
+
+
+@pytest.mark.parametrize("deg", [0.0, 30.0])
+def test_folded_products_are_the_unfolded_ones(deg):
+    """An exposure whose Jacobian keeps symmetries (folded products) and the same Jacobian
+    moved by 1e-8 (none kept: the half-plane): the same ln L(e) to the models' change."""
+    rng = np.random.default_rng(4)
+    psf = gaussian_psf()
+    img = render_models(N, psf, [16.2, 15.7, 16.0], [16.1, 16.3, 15.8], [0.2, -0.3, 0.1],
+                        [0.1, 0.05, -0.25], [2.0, 2.4, 1.5], [250.0, 220.0, 300.0])  # fmt: skip
+    img = img[None] + rng.normal(0.0, 1.0, (1, *img.shape))
+    J = rotation(deg) / SCALE
+    moved = J @ np.array([[1.0, 1e-8], [0.0, 1.0]])
+    assert lattice_symmetries(J)[0].size > 1 and lattice_symmetries(moved)[0].size == 1
+    cfg = CFG.replace(n_bulge_fractions=1)
+    a = fit_exposures(img, psf, 1.0, J[None], config=cfg, pixel_scale=SCALE)
+    b = fit_exposures(img, psf, 1.0, moved[None], config=cfg, pixel_scale=SCALE)
+    near = a.lnL > -30
+    assert np.abs(a.lnL - b.lnL)[near].max() < 1e-4  # measured 2e-6: float32 output
+    np.testing.assert_allclose(a.lnL_peak, b.lnL_peak, rtol=1e-7)

@@ -178,11 +178,11 @@ def import_cycles(modules) -> list[tuple[str, str]]:
 #: and the command line and the package's namespace on top.
 LAYERS = (
     ("_version", "_util", "flags", "bankruns", "config", "runner"),
-    ("grid", "_kernels_nb", "_joint_nb", "psf", "psfmodel", "detection", "stamps", "skyframe",
+    ("grid", "_kernels_nb", "psf", "psfmodel", "detection", "stamps", "skyframe",
      "exposures", "catalogue"),
     ("models", "forced"),
     ("prior",),
-    ("likelihood", "joint"),
+    ("likelihood", "joint", "joint_nb"),
     ("shear", "weights", "metacal"),
     ("assemble",),
     ("calibration",),

@@ -27,9 +27,15 @@ and ``Q = sum_k f_k^2 S_k / sigma_k^2``:
   G`` with ``D'_k = f_k D_k conj(P_k) / sigma_k^2`` (the data re-centred on the catalogue
   position by a phase ramp): matrix products of the block's rows with each exposure's
   bank, summed over the exposures; ``Q`` and the expected Hessian likewise from
-  ``f_k^2 |P_k|^2 / sigma_k^2``. One Newton step gives ``X*`` and ``H*``, and the
-  Laplace approximation with the Gaussian position prior of width ``b`` (arcsec) about
-  the catalogue position is that of the single-exposure fit::
+  ``f_k^2 |P_k|^2 / sigma_k^2``. Each exposure's products are folded by the symmetries
+  of the square pixel grid that its Jacobian keeps as symmetries of the model grid
+  (:func:`lattice_symmetries`): all four where ``J`` maps the pixel axes onto the sky's
+  axes or diagonals (a quarter of the operations, as the single fit's), the quarter turn
+  ``e -> -e`` for any rotation or mirror image times a scale (half), none for a sheared
+  ``J``; the exposures of one kind are summed in one matrix product, and the kernel
+  reads each model's products from its folded column. One Newton step gives ``X*`` and
+  ``H*``, and the Laplace approximation with the Gaussian position prior of width ``b``
+  (arcsec) about the catalogue position is that of the single-exposure fit::
 
       ln L(e, r) = l* - ln det(I + b^2 F) / 2 - X*^T (F^-1 + b^2 I)^-1 X* / 2,
       F = -(dl/dH) Hess H;
@@ -48,18 +54,19 @@ read in units of a reference pixel scale (``pixel_scale``, arcsec): with one exp
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.special import logsumexp
 from threadpoolctl import threadpool_limits
 
 from . import flags as _flags
-from ._joint_nb import laplace_models
 from .bankruns import bank_runs
 from .config import Config
 from .exposures import ExposureStamps
 from .grid import ellipticity_grid
+from .joint_nb import Folds, Norms, laplace_grid, unfold
+from .likelihood.bank import keep_last
+from .likelihood.grid_nb import Galaxies, Laplace, Outputs, Sums
 from .models import (
     fourier_profile,
     half_light_radius,
@@ -70,7 +77,7 @@ from .models import (
 )
 from .psf import psf_transform
 
-__all__ = ["JointFits", "fit_exposures", "fit_views", "sky_frequencies"]
+__all__ = ["JointFits", "fit_exposures", "fit_views", "lattice_symmetries", "sky_frequencies"]
 
 #: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 64 x n_r)
 _E_CHUNK = 64
@@ -168,6 +175,13 @@ class _Columns:
     def n_cols(self) -> int:
         return self.n_e * self.n_b * self.n_sub + 1
 
+    def sums(self) -> Sums:
+        """The weights of the sum over r (the runs of sizes equally likely a priori),
+        the kernel's :class:`~pylensfit.likelihood.grid_nb.Sums`."""
+        return Sums(self.node_w, self.w_star, np.full(self.n_b, -np.log(self.n_b)),
+                    np.full(self.n_e, 1.0 / self.n_e), np.zeros(self.n_e, dtype=np.int64),
+                    self.n_sub)  # fmt: skip
+
 
 def _columns(cfg: Config, scale: float) -> _Columns:
     """The configuration's grid with its sizes in arcsec (``scale`` arcsec per pixel)."""
@@ -240,24 +254,181 @@ def _bank(cols: _Columns, qx: np.ndarray, qy: np.ndarray, dtype) -> np.ndarray:
     return G
 
 
+#: the square pixel grid's symmetries ``h = 1, s1, s2, s1 s2`` (modulo ``k -> -k``) as
+#: matrices on the frequencies ``(kx, ky)``: ``s1`` flips ``ky``, ``s2`` swaps the axes.
+#: The same matrices on the sky frequencies map a model ``(e1, e2)`` to ``(e1, -e2)``,
+#: ``(-e1, e2)``, ``(-e1, -e2)`` (``G_{s e}(q) = G_e(s q)``,
+#: :class:`pylensfit.likelihood.folded.FoldedBank`), the signs :data:`_E_SIGNS`
+_SYMMETRIES = np.array([[[1, 0], [0, 1]], [[1, 0], [0, -1]], [[0, 1], [1, 0]],
+                        [[0, 1], [-1, 0]]])  # fmt: skip
+_E_SIGNS = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]])
+#: the characters of the group, ``chi_c(h) = (-1)^{popcount(c & h)}``
+_CHI = np.array([[(-1) ** bin(c & h).count("1") for h in range(4)] for c in range(4)], float)
+
+
+def lattice_symmetries(jacobian: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """The square pixel grid's symmetries that an exposure's Jacobian keeps as symmetries
+    of the sky-frame model grid.
+
+    A symmetry ``h`` of the pixel frequencies (:data:`_SYMMETRIES`) is seen on the sky as
+    ``J^T h J^-T``; where that is (up to sign) one of the same matrices ``s``, the model
+    ``e`` seen at ``h k`` is the model ``s e`` seen at ``k``, and the exposure's products
+    fold by ``h`` as the single fit's do. Every Jacobian keeps ``h = 1``; a rotation (or
+    a mirror image) times a scale keeps the quarter turn ``s1 s2`` (``e -> -e``); one
+    that maps the pixel axes onto the sky's axes or diagonals
+    keeps all four.
+
+    Parameters
+    ----------
+    jacobian : numpy.ndarray
+        ``(2, 2)`` ``J = d(x, y)/d(W, N)``, pixels per arcsec (invertible).
+    tol : float
+        Tolerance on the entries of ``J^T h J^-T`` (dimensionless).
+
+    Returns
+    -------
+    h, s : numpy.ndarray
+        The kept symmetries (indices into :data:`_SYMMETRIES`, a subgroup, ``h[0] = 0``)
+        and the model symmetry ``s`` that each is on the sky.
+    """
+    Jt = np.asarray(jacobian, dtype=float).T
+    hs, ss = [0], [0]
+    for h, M in enumerate(_SYMMETRIES[1:], start=1):
+        on_sky = Jt @ M @ np.linalg.inv(Jt)
+        for s, S in enumerate(_SYMMETRIES):
+            if np.abs(on_sky - S).max() < tol or np.abs(on_sky + S).max() < tol:
+                hs.append(h)
+                ss.append(s)
+                break
+    return np.array(hs), np.array(ss)
+
+
+@dataclass(frozen=True)
+class _Fold:
+    """One exposure's bank folded by the lattice symmetries ``H`` its Jacobian keeps.
+
+    On the interior frequencies modulo ``+-H`` (orbit representatives ``k0``), the
+    characters ``chi`` of ``H`` split each product ``h_e = sum_k f(k) G_e(k)`` into
+    ``h_{s(g) e} = sum_chi chi(g) A_chi[e]``, ``A_chi[e] = sum_k0 w(k0) fhat_chi(k0)
+    Ghat_chi,e(k0)`` with ``fhat_chi(k0) = sum_h chi(h) f(h k0)`` (likewise ``Ghat``) and
+    ``w = |orbit| / |H|^2``: ``|H|`` products over ``1 / |H|`` of the frequencies, for
+    the ``|H|`` models ``s(g) e``, as :class:`pylensfit.likelihood.folded.FoldedBank`
+    does for ``H`` the whole group. ``|H| = 1`` is the half-plane, unfolded.
+    """
+
+    idx: np.ndarray  # (n_h, n_k0) position of h k0 (or -h k0) in the exposure's sel
+    w: np.ndarray  # (n_k0,) orbit weights
+    chi: np.ndarray  # (n_h, n_h) characters of H: chi[c, slot of h]
+    keep: tuple  # per character, the k0 where it can be non-zero
+    G: tuple  # per character, (len(keep), n_fc) folded model transforms
+    G2: tuple  # per character, those of the squared transforms (the norms)
+    members: np.ndarray  # (n_fc, n_h) the model s(h) e of folded column c, slot h
+    kind: tuple  # (H, s): exposures of one kind have the same folded columns
+
+    def columns(self, cols: np.ndarray | None, n_cols: int) -> tuple[tuple, tuple, np.ndarray]:
+        """``G``, ``G2`` and ``members`` of the models ``cols`` (a set closed under the
+        symmetries; None: all), the members numbered in ``cols``."""
+        if cols is None:
+            return self.G, self.G2, self.members
+        pos = np.full(n_cols, -1, dtype=np.int64)
+        pos[cols] = np.arange(cols.size)
+        fc = np.flatnonzero(pos[self.members[:, 0]] >= 0)
+        mem = np.where(self.members[fc] >= 0, pos[self.members[fc]], -1)
+        return (tuple(g[:, fc] for g in self.G), tuple(g[:, fc] for g in self.G2),
+                np.ascontiguousarray(mem))  # fmt: skip
+
+
+def _frequency_orbits(n: int, H: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The interior frequencies of an ``n x n`` stamp modulo ``+-H``: each orbit's
+    representative ``k0`` (integer ``(jx, jy)``, ``(n_k0, 2)``), its images ``h k0``
+    (``(n_h, n_k0, 2)``) and the orbit's size."""
+    jmax = (n - 1) // 2
+    jy, jx = np.mgrid[-jmax : jmax + 1, -jmax : jmax + 1]
+    pts = np.stack([jx.ravel(), jy.ravel()], axis=1)
+    key = lambda p: (p[..., 1] + jmax) * (2 * jmax + 1) + p[..., 0] + jmax  # noqa: E731
+    imgs = np.einsum("hab,pb->hpa", _SYMMETRIES[H], pts)
+    both = np.concatenate([key(imgs), key(-imgs)])  # (2 n_h, n_pts) the orbit's keys
+    rep = both.min(axis=0) == key(pts)
+    size = np.array([np.unique(both[:, i]).size for i in np.flatnonzero(rep)])
+    return pts[rep], imgs[:, rep], size
+
+
+def _sel_positions(n: int, sel: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Position in ``sel`` (flattened ``rfft2`` indices) of the frequencies ``k`` (integer
+    ``(..., 2)``), or of ``-k`` where ``k`` lies in the other half-plane."""
+    flip = k[..., 0] < 0
+    k = np.where(flip[..., None], -k, k)
+    flat = (k[..., 1] % n) * (n // 2 + 1) + k[..., 0]
+    pos = np.full(n * (n // 2 + 1), -1, dtype=np.int64)
+    pos[sel] = np.arange(sel.size)
+    return pos[flat]
+
+
+def _model_orbits(cols: _Columns, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The e cells in orbits of the model symmetries ``S``: the representatives (the
+    first cell of each orbit) and, per slot, the cell of ``s e`` for each of them."""
+    eg = cols.egrid
+    cell = {(round(a, 9), round(b, 9)): i for i, (a, b) in enumerate(eg)}
+    img = np.array([[cell[(round(a * sa, 9), round(b * sb, 9))] for a, b in eg]
+                    for sa, sb in _E_SIGNS[S]])  # fmt: skip
+    rep = np.flatnonzero(img.min(axis=0) == np.arange(eg.shape[0]))
+    return rep, img[:, rep]
+
+
+def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype) -> _Fold:
+    """The exposure's bank folded by the symmetries its Jacobian keeps."""
+    H, S = lattice_symmetries(J)
+    k0, imgs, size = _frequency_orbits(n, H)
+    chi = _CHI[np.unique(_CHI[:, H], axis=0, return_index=True)[1]][:, H]
+    stab = (imgs == k0[None]).all(-1) | (imgs == -k0[None]).all(-1)  # (n_h, n_k0)
+    keep = tuple(np.flatnonzero(~(stab & (c[:, None] < 0)).any(axis=0)) for c in chi)
+    rep, img = _model_orbits(cols, S)
+    q = 2 * np.pi / n * imgs.reshape(-1, 2) @ np.asarray(J, dtype=float)  # J^T k per row
+    G = _bank(replace(cols, egrid=cols.egrid[rep]), q[:, 0], q[:, 1], np.float64)
+    G = G.reshape(H.size, k0.shape[0], -1)
+    per_e = cols.n_b * cols.n_sub
+    members = (img.T[:, None, :] * per_e + np.arange(per_e)[None, :, None]).reshape(-1, H.size)
+    members = np.vstack([members, np.r_[cols.n_cols - 1, np.full(H.size - 1, -1)]])
+    fold = [(np.einsum("h,hkc->kc", c, G[:, kp]), np.einsum("h,hkc->kc", c, G[:, kp] ** 2))
+            for c, kp in zip(chi, keep, strict=True)]  # fmt: skip
+    return _Fold(idx=_sel_positions(n, sel, imgs), w=size / H.size**2, chi=chi, keep=keep,
+                 G=tuple(np.ascontiguousarray(g, dtype=dtype) for g, _ in fold),
+                 G2=tuple(np.ascontiguousarray(g2, dtype=dtype) for _, g2 in fold),
+                 members=np.ascontiguousarray(members, dtype=np.int64),
+                 kind=(tuple(H), tuple(S)))  # fmt: skip
+
+
 @dataclass(frozen=True)
 class _Exposure:
-    """One exposure's part of the block: its bank and its frequencies."""
+    """One exposure's part of the block: its folded bank and its frequencies."""
 
-    G: np.ndarray  # (n_f, n_cols) model transforms
-    G2: np.ndarray  # their squares
-    qx: np.ndarray  # (n_f,) sky frequencies of the summed terms
+    fold: _Fold
+    qx: np.ndarray  # (n_f,) sky frequencies of the interior half-plane
     qy: np.ndarray
-    coef: np.ndarray  # (n_f,) Hermitian weight / n^2
+    coef: np.ndarray  # (n_f,) 1 / n^2
+    herm: np.ndarray  # (n_f,) Hermitian weight: 2, or 1 on the ky axis
     sel: np.ndarray  # (n_f,) their flattened rfft2 indices
 
 
+#: the last exposures' banks (an exposure's galaxies come in several calls or blocks)
+_BANKS: dict = {}
+_BANKS_KEPT = 8
+
+
 def _exposure(cols: _Columns, J: np.ndarray, n: int, dtype) -> _Exposure:
-    sel = _interior(n)
-    qx, qy = (a.ravel()[sel] for a in sky_frequencies(J, n))
-    _, _, w = rfft_frequencies(n)
-    G = _bank(cols, qx, qy, dtype)
-    return _Exposure(G=G, G2=np.square(G), qx=qx, qy=qy, coef=w.ravel()[sel] / n**2, sel=sel)
+    """The bank of the exposure of Jacobian ``J`` (cached: the last ``_BANKS_KEPT``)."""
+    key = (np.asarray(J, dtype=float).tobytes(), n, np.dtype(dtype).str, cols.model, cols.runs,
+           cols.egrid.tobytes(), cols.radii.tobytes())  # fmt: skip
+    hit = _BANKS.get(key)
+    if hit is None:
+        sel = _interior(n)
+        qx, qy = (a.ravel()[sel] for a in sky_frequencies(J, n))
+        _, _, w = rfft_frequencies(n)
+        hit = _Exposure(fold=_fold(cols, J, n, sel, dtype), qx=qx, qy=qy,
+                        coef=np.full(sel.size, 1.0 / n**2), herm=w.ravel()[sel],
+                        sel=sel)  # fmt: skip
+        keep_last(_BANKS, key, hit, _BANKS_KEPT)
+    return hit
 
 
 @dataclass(frozen=True)
@@ -368,64 +539,89 @@ def _rows(D: np.ndarray, ex: _Exposure, xc: np.ndarray, yc: np.ndarray) -> np.nd
     return np.stack([r, -qx * i, -qy * i, -qx * qx * r, -qx * qy * r, -qy * qy * r])
 
 
-def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None):
-    """``(6, m, c)`` products of ``H`` and ``(4, m, c)`` of ``Q`` and the expected
-    Hessian, summed over the exposures (``cols``: those columns only). With one PSF per
-    exposure the norms are one product per exposure, scaled per galaxy."""
-    A = B = 0.0
-    for D, W, w2, ex in zip(blk.D, blk.W, blk.w2, exps, strict=True):
-        G = ex.G if cols is None else ex.G[:, cols]
-        G2 = ex.G2 if cols is None else ex.G2[:, cols]
-        R = _rows(D, ex, xc, yc).astype(G.dtype)
-        A = A + np.matmul(R, G).astype(np.float64)
+def _folded(folds: list[_Fold], Rs: list[np.ndarray], Gs: list[tuple], out: np.ndarray) -> None:
+    """The products of the rows ``Rs`` (each ``(rows, n_f)``, on its exposure's
+    frequencies) with the folded transforms ``Gs`` (one per character), ``sum_e (fhat_chi
+    R_e) Ghat_chi,e``, summed over exposures of one kind (``folds``) as one matrix
+    product over all of their frequencies, into ``out`` (``(n_chi, rows, n_fc)``)."""
+    for c in range(len(Gs[0])):
+        F = np.concatenate([np.einsum("h,rhk->rk", f.chi[c], R[:, f.idx[:, f.keep[c]]])
+                            * f.w[f.keep[c]] for f, R in zip(folds, Rs, strict=True)],
+                           axis=1)  # fmt: skip
+        G = Gs[0][c] if len(Gs) == 1 else np.concatenate([g[c] for g in Gs])
+        np.matmul(F.astype(G.dtype), G, out=out[c])
+
+
+def _places(members: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
+    """The folded column and the slot of each of the ``c`` models of ``members``."""
+    f, h = np.nonzero(members >= 0)
+    col, slot = np.zeros(c, dtype=np.int64), np.zeros(c, dtype=np.int64)
+    col[members[f, h]] = f
+    slot[members[f, h]] = h
+    return col, slot
+
+
+def _norms(blk: _Block, exps: list[_Exposure], parts: list[tuple], c: int) -> Norms:
+    """The models' norms per exposure (:class:`~pylensfit.joint_nb.Norms`: ``Q`` and the
+    expected Hessian per unit weight, one product per exposure and PSF, unfolded)."""
+    S = np.zeros((len(exps), 4 * blk.W[0].shape[0], c))
+    for k, (W, ex, (_, G2, members)) in enumerate(zip(blk.W, exps, parts, strict=True)):
         q = np.stack([W, -W * ex.qx * ex.qx, -W * ex.qx * ex.qy, -W * ex.qy * ex.qy])
-        B = B + np.matmul(q.astype(G.dtype), G2).astype(np.float64) * w2[None, :, None]
-    return A, B
+        q = q.reshape(-1, q.shape[-1])
+        Sf = np.empty((len(G2), q.shape[0], G2[0].shape[1]), dtype=G2[0].dtype)
+        _folded([ex.fold], [q], [G2], Sf)
+        unfold(Sf, ex.fold.chi, members, S[k])
+    return Norms(S.reshape(len(exps), 4, -1, c), np.stack(blk.w2))
 
 
-def _laplace(A: np.ndarray, B: np.ndarray, x0, y0, b2: float, max_step: float):
-    """``ln L(e, r)`` of every model, marginalised over the amplitude and the position
-    (module docstring), and its ``H*``, ``X*`` (from the origin): the Newton step with
-    the data's Hessian of ``H`` where it is a maximum and the step no longer than
-    ``max_step`` (arcsec), else with the expected Hessian ``max(H, sqrt Q) / Q`` times
-    that of the models' autocorrelations (the step then clipped to ``max_step``), as the
-    single-exposure fit does. ``x0, y0``: the catalogue position from the origin."""
-    m, c = A.shape[1:]
-    out = [np.empty((m, c)) for _ in range(4)]
-    laplace_models(A, B, np.ascontiguousarray(x0, dtype=float),
-                   np.ascontiguousarray(y0, dtype=float), float(b2), float(max_step), *out)
-    return tuple(out)
+def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None) -> tuple[Folds, Norms]:
+    """The products of ``H`` and its derivatives with the exposures' folded banks
+    (:class:`~pylensfit.joint_nb.Folds`, the rows ``q * m + g``), summed over the
+    exposures of each kind (the same folded columns), and the models' norms per
+    exposure (:func:`_norms`) (``cols``: those models only, a set closed under the
+    symmetries)."""
+    m = xc.size
+    n_cols = exps[0].fold.members.max() + 1
+    c = n_cols if cols is None else cols.size
+    parts = [ex.fold.columns(cols, n_cols) for ex in exps]
+    kinds = list(dict.fromkeys(ex.fold.kind for ex in exps))
+    groups = [[k for k, ex in enumerate(exps) if ex.fold.kind == kind] for kind in kinds]
+    sizes = np.array([[len(parts[g[0]][0]), parts[g[0]][0][0].shape[1]] for g in groups])
+    n_k = len(groups)
+    off = np.zeros((n_k, 4), dtype=np.int64)
+    off[:, :] = np.r_[0, np.cumsum(sizes.prod(1) * 6 * m)[:-1]][:, None]
+    off += np.arange(4)[None, :] * sizes[:, 1:] * 6 * m
+    P = np.empty(int((sizes.prod(1) * 6 * m).sum()), dtype=parts[0][0][0].dtype)
+    sgn, col = np.zeros((n_k, 4, c)), np.zeros((n_k, c), dtype=np.int64)
+    for i, g in enumerate(groups):
+        (n_chi, n_fc), fold = sizes[i], exps[g[0]].fold
+        view = P[off[i, 0] : off[i, 0] + n_chi * 6 * m * n_fc].reshape(n_chi, 6 * m, n_fc)
+        Rs = [_rows(blk.D[k], exps[k], xc, yc).reshape(6 * m, -1) for k in g]
+        _folded([exps[k].fold for k in g], Rs, [parts[k][0] for k in g], view)
+        col[i], slot = _places(parts[g[0]][2], c)
+        sgn[i, :n_chi] = fold.chi[:, slot]
+    folds = Folds(P, off, sizes[:, 1].copy(), sizes[:, 0].copy(), sgn, col)
+    return folds, _norms(blk, exps, parts, c)
 
 
-def _peak_factor(lw: np.ndarray) -> np.ndarray:
-    """``ln`` of the correction of the sum over a run of sizes for a peak narrower than
-    the grid step (the single fit's): the ratio of the Gaussian through the largest
-    ``ln(w L)`` and its neighbours to its grid sum, where the peak is inside the run."""
-    n_sub = lw.shape[-1]
-    km = np.argmax(lw, axis=-1)[..., None]
-    lm, l0, lp = (np.take_along_axis(lw, np.clip(km + d, 0, n_sub - 1), -1)[..., 0]
-                  for d in (-1, 0, 1))  # fmt: skip
-    a = lm - 2 * l0 + lp
-    narrow = (km[..., 0] > 0) & (km[..., 0] < n_sub - 1) & (a < -1.0) & np.isfinite(a)
-    a = np.where(narrow, a, -2.0)
-    s2 = -1.0 / a
-    d = 0.5 * (lm - lp) / a
-    j = np.arange(-7, 8)
-    gsum = np.exp(-0.5 * (j - d[..., None]) ** 2 / s2[..., None]).sum(-1)
-    good = narrow & (gsum > 1e-300)
-    return np.where(good, np.log(np.sqrt(2 * np.pi * s2) / np.where(good, gsum, 1.0)), 0.0)
-
-
-def _collapse(lnl: np.ndarray, cols: _Columns) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``ln L(e)``, ``ln L_b(e)`` per run and the point source's weighted ``ln L``."""
-    m = lnl.shape[0]
-    with np.errstate(divide="ignore", invalid="ignore"):  # NaN rows: no usable exposure
-        lw = (lnl[:, :-1].reshape(m, cols.n_e, cols.n_b, cols.n_sub)
-              + np.log(cols.node_w).reshape(cols.n_b, cols.n_sub))  # fmt: skip
-        lnlb = logsumexp(lw, axis=-1) + _peak_factor(lw)
-        star = lnl[:, -1] + np.log(cols.w_star)
-        lnle = np.logaddexp(logsumexp(lnlb, axis=-1) - np.log(cols.n_b), star[:, None])
-    return lnle, lnlb, star
+def _laplace(folds: Folds, norms: Norms, x0, y0, sums: Sums, cfg: Config,
+             scale: float) -> Outputs:  # fmt: skip
+    """``ln L(e)``, ``ln L_b(e)`` per run and the most likely model's ``H*``, ``X*`` (from
+    the origin; arcsec) of the block, the models marginalised over the amplitude and the
+    position (module docstring) and summed over r with ``sums``
+    (:func:`pylensfit.joint_nb.laplace_grid`: the single-exposure fit's Newton step,
+    expected-Hessian fallback, amplitude integral, position prior and sum over r, on
+    the sums over the exposures). ``x0, y0``: the catalogue position from the origin,
+    arcsec."""
+    m = np.asarray(x0).size
+    n_e, n_r = sums.e_w.size, sums.node_w.size
+    out = Outputs.empty(m, n_e, n_r // sums.n_sub, 1, n_r)
+    out.h[:] = out.x[:] = out.y[:] = np.nan
+    gals = Galaxies(np.ones(m), np.ascontiguousarray(x0, dtype=float),
+                    np.ascontiguousarray(y0, dtype=float))  # fmt: skip
+    pos = Laplace((cfg.position_prior_sigma * scale) ** 2, cfg.max_newton_step * scale, False)
+    laplace_grid(folds, norms, gals, sums, pos, out)
+    return out
 
 
 def _round_centre(inp: _Inputs, blk: _Block, exps: list[_Exposure], sl: slice, cfg: Config,
@@ -443,7 +639,7 @@ def _round_centre(inp: _Inputs, blk: _Block, exps: list[_Exposure], sl: slice, c
     for k, ex in enumerate(exps):
         qx, qy = sky_frequencies(inp.J[k], N)
         ref = fourier_profile(np.hypot(qx, qy) * cfg.centring_scale * scale, "exponential")
-        refs.append(ref.ravel()[ex.sel])
+        refs.append(ref.ravel()[ex.sel] * ex.herm)  # the half-plane's sums: the plane's
         full = np.zeros((m, N * (N // 2 + 1)), dtype=complex)
         full[:, ex.sel] = blk.D[k] / ex.coef
         cc = np.fft.irfft2(full.reshape(m, N, -1) * ref, s=(N, N))
@@ -467,14 +663,17 @@ def _round_centre(inp: _Inputs, blk: _Block, exps: list[_Exposure], sl: slice, c
     return xc, yc, ~(den > 0)
 
 
-def _coarse_columns(cols: _Columns, e_step: float) -> np.ndarray:
+def _coarse_columns(cols: _Columns, e_step: float) -> tuple[np.ndarray, Sums]:
     """The centring pass's models, the single fit's: the e cells at every other lattice
-    step in both components, every 5th size from the third, the point source."""
+    step in both components, every 5th size from the third, the point source; and the
+    (unused but for their shape) weights of their sums over r."""
     lat = np.rint(np.abs(cols.egrid) / e_step - 0.5).astype(int)
     ie = np.flatnonzero((lat % 2 == 0).all(axis=1))
     n_r = cols.n_b * cols.n_sub
     ir = np.arange(min(2, n_r - 1), n_r, 5)
-    return np.append((ie[:, None] * n_r + ir[None, :]).ravel(), cols.n_cols - 1)
+    sums = Sums(np.ones(ir.size), 1.0, np.zeros(1), np.full(ie.size, 1.0 / ie.size),
+                np.zeros(ie.size, dtype=np.int64), ir.size)  # fmt: skip
+    return np.append((ie[:, None] * n_r + ir[None, :]).ravel(), cols.n_cols - 1), sums
 
 
 def _fit_block(inp: _Inputs, exps: list[_Exposure], cols: _Columns, cfg: Config,
@@ -482,23 +681,19 @@ def _fit_block(inp: _Inputs, exps: list[_Exposure], cols: _Columns, cfg: Config,
     """Every model for the block's galaxies: centring, the coarse pass that moves the
     origin to the best round model's peak, then the whole grid."""
     blk = _block(inp, exps, sl)
-    b2 = (cfg.position_prior_sigma * scale) ** 2
-    step = cfg.max_newton_step * scale
     xc, yc, no_peak = _round_centre(inp, blk, exps, sl, cfg, scale)
-    cc = _coarse_columns(cols, cfg.e_step)
-    A, B = _products(blk, exps, xc, yc, cc)
-    lnl, _, x, y = _laplace(A, B, -xc, -yc, b2, step)
-    ib = np.argmax(np.where(np.isfinite(lnl), lnl, -np.inf), axis=1)
-    g = np.arange(lnl.shape[0])
-    xc = xc + np.nan_to_num(x[g, ib])
-    yc = yc + np.nan_to_num(y[g, ib])
-    A, B = _products(blk, exps, xc, yc)
-    lnl, hs, x, y = _laplace(A, B, -xc, -yc, b2, step)
-    lnle, lnlb, star = _collapse(lnl, cols)
-    best = np.argmax(np.where(np.isfinite(lnl), lnl, -np.inf), axis=1)
-    return {"lnle": lnle, "lnlb": lnlb, "star": star, "best": best, "no_peak": no_peak,
-            "h": hs[g, best], "Q": B[0][g, best], "x": xc + x[g, best],
-            "y": yc + y[g, best]}  # fmt: skip
+    cc, sums_c = _coarse_columns(cols, cfg.e_step)
+    out = _laplace(*_products(blk, exps, xc, yc, cc), -xc, -yc, sums_c, cfg, scale)
+    xc = xc + np.nan_to_num(out.x)
+    yc = yc + np.nan_to_num(out.y)
+    folds, norms = _products(blk, exps, xc, yc)
+    out = _laplace(folds, norms, -xc, -yc, cols.sums(), cfg, scale)
+    g = np.arange(out.best.size)
+    p = g if norms.S.shape[2] > 1 else 0
+    Q = (norms.w2 * norms.S[:, 0, p, out.best].astype(np.float64)).sum(axis=0)
+    return {"lnle": out.lnle, "lnlb": out.lnlb, "star": out.lnlr[:, 0, -1] + np.log(cols.w_star),
+            "best": out.best, "no_peak": no_peak, "h": out.h, "Q": Q, "x": xc + out.x,
+            "y": yc + out.y}  # fmt: skip
 
 
 def fit_exposures(
@@ -518,7 +713,8 @@ def fit_exposures(
     One sky-frame (e, r) grid serves every exposure: each exposure's models are the
     sky-frame models at its frequencies ``J_k^T k``; flux and position are shared and
     marginalised once over the sum of the exposures (module docstring). The matrix
-    products run block by block (``config.block_size`` galaxies), one bank per exposure.
+    products run block by block (``config.block_size`` galaxies), one bank per
+    Jacobian (folded: :func:`lattice_symmetries`; kept for later calls, the last eight).
 
     Parameters
     ----------
@@ -561,10 +757,9 @@ def fit_exposures(
 
     Notes
     -----
-    The stamps are fitted whole, on their ``N x N`` frequencies (``config.stamp_size`` is
-    not read). The matrix products run on one BLAS thread, as
-    :func:`pylensfit.likelihood.fit_stamps`'s, so that the result does not depend on the
-    machine's thread count; the Laplace terms run on numba's threads, one galaxy each.
+    The stamps are fitted whole (``config.stamp_size`` is not read). The matrix products
+    run on one BLAS thread, as :func:`pylensfit.likelihood.fit_stamps`'s (the result does
+    not depend on the thread count); the Laplace terms on numba's, one galaxy each.
     """
     cfg = config if config is not None else Config()
     inp = _inputs(stamps, psf, noise_sigma, jacobian, flux_scale, usable, centres)
