@@ -55,6 +55,7 @@ and ``radius_nb`` (the sum over size).
 
 # merge_fits, reweight_lnL_r and tier_sizes (as name: re-exported) serve other modules
 # of the method, outside the public names as before
+from .bank import MixedPSF
 from .fit import fit_stamps
 from .merge import blend_fits, e_annuli
 from .merge import merge_fits as merge_fits
@@ -62,8 +63,9 @@ from .merge import reweight_lnL_r as reweight_lnL_r
 from .stampfits import StampFits
 from .tiers import tier_sizes as tier_sizes
 
-__all__ = ["StampFits", "blend_fits", "e_annuli", "fit_stamps"]
+__all__ = ["MixedPSF", "StampFits", "blend_fits", "e_annuli", "fit_stamps"]
 
 # the result's class keeps its name, pylensfit.likelihood.StampFits: in the documentation
 # (one entry, as pylensfit.StampFits's original) and in pickles
 StampFits.__module__ = __name__
+MixedPSF.__module__ = __name__
