@@ -7,9 +7,9 @@ kept as a running log-sum-exp so that nothing of size (galaxies x models) is wri
 back. The kernel's inputs come in bundles, each a named tuple documented here:
 :class:`Columns` (the bank's columns), :class:`Models` (the per-model sums; under a
 PSF mixed per galaxy :class:`MixedModels`, their sums per pair of PSFs, for
-:func:`laplace_grid_mixed`), :class:`Galaxies`, :class:`Sums` (the weights of the sums over r and e),
-:class:`Amplitude` (the amplitude prior), :class:`Laplace` (the position's settings)
-and :class:`Outputs`.
+:func:`laplace_grid_mixed`), :class:`Galaxies`, :class:`Sums` (the weights of the sums
+over r and e), :class:`Amplitude` (the amplitude prior), :class:`Laplace` (the
+position's settings) and :class:`Outputs`.
 
 numba caches a compiled kernel by its own file: the kernel here is compiled again when
 this file changes, not when a kernel or constant it takes from another file
