@@ -120,3 +120,26 @@ def test_mixed_psf_checks_its_weights():
     assert psf.take(np.array([0, 2])).n_stamps == 2
     with pytest.raises(ValueError, match="3 stamps"):
         fit_stamps(_stamps(2), psf, 1.0, config=CFG)
+
+
+@pytest.mark.parametrize("n", [32, 48])
+def test_pair_sums_folded_by_the_square_are_the_sums(n):
+    """The pair sums made over the octant with the characters' transforms of G^2 give,
+    for a pair of one PSF with itself, that PSF's per-model sums over the half-plane
+    (on the 48-pixel tier's disc of frequencies as well), to float64 round-off."""
+    from pylensfit.likelihood.bank import psf_bank
+    from pylensfit.likelihood.pairs import pair_bank
+    from pylensfit.models import model_bank
+
+    cfg = CFG if n == 32 else CFG.replace(stamp_size=48, max_stamp_size=0,
+                                          k_max=np.pi * 32 / 48)  # fmt: skip
+    bank = model_bank(cfg)
+    corners = _corners(n)
+    pb = pair_bank(corners, cfg, bank)
+    for c in range(4):
+        p = np.flatnonzero((pb.pair_a == c) & (pb.pair_b == c))[0]
+        one = psf_bank(corners[c], cfg, bank)
+        for name in ("S", "mxx", "mxy", "myy"):
+            ref = getattr(one, name)
+            np.testing.assert_allclose(getattr(pb, name)[p], ref, rtol=0,
+                                       atol=1e-12 * np.abs(ref).max(), err_msg=name)  # fmt: skip

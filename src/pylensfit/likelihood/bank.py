@@ -85,13 +85,6 @@ def psf_bank(psf: np.ndarray, config: Config, bank) -> PSFBank:
     return pb
 
 
-def _frequency_weights(n: int, k_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The half-plane's Hermitian weights over ``n^2`` on the interior frequencies (0
-    elsewhere) and the frequencies ``kx, ky`` (rad/pixel), each ``(n * (n // 2 + 1),)``."""
-    kx, ky, w = rfft_frequencies(n)
-    return (w / n**2).ravel() * interior(n, k_max), kx.ravel(), ky.ravel()
-
-
 def _psf_bank_of(psf: np.ndarray, config: Config, bank) -> PSFBank:
     """The PSF's transform and each model's ``sum m^2`` and autocorrelation Hessian."""
     n = config.stamp_size
@@ -171,7 +164,8 @@ class PairBank:
     """The per-model sums of :class:`PSFBank` per pair ``(a, b)`` of ``K`` PSFs:
     ``S_ab(j) = Re sum_k |M_j(k)|^2 P_a(k) conj(P_b(k))`` (and the Hessian terms with
     their ``-k k^T``), for ``a <= b``. Under the PSF ``sum_c w_c P_c`` every sum is
-    ``sum_{a <= b} w_a w_b (2 - [a = b]) S_ab(j)``, exactly (:meth:`pair_weights`)."""
+    ``sum_{a <= b} w_a w_b (2 - [a = b]) S_ab(j)``, exactly (:meth:`pair_weights`).
+    Made by :func:`pylensfit.likelihood.pairs.pair_bank`."""
 
     P: np.ndarray  # (K, n_freq) complex, the PSFs' transforms
     S: np.ndarray  # (n_pairs, n_models)
@@ -204,42 +198,3 @@ class PairBank:
     def S_of(self, wp: np.ndarray, j: np.ndarray) -> np.ndarray:
         """``(n,)`` each galaxy's ``sum m^2`` of its model ``j[g]`` (pair weights ``wp``)."""
         return np.einsum("gp,pg->g", wp, self.S[:, j])
-
-
-#: the last pair banks: a pipeline fits a cell's galaxies in several calls (blocks, stamp
-#: tiers); an entry holds 40 floats per model for four PSFs (18 MB for Config()'s bank)
-_PAIR_BANKS: dict = {}
-_PAIR_BANKS_KEPT = 4
-
-
-def pair_bank(images: np.ndarray, config: Config, bank) -> PairBank:
-    """:class:`PairBank` of the PSF images ``(K, N, N)``, reused while they recur."""
-    images = np.ascontiguousarray(images)
-    key = (hashlib.blake2b(images.tobytes(), digest_size=16).digest(), images.shape,
-           images.dtype.str, config.stamp_size, float(config.k_max), id(bank))  # fmt: skip
-    hit = _PAIR_BANKS.get(key)
-    if hit is not None and hit[0] is bank:
-        return hit[1]
-    n = config.stamp_size
-    P = np.stack([psf_transform(im, n).ravel() for im in images])
-    wk, kx, ky = _frequency_weights(n, config.k_max)
-    a, b = np.triu_indices(len(images))
-    q = wk * (P[a] * np.conj(P[b])).real  # (n_pairs, n_freq)
-    W = np.concatenate([q, -q * kx * kx, -q * kx * ky, -q * ky * ky])
-    if bank.rows is not None:
-        W = W[:, bank.rows]
-    out = np.empty((W.shape[0], bank.G.shape[1]))
-    for c0 in range(0, bank.G.shape[1], 4096):  # in chunks: no bank-sized temporary
-        out[:, c0 : c0 + 4096] = W @ np.square(bank.G[:, c0 : c0 + 4096], dtype=np.float64)
-    S, mxx, mxy, myy = (np.ascontiguousarray(v) for v in np.split(out, 4))
-    pb = PairBank(P=P, S=S, mxx=mxx, mxy=mxy, myy=myy, pair_a=a, pair_b=b)
-    keep_last(_PAIR_BANKS, key, (bank, pb), _PAIR_BANKS_KEPT)
-    return pb
-
-
-def window_bank(psf, config: Config, bank) -> PSFBank | PairBank:
-    """The PSF's part of ``bank``: :func:`psf_bank` of a PSF image, :func:`pair_bank` of
-    a :class:`MixedPSF`'s images."""
-    if isinstance(psf, MixedPSF):
-        return pair_bank(psf.images, config, bank)
-    return psf_bank(psf, config, bank)

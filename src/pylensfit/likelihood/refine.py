@@ -12,10 +12,11 @@ from ..config import Config
 from ..grid import ellipticity_grid, refine_lnL
 from ..models import ModelBank, model_bank, rfft_frequencies
 from .amplitude_nb import amplitude_table
-from .bank import MixedPSF, PairBank, PSFBank, interior, window_bank
+from .bank import MixedPSF, PairBank, PSFBank, interior
 from .evaluate import Grid, Products
 from .folded import NO_MIX
 from .grid_nb import Amplitude, Columns, Galaxies, Laplace, Outputs, laplace_grid_tab
+from .pairs import window_bank
 from .priors import Weights
 from .windows import Window
 

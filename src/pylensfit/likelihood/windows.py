@@ -11,8 +11,9 @@ from .. import flags as _flags
 from .._util import newton_peak
 from ..config import Config
 from ..models import ModelBank, fourier_profile, model_bank, rfft_frequencies
-from .bank import MixedPSF, PairBank, PSFBank, window_bank
+from .bank import MixedPSF, PairBank, PSFBank
 from .grid_nb import Galaxies, MixedModels, Models
+from .pairs import window_bank
 
 
 def cut_windows(stamps: np.ndarray, n: int, cx: np.ndarray, cy: np.ndarray):
