@@ -39,8 +39,10 @@ For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of un
 The modules follow the computation: :mod:`~pylensfit.likelihood.fit` (:func:`fit_stamps`,
 each window's stages in order), :mod:`~pylensfit.likelihood.tiers` (the stamp side of each
 galaxy), :mod:`~pylensfit.likelihood.windows` (the windows cut, cleaned, transformed and
-centred), :mod:`~pylensfit.likelihood.bank` (the PSF's part of the model bank, cached) and
-:mod:`~pylensfit.likelihood.folded` (the bank folded by the square's symmetries),
+centred), :mod:`~pylensfit.likelihood.bank` (the PSF's part of the model bank, cached;
+:class:`MixedPSF`, a PSF mixed per stamp from a few), :mod:`~pylensfit.likelihood.pairs`
+(that PSF's part per pair of its PSFs) and :mod:`~pylensfit.likelihood.folded` (the bank
+folded by the square's symmetries),
 :mod:`~pylensfit.likelihood.priors` (the kernel's priors and weights),
 :mod:`~pylensfit.likelihood.evaluate` (the matrix products and the kernel's passes, block
 by block), :mod:`~pylensfit.likelihood.refine` (the finer e grid of the bright
