@@ -78,12 +78,17 @@ def _take(fits, rows):
     return type(fits)(**out)
 
 
-@pytest.mark.parametrize("e_refine", [1, 2])
-def test_mixed_weights_are_the_mixed_psf(e_refine):
+@pytest.mark.parametrize("model, e_refine", [("exponential", 1), ("exponential", 2),
+                                             ("bulge+disc", 1)])  # fmt: skip
+def test_mixed_weights_are_the_mixed_psf(model, e_refine):
     """The exactness: each stamp's fit equals fit_stamps with the PSF image ``sum_c w_c
     psf_c`` given directly, in float64 products to the float32 of the returned rows
-    (with e_refine = 2 the fine grid's refits too)."""
+    (with e_refine = 2 the fine grid's refits too; bulge+disc with the fractions between
+    the pure ones mixed in the kernel)."""
     cfg = CFG.replace(dtype="float64", e_refine=e_refine)
+    if model == "bulge+disc":
+        cfg = Config.paper(model="bulge+disc", n_bulge_fractions=3, r_max=6.0, r_step=0.3,
+                           dtype="float64")  # fmt: skip
     corners = _corners()
     stamps = _stamps(8, seed=2)
     w = np.random.default_rng(3).dirichlet(np.ones(4), size=len(stamps)).T
