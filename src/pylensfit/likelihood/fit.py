@@ -57,10 +57,8 @@ def fit_stamps(
         2-D PSF image including the pixel response, centred on ``[s//2, s//2]``, any size
         and normalisation; shared by all stamps of the call. Cut to each stamp size used,
         so give it as large as ``max_stamp_size`` for the tiers. Or a
-        :class:`~pylensfit.likelihood.MixedPSF`: each stamp's PSF the weighted sum of a
-        few PSF images (its weights one column per stamp), the likelihood exactly that
-        of the mixed PSF in one fit per stamp (the stamp tier chosen with the stamp's
-        heaviest image).
+        :class:`~pylensfit.likelihood.MixedPSF`: each stamp's PSF a weighted sum of a few
+        PSF images, fitted exactly in one fit (the tier chosen with its heaviest image).
     noise_sigma : float or numpy.ndarray
         Per-pixel noise standard deviation, scalar or one per stamp.
     config : Config, optional
