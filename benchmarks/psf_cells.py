@@ -19,8 +19,11 @@ the PSF model's own error is not in the comparison):
   ``g = 0.02``, each as drawn and turned by 90 degrees, the +g and -g renderings sharing
   their noise;
 * every stamp measured by ``pylensfit.measure_stamps`` under one set of priors
-  (calibrated once on the stamps with the field's central PSF), with its own PSF and
-  with the PSF at the centre of its cell for each number of cells.
+  (calibrated once on the stamps with the field's central PSF), with its own PSF and,
+  for each number of cells, as ``Config.psf_interpolation`` fits it: with the PSF at
+  the centre of its cell ("centre"), with its cell's four corners' fits blended with its
+  position's bilinear weights ("bilinear") and in one fit with the corners' PSFs mixed
+  by the same weights (``pylensfit.likelihood.MixedPSF``, "fourier").
 
 It prints, per number of cells: the rms and mean of ``e_cell - e_own`` over the stamps,
 its slope against the PSF's ellipticity error ``e_psf(cell centre) - e_psf(own)`` (the
@@ -110,8 +113,9 @@ def _render(p: dict, pmap: PSFMap, rng: np.random.Generator):
 
 class _Fitter:
     """Every stamp's posterior mean and sensitivity under fixed priors, as
-    ``pylensfit.measure_stamps`` makes them, from the fits with one PSF or from the
-    fits with several PSFs blended (``pylensfit.likelihood.blend_fits``)."""
+    ``pylensfit.measure_stamps`` makes them, from the fits with one PSF (or one per
+    stamp, ``pylensfit.likelihood.MixedPSF``) or from the fits with several PSFs blended
+    (``pylensfit.likelihood.blend_fits``)."""
 
     def __init__(self, stamps, priors, cfg):
         self.stamps, self.priors, self.cfg = stamps, priors, cfg
@@ -143,11 +147,12 @@ class _Fitter:
         self.seconds += time.perf_counter() - t0
 
 
-def _measure(fitter, psfs, groups, corners=None):
+def _measure(fitter, psfs, groups, corners=None, mixed=False):
     """``e`` (2, n), ``sens`` (2, n) of every stamp and the seconds: each group with its
     PSF, or (``corners``: per group the four corner PSFs and the stamps' ``(4, n_g)``
-    bilinear weights) with the corners' fits blended."""
-    from pylensfit.likelihood import blend_fits
+    bilinear weights) with the corners' fits blended, or (``mixed``) in one fit with the
+    corners' PSFs mixed by the weights."""
+    from pylensfit.likelihood import MixedPSF, blend_fits
 
     n = fitter.stamps.shape[0]
     e, s = np.full((2, n), np.nan), np.full((2, n), np.nan)
@@ -157,7 +162,10 @@ def _measure(fitter, psfs, groups, corners=None):
             f = fitter.fits(idx, psfs[g])
         else:
             cps, w = corners[g]
-            f = blend_fits([fitter.fits(idx, cp) for cp in cps], w)
+            if mixed:
+                f = fitter.fits(idx, MixedPSF(np.array(cps), w))
+            else:
+                f = blend_fits([fitter.fits(idx, cp) for cp in cps], w)
         fitter.shapes(f, idx, e, s)
     return e, s, fitter.seconds
 
@@ -249,6 +257,9 @@ def main(argv=None) -> int:
             psf_e[:, g] = ce.T @ w
         e, s, t = _measure(fitter, None, groups, corners=corners)
         row(f"{k} x {k} bilinear", e, s, t, psf_e)
+        # each galaxy once, with its cell's corners' PSFs mixed by the same weights
+        e, s, t = _measure(fitter, None, groups, corners=corners, mixed=True)
+        row(f"{k} x {k} fourier", e, s, t, psf_e)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(f"peak RSS {rss:.0f} MiB; usable galaxies {int(ok0.sum())} of {a.ngal}")
     return 0

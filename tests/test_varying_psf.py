@@ -78,6 +78,26 @@ def test_each_galaxy_is_fitted_with_the_psf_at_its_position(field, poly):
     assert np.isnan(const.meta["psfs"][0]["psf_heldout_rms_de1"])
 
 
+def test_fourier_fits_each_galaxy_once_with_the_psf_at_its_position(field, poly):
+    """``psf_interpolation = "fourier"``: one fit per galaxy with the corners' PSFs mixed
+    at its position; every row of the bilinear blend's catalogue, the same flags, and
+    shapes within a small fraction of their noise of the blend's (the two differ at
+    second order in the PSF's change across a cell)."""
+    cfg = CFG.replace(psf_model="polynomial", psf_order=2, psf_cells=8,
+                      psf_interpolation="fourier")  # fmt: skip
+    cat = measure([field[0]], config=cfg, prior=Prior(), progress=False)
+    assert len(cat) == len(poly)
+    np.testing.assert_allclose(cat["x"], poly["x"], atol=0.1)  # the fitted centres
+    np.testing.assert_allclose(cat["PSF_e1"], poly["PSF_e1"], atol=1e-6)
+    ok = (np.asarray(cat["flags"]) == 0) & (np.asarray(poly["flags"]) == 0)
+    assert ok.sum() > 250 and np.mean(np.asarray(cat["flags"]) == np.asarray(poly["flags"])) > 0.99
+    de = np.concatenate([cat["e1"][ok] - poly["e1"][ok], cat["e2"][ok] - poly["e2"][ok]])
+    assert np.all(np.isfinite(de)) and np.sqrt(np.mean(de**2)) < 2e-3, np.sqrt(np.mean(de**2))
+    t, c = _matched(cat, truth=field[1])
+    a, s = _leakage(t, c)
+    assert abs(a) < 3 * s, (a, s)
+
+
 def test_auto_fits_the_polynomial_only_where_the_stars_vary(field, poly, tmp_path):
     """``psf_model = "auto"`` (the default): on the varying field the polynomial model's
     catalogue; on a field of the map's central PSF everywhere, the stacked PSF's."""

@@ -300,8 +300,10 @@ PSF = Section("psf", "Stars and PSF", "Star selection and the PSF model (Kitchin
       "corners or centres (psf_interpolation).", "", "[1, inf)"),
     P("psf_interpolation", str, "bilinear", "A varying PSF in the fits: 'bilinear' (each "
       "galaxy fitted with the PSFs of its cell's four corners, the fits blended with its "
-      "position's weights, likelihood.blend_fits; four times the fits) or 'centre' (the "
-      "PSF at its cell's centre).", choices=("bilinear", "centre")),
+      "position's weights, likelihood.blend_fits; four fits), 'fourier' (one fit with "
+      "those PSFs mixed by the same weights, exactly the PSF interpolated at the galaxy, "
+      "likelihood.MixedPSF) or 'centre' (the PSF at its cell's centre).",
+      choices=("bilinear", "fourier", "centre")),
 ))
 
 NEIGHBOURS = Section("neighbours", "Neighbours and defects", "Close pairs, the refits with "

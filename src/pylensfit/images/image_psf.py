@@ -165,7 +165,9 @@ class CellPSFs:
     ``psf_cells x psf_cells`` cells, each object fitted with its cell's; with
     ``"bilinear"`` the PSF at the cells' corners, each object fitted with its cell's
     four and the fits blended with the bilinear weights of its position
-    (:func:`pylensfit.likelihood.blend_fits`).
+    (:func:`pylensfit.likelihood.blend_fits`); with ``"fourier"`` the same corners and
+    weights, each object fitted once with its cell's four PSFs mixed by its weights
+    (:class:`pylensfit.likelihood.MixedPSF`).
     """
 
     images: np.ndarray  # (n_nodes, N, N) the PSF at each node
@@ -187,8 +189,9 @@ class CellPSFs:
 
 def cell_psfs(model: PSFModel, shape: tuple[int, int], cells: int, x: np.ndarray,
                y: np.ndarray, bilinear: bool) -> CellPSFs:  # fmt: skip
-    """The PSF model sampled at the centres (or, ``bilinear``, the corners) of ``cells x
-    cells`` cells of an image of ``shape``, for objects at pixels ``x, y``."""
+    """The PSF model sampled at the centres (or, ``bilinear``, the corners: for
+    ``psf_interpolation`` "bilinear" and "fourier") of ``cells x cells`` cells of an
+    image of ``shape``, for objects at pixels ``x, y``."""
     ny, nx = shape
     x, y = np.nan_to_num(np.asarray(x, float)), np.nan_to_num(np.asarray(y, float))
     i = np.clip(np.floor((x + 0.5) * cells / nx), 0, cells - 1).astype(np.int64)

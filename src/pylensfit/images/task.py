@@ -66,7 +66,7 @@ def image_task(task: ImageTask) -> ImageResult:
     if field_model is not None:
         cells = cell_psfs(field_model, sub.shape, cfg.psf_cells, np.asarray(det["x"], float),
                           np.asarray(det["y"], float),
-                          bilinear=cfg.psf_interpolation == "bilinear")  # fmt: skip
+                          bilinear=cfg.psf_interpolation != "centre")  # fmt: skip
     t_psf = time.perf_counter()
     st = image_stamps(sub, img, det, cfg, saturated, flags)
     if positions is not None:  # an input catalogue: the evidence at each position itself

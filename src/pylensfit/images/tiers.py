@@ -13,7 +13,7 @@ from ..assemble import FIT_COLUMNS, fit_columns
 from ..config import Config
 from ..detection import close_pairs
 from ..forced import position_snr
-from ..likelihood import StampFits, blend_fits, fit_stamps, merge_fits
+from ..likelihood import MixedPSF, StampFits, blend_fits, fit_stamps, merge_fits
 from ..prior import SizePrior
 from ..psf import PSFResult
 from ..runner import report_progress
@@ -109,7 +109,10 @@ def forced_snrs(st: _ImageStamps, noise: np.ndarray, psf: PSFResult | None,
 
 @dataclass
 class ImageFitter:
-    """Fits an image's objects on their stamps, each with the PSF of its cell."""
+    """Fits an image's objects on their stamps, each with the PSF of its cell: its
+    centre's, its corners' fits blended, or (``Config.psf_interpolation = "fourier"``)
+    the corners' PSFs mixed with its position's weights in one fit
+    (:class:`~pylensfit.likelihood.MixedPSF`)."""
 
     st: _ImageStamps
     noise: np.ndarray  # (n,) per-object noise sigma
@@ -134,20 +137,27 @@ class ImageFitter:
         if cp is None:
             return self._fit_with(idx, less, self.psf_image, 1.0 if less is None else 0.0)
         parts = []
+        mixed = self.cfg.psf_interpolation == "fourier" and cp.nodes.shape[0] > 1
         for c in np.unique(cp.cell[idx]):  # one fit per cell and node of the PSF model
             sel = np.flatnonzero(cp.cell[idx] == c)
             j, lj = idx[sel], None if less is None else less[sel]
+            if mixed:  # one fit, each object with the PSF at its position
+                psf = MixedPSF(cp.images[cp.nodes[:, j[0]]], cp.weights[:, j])
+                parts.append((sel, self._fit_with(j, lj, psf, 1.0 if less is None else 0.0)))
+                continue
             share = 0.0 if less is not None else 1.0 / cp.nodes.shape[0]
             fits = [self._fit_with(j, lj, cp.images[k], share) for k in cp.nodes[:, j[0]]]
             parts.append((sel, blend_fits(fits, cp.weights[:, j])))
         return parts[0][1] if len(parts) == 1 else merge_fits(parts, idx.size)
 
-    def _fit_with(self, idx: np.ndarray, less: np.ndarray | None, psf_image: np.ndarray,
-                  share: float = 0.0) -> StampFits:  # fmt: skip
-        """Fit objects ``idx`` with one PSF image, each on its stamp tier, in chunks of
-        ``4 * Config.block_size`` objects (a whole number of :func:`fit_stamps`' own
-        blocks, so that the chunks change no result), each chunk's objects reported to
-        the run's progress bar as ``share`` of an object each."""
+    def _fit_with(self, idx: np.ndarray, less: np.ndarray | None,
+                  psf_image: np.ndarray | MixedPSF, share: float = 0.0) -> StampFits:  # fmt: skip
+        """Fit objects ``idx`` with one PSF image (or each with its own, a
+        :class:`~pylensfit.likelihood.MixedPSF` with the weights of ``idx``), each on
+        its stamp tier, in chunks of ``4 * Config.block_size`` objects (a whole number of
+        :func:`fit_stamps`' own blocks, so that the chunks change no result), each
+        chunk's objects reported to the run's progress bar as ``share`` of an object
+        each."""
         st, cfg, o = self.st, self.cfg, self.st.offset
         n_big = st.bstamps.shape[1]
         parts = []
@@ -162,8 +172,9 @@ class ImageFitter:
                 if less is not None:
                     lj, m = less[ws], cfg.stamp_size
                     data = data - (lj if stamps.shape[1] == n_big else lj[:, o : o + m, o : o + m])
+                psf = psf_image.take(ws) if isinstance(psf_image, MixedPSF) else psf_image
                 parts.append((ws, fit_stamps(
-                    data, psf_image, self.noise[j], config=c, centres=(st.fcx[j], st.fcy[j]),
+                    data, psf, self.noise[j], config=c, centres=(st.fcx[j], st.fcy[j]),
                     size_prior=self.size_prior, lnL_r_groups=self.rings,
                     size_marginal_prior=self.size_marginal_prior)))  # fmt: skip
                 report_progress("done", share * j.size)

@@ -39,8 +39,10 @@ For a stamp ``d`` with constant noise ``sigma`` and a model ``A m(x - X)`` of un
 The modules follow the computation: :mod:`~pylensfit.likelihood.fit` (:func:`fit_stamps`,
 each window's stages in order), :mod:`~pylensfit.likelihood.tiers` (the stamp side of each
 galaxy), :mod:`~pylensfit.likelihood.windows` (the windows cut, cleaned, transformed and
-centred), :mod:`~pylensfit.likelihood.bank` (the PSF's part of the model bank, cached) and
-:mod:`~pylensfit.likelihood.folded` (the bank folded by the square's symmetries),
+centred), :mod:`~pylensfit.likelihood.bank` (the PSF's part of the model bank, cached;
+:class:`MixedPSF`, a PSF mixed per stamp from a few), :mod:`~pylensfit.likelihood.pairs`
+(that PSF's part per pair of its PSFs) and :mod:`~pylensfit.likelihood.folded` (the bank
+folded by the square's symmetries),
 :mod:`~pylensfit.likelihood.priors` (the kernel's priors and weights),
 :mod:`~pylensfit.likelihood.evaluate` (the matrix products and the kernel's passes, block
 by block), :mod:`~pylensfit.likelihood.refine` (the finer e grid of the bright
@@ -55,6 +57,7 @@ and ``radius_nb`` (the sum over size).
 
 # merge_fits, reweight_lnL_r and tier_sizes (as name: re-exported) serve other modules
 # of the method, outside the public names as before
+from .bank import MixedPSF
 from .fit import fit_stamps
 from .merge import blend_fits, e_annuli
 from .merge import merge_fits as merge_fits
@@ -62,8 +65,9 @@ from .merge import reweight_lnL_r as reweight_lnL_r
 from .stampfits import StampFits
 from .tiers import tier_sizes as tier_sizes
 
-__all__ = ["StampFits", "blend_fits", "e_annuli", "fit_stamps"]
+__all__ = ["MixedPSF", "StampFits", "blend_fits", "e_annuli", "fit_stamps"]
 
 # the result's class keeps its name, pylensfit.likelihood.StampFits: in the documentation
 # (one entry, as pylensfit.StampFits's original) and in pickles
 StampFits.__module__ = __name__
+MixedPSF.__module__ = __name__

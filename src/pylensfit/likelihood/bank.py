@@ -1,5 +1,6 @@
 """The PSF's part of the model bank: each model's ``sum m^2`` and autocorrelation Hessian
-under one PSF, cached over the last PSFs; the frequencies that the likelihood sums over."""
+under one PSF, cached over the last PSFs, or per pair of the PSFs that a per-galaxy PSF
+is mixed from; the frequencies that the likelihood sums over."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import numpy as np
 from ..config import Config
 from ..models import in_disc, rfft_frequencies
 from ..psf import psf_transform
-from .grid_nb import Models
+from .grid_nb import MixedModels, Models
 
 
 @dataclass(frozen=True)
@@ -99,3 +100,101 @@ def _psf_bank_of(psf: np.ndarray, config: Config, bank) -> PSFBank:
     for c0 in range(0, bank.G.shape[1], 4096):  # in chunks: no bank-sized temporary
         out[:, c0 : c0 + 4096] = W @ np.square(bank.G[:, c0 : c0 + 4096], dtype=np.float64)
     return PSFBank(P=P.ravel(), S=out[0], mxx=out[1], mxy=out[2], myy=out[3])
+
+
+@dataclass(frozen=True)
+class MixedPSF:
+    """Every stamp with its own PSF, a weighted sum of a few PSF images: stamp ``i``'s
+    PSF is ``sum_c weights[c, i] P_c``, with ``P_c`` the transform of ``images[c]``
+    normalised to unit flux on the stamp (:func:`pylensfit.psf.psf_transform`). With the
+    PSFs at the corners of a galaxy's cell and its position's bilinear weights, the PSF
+    interpolated at the galaxy (``Config.psf_interpolation = "fourier"``).
+
+    The likelihood with such a PSF is exact in one fit per stamp: the data enter the
+    sums as ``D conj(P)``, one vector per stamp, and every model's ``sum m^2`` and
+    autocorrelation Hessian are quadratic in the PSF, sums over the pairs of images
+    (:class:`PairBank`) weighted by ``w_c w_c'``.
+
+    Parameters
+    ----------
+    images : numpy.ndarray
+        ``(K, N, N)`` PSF images, each centred on ``[N//2, N//2]`` with the pixel
+        response, any normalisation.
+    weights : numpy.ndarray
+        ``(K, n)`` each stamp's weight of each image, >= 0, summing to 1 over the images.
+    """
+
+    images: np.ndarray
+    weights: np.ndarray
+
+    def __post_init__(self) -> None:
+        images = np.asarray(self.images, dtype=float)
+        w = np.asarray(self.weights, dtype=float)
+        if images.ndim != 3 or w.ndim != 2 or w.shape[0] != images.shape[0]:
+            raise ValueError(f"MixedPSF: images (K, N, N) and weights (K, n), got "
+                             f"{images.shape} and {w.shape}")  # fmt: skip
+        if w.size and (np.any(~(w >= 0)) or not np.allclose(w.sum(axis=0), 1.0)):
+            raise ValueError("MixedPSF: weights must be >= 0 and sum to 1 over the images")
+        object.__setattr__(self, "images", images)
+        object.__setattr__(self, "weights", w)
+
+    @property
+    def n_stamps(self) -> int:
+        """The number of stamps the weights are for."""
+        return self.weights.shape[1]
+
+    @property
+    def nearest(self) -> np.ndarray:
+        """``(n,)`` each stamp's heaviest image."""
+        return np.argmax(self.weights, axis=0)
+
+    def take(self, idx: np.ndarray | slice) -> MixedPSF:
+        """The same images with the weights of the stamps ``idx``."""
+        return MixedPSF(self.images, self.weights[:, idx])
+
+
+def subset_psf(psf, idx: np.ndarray | slice):
+    """``psf`` for the stamps ``idx``: a PSF image as it is, a :class:`MixedPSF` with
+    those stamps' weights."""
+    return psf.take(idx) if isinstance(psf, MixedPSF) else psf
+
+
+@dataclass(frozen=True)
+class PairBank:
+    """The per-model sums of :class:`PSFBank` per pair ``(a, b)`` of ``K`` PSFs:
+    ``S_ab(j) = Re sum_k |M_j(k)|^2 P_a(k) conj(P_b(k))`` (and the Hessian terms with
+    their ``-k k^T``), for ``a <= b``. Under the PSF ``sum_c w_c P_c`` every sum is
+    ``sum_{a <= b} w_a w_b (2 - [a = b]) S_ab(j)``, exactly (:meth:`pair_weights`).
+    Made by :func:`pylensfit.likelihood.pairs.pair_bank`."""
+
+    P: np.ndarray  # (K, n_freq) complex, the PSFs' transforms
+    S: np.ndarray  # (n_pairs, n_models)
+    mxx: np.ndarray
+    mxy: np.ndarray
+    myy: np.ndarray
+    pair_a: np.ndarray  # (n_pairs,) the pairs' PSFs, a <= b
+    pair_b: np.ndarray
+
+    def pair_weights(self, weights: np.ndarray) -> np.ndarray:
+        """``(n, n_pairs)`` the pairs' weights ``w_a w_b (2 - [a = b])`` of stamps whose
+        PSF weights are ``weights`` ``(K, n)``."""
+        a, b = self.pair_a, self.pair_b
+        wp = weights[a] * weights[b] * np.where(a == b, 1.0, 2.0)[:, None]
+        return np.ascontiguousarray(wp.T)
+
+    def models(self, wp: np.ndarray, cols: np.ndarray | None = None) -> MixedModels:
+        """The kernel's :class:`~pylensfit.likelihood.grid_nb.MixedModels` of the models
+        ``cols`` (default: all) for galaxies of pair weights ``wp`` ``(n, n_pairs)``."""
+        sums = (self.S, self.mxx, self.mxy, self.myy)
+        if cols is not None:
+            sums = tuple(np.ascontiguousarray(v[:, cols]) for v in sums)
+        return MixedModels(*sums, np.ascontiguousarray(wp))
+
+    def galaxy_models(self, wp: np.ndarray, cols: np.ndarray) -> Models:
+        """One galaxy's :class:`~pylensfit.likelihood.grid_nb.Models` of the models
+        ``cols``, its pair weights ``wp`` ``(n_pairs,)``."""
+        return Models(*(wp @ v[:, cols] for v in (self.S, self.mxx, self.mxy, self.myy)))
+
+    def S_of(self, wp: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """``(n,)`` each galaxy's ``sum m^2`` of its model ``j[g]`` (pair weights ``wp``)."""
+        return np.einsum("gp,pg->g", wp, self.S[:, j])

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..config import Config
 from .folded import CHI, FoldedBank
-from .grid_nb import Laplace, Models, Outputs, laplace_grid
+from .grid_nb import Laplace, Outputs, laplace_grid, laplace_grid_mixed
 from .priors import Weights
 from .windows import Window
 
@@ -23,7 +23,7 @@ class Products:
     fb: FoldedBank  # with the columns of the sizes that the size prior keeps
     kxf: np.ndarray  # (n_freq,) frequencies
     kyf: np.ndarray
-    Pc: np.ndarray  # (n_freq,) conjugate PSF transform
+    Pc: np.ndarray  # (n_freq,) conjugate PSF transform, or (n_gal, n_freq) one per galaxy
     dtype: np.dtype
     store: np.ndarray  # one buffer for every block's products: the pages are mapped once
 
@@ -31,7 +31,8 @@ class Products:
         """h, grad h, Hess h (and third derivatives) as ``(q * m, frequency)`` rows."""
         kxf, kyf, win = self.kxf, self.kyf, self.win
         ph = np.exp(1j * (kxf[None] * win.xc[sl, None] + kyf[None] * win.yc[sl, None]))
-        Dp = win.D[sl].reshape(-1, kxf.size) * ph * self.Pc[None]
+        Pc = self.Pc[None] if self.Pc.ndim == 1 else self.Pc[sl]
+        Dp = win.D[sl].reshape(-1, kxf.size) * ph * Pc
         r, i = Dp.real, Dp.imag
         out = [r, -kxf * i, -kyf * i, -kxf * kxf * r, -kxf * kyf * r, -kyf * kyf * r]
         if cubic:
@@ -59,7 +60,7 @@ def products(win: Window, cfg: Config, fb: FoldedBank, n_cols: int) -> Products:
     dtype = np.dtype(cfg.dtype)
     store = np.empty(4 * 10 * min(cfg.block_size, win.n_gal) * n_cols, dtype=dtype)
     return Products(win=win, fb=fb, kxf=win.kx.ravel(), kyf=win.ky.ravel(),
-                    Pc=np.conj(win.pb.P), dtype=dtype, store=store)  # fmt: skip
+                    Pc=win.conj_psf(), dtype=dtype, store=store)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -76,9 +77,15 @@ class Grid:
     cubic_g: np.ndarray  # fitted with the third-order expansion in position
 
 
-def _recentre_block(win: Window, prod: Products, wts: Weights, cfg: Config, sl: slice,
-                    coarse: Models) -> np.ndarray:  # fmt: skip
-    """Pass 1 on a block, on a coarse subset of models (``coarse``: their sums): move the
+def _kernel(win: Window):
+    """The kernel for ``win``'s PSF: one PSF, or one per galaxy (its sums per model mixed
+    per galaxy)."""
+    return laplace_grid if win.wp is None else laplace_grid_mixed
+
+
+def _recentre_block(win: Window, prod: Products, wts: Weights, cfg: Config,
+                    sl: slice) -> np.ndarray:  # fmt: skip
+    """Pass 1 on a block, on a coarse subset of models (the folded bank's): move the
     origin to the peak of the most likely model, so that the Laplace step of every model
     near it is short.
 
@@ -89,13 +96,14 @@ def _recentre_block(win: Window, prod: Products, wts: Weights, cfg: Config, sl: 
     fb = prod.fb
     m = sl.stop - sl.start
     out = Outputs.empty(m, fb.coarse.n_e, 1, 1, fb.coarse.n_r)
-    laplace_grid(prod.folded(sl, False, fb.coarse_G), fb.coarse_columns(), coarse,
-                 win.galaxies(sl), wts.sums_c, wts.amp,
+    cols = fb.coarse.cols
+    _kernel(win)(prod.folded(sl, False, fb.coarse_G), fb.coarse_columns(),
+                 win.models(cols, sl), win.galaxies(sl), wts.sums_c, wts.amp,
                  Laplace(wts.b2, cfg.max_newton_step, False), out)  # fmt: skip
     move = np.isfinite(out.x) & np.isfinite(out.y) & ~win.no_peak[sl]
     win.xc[sl] += np.where(move, out.x, 0.0)
     win.yc[sl] += np.where(move, out.y, 0.0)
-    snr_c = out.h / (win.sigma[sl] * np.sqrt(coarse.S[out.best]))
+    snr_c = out.h / (win.sigma[sl] * np.sqrt(win.model_S(cols[out.best], sl)))
     return snr_c < cfg.cubic_snr
 
 
@@ -104,7 +112,7 @@ def _fit_block(win: Window, prod: Products, wts: Weights, cfg: Config, grid: Gri
     """Pass 2 on the galaxies ``idx`` of a block: every model, into ``grid``."""
     bank = win.bank
     out = Outputs.empty(idx.size, bank.n_e, wts.n_b, wts.n_grp, bank.n_r)
-    laplace_grid(prod.folded(idx, cubic), prod.fb.columns(), win.pb.models(),
+    _kernel(win)(prod.folded(idx, cubic), prod.fb.columns(), win.models(sel=idx),
                  win.galaxies(idx), wts.sums, wts.amp,
                  Laplace(wts.b2, cfg.max_newton_step, cubic), out)  # fmt: skip
     (grid.lnle[idx], grid.lnleb[idx], grid.lnlr[idx], grid.best[idx], grid.hbest[idx],
@@ -121,11 +129,9 @@ def evaluate_grid(win: Window, prod: Products, wts: Weights, cfg: Config) -> Gri
                 best=np.empty(n_gal, dtype=np.int64), hbest=np.empty(n_gal),
                 xb=np.empty(n_gal), yb=np.empty(n_gal),
                 cubic_g=np.zeros(n_gal, dtype=bool))  # fmt: skip
-    # the PSF bank's values at the coarse models, once for every block
-    coarse = win.pb.models(prod.fb.coarse.cols)
     for s0 in range(0, n_gal, cfg.block_size):
         sl = slice(s0, min(s0 + cfg.block_size, n_gal))
-        low = _recentre_block(win, prod, wts, cfg, sl, coarse)
+        low = _recentre_block(win, prod, wts, cfg, sl)
         grid.cubic_g[sl] = low
         for sel, cubic in ((np.flatnonzero(low), True), (np.flatnonzero(~low), False)):
             if sel.size == 0:

@@ -8,6 +8,7 @@ import numpy as np
 from .._util import per_object
 from ..config import Config
 from ..prior import Prior, SizePrior
+from .bank import MixedPSF, subset_psf
 from .device import device_grid, resolve_backend
 from .evaluate import evaluate_grid, products
 from .folded import folded_bank
@@ -23,7 +24,7 @@ from .windows import prepare_window
 
 def fit_stamps(
     stamps: np.ndarray,
-    psf: np.ndarray,
+    psf: np.ndarray | MixedPSF,
     noise_sigma,
     *,
     config: Config | None = None,
@@ -53,10 +54,12 @@ def fit_stamps(
         given. ``N`` may differ from ``config.stamp_size``: a window of that size (or of
         a larger tier) is cut about each centre (zero padded outside the input; a tier's
         window never leaves the input).
-    psf : numpy.ndarray
+    psf : numpy.ndarray or MixedPSF
         2-D PSF image including the pixel response, centred on ``[s//2, s//2]``, any size
         and normalisation; shared by all stamps of the call. Cut to each stamp size used,
-        so give it as large as ``max_stamp_size`` for the tiers.
+        so give it as large as ``max_stamp_size`` for the tiers. Or a
+        :class:`~pylensfit.likelihood.MixedPSF`: each stamp's PSF a weighted sum of a few
+        PSF images, fitted exactly in one fit (the tier chosen with its heaviest image).
     noise_sigma : float or numpy.ndarray
         Per-pixel noise standard deviation, scalar or one per stamp.
     config : Config, optional
@@ -110,6 +113,8 @@ def _fit_stamps(stamps, psf, noise_sigma, config, centres, size_prior, size_marg
     if stamps.ndim != 3 or stamps.shape[1] < 2 or stamps.shape[2] < 2:
         raise ValueError(f"stamps must have shape (n, N, N), got {stamps.shape}")
     n_gal = stamps.shape[0]
+    if isinstance(psf, MixedPSF) and psf.n_stamps != n_gal:
+        raise ValueError(f"MixedPSF has weights for {psf.n_stamps} stamps, not {n_gal}")
     sigma = per_object(noise_sigma, n_gal, "noise_sigma")
     if centres is None:
         cx = np.full(n_gal, stamps.shape[2] // 2, dtype=float)
@@ -133,13 +138,14 @@ def _fit_stamps(stamps, psf, noise_sigma, config, centres, size_prior, size_marg
         idx = np.flatnonzero(size == t)
         sub = cfg if t == cfg.stamp_size else cfg.replace(
             stamp_size=int(t), max_stamp_size=0, k_max=np.pi * cfg.stamp_size / t)  # fmt: skip
-        parts.append((idx, _fit_window(stamps[idx], psf, sigma[idx], sub, cx[idx], cy[idx],
+        parts.append((idx, _fit_window(stamps[idx], subset_psf(psf, idx), sigma[idx], sub,
+                                       cx[idx], cy[idx],
                                        size_prior, size_marginal_prior,
                                        lnL_r_groups)))  # fmt: skip
     return merge_fits(parts, n_gal)
 
 
-def _fit_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Config,
+def _fit_window(stamps: np.ndarray, psf: np.ndarray | MixedPSF, sigma: np.ndarray, cfg: Config,
                 cx: np.ndarray, cy: np.ndarray, size_prior: SizePrior | None,
                 size_marginal_prior: Prior | None,
                 lnL_r_groups: np.ndarray | None = None) -> StampFits:  # fmt: skip
@@ -152,7 +158,8 @@ def _fit_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Con
     the finer e grid (:func:`refined`) and the result
     (:func:`assemble_fits`).
     """
-    on_device = resolve_backend(cfg) == "jax"
+    # a PSF mixed per galaxy runs on the host (the device path holds one PSF per call)
+    on_device = resolve_backend(cfg) == "jax" and not isinstance(psf, MixedPSF)
     win = prepare_window(stamps, psf, sigma, cfg, cx, cy, on_device=on_device)
     fb = folded_bank(cfg, win.bank)
     wts, fb_kept = kernel_weights(cfg, win.bank, fb, size_prior, size_marginal_prior,

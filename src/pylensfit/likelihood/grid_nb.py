@@ -5,10 +5,11 @@ Called on the outputs of the six matrix products
 One pass over (galaxy, model) pairs, parallel over galaxies, with the sum over radius
 kept as a running log-sum-exp so that nothing of size (galaxies x models) is written
 back. The kernel's inputs come in bundles, each a named tuple documented here:
-:class:`Columns` (the bank's columns), :class:`Models` (the per-model sums),
-:class:`Galaxies`, :class:`Sums` (the weights of the sums over r and e),
-:class:`Amplitude` (the amplitude prior), :class:`Laplace` (the position's settings)
-and :class:`Outputs`.
+:class:`Columns` (the bank's columns), :class:`Models` (the per-model sums; under a
+PSF mixed per galaxy :class:`MixedModels`, their sums per pair of PSFs, for
+:func:`laplace_grid_mixed`), :class:`Galaxies`, :class:`Sums` (the weights of the sums
+over r and e), :class:`Amplitude` (the amplitude prior), :class:`Laplace` (the
+position's settings) and :class:`Outputs`.
 
 numba caches a compiled kernel by its own file: the kernel here is compiled again when
 this file changes, not when a kernel or constant it takes from another file
@@ -28,7 +29,21 @@ from .._kernels_nb import one_launch_at_a_time
 from .amplitude_nb import AMP_UNIFORM, amplitude_tile, power_law_table
 from .laplace_nb import cubic_tile, fisher_tile, position_tile
 from .radius_nb import collapse_models
-from .tile_nb import TILE, W_DETM, W_HS, W_QUAD, W_ROWS, W_VAL, W_X, W_Y, read_tile, tile_tables
+from .tile_nb import (
+    GROUP,
+    TILE,
+    W_DETM,
+    W_HS,
+    W_QUAD,
+    W_ROWS,
+    W_VAL,
+    W_X,
+    W_Y,
+    galaxy_tables,
+    pair_tables,
+    read_tile,
+    tile_tables,
+)
 
 
 class Columns(NamedTuple):
@@ -60,6 +75,19 @@ class Models(NamedTuple):
     mxx: np.ndarray
     mxy: np.ndarray
     myy: np.ndarray
+
+
+class MixedModels(NamedTuple):
+    """Per model, the sums of :class:`Models` for a PSF mixed per galaxy from ``K`` PSFs,
+    ``sum_c w_c P_c`` (:class:`~pylensfit.likelihood.bank.PairBank`): each
+    ``(n_pairs, n_models)``, one row per pair of PSFs, and ``w`` ``(n_gal, n_pairs)``
+    the galaxies' pair weights; galaxy ``g``'s ``S`` is ``w[g] @ S``."""
+
+    S: np.ndarray
+    mxx: np.ndarray
+    mxy: np.ndarray
+    myy: np.ndarray
+    w: np.ndarray
 
 
 class Galaxies(NamedTuple):
@@ -266,3 +294,49 @@ def _laplace_grid_nb(prod, cols, models, gals, sums, amp, laplace, out):
 
 
 laplace_grid = one_launch_at_a_time(_laplace_grid_nb)
+
+
+@njit(parallel=True, cache=True, fastmath={"contract", "arcp", "afn"})
+def _laplace_grid_mixed_nb(prod, cols, models, gals, sums, amp, laplace, out):
+    """:func:`laplace_grid` with a PSF mixed per galaxy: ``models`` a
+    :class:`MixedModels`, each galaxy's model constants summed from the pairs' with its
+    pair weights (:func:`~pylensfit.likelihood.tile_nb.galaxy_tables`, about 40
+    multiply-adds per model against the thousands of its products), a group of
+    :data:`~pylensfit.likelihood.tile_nb.GROUP` galaxies at a time, before their passes."""
+    s_p, xx_p, xy_p, yy_p, wp = models
+    node_w, w_star, ln_pi, e_w, e_grp, n_sub = sums
+    sigma, x0, y0 = gals
+    members, mix_a, mix_b, mix_f = cols
+    if amp[0] != AMP_UNIFORM:
+        table = power_law_table(amp[0])
+    else:
+        table = (0.0, np.empty((4, 0)))
+    n_mod = e_w.size * node_w.size + 1
+    ln_w = np.log(node_w)
+    pi = np.exp(ln_pi)
+    n_base = members.shape[0] - mix_a.size
+    one = np.ones(s_p.shape[1])
+    mix_run, cj, _ = tile_tables(cols, (one, one, one, one, one, one))
+    cp = pair_tables(cols, (s_p, xx_p, xy_p, yy_p))
+    mix = (n_base, mix_a, mix_b, mix_f, mix_run)
+    rsums = (node_w, ln_w, w_star, ln_pi, pi, e_w, e_grp, n_sub)
+    amp_t = (amp[0], amp[1], amp[2], amp[3], table[0], table[1])
+    pos = (laplace[0], laplace[1] * laplace[1], laplace[2])
+    hxy = (out.h, out.x, out.y)
+    lnl = (out.lnle, out.lnlb, out.lnlr)
+    best_m = out.best
+    for gg in prange(-(-sigma.size // GROUP)):
+        g0 = gg * GROUP
+        n_g = min(GROUP, sigma.size - g0)
+        cm = np.empty((n_g, cj.shape[0], cj.shape[1], 6, TILE))
+        galaxy_tables(cj, cp, wp[g0 : g0 + n_g], cm)
+        buf = np.empty(n_mod)
+        for a in range(n_g):
+            g = g0 + a
+            best, jb = _first_pass(prod, g, (sigma[g], x0[g], y0[g]), mix, (cj, cm[a]), amp_t,
+                                   pos, buf, hxy)  # fmt: skip
+            best_m[g] = jb
+            collapse_models(g, buf, best, rsums, lnl)
+
+
+laplace_grid_mixed = one_launch_at_a_time(_laplace_grid_mixed_nb)

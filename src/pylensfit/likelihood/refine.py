@@ -12,19 +12,21 @@ from ..config import Config
 from ..grid import ellipticity_grid, refine_lnL
 from ..models import ModelBank, model_bank, rfft_frequencies
 from .amplitude_nb import amplitude_table
-from .bank import PSFBank, interior, psf_bank
+from .bank import MixedPSF, PairBank, PSFBank, interior
 from .evaluate import Grid, Products
 from .folded import NO_MIX
 from .grid_nb import Amplitude, Columns, Galaxies, Laplace, Outputs, laplace_grid_tab
+from .pairs import window_bank
 from .priors import Weights
 from .windows import Window
 
 
 def refined(win: Window, prod: Products, wts: Weights, grid: Grid, cfg: Config,
-            psf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+            psf: np.ndarray | MixedPSF) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """The e grid returned, ``ln L(e)`` and per fraction on it: the bank's, or with
     ``cfg.e_refine > 1`` the finer grid, every galaxy interpolated and the narrow ones
-    fitted again there (:func:`_refine_grid`)."""
+    fitted again there (:func:`_refine_grid`; ``psf`` the window's PSF image, or its
+    :class:`~pylensfit.likelihood.bank.MixedPSF`)."""
     if cfg.e_refine > 1:
         ok = ~win.bad & np.isfinite(grid.lnle).all(axis=1)
         return _refine_grid(cfg, psf, win, prod.rows, wts, grid, ok)
@@ -50,8 +52,9 @@ def _fine_lattice(step: float, e_max: float, k: int):
     return lat, parent, nbr, seg_of
 
 
-def _refine_grid(cfg: Config, psf: np.ndarray, win: Window, rows_fn, wts: Weights, grid: Grid,
-                 ok: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+def _refine_grid(cfg: Config, psf: np.ndarray | MixedPSF, win: Window, rows_fn, wts: Weights,
+                 grid: Grid, ok: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """``ln L(e)`` on the finer grid of ``cfg.e_refine`` (adaptive refinement).
 
     Every usable galaxy's (``ok``) ``ln L`` (and each bulge fraction's) is interpolated
@@ -108,7 +111,7 @@ def _refine_grid(cfg: Config, psf: np.ndarray, win: Window, rows_fn, wts: Weight
             q = R.shape[0] // idx.size
             R = (R * fb.wk).astype(fb.dtype).reshape(q, idx.size, -1)
             segs = _segment_products(R, window[part], fb)
-            _fit_cells(idx, segs, fb, (gals, wts, lap), out)
+            _fit_cells(idx, segs, fb, (gals, wts, lap, win.wp), out)
     return fine, *out
 
 
@@ -147,23 +150,24 @@ class _FineBank:
     """The finer grid's model bank and what its products and the kernel need."""
 
     bank: ModelBank
-    pb: PSFBank
+    pb: PSFBank | PairBank
     wk: np.ndarray  # the frequencies' Hermitian weights (interior, / n^2)
     dtype: np.dtype
     seg_of: np.ndarray  # (n_f,) the segment of each fine cell (:func:`_fine_lattice`)
     table: tuple  # the amplitude prior's table
 
     @classmethod
-    def of(cls, cfg: Config, cfg_f: Config, bank_f: ModelBank, psf: np.ndarray,
+    def of(cls, cfg: Config, cfg_f: Config, bank_f: ModelBank, psf: np.ndarray | MixedPSF,
            amp: Amplitude) -> _FineBank:  # fmt: skip
-        """The fine bank ``bank_f`` of ``cfg_f`` under ``psf``, for the fits of ``cfg``
-        with the amplitude prior ``amp``."""
+        """The fine bank ``bank_f`` of ``cfg_f`` under ``psf`` (its pair sums for a
+        :class:`~pylensfit.likelihood.bank.MixedPSF`), for the fits of ``cfg`` with the
+        amplitude prior ``amp``."""
         n = cfg.stamp_size
         _, _, w = rfft_frequencies(n)
         wk = w.ravel() * interior(n, cfg.k_max) / n**2
         if bank_f.rows is not None:
             wk = wk[bank_f.rows]
-        return cls(bank=bank_f, pb=psf_bank(psf, cfg_f, bank_f), wk=wk,
+        return cls(bank=bank_f, pb=window_bank(psf, cfg_f, bank_f), wk=wk,
                    dtype=np.dtype(cfg.dtype),
                    seg_of=_fine_lattice(cfg.e_step, cfg.e_max, int(cfg.e_refine))[3],
                    table=amplitude_table(amp.power))  # fmt: skip
@@ -192,10 +196,11 @@ def _segment_products(R: np.ndarray, window: np.ndarray, fb: _FineBank) -> tuple
 
 def _fit_cells(idx: np.ndarray, segs: tuple, fb: _FineBank, kern: tuple, out: tuple) -> None:
     """The kernel on each galaxy ``idx[a]``'s window of fine cells (``segs``:
-    :func:`_segment_products`), with the window's galaxies, weights and Laplace settings
-    ``kern``; into ``out = (ln L(e), ln L_k(e))`` on the fine grid."""
+    :func:`_segment_products`), with the window's galaxies, weights, Laplace settings and
+    pair weights (None: one PSF) ``kern``; into ``out = (ln L(e), ln L_k(e))`` on the
+    fine grid."""
     star, cells, bounds, B = segs
-    gals, wts, lap = kern
+    gals, wts, lap, wp = kern
     n_r, q = fb.bank.n_r, B.shape[0]
     live_r = wts.sums.node_w > 0
     no_mix = (NO_MIX[0], NO_MIX[0], NO_MIX[1])
@@ -208,10 +213,11 @@ def _fit_cells(idx: np.ndarray, segs: tuple, fb: _FineBank, kern: tuple, out: tu
         j[:-1][~np.tile(live_r, nw)] = -1
         gid = np.append((cw[:, None] * n_r + np.arange(n_r)[None, :]).ravel(),
                         fb.bank.n_models - 1)  # fmt: skip
+        models = fb.pb.models(gid) if wp is None else fb.pb.galaxy_models(wp[g], gid)
         res = Outputs.empty(1, nw, wts.n_b, 1, n_r)
         sums = wts.sums._replace(e_w=np.full(nw, 1.0 / nw), e_grp=np.zeros(nw, dtype=np.int64))
         laplace_grid_tab(np.ascontiguousarray(prod), Columns(j[:, None], *no_mix),
-                         fb.pb.models(gid), Galaxies(*(v[g : g + 1] for v in gals)), sums,
+                         models, Galaxies(*(v[g : g + 1] for v in gals)), sums,
                          wts.amp, fb.table, lap, res)  # fmt: skip
         out[0][g, cw] = res.lnle[0]
         out[1][g, cw, :] = res.lnlb[0]

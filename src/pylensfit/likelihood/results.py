@@ -84,7 +84,7 @@ def _best_model(win: Window, grid: Grid, lnlr: np.ndarray, dead: np.ndarray,
     """The most likely model's parameters by their :class:`StampFits` names (NaN for the
     dead rows), and the stars (most likely size 0 or below ``point_source_size``,
     flagged ``STAR``)."""
-    bank, pb, flags = win.bank, win.pb, win.flags
+    bank, flags = win.bank, win.flags
     n_r = bank.n_r
     best, hbest, sigma = grid.best, grid.hbest, win.sigma
     ir_best = lnlr.argmax(axis=1)
@@ -92,7 +92,7 @@ def _best_model(win: Window, grid: Grid, lnlr: np.ndarray, dead: np.ndarray,
     r_best = radii[ir_best]
     is_star = ((ir_best == n_r) | (r_best < cfg.point_source_size)) & ~dead
     flags[is_star] |= _flags.flag_value("STAR")
-    S_best = pb.S[best]
+    S_best = win.model_S(best)
     ie_best = np.where(best == bank.n_models - 1, -1, best // max(n_r, 1))
     e_best = np.where(ie_best[:, None] >= 0, bank.egrid[np.maximum(ie_best, 0)], 0.0)
     nanif = np.where(dead, np.nan, 1.0)

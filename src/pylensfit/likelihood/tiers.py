@@ -9,7 +9,7 @@ import numpy as np
 from ..config import Config
 from ..models import fourier_profile, half_light_radius, rfft_frequencies
 from ..psf import psf_transform
-from .bank import interior
+from .bank import MixedPSF, interior
 from .windows import centre, cut_windows
 
 
@@ -61,6 +61,22 @@ def warn_small_stamps(shape: tuple[int, ...], cfg: Config, top: int,
 
 
 def stamp_tiers(stamps, psf, sigma, cfg: Config, cx, cy,
+                 sizes: list[int]) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """:func:`_stamp_tiers` under one PSF image, or for a
+    :class:`~pylensfit.likelihood.bank.MixedPSF` under each stamp's heaviest image."""
+    if not isinstance(psf, MixedPSF):
+        return _stamp_tiers(stamps, psf, sigma, cfg, cx, cy, sizes)
+    size = np.empty(len(stamps), dtype=int)
+    wanted = np.empty(len(stamps), dtype=int)
+    near = psf.nearest
+    for c in np.unique(near):
+        i = np.flatnonzero(near == c)
+        size[i], wanted[i] = _stamp_tiers(stamps[i], psf.images[c], sigma[i], cfg, cx[i],
+                                          cy[i], sizes)  # fmt: skip
+    return size, wanted
+
+
+def _stamp_tiers(stamps, psf, sigma, cfg: Config, cx, cy,
                  sizes: list[int]) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The stamp side of every stamp, one of ``sizes`` (:func:`tier_sizes`), and the side
     each galaxy needs (pixels, at least ``stamp_size``).

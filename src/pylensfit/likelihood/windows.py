@@ -11,8 +11,9 @@ from .. import flags as _flags
 from .._util import newton_peak
 from ..config import Config
 from ..models import ModelBank, fourier_profile, model_bank, rfft_frequencies
-from .bank import PSFBank, psf_bank
-from .grid_nb import Galaxies
+from .bank import MixedPSF, PairBank, PSFBank
+from .grid_nb import Galaxies, MixedModels, Models
+from .pairs import window_bank
 
 
 def cut_windows(stamps: np.ndarray, n: int, cx: np.ndarray, cy: np.ndarray):
@@ -44,11 +45,14 @@ def centre(D: np.ndarray, P: np.ndarray, config: Config, x0: np.ndarray, y0: np.
     """Integer-then-parabola peak of the cross-correlation with a round model.
 
     ``D`` is phase-referenced to the stamp centre ``n//2``; ``x0, y0`` are catalogue
-    offsets from it. Returns the offsets of the peak and a flag for "no positive peak".
+    offsets from it; ``P`` the PSF transform ``(n, n//2 + 1)``, or one per galaxy
+    ``(n_gal, n, n//2 + 1)``. Returns the offsets of the peak and a flag for "no positive
+    peak".
     """
     n = config.stamp_size
     ref = round_reference(P, config)
-    cc = np.fft.irfft2(D * np.conj(ref)[None], s=(n, n))  # cc[g, iy, ix] = h(X=(ix, iy))
+    refc = np.conj(ref) if ref.ndim == 3 else np.conj(ref)[None]
+    cc = np.fft.irfft2(D * refc, s=(n, n))  # cc[g, iy, ix] = h(X=(ix, iy))
     off = (np.arange(n) + n // 2) % n - n // 2
     rad = max(config.max_offset, 0.75)
     d2 = (off[None, None, :] - x0[:, None, None]) ** 2 + (
@@ -91,13 +95,16 @@ class Window:
     ``NO_PEAK`` flags are filled by
     :func:`~pylensfit.likelihood.device.device_grid`, which transforms and centres them
     there.
+    With a PSF mixed per galaxy (:class:`~pylensfit.likelihood.bank.MixedPSF`)
+    ``pb`` is a :class:`~pylensfit.likelihood.bank.PairBank`, ``P_gal`` each galaxy's
+    PSF transform and ``wp`` its pair weights.
     """
 
     n_gal: int
     n: int  # stamp side
     c: int  # centre pixel, n // 2
     bank: ModelBank
-    pb: PSFBank
+    pb: PSFBank | PairBank
     sigma: np.ndarray  # (n_gal,) noise, 1 for the bad stamps
     flags: np.ndarray  # (n_gal,) int32 bit mask
     bad: np.ndarray  # (n_gal,) bad pixels or bad noise
@@ -112,6 +119,28 @@ class Window:
     yc: np.ndarray
     no_peak: np.ndarray  # no positive peak of the cross-correlation
     pixels: np.ndarray | None = None  # (n_gal, n, n) the cleaned windows (device path)
+    P_gal: np.ndarray | None = None  # (n_gal, n_freq) each galaxy's PSF transform
+    wp: np.ndarray | None = None  # (n_gal, n_pairs) each galaxy's pair weights
+
+    def conj_psf(self) -> np.ndarray:
+        """The conjugate PSF transform, ``(n_freq,)``, or one per galaxy ``(n_gal, n_freq)``."""
+        return np.conj(self.pb.P if self.P_gal is None else self.P_gal)
+
+    def models(self, cols: np.ndarray | None = None,
+               sel: slice | np.ndarray = slice(None)) -> Models | MixedModels:  # fmt: skip
+        """The kernel's per-model sums of the models ``cols`` (default: all) for the
+        galaxies ``sel``: :class:`~pylensfit.likelihood.grid_nb.Models` under one PSF,
+        :class:`~pylensfit.likelihood.grid_nb.MixedModels` under a PSF per galaxy."""
+        if self.wp is None:
+            return self.pb.models(cols)
+        return self.pb.models(self.wp[sel], cols)
+
+    def model_S(self, j: np.ndarray, sel: slice | np.ndarray = slice(None)) -> np.ndarray:
+        """``sum m^2`` of each galaxy's model ``j[g]`` (galaxies ``sel``, ``j`` one per
+        galaxy)."""
+        if self.wp is None:
+            return self.pb.S[j]
+        return self.pb.S_of(self.wp[sel], j)
 
     def galaxies(self, sel: slice | np.ndarray) -> Galaxies:
         """The galaxies ``sel`` as the kernel reads them
@@ -142,12 +171,13 @@ def _clean_stamps(stamps: np.ndarray, sigma: np.ndarray
 
 def prepare_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: Config,
                    cx: np.ndarray, cy: np.ndarray, on_device: bool = False) -> Window:  # fmt: skip
-    """Cut and clean the windows, their transforms, the PSF bank and the centres (with
+    """Cut and clean the windows, their transforms, the PSF bank and the centres (``psf``:
+    a PSF image, or a :class:`~pylensfit.likelihood.bank.MixedPSF` for these stamps; with
     ``on_device``, the windows only: the device transforms and centres them)."""
     n_gal = stamps.shape[0]
     n = cfg.stamp_size
     bank = model_bank(cfg)
-    pb = psf_bank(psf, cfg, bank)
+    pb = window_bank(psf, cfg, bank)
     cx_in, cy_in = cx, cy
     stamps, cx, cy = cut_windows(stamps, n, cx, cy)
     stamps, sigma, flags, bad = _clean_stamps(stamps, sigma)
@@ -155,14 +185,20 @@ def prepare_window(stamps: np.ndarray, psf: np.ndarray, sigma: np.ndarray, cfg: 
     c = n // 2
     x0 = cx - c
     y0 = cy - c
+    P_gal = wp = None
+    if isinstance(psf, MixedPSF):  # the centring's round model under each galaxy's PSF
+        P_gal = np.ascontiguousarray(psf.weights.T @ pb.P)
+        wp = pb.pair_weights(psf.weights)
     if on_device:
         D = np.zeros((n_gal, *kx.shape), dtype=complex)
         xc, yc, no_peak = x0.copy(), y0.copy(), np.zeros(n_gal, dtype=bool)
     else:
         D = np.fft.rfft2(stamps) * np.exp(1j * (kx * c + ky * c))[None]
-        xc, yc, no_peak = centre(D, pb.P.reshape(kx.shape), cfg, x0, y0)
+        P = pb.P.reshape(kx.shape) if P_gal is None else P_gal.reshape(n_gal, *kx.shape)
+        xc, yc, no_peak = centre(D, P, cfg, x0, y0)
         flags[no_peak & ~bad] |= _flags.flag_value("NO_PEAK")
     return Window(n_gal=n_gal, n=n, c=c, bank=bank, pb=pb, sigma=sigma, flags=flags, bad=bad,
                   shift_x=cx_in - cx, shift_y=cy_in - cy, x0=x0, y0=y0, kx=kx, ky=ky, D=D,
                   xc=xc, yc=yc, no_peak=no_peak,
-                  pixels=np.asarray(stamps, dtype=float) if on_device else None)  # fmt: skip
+                  pixels=np.asarray(stamps, dtype=float) if on_device else None,
+                  P_gal=P_gal, wp=wp)  # fmt: skip
