@@ -298,11 +298,11 @@ PSF = Section("psf", "Stars and PSF", "Star selection and the PSF model (Kitchin
     P("psf_cells", int, 8, "A PSF varying over the image: the image is cut into psf_cells x "
       "psf_cells cells whose galaxies are fitted together, with the PSF at the cells' "
       "corners or centres (psf_interpolation).", "", "[1, inf)"),
-    P("psf_interpolation", str, "bilinear", "A varying PSF in the fits: 'bilinear' (each "
-      "galaxy fitted with the PSFs of its cell's four corners, the fits blended with its "
-      "position's weights, likelihood.blend_fits; four fits), 'fourier' (one fit with "
-      "those PSFs mixed by the same weights, exactly the PSF interpolated at the galaxy, "
-      "likelihood.MixedPSF) or 'centre' (the PSF at its cell's centre).",
+    P("psf_interpolation", str, "fourier", "A varying PSF in the fits: 'fourier' (one fit "
+      "per galaxy with the PSFs of its cell's four corners mixed by its position's "
+      "bilinear weights: exactly the PSF interpolated at the galaxy, likelihood.MixedPSF), "
+      "'bilinear' (four fits, one with each corner's PSF, blended with the same weights, "
+      "likelihood.blend_fits) or 'centre' (the PSF at its cell's centre).",
       choices=("bilinear", "fourier", "centre")),
 ))
 
