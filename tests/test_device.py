@@ -1,6 +1,8 @@
 """The device path of the likelihood (``Config(backend="jax")``) against the CPU path, on
 JAX's CPU backend: the same ``ln L`` grids and best models from the same stamps."""
 
+import sys
+
 import galsim
 import numpy as np
 import pytest
@@ -93,7 +95,9 @@ def test_the_backend_is_chosen_by_the_config(monkeypatch):
     auto = "cpu" if jax.default_backend() == "cpu" else "jax"
     assert device.resolve_backend(Config(backend="auto")) == auto
     assert device.resolve_backend(Config(backend="jax")) == "jax"
+    # JAX absent: not imported yet, and its import fails
     monkeypatch.setattr(device, "jax", None)
+    monkeypatch.setitem(sys.modules, "jax", None)
     with pytest.raises(ImportError, match="pylensfit\\[gpu\\]"):
         device.resolve_backend(Config(backend="jax"))
     assert device.resolve_backend(Config(backend="auto")) == "cpu"

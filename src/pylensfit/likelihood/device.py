@@ -30,17 +30,32 @@ import numpy as np
 from .. import flags as flag_bits
 from ..config import Config
 from ..models import rfft_frequencies
-from . import device_math as dm
 from .bank import keep_last
 from .evaluate import Grid, Products
 from .priors import Weights
 from .windows import Window, round_reference
 
-try:  # optional dependency: pip install pylensfit[gpu] (Config.backend "jax")
-    import jax
-    import jax.numpy as jnp
-except ImportError:  # the CPU path needs none of this module
-    jax = jnp = None
+# JAX and the device's arithmetic, imported on first use (:func:`_load_jax`): importing
+# JAX takes about 1.5 s, which the CPU path (and every worker process) should not pay
+jax = jnp = dm = None
+
+
+def _load_jax() -> bool:
+    """Import JAX and :mod:`~pylensfit.likelihood.device_math` (once); False without JAX
+    (an optional dependency: pip install pylensfit[gpu])."""
+    global jax, jnp, dm
+    if jax is None:
+        try:
+            # deferred: the CPU path needs none of it (the comment above the function)
+            import jax as jax_mod
+            import jax.numpy as jnp_mod
+
+            from . import device_math as dm_mod  # JAX at its top: deferred with it
+        except ImportError:
+            return False
+        jax, jnp, dm = jax_mod, jnp_mod, dm_mod
+    return True
+
 
 def resolve_backend(cfg: Config) -> str:
     """``"cpu"`` or ``"jax"``: ``cfg.backend``, with ``"auto"`` the device path where
@@ -48,11 +63,11 @@ def resolve_backend(cfg: Config) -> str:
     if cfg.backend == "cpu":
         return "cpu"
     if cfg.backend == "jax":
-        if jax is None:
+        if not _load_jax():
             raise ImportError("Config(backend='jax') needs JAX: pip install 'pylensfit[gpu]' "
                               "(and jax[cuda12] for an NVIDIA GPU)")  # fmt: skip
         return "jax"
-    return "jax" if jax is not None and jax.default_backend() != "cpu" else "cpu"
+    return "jax" if _load_jax() and jax.default_backend() != "cpu" else "cpu"
 
 
 class _Static(NamedTuple):
