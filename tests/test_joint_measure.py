@@ -65,15 +65,18 @@ def views_of(stamps, psfs, sigma, jacobians, flags=None) -> list[ExposureStamps]
             for k in range(K)]  # fmt: skip
 
 
-@pytest.mark.parametrize("amp", ["uniform", "flux"])
-def test_one_exposure_with_priors_is_the_single_fit(amp):
+@pytest.mark.parametrize("amp, model, n_b", [("uniform", "exponential", 1),
+                                             ("flux", "exponential", 1),
+                                             ("flux", "bulge+disc", 3)])  # fmt: skip
+def test_one_exposure_with_priors_is_the_single_fit(amp, model, n_b):
     """K = 1 with J = I (pixel scale 1), the size prior and the amplitude prior (uniform;
     the power law 1.5 in flux between bounds that cut the sample's fluxes):
     fit_stamps's ln L(e), ln L(r) per ring of |e|, most likely model and size, to
     float32 rounding. Without the size prior (or with the uniform amplitude prior under a
     power-law configuration) ln L(e) moves by far more: the check sees both."""
-    cfg = CFG.replace(amplitude_prior=amp, amplitude_prior_power=1.5,
-                      amplitude_prior_min=80.0, amplitude_prior_max=350.0)  # fmt: skip
+    cfg = CFG.replace(amplitude_prior=amp, amplitude_prior_power=1.5, model=model,
+                      n_bulge_fractions=n_b, amplitude_prior_min=80.0,
+                      amplitude_prior_max=350.0)  # fmt: skip
     psf = gaussian_psf()
     img = galaxies(8, 1, psf) + np.random.default_rng(2).normal(0.0, 1.0, (8, N, N))
     groups = e_annuli(plf.ellipticity_grid(cfg.e_step, emax=cfg.e_max))
@@ -96,6 +99,10 @@ def test_one_exposure_with_priors_is_the_single_fit(amp):
     np.testing.assert_array_equal(joint.r_marginal, single.r_best)
     np.testing.assert_array_equal(joint.is_star, single.is_star)
     np.testing.assert_allclose(joint.x, single.x - N // 2, atol=1e-6)
+    if n_b > 1:
+        near_b = single.lnL_bulge > -30
+        assert np.abs(joint.lnL_bulge - single.lnL_bulge)[near_b].max() < 1e-4
+        np.testing.assert_allclose(joint.lnL_star, single.lnL_star, atol=1e-5)
     flat = fit_exposures(img[None], psf[None], 1.0, np.eye(2)[None], config=cfg)
     assert np.abs(flat.lnL - joint.lnL)[near].max() > 0.05  # the size prior matters here
     if amp == "flux":
