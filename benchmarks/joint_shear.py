@@ -1,0 +1,276 @@
+"""Shear bias and shear noise of the joint multi-exposure fit, beside one deep exposure
+and the mean of single-exposure fits.
+
+STEP2-like galaxies (the dithered simulation's population,
+:mod:`pylensfit_validation.dither`: exponential, de Vaucouleurs and bulge+disc in turn,
+sizes 0.24-0.7 arcsec, intrinsic shapes from the functional prior, S/N 15-150
+log-uniform in the deep exposure) are rendered by GalSim, each with its 90-degree
+rotated twin (``e_int -> -e_int``, its own noise), sheared by ``+g`` and ``-g`` (``g =
+0.02``) on each component in turn, the same noise for ``+g`` and ``-g``:
+
+* in K = 4 exposures, each with its own Moffat PSF (FWHM the mean's times 0.85, 0.95,
+  1.05, 1.15; ellipticity up to 0.05), its WCS Jacobian (rotation up to 1 degree, the
+  last a mirror image, scale 0.2" +-1 %), sub-pixel offsets and noise ``2 sigma`` (the
+  four together as deep as one exposure of noise ``sigma``);
+* in one exposure of noise ``sigma`` (the same depth), a round Moffat PSF of the mean
+  FWHM, aligned, 0.2" pixels.
+
+The priors come from an unsheared set of the same population (``2 --ngal`` other
+galaxies): :func:`pylensfit.calibrate_exposures` for the joint fit,
+:func:`pylensfit.calibrate` on the deep exposure for the deep fit and on exposure 0
+for the single-exposure fits. Then:
+
+* ``joint``: :func:`pylensfit.measure_exposure_stamps` on the four exposures;
+* ``deep``: :func:`pylensfit.measure_stamps` on the deep exposure;
+* ``single mean``: :func:`pylensfit.measure_stamps` on each exposure alone, the shapes
+  and sensitivities turned into the sky frame (:func:`pylensfit.skyframe.to_sky`) and
+  averaged per galaxy with the tables' weights.
+
+The shear of a set is ``g_i = sum w e_i / sum w sens_i`` over the galaxies of positive
+weight in both sets of a pair (the mean of their two weights). Printed per method:
+``m_i = (g_i(+) - g_i(-)) / (2 g) - 1`` and ``c_i = (g_i(+) + g_i(-)) / 2`` with
+bootstrap errors over the galaxies (twins kept together); ``sigma_g`` the shear error
+per galaxy, ``sqrt(n)`` times the bootstrap error of ``g_i(+)`` (rms over the four sets:
+the twins cancel the shape noise, so it is the measurement's noise); its ratio to the
+deep exposure's (target <= 1.1); and the cost of the measurement per (galaxy, exposure)
+(wall clock, the calibration not included). All fits with ``Config()`` on 48-pixel
+stamps (``max_stamp_size = 0``: no tiers); the joint fit is of second order in position
+and its models are not truncated at the stamp's edge (``cubic_snr`` and
+``truncate_models`` apply to the single fits only).
+
+Usage::
+
+    python benchmarks/joint_shear.py --ngal 200 --seed 1 --jobs 2   # ~10 min on 2 cores
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import galsim
+import numba
+import numpy as np
+from astropy.wcs import WCS
+
+import pylensfit as plf
+from pylensfit.exposures import ExposureStamps
+from pylensfit.prior import Prior
+from pylensfit.skyframe import SkyFrame, local_frame, sensitivity_to_sky, to_sky
+from pylensfit_validation.dither import DitherSpec
+from pylensfit_validation.simulate import MIXED_KINDS, draw_shapes, galaxy_profile
+
+N = 48  # stamp side, pixels
+M = 31  # PSF image side
+SCALE = 0.2  # arcsec per pixel
+G = 0.02
+K = 4
+FWHM = 0.7  # arcsec, the mean PSF's
+BETA = 3.5
+SIGMA = 1.0  # the deep exposure's noise; each of the K has 2 SIGMA
+
+
+def exposures(rng: np.random.Generator) -> list[dict]:
+    """The K exposures: Jacobian, PSF profile and image, noise, frame."""
+    out = []
+    for k, f in enumerate((0.85, 0.95, 1.05, 1.15)):
+        a = np.radians(rng.uniform(-1.0, 1.0))
+        R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        F = np.diag([-1.0, 1.0]) if k == K - 1 else np.eye(2)
+        J = F @ R / (SCALE * (1 + rng.uniform(-0.01, 0.01)))
+        e, t = rng.uniform(0.0, 0.05), rng.uniform(0, np.pi)
+        out.append(exposure(J, galsim.Moffat(beta=BETA, fwhm=FWHM * f).shear(
+            g1=e * np.cos(2 * t), g2=e * np.sin(2 * t)), 2 * SIGMA))  # fmt: skip
+    return out
+
+
+def exposure(J: np.ndarray, psf, sigma: float) -> dict:
+    """An exposure of Jacobian ``J`` (pixels per arcsec): its GalSim WCS, PSF image and
+    sky frame (an astropy WCS of the same Jacobian)."""
+    wcs = galsim.JacobianWCS(*np.linalg.inv(J).ravel())
+    w = WCS(naxis=2)
+    w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
+    w.wcs.crval, w.wcs.crpix = [150.0, 2.0], [N / 2 + 1, N / 2 + 1]
+    w.wcs.cd = np.diag([-1.0, 1.0]) @ np.linalg.inv(J) / 3600.0  # (W, N) = (-dRA cos, dDec)
+    return {"J": J, "wcs": wcs, "psf": psf, "sigma": sigma,
+            "psf_img": psf.drawImage(nx=M, ny=M, wcs=wcs).array,
+            "frame": local_frame(w, [N / 2], [N / 2])}  # fmt: skip
+
+
+def population(n: int, rng: np.random.Generator, deep: dict) -> dict:
+    """``n`` galaxies: kind, size (arcsec), intrinsic shape, flux for the S/N."""
+    spec = DitherSpec()
+    kinds = [MIXED_KINDS[i % len(MIXED_KINDS)] for i in range(n)]
+    r = rng.uniform(*spec.size_range, n)
+    e = draw_shapes(Prior(B=spec.prior_params[0], C=spec.prior_params[1],
+                          D=spec.prior_params[2]), n, rng, spec.max_e)  # fmt: skip
+    snr = np.exp(rng.uniform(*np.log(spec.snr_range), n))
+    flux = np.empty(n)
+    for i in range(n):  # GalSim renders one object at a time
+        img = galsim.Convolve(galaxy_profile(kinds[i], r[i]).shear(g1=e[i, 0], g2=e[i, 1]),
+                              deep["psf"]).drawImage(nx=N, ny=N, wcs=deep["wcs"]).array
+        flux[i] = snr[i] * SIGMA / np.sqrt((img**2).sum())
+    return {"kind": kinds, "r": r, "e": e, "flux": flux}
+
+
+def render(pop: dict, ex: dict, g, sign: float, offsets, noise) -> np.ndarray:
+    """``(n, N, N)`` stamps of the population (intrinsic shapes times ``sign``) sheared
+    by ``g``, at the sub-pixel ``offsets`` (pixels), plus ``noise``."""
+    out = np.empty((len(pop["r"]), N, N))
+    for i in range(len(pop["r"])):
+        gal = galaxy_profile(pop["kind"][i], pop["r"][i]).withFlux(pop["flux"][i])
+        gal = gal.shear(g1=sign * pop["e"][i, 0], g2=sign * pop["e"][i, 1]).shear(g1=g[0], g2=g[1])
+        out[i] = galsim.Convolve(gal, ex["psf"]).drawImage(
+            nx=N, ny=N, wcs=ex["wcs"], offset=0.5 + offsets[i]).array  # fmt: skip
+    return out + noise
+
+
+def views(stamps: list, exps: list, offsets: list) -> list[ExposureStamps]:
+    """In-memory :class:`ExposureStamps` of each exposure's stamps (no image: the
+    galaxies' positions are their stamps' centres plus the offsets)."""
+    n = stamps[0].shape[0]
+    out = []
+    for k, (s, ex, off) in enumerate(zip(stamps, exps, offsets, strict=True)):
+        x, y = N // 2 + off[:, 0], N // 2 + off[:, 1]
+        fr = ex["frame"]
+        out.append(ExposureStamps(
+            stamps=s, weights=np.full(s.shape, ex["sigma"] ** -2.0),
+            noise_sigma=np.full(n, ex["sigma"]),
+            psf=np.broadcast_to(ex["psf_img"], (n, M, M)), x=x, y=y,
+            x0=np.zeros(n, np.int64), y0=np.zeros(n, np.int64),
+            jacobian=np.broadcast_to(ex["J"], (n, 2, 2)),
+            frame=repeat_frame(fr, n),
+            flux_scale=1.0, flags=np.zeros(n, np.int64), exposure=k))  # fmt: skip
+    return out
+
+
+def repeat_frame(frame: SkyFrame, n: int) -> SkyFrame:
+    """One object's frame for ``n`` objects."""
+    return SkyFrame(*(np.repeat(getattr(frame, a), n) for a in ("angle", "flip", "g1", "g2",
+                                                                "has_wcs")))  # fmt: skip
+
+
+def sky_shapes(t, frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A pixel-frame table's ``e1, e2, sens1, sens2`` in the sky frame."""
+    fr = repeat_frame(frame, len(t))
+    e1, e2 = to_sky(np.asarray(t["e1"]), np.asarray(t["e2"]), fr)
+    s1, s2 = sensitivity_to_sky(np.asarray(t["sens1"]), np.asarray(t["sens2"]), fr)
+    return e1, e2, s1, s2
+
+
+def single_mean(tabs: list, exps: list) -> dict:
+    """The per-exposure tables' sky-frame shapes averaged per galaxy with their weights."""
+    w = np.stack([np.nan_to_num(np.asarray(t["weight"], float)) for t in tabs])
+    sh = [sky_shapes(t, ex["frame"]) for t, ex in zip(tabs, exps, strict=True)]
+    tot = w.sum(axis=0)
+    out = {"weight": tot / len(tabs)}
+    for j, c in enumerate(("e1", "e2", "sens1", "sens2")):
+        v = np.stack([np.nan_to_num(s[j]) for s in sh])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[c] = np.where(tot > 0, (w * v).sum(axis=0) / tot, np.nan)
+    return out
+
+
+def as_dict(t) -> dict:
+    return {c: np.asarray(t[c], dtype=float) for c in ("e1", "e2", "sens1", "sens2", "weight")}
+
+
+def shear_stats(sets: dict, n_base: int, rng: np.random.Generator, n_boot: int = 300) -> dict:
+    """m, c (paired) and sigma_g of the four sets ``{(i, sign): shapes}``, bootstrap over
+    the base galaxies (twins kept together)."""
+    boot = rng.multinomial(n_base, np.full(n_base, 1.0 / n_base), size=n_boot).astype(float)
+    boot = np.concatenate([boot, boot], axis=1)  # the twins follow their galaxy
+    res, sig = {}, []
+    for i in (0, 1):
+        p, m = sets[(i, 1)], sets[(i, -1)]
+        w = np.where((p["weight"] > 0) & (m["weight"] > 0), 0.5 * (p["weight"] + m["weight"]), 0.0)
+        c = f"e{i + 1}"
+        s = f"sens{i + 1}"
+        gp = [np.nan_to_num(w * p[c]), np.nan_to_num(w * p[s])]
+        gm = [np.nan_to_num(w * m[c]), np.nan_to_num(w * m[s])]
+        est_p = (boot @ gp[0]) / (boot @ gp[1])
+        est_m = (boot @ gm[0]) / (boot @ gm[1])
+        gp0, gm0 = gp[0].sum() / gp[1].sum(), gm[0].sum() / gm[1].sum()
+        res[f"m{i + 1}"] = ((gp0 - gm0) / (2 * G) - 1, np.std((est_p - est_m) / (2 * G)))
+        res[f"c{i + 1}"] = (0.5 * (gp0 + gm0), np.std(0.5 * (est_p + est_m)))
+        n_used = int((w > 0).sum())
+        sig += [np.std(est_p) * np.sqrt(n_used), np.std(est_m) * np.sqrt(n_used)]
+        res["n"] = n_used
+    res["sigma_g"] = float(np.sqrt(np.mean(np.square(sig))))
+    return res
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--ngal", type=int, default=200, help="galaxies per set (each with a twin)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--jobs", type=int, default=2, help="threads of the fits' kernels")
+    args = p.parse_args()
+    numba.set_num_threads(args.jobs)
+    rng = np.random.default_rng(args.seed)
+    cfg = plf.Config().replace(stamp_size=N, max_stamp_size=0)
+    exps = exposures(rng)
+    deep = exposure(np.eye(2) / SCALE, galsim.Moffat(beta=BETA, fwhm=FWHM), SIGMA)
+    t0 = time.time()
+    base = population(args.ngal, rng, deep)
+    cal = population(2 * args.ngal, rng, deep)
+    n = args.ngal
+    # the calibration set: unsheared, no twins
+    off_c = [rng.uniform(-0.5, 0.5, (2 * n, 2)) for _ in range(K + 1)]
+    cal_st = [render(cal, ex, (0, 0), 1.0, o, rng.normal(0, ex["sigma"], (2 * n, N, N)))
+              for ex, o in zip(exps + [deep], off_c, strict=True)]  # fmt: skip
+    print(f"rendered the calibration set in {time.time() - t0:.0f} s")
+    t0 = time.time()
+    pri_j = plf.calibrate_exposures(views(cal_st[:K], exps, off_c[:K]), config=cfg)
+    pri_d = plf.calibrate(cal_st[K], deep["psf_img"], SIGMA, config=cfg,
+                          centres=tuple((N // 2 + off_c[K]).T))  # fmt: skip
+    pri_s = plf.calibrate(cal_st[0], exps[0]["psf_img"], 2 * SIGMA, config=cfg,
+                          centres=tuple((N // 2 + off_c[0]).T))  # fmt: skip
+    print(f"calibrated in {time.time() - t0:.0f} s")
+    run(base, n, exps, deep, cfg, (pri_j, pri_d, pri_s), rng)
+
+
+def run(base, n, exps, deep, cfg, priors, rng) -> None:
+    """Render the sheared sets, measure them three ways and print the table."""
+    pri_j, pri_d, pri_s = priors
+    twins = {k: np.concatenate([base[k], base[k]]) for k in ("r", "flux")}
+    twins["kind"] = list(base["kind"]) * 2
+    twins["e"] = np.concatenate([base["e"], -base["e"]])
+    off = [rng.uniform(-0.5, 0.5, (2 * n, 2)) for _ in range(K + 1)]
+    noise = [rng.normal(0, ex["sigma"], (2 * n, N, N)) for ex in exps + [deep]]
+    out = {m: {} for m in ("joint", "deep", "single mean")}
+    cost = {m: 0.0 for m in out}
+    for i in (0, 1):
+        for sign in (1, -1):
+            g = (sign * G, 0.0) if i == 0 else (0.0, sign * G)
+            st = [render(twins, ex, g, 1.0, o, nz)
+                  for ex, o, nz in zip(exps + [deep], off, noise, strict=True)]  # fmt: skip
+            t = time.time()
+            out["joint"][(i, sign)] = as_dict(plf.measure_exposure_stamps(
+                views(st[:K], exps, off[:K]), priors=pri_j, config=cfg))  # fmt: skip
+            cost["joint"] += time.time() - t
+            t = time.time()
+            out["deep"][(i, sign)] = as_dict(plf.measure_stamps(
+                st[K], deep["psf_img"], SIGMA, priors=pri_d, config=cfg,
+                centres=tuple((N // 2 + off[K]).T)))  # fmt: skip
+            cost["deep"] += time.time() - t
+            t = time.time()
+            tabs = [plf.measure_stamps(st[k], exps[k]["psf_img"], 2 * SIGMA, priors=pri_s,
+                                       config=cfg, centres=tuple((N // 2 + off[k]).T))
+                    for k in range(K)]  # fmt: skip
+            cost["single mean"] += time.time() - t
+            out["single mean"][(i, sign)] = single_mean(tabs, exps)
+    per = {"joint": 4 * 2 * n * K, "deep": 4 * 2 * n, "single mean": 4 * 2 * n * K}
+    stats = {m: shear_stats(out[m], n, np.random.default_rng(0)) for m in out}
+    sd = stats["deep"]["sigma_g"]
+    print(f"\n{2 * n} galaxies per set ({n} and their twins), g = {G}, K = {K}\n")
+    print(f"{'method':<12} {'m1':>16} {'m2':>16} {'c1':>18} {'c2':>18} {'n':>5} "
+          f"{'sigma_g':>8} {'/deep':>6} {'ms/(gal,exp)':>13}")  # fmt: skip
+    for m, s in stats.items():
+        f = "  ".join(f"{s[k][0]:+.4f}+-{s[k][1]:.4f}" for k in ("m1", "m2", "c1", "c2"))
+        print(f"{m:<12} {f}  {s['n']:>5} {s['sigma_g']:8.3f} {s['sigma_g'] / sd:6.3f} "
+              f"{1e3 * cost[m] / per[m]:13.1f}")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
