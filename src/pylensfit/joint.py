@@ -22,6 +22,9 @@ and ``Q = sum_k f_k^2 S_k / sigma_k^2``:
 
   which for one exposure is :func:`pylensfit.likelihood.fit_stamps`'s
   ``h^2 / (2 sigma^2 S) + ln Phi(h / (sigma sqrt S)) - ln(S) / 2`` up to ``ln sigma``;
+  the configuration's power law (``Config.amplitude_prior`` ``"snr"`` or ``"flux"``, its
+  bounds on the flux ``A`` in the common flux unit) is the single fit's integral with
+  the S/N ``H / sqrt Q`` and ``Q`` for ``S / sigma^2``;
 * **position**: ``H`` and its gradient and Hessian in the sky offset ``X`` are sums over
   every exposure's frequencies of ``Re(D'_k) G``, ``-q Im(D'_k) G`` and ``-q q^T Re(D'_k)
   G`` with ``D'_k = f_k D_k conj(P_k) / sigma_k^2`` (the data re-centred on the catalogue
@@ -41,9 +44,11 @@ and ``Q = sum_k f_k^2 S_k / sigma_k^2``:
       F = -(dl/dH) Hess H;
 
 * **size and bulge fraction**: ``L(e) = sum_b pi_b sum_r w_r L(e, r) + w_* L_*``, the
-  radius weights of :func:`pylensfit.models.radius_weights` (with the single fit's
-  correction of a peak narrower than the r grid), a uniform prior over the bulge
-  fractions, the point source (``r = 0``) once.
+  radius weights of :func:`pylensfit.models.radius_weights` or those of a size prior
+  (:meth:`pylensfit.prior.SizePrior.node_weights`, in reference pixels; the single
+  fit's correction of a peak narrower than the r grid), a uniform prior over the bulge
+  fractions, the point source (``r = 0``) once; ``L(r) = sum_e P(e) L(e, r)`` kept as
+  the single fit keeps it, for the size prior's estimate.
 
 Sizes and lengths in the configuration (``r_min``, ``r_max``, ``r_step``,
 ``position_prior_sigma``, ``max_offset``, ``centring_scale``, ``max_newton_step``) are
