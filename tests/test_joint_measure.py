@@ -113,21 +113,35 @@ def test_one_exposure_with_priors_is_the_single_fit(amp, model, n_b):
 
 SHAPES = ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2", "model_flux",
           "model_SNratio", "scalelength", "e1_best", "e2_best", "noise_sigma", "weight",
-          "flags", "fitclass", "is_star")  # fmt: skip
+          "flags", "fitclass", "is_star", "bulge_best")  # fmt: skip
 
 
-def test_one_exposure_table_is_measure_stamps():
+#: the priors that calibrate estimates, for bulge+disc fractions: a size prior per run,
+#: the flux power law between limits, bulge weights
+RUN_SIZE = SizePrior(ln_h=SIZE.ln_h, density=np.array([[0.0, 0.8, 1.0, 0.3, 0.0],
+                                                       [0.0, 0.3, 1.0, 0.8, 0.0],
+                                                       [0.0, 1.0, 0.5, 0.1, 0.0]]), star=1e-3)
+
+
+@pytest.mark.parametrize("model", ["exponential", "bulge+disc"])
+def test_one_exposure_table_is_measure_stamps(model):
     """K = 1, J = I: measure_exposure_stamps gives measure_stamps' columns under the same
-    priors (a size prior, a fitted ellipticity prior, a position prior), the same
-    numbers (to float32 rounding of ln L), one exposure used (bit 0)."""
+    priors (a size prior, an ellipticity prior, a position prior; for bulge+disc
+    fractions a size prior per run, bulge weights and the flux power law between
+    limits), the same numbers (to float32 rounding of ln L), one exposure used (bit 0)."""
     psf = gaussian_psf()
     sigma = 1.5
     img = galaxies(12, 5, psf) + np.random.default_rng(6).normal(0.0, sigma, (12, N, N))
-    priors = plf.Priors(ellipticity=plf.Prior(B=0.25, C=0.6, D=2.5), size=SIZE, position_sigma=0.8,
-                        info={"pixel_scale": 1.0})  # fmt: skip
-    tab = plf.measure_stamps(img, psf, sigma, priors=priors, config=CFG)
+    cfg, priors = CFG, plf.Priors(ellipticity=plf.Prior(B=0.25, C=0.6, D=2.5), size=SIZE,
+                                  position_sigma=0.8, info={"pixel_scale": 1.0})  # fmt: skip
+    if model != "exponential":
+        cfg = CFG.replace(model=model, n_bulge_fractions=3, amplitude_prior="flux")
+        priors = plf.Priors(ellipticity=priors.ellipticity, size=RUN_SIZE, flux_power=1.7,
+                            flux_range=(40.0, 500.0), bulge_weights=np.array([0.5, 0.3, 0.2]),
+                            position_sigma=0.8, info={"pixel_scale": 1.0})  # fmt: skip
+    tab = plf.measure_stamps(img, psf, sigma, priors=priors, config=cfg)
     jt = plf.measure_exposure_stamps(views_of(img[None], psf[None], [sigma], np.eye(2)[None]),
-                                     priors=priors, config=CFG)  # fmt: skip
+                                     priors=priors, config=cfg)  # fmt: skip
     assert len(jt) == len(tab) == 12
     assert [c for c in jt.colnames if c not in ("n_exposures", "exposures_used")] == tab.colnames
     for c in SHAPES:
