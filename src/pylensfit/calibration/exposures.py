@@ -192,7 +192,9 @@ def measure_exposure_stamps(
     ----------
     views : sequence of pylensfit.exposures.ExposureStamps
         One per exposure (:func:`pylensfit.exposures.cut_exposures`), each with its PSF
-        at the galaxies; galaxy ``i`` is element ``i`` of each.
+        at the galaxies; galaxy ``i`` is element ``i`` of each. As for
+        :func:`pylensfit.joint.fit_views`, each exposure's Jacobian is the median of its
+        galaxies': give the galaxies of a region where it varies little.
     priors : Priors or str, optional
         The priors (or the path of a saved one), those of :func:`calibrate_exposures`
         (their ``info["pixel_scale"]`` is the fit's reference pixel); by default
