@@ -228,11 +228,19 @@ class _Columns:
         return Sums(self.node_w, self.w_star, np.full(self.n_b, -np.log(self.n_b)),
                     self.e_w, self.e_grp, self.n_sub)  # fmt: skip
 
-    def active(self) -> np.ndarray:
-        """``joint_nb.laplace_grid``'s ``active``: the uniform amplitude prior, then the
-        models within the size prior's support (the point source always)."""
-        per_e = np.tile(self.node_w > 0, self.n_e)
-        return np.r_[float(self.amp[0] == AMP_UNIFORM), per_e, 1.0].astype(np.float64)
+    def kept(self) -> np.ndarray | None:
+        """The models within the size prior's support (the point source always), a set
+        closed under the symmetries (all e cells of a size); None: all of them."""
+        if (self.node_w > 0).all():
+            return None
+        per_e = self.n_b * self.n_sub
+        on = np.flatnonzero(self.node_w > 0)
+        return np.append((np.arange(self.n_e)[:, None] * per_e + on[None, :]).ravel(),
+                         self.n_cols - 1)  # fmt: skip
+
+    def uniform(self) -> float:
+        """1.0 for the uniform amplitude prior, else 0.0 (``joint_nb.laplace_grid``)."""
+        return float(self.amp[0] == AMP_UNIFORM)
 
 
 def _size_weights(cfg: Config, radii: np.ndarray, runs: tuple, size_prior: SizePrior | None
@@ -381,6 +389,12 @@ def lattice_symmetries(jacobian: np.ndarray, tol: float = 1e-9) -> tuple[np.ndar
     return np.array(hs), np.array(ss)
 
 
+#: the column subsets of the folded banks last used (the centring pass's, the size
+#: prior's), per exposure
+_SUBSETS: dict = {}
+_SUBSETS_KEPT = 8
+
+
 @dataclass(frozen=True)
 class _Fold:
     """One exposure's bank folded by the lattice symmetries ``H`` its Jacobian keeps.
@@ -405,9 +419,19 @@ class _Fold:
 
     def columns(self, cols: np.ndarray | None, n_cols: int) -> tuple[tuple, tuple, np.ndarray]:
         """``G``, ``G2`` and ``members`` of the models ``cols`` (a set closed under the
-        symmetries; None: all), the members numbered in ``cols``."""
+        symmetries; None: all), the members numbered in ``cols`` (kept for later blocks:
+        the last :data:`_SUBSETS_KEPT`)."""
         if cols is None:
             return self.G, self.G2, self.members
+        key = (id(self), n_cols, cols.tobytes())
+        hit = _SUBSETS.get(key)
+        if hit is not None and hit[0] is self:
+            return hit[1]
+        out = self._subset(cols, n_cols)
+        keep_last(_SUBSETS, key, (self, out), _SUBSETS_KEPT)
+        return out
+
+    def _subset(self, cols: np.ndarray, n_cols: int) -> tuple[tuple, tuple, np.ndarray]:
         pos = np.full(n_cols, -1, dtype=np.int64)
         pos[cols] = np.arange(cols.size)
         fc = np.flatnonzero(pos[self.members[:, 0]] >= 0)
@@ -682,15 +706,16 @@ def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None) -> tuple[Fo
     return folds, _norms(blk, exps, parts, c)
 
 
-def _laplace(folds: Folds, norms: Norms, x0, y0, sums: Sums, cols: _Columns, active, cfg: Config,
+def _laplace(folds: Folds, norms: Norms, x0, y0, sums: Sums, cols: _Columns, full, cfg: Config,
              scale: float) -> Outputs:  # fmt: skip
     """``ln L(e)``, ``ln L_b(e)`` per run, ``ln L(r)`` per group of e cells and the most
-    likely ``active`` model's ``H*``, ``X*`` (from the origin; arcsec) of the block, the
-    models marginalised over the amplitude (``cols.amp``) and the position (module
-    docstring) and summed over r with ``sums`` (:func:`pylensfit.joint_nb.laplace_grid`:
-    the single-exposure fit's Newton step, expected-Hessian fallback, amplitude
-    integral, position prior and sum over r, on the sums over the exposures). ``x0,
-    y0``: the catalogue position from the origin, arcsec."""
+    likely model's ``H*``, ``X*`` (from the origin; arcsec) of the block, the models
+    (``full``: their places in the grid of ``sums``) marginalised over the amplitude
+    (``cols.amp``) and the position (module docstring) and summed over r with ``sums``
+    (:func:`pylensfit.joint_nb.laplace_grid`: the single-exposure fit's Newton step,
+    expected-Hessian fallback, amplitude integral, position prior and sum over r, on the
+    sums over the exposures). ``x0, y0``: the catalogue position from the origin,
+    arcsec."""
     m = np.asarray(x0).size
     n_e, n_r = sums.e_w.size, sums.node_w.size
     out = Outputs.empty(m, n_e, n_r // sums.n_sub, int(sums.e_grp.max()) + 1, n_r)
@@ -698,7 +723,8 @@ def _laplace(folds: Folds, norms: Norms, x0, y0, sums: Sums, cols: _Columns, act
     gals = Galaxies(np.ones(m), np.ascontiguousarray(x0, dtype=float),
                     np.ascontiguousarray(y0, dtype=float))  # fmt: skip
     pos = Laplace((cfg.position_prior_sigma * scale) ** 2, cfg.max_newton_step * scale, False)
-    laplace_grid(folds, norms, gals, sums, cols.amp, pos, active, out)
+    models = (cols.uniform(), np.ascontiguousarray(full, dtype=np.int64))
+    laplace_grid(folds, norms, gals, sums, cols.amp, pos, models, out)
     return out
 
 
@@ -761,18 +787,19 @@ def _fit_block(inp: _Inputs, exps: list[_Exposure], cols: _Columns, cfg: Config,
     blk = _block(inp, exps, sl)
     xc, yc, no_peak = _round_centre(inp, blk, exps, sl, cfg, scale)
     cc, sums_c = _coarse_columns(cols, cfg.e_step)
-    every = np.r_[float(cols.amp[0] == AMP_UNIFORM), np.ones(cc.size)]
-    out = _laplace(*_products(blk, exps, xc, yc, cc), -xc, -yc, sums_c, cols, every, cfg,
-                   scale)  # fmt: skip
+    out = _laplace(*_products(blk, exps, xc, yc, cc), -xc, -yc, sums_c, cols,
+                   np.arange(cc.size), cfg, scale)  # fmt: skip
     xc = xc + np.nan_to_num(out.x)
     yc = yc + np.nan_to_num(out.y)
-    folds, norms = _products(blk, exps, xc, yc)
-    out = _laplace(folds, norms, -xc, -yc, cols.sums(), cols, cols.active(), cfg, scale)
+    kept = cols.kept()  # the sizes of weight 0 in no sum: their models not evaluated
+    folds, norms = _products(blk, exps, xc, yc, kept)
+    full = np.arange(cols.n_cols) if kept is None else kept
+    out = _laplace(folds, norms, -xc, -yc, cols.sums(), cols, full, cfg, scale)
     g = np.arange(out.best.size)
     p = g if norms.S.shape[2] > 1 else 0
     Q = (norms.w2 * norms.S[:, 0, p, out.best].astype(np.float64)).sum(axis=0)
     return {"lnle": out.lnle, "lnlb": out.lnlb, "star": out.lnlr[:, 0, -1] + np.log(cols.w_star),
-            "best": out.best, "no_peak": no_peak, "h": out.h, "Q": Q, "x": xc + out.x,
+            "best": full[out.best], "no_peak": no_peak, "h": out.h, "Q": Q, "x": xc + out.x,
             "y": yc + out.y, "lnlr": out.lnlr}  # fmt: skip
 
 
@@ -833,7 +860,8 @@ def fit_exposures(
         Arcsec per reference pixel (default: the median of ``1 / sqrt|det J_k|``).
     size_prior : pylensfit.prior.SizePrior, optional
         Prior of the half-light radius (reference pixels) in the sum over r, as
-        :func:`pylensfit.likelihood.fit_stamps`'s (default flat).
+        :func:`pylensfit.likelihood.fit_stamps`'s (default flat; the models of sizes of
+        weight 0 are not evaluated).
     lnL_r_groups : numpy.ndarray, optional
         ``(n_e,)`` integer group of each e cell: keep ``L(r)`` per group as well
         (``JointFits.lnL_r_grouped``; :func:`pylensfit.likelihood.e_annuli`).

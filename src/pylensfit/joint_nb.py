@@ -127,15 +127,14 @@ def _read_tile(folds, norms, g, t0, nt, V, cm, uniform):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def _store_tile(W, cm, g, t0, nt, best, buf, hxy, active):
-    """The tile's ``ln L`` into ``buf`` (NaN where ``Q = 0``: no usable exposure); the most
-    likely of the ``active`` models so far (its ``ln L`` is ``best``, returned) and its
-    ``H*`` and peak into ``hxy = (best, h, x, y, j0)`` at ``g`` (the first active
-    model's, ``j0``, where none is finite). ``active[0]``: a uniform amplitude prior
-    (the integral's ``-ln(Q) / 2`` added here); ``active[1:]`` per model: within the
-    size prior's support (the models of weight 0 enter no sum)."""
-    uniform = active[0] > 0.0
-    j0 = hxy[4]
+def _store_tile(W, cm, g, t0, nt, best, buf, hxy, models):
+    """The tile's ``ln L`` into ``buf`` at each model's place in the whole grid
+    (``models[1]``; NaN where ``Q = 0``: no usable exposure); the most likely model so
+    far (its ``ln L`` is ``best``, returned) and its ``H*`` and peak into ``hxy = (best,
+    h, x, y)`` at ``g`` (the first model's where none is finite). ``models[0]``: a
+    uniform amplitude prior, whose integral's ``-ln(Q) / 2`` is added here."""
+    uniform = models[0] > 0.0
+    full = models[1]
     for k in range(nt):
         j = t0 + k
         ok = cm[0, k] > 0.0
@@ -143,8 +142,8 @@ def _store_tile(W, cm, g, t0, nt, best, buf, hxy, active):
         # log; a power law's integral has none
         lnl = (W[W_VAL, k] - 0.5 * math.log(W[W_DETM, k] * (cm[0, k] if uniform else 1.0))
                - 0.5 * W[W_QUAD, k] if ok else math.nan)  # fmt: skip
-        buf[j] = lnl
-        if active[j + 1] > 0.0 and (j == j0 or lnl > best):
+        buf[full[j]] = lnl
+        if j == 0 or lnl > best:
             hxy[0][g] = j
             hxy[1][g] = W[W_HS, k] if ok else math.nan
             hxy[2][g] = W[W_X, k] if ok else math.nan
@@ -155,7 +154,7 @@ def _store_tile(W, cm, g, t0, nt, best, buf, hxy, active):
 
 
 @njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def laplace_grid(folds, norms, gals, sums, amp, laplace, active, out):
+def laplace_grid(folds, norms, gals, sums, amp, laplace, models, out):
     """``ln L(e)`` summed over r, per run of sizes, and the most likely model's ``H*`` and
     ``X*`` of every galaxy of a block, into ``out``.
 
@@ -171,10 +170,13 @@ def laplace_grid(folds, norms, gals, sums, amp, laplace, active, out):
     :class:`~pylensfit.likelihood.grid_nb.Outputs`. ``amp``: the amplitude prior, the
     likelihood's :class:`~pylensfit.likelihood.grid_nb.Amplitude` and its table
     (:func:`~pylensfit.likelihood.amplitude_nb.amplitude_table`), ``(power, lns, lo,
-    hi, t0, tab)``, the flux bounds in the common flux unit; ``active``: ``(1 + c,)``,
-    1.0 for a uniform amplitude prior (else 0.0), then per model 1.0 where it may be the
-    most likely one (the size prior's support), else 0.0. The sum over r is the single
-    fit's (:func:`~pylensfit.likelihood.radius_nb.collapse_models`).
+    hi, t0, tab)``, the flux bounds in the common flux unit; ``models``: ``(uniform,
+    full)``, 1.0 for a uniform amplitude prior (else 0.0) and ``(c,)`` int, the place of
+    each of ``folds``' models in the grid of ``sums`` (cell ``ie``'s sizes at ``ie *
+    n_r``, the point source last): the models of the sizes that the sum over r leaves
+    out (weight 0) need not be among them. The sum over r is the single fit's
+    (:func:`~pylensfit.likelihood.radius_nb.collapse_models`); ``out.best`` is the most
+    likely model's index in ``folds``.
     """
     sigma, x0, y0 = gals
     node_w, w_star, ln_pi, e_w, e_grp, n_sub = sums
@@ -183,16 +185,14 @@ def laplace_grid(folds, norms, gals, sums, amp, laplace, active, out):
     max2 = laplace[1] * laplace[1]
     m, c = sigma.size, folds.col.shape[1]
     amp_pow, amp_lns, amp_lo, amp_hi, t0_tab, tab = amp
-    uniform = active[0] > 0.0
-    j0 = 0
-    while j0 < c - 1 and not active[j0 + 1] > 0.0:
-        j0 += 1
-    hxy = (out.best, out.h, out.x, out.y, j0)
+    uniform = models[0] > 0.0
+    n_mod = e_w.size * node_w.size + 1
+    hxy = (out.best, out.h, out.x, out.y)
     for g in prange(m):
         V = np.zeros((6, TILE))
         cm = np.empty((6, TILE))
         W = np.empty((W_ROWS, TILE))
-        buf = np.empty(c)
+        buf = np.empty(n_mod)  # the models left out are never read
         best = -np.inf
         for t0 in range(0, c, TILE):
             nt = min(TILE, c - t0)
@@ -200,7 +200,7 @@ def laplace_grid(folds, norms, gals, sums, amp, laplace, active, out):
             position_tile(V, cm, sigma[g], max2, W)
             amplitude_tile(cm, amp_pow, amp_lns, amp_lo, amp_hi, t0_tab, tab, W)
             fisher_tile(x0[g], y0[g], b2, W)
-            best = _store_tile(W, cm, g, t0, nt, best, buf, hxy, active)
+            best = _store_tile(W, cm, g, t0, nt, best, buf, hxy, models)
         collapse_models(g, buf, best, rsums, (out.lnle, out.lnlb, out.lnlr))
 
 
