@@ -40,7 +40,7 @@ and its models are not truncated at the stamp's edge (``cubic_snr`` and
 
 Usage::
 
-    python benchmarks/joint_shear.py --ngal 200 --seed 1 --jobs 2   # ~10 min on 2 cores
+    python benchmarks/joint_shear.py --ngal 300 --seed 1 --jobs 2   # ~6 min on 2 cores
 """
 
 from __future__ import annotations
