@@ -17,7 +17,14 @@ from ._version import __version__
 from .calibration import CalibrationWarning, Priors, calibrate, measure_stamps
 from .config import Config, ConfigError
 from .grid import ellipticity_grid
-from .images import InputError, calibrate_images, measure, read_catalogue, write_catalogue
+from .images import (
+    InputError,
+    calibrate_images,
+    measure,
+    measure_exposures,
+    read_catalogue,
+    write_catalogue,
+)
 from .likelihood import StampFits, fit_stamps
 from .prior import (
     BinnedPrior,
@@ -50,6 +57,7 @@ __all__ = [
     "estimate_shear",
     "fit_stamps",
     "measure",
+    "measure_exposures",
     "read_catalogue",
     "shapes",
     "shear_fixed_point",
