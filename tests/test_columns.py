@@ -16,7 +16,14 @@ from astropy.utils.exceptions import AstropyUserWarning
 from pylensfit import Config, Prior, measure, read_catalogue
 from pylensfit import catalogue as catmod
 from pylensfit import flags as flagmod
-from pylensfit.catalogue import COLUMNS, HDUS, METACAL_COLUMNS, flag_cards, header_flags
+from pylensfit.catalogue import (
+    COLUMNS,
+    HDUS,
+    JOINT_COLUMNS,
+    METACAL_COLUMNS,
+    flag_cards,
+    header_flags,
+)
 from pylensfit.flags import FLAGS
 
 
@@ -54,9 +61,9 @@ def test_catalog_hdu_has_every_column_of_the_schema_with_its_unit(written):
     with fits.open(path) as h:
         cols = h["CATALOG"].columns
         # no column undocumented, none missing (the metacalibration's: response "model")
-        assert cols.names == [c for c in COLUMNS if c not in METACAL_COLUMNS]
+        assert cols.names == [c for c in COLUMNS if c not in METACAL_COLUMNS + JOINT_COLUMNS]
         assert [c.unit or "" for c in cols] == [u for c, (u, _) in COLUMNS.items()
-                                                if c not in METACAL_COLUMNS]
+                                                if c not in METACAL_COLUMNS + JOINT_COLUMNS]
 
 
 def test_header_names_every_flag_bit(written):
@@ -89,7 +96,7 @@ def test_astropy_reads_the_catalog_hdu_by_name_without_a_warning(written):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         t = Table.read(path, hdu="CATALOG")
-    assert t.colnames == [c for c in COLUMNS if c not in METACAL_COLUMNS]
+    assert t.colnames == [c for c in COLUMNS if c not in METACAL_COLUMNS + JOINT_COLUMNS]
     assert np.array_equal(np.asarray(t["e1"]), np.asarray(cat["e1"]), equal_nan=True)
     # without hdu= astropy reads the same first table and warns, as for any file of
     # several tables (the README and the guide say so)
@@ -101,8 +108,8 @@ def test_astropy_reads_the_catalog_hdu_by_name_without_a_warning(written):
 def test_read_catalogue_reads_it_back(written):
     path, cat = written
     back = read_catalogue(path)
-    assert [c for c in back.colnames if c in COLUMNS] == [c for c in COLUMNS
-                                                          if c not in METACAL_COLUMNS]
+    assert [c for c in back.colnames if c in COLUMNS] == [
+        c for c in COLUMNS if c not in METACAL_COLUMNS + JOINT_COLUMNS]
     assert np.array_equal(np.asarray(back["weight"]), np.asarray(cat["weight"]))
 
 

@@ -14,7 +14,14 @@ The public API (see README.md)::
 """
 
 from ._version import __version__
-from .calibration import CalibrationWarning, Priors, calibrate, measure_stamps
+from .calibration import (
+    CalibrationWarning,
+    Priors,
+    calibrate,
+    calibrate_exposures,
+    measure_exposure_stamps,
+    measure_stamps,
+)
 from .config import Config, ConfigError
 from .grid import ellipticity_grid
 from .images import (
@@ -41,7 +48,9 @@ __all__ = [
     "CalibrationWarning",
     "Priors",
     "calibrate",
+    "calibrate_exposures",
     "calibrate_images",
+    "measure_exposure_stamps",
     "measure_stamps",
     "Config",
     "ConfigError",

@@ -38,6 +38,7 @@ __all__ = [
     "COLUMNS",
     "FITCLASS",
     "HDUS",
+    "JOINT_COLUMNS",
     "METACAL_COLUMNS",
     "atomic_write",
     "column_table",
@@ -170,6 +171,11 @@ COLUMNS: dict[str, tuple[str, str]] = {
                    "in the frame of e1"),
     "PSF_e2": ("", "ellipticity e2 of the PSF used for this object, frame of e1"),
     "flags": ("", "bit mask of reasons, see pylensfit.flags.FLAGS (0: measured, usable)"),
+    "n_exposures": ("", "galaxies fitted jointly on their exposures "
+                    "(pylensfit.measure_exposure_stamps): the number of exposures that "
+                    "entered the fit (0: not measured)"),
+    "exposures_used": ("", "galaxies fitted jointly on their exposures: bit mask, bit k "
+                       "set where exposure k (ExposureStamps.exposure) entered the fit"),
     "lnL_star": ("", "bulge fraction marginalised: the point source's ln L on the scale of "
                  "the LNLB planes (each fraction's ln L(e), HDU LNLB), which lnL mixes with "
                  "the bulge-fraction prior (header BULGEW; uniform if absent)"),
@@ -200,11 +206,16 @@ COLUMNS: dict[str, tuple[str, str]] = {
 }
 
 #: the columns of :data:`COLUMNS` that only a catalogue measured with ``Config.response =
-#: "metacal"`` has (:func:`pylensfit.measure`); every other column is in every catalogue
-#: (``lnL_star`` where the bulge fraction is marginalised)
+#: "metacal"`` has (:func:`pylensfit.measure`); every other column but
+#: :data:`JOINT_COLUMNS` is in every catalogue (``lnL_star`` where the bulge fraction is
+#: marginalised)
 METACAL_COLUMNS: tuple[str, ...] = (
     "e1_mcal", "e2_mcal", "R11", "R12", "R21", "R22", "mcal_snr_noshear", "mcal_snr_1p",
     "mcal_snr_1m", "mcal_snr_2p", "mcal_snr_2m", "mcal_flags")  # fmt: skip
+
+#: the columns of :data:`COLUMNS` that only a table of galaxies fitted jointly on their
+#: exposures has (:func:`pylensfit.measure_exposure_stamps`)
+JOINT_COLUMNS: tuple[str, ...] = ("n_exposures", "exposures_used")
 
 #: fitclass codes (KiDS-like)
 FITCLASS = {"galaxy": 0, "star": 1, "not_measured": -1}

@@ -65,9 +65,13 @@ from .config import Config
 from .exposures import ExposureStamps
 from .grid import ellipticity_grid
 from .joint_nb import Folds, Norms, laplace_grid, unfold
+from .likelihood.amplitude_nb import AMP_UNIFORM, amplitude_table
 from .likelihood.bank import keep_last
 from .likelihood.grid_nb import Galaxies, Laplace, Outputs, Sums
+from .likelihood.merge import logsumexp_groups
+from .likelihood.priors import amplitude_prior, e_groups
 from .models import (
+    ModelBank,
     fourier_profile,
     half_light_radius,
     radius_grid,
@@ -75,6 +79,7 @@ from .models import (
     rfft_frequencies,
     sheared_k,
 )
+from .prior import Prior, SizePrior
 from .psf import psf_transform
 
 __all__ = ["JointFits", "fit_exposures", "fit_views", "lattice_symmetries", "sky_frequencies"]
@@ -124,6 +129,27 @@ class JointFits:
         The reference pixel scale, arcsec, in which the configuration's sizes were read.
     meta : dict
         The model family and grid steps.
+    lnL_r : numpy.ndarray or None
+        ``(n, n_r + 1)`` float32 ``ln L(r) = ln sum_e P(e) L(e, r)`` of every size node
+        (each run's sizes, then the point source), ``P`` the ellipticity prior
+        ``Prior()``, shifted like ``lnL``: :attr:`pylensfit.StampFits.lnL_r`'s meaning.
+    lnL_r_grouped : numpy.ndarray or None
+        ``(n, n_groups, n_r + 1)`` float32 the sums of ``lnL_r`` over each group of e
+        cells apart (``fit_exposures(lnL_r_groups=...)``), shifted like ``lnL``, for
+        :func:`pylensfit.prior.estimate_size_prior` (through
+        :func:`pylensfit.likelihood.reweight_lnL_r`); None without groups.
+    radii : numpy.ndarray or None
+        ``(n_r,)`` the size of each node of ``lnL_r``, arcsec.
+    r_marginal : numpy.ndarray or None
+        ``(n,)`` the size of the largest ``L(r)``, arcsec (0 for the point source):
+        :attr:`pylensfit.StampFits.r_best`'s meaning (marginal over e).
+    is_star : numpy.ndarray or None
+        ``(n,)`` bool: ``r_marginal`` is 0 or below ``Config.point_source_size``
+        reference pixels (:attr:`pylensfit.StampFits.is_star`'s meaning).
+    bulge_best : numpy.ndarray or None
+        ``(n,)`` the bulge fraction of the most likely model (NaN for the point source).
+    exposures_used : numpy.ndarray or None
+        ``(n,)`` int64 bit mask: bit ``k`` set where exposure ``k`` entered the fit.
     """
 
     egrid: np.ndarray
@@ -143,6 +169,13 @@ class JointFits:
     bulge_fractions: np.ndarray | None = None
     pixel_scale: float = 1.0
     meta: dict = field(default_factory=dict)
+    lnL_r: np.ndarray | None = None
+    lnL_r_grouped: np.ndarray | None = None
+    radii: np.ndarray | None = None
+    r_marginal: np.ndarray | None = None
+    is_star: np.ndarray | None = None
+    bulge_best: np.ndarray | None = None
+    exposures_used: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.lnL.shape[0]
@@ -150,7 +183,9 @@ class JointFits:
 
 @dataclass(frozen=True)
 class _Columns:
-    """The model grid's columns: e cells, runs of sizes (arcsec) and their weights."""
+    """The model grid's columns: e cells, runs of sizes (arcsec), their weights and the
+    priors of the sums (size prior, e cells' weights in ``L(r)`` and their groups, the
+    amplitude prior)."""
 
     egrid: np.ndarray  # (n_e, 2)
     radii: np.ndarray  # (n_sub,) arcsec, one run
@@ -158,6 +193,9 @@ class _Columns:
     node_w: np.ndarray  # (n_b * n_sub,) weight of each size node in the sum over r
     w_star: float
     model: str
+    e_w: np.ndarray  # (n_e,) the e cells' weights in L(r), summing to 1
+    e_grp: np.ndarray  # (n_e,) int: the group of each e cell in L(r)
+    amp: tuple  # the amplitude prior and its table, joint_nb.laplace_grid's ``amp``
 
     @property
     def n_e(self) -> int:
@@ -172,6 +210,10 @@ class _Columns:
         return len(self.runs)
 
     @property
+    def n_grp(self) -> int:
+        return int(self.e_grp.max()) + 1
+
+    @property
     def n_cols(self) -> int:
         return self.n_e * self.n_b * self.n_sub + 1
 
@@ -179,28 +221,59 @@ class _Columns:
         """The weights of the sum over r (the runs of sizes equally likely a priori),
         the kernel's :class:`~pylensfit.likelihood.grid_nb.Sums`."""
         return Sums(self.node_w, self.w_star, np.full(self.n_b, -np.log(self.n_b)),
-                    np.full(self.n_e, 1.0 / self.n_e), np.zeros(self.n_e, dtype=np.int64),
-                    self.n_sub)  # fmt: skip
+                    self.e_w, self.e_grp, self.n_sub)  # fmt: skip
+
+    def active(self) -> np.ndarray:
+        """``joint_nb.laplace_grid``'s ``active``: the uniform amplitude prior, then the
+        models within the size prior's support (the point source always)."""
+        per_e = np.tile(self.node_w > 0, self.n_e)
+        return np.r_[float(self.amp[0] == AMP_UNIFORM), per_e, 1.0].astype(np.float64)
 
 
-def _columns(cfg: Config, scale: float) -> _Columns:
-    """The configuration's grid with its sizes in arcsec (``scale`` arcsec per pixel)."""
-    if cfg.sersic_ladder or cfg.bulge_size_ratio2 > 0:
-        raise ValueError("fit_exposures: the Sersic ladder and a second bulge size are not "
-                         "supported; use one bulge size")  # fmt: skip
-    egrid = ellipticity_grid(cfg.e_step, emax=cfg.e_max)
-    radii = radius_grid(cfg.r_min, cfg.r_max, cfg.r_step, cfg.r_rel_step, cfg.r_floor)
+def _size_weights(cfg: Config, radii: np.ndarray, runs: tuple, size_prior: SizePrior | None
+                  ) -> tuple[np.ndarray, float]:  # fmt: skip
+    """The weight of every size node (``radii`` in reference pixels, one run) and of the
+    point source: the quadrature weights of the flat prior, uniform in half-light radius
+    for every run, or ``size_prior``'s (:meth:`pylensfit.prior.SizePrior.node_weights`,
+    on the reference pixels' grid of :func:`pylensfit.models.model_bank`)."""
     r_w, w_star = radius_weights(radii, cfg.r_min)
-    runs = tuple((float(r.fraction), float(r.size)) for r in bank_runs(
-        cfg.model, cfg.bulge_fraction, cfg.bulge_size_ratio, int(cfg.n_bulge_fractions)))
     run_w = np.ones(len(runs))
     if len(runs) > 1:
         hlr = np.array([half_light_radius("bulge+disc", bulge_fraction=f, bulge_size_ratio=s)
                         for f, s in runs])  # fmt: skip
         run_w = hlr / hlr[0]
-    node_w = np.tile(np.asarray(r_w, float), len(runs)) * np.repeat(run_w, radii.size)
+    if size_prior is None:
+        node_w = np.tile(np.asarray(r_w, float), len(runs)) * np.repeat(run_w, radii.size)
+        return node_w, float(w_star)
+    # the bank's sizes alone (no transforms): what SizePrior.node_weights reads of it
+    grid = ModelBank(G=np.empty((0, 0)), egrid=np.empty((0, 2)), radii=np.tile(radii, len(runs)),
+                     n=int(cfg.stamp_size), model=cfg.model, n_sub=radii.size,
+                     r_weights=np.asarray(r_w, float), star_weight=float(w_star),
+                     run_weights=run_w if len(runs) > 1 else None)  # fmt: skip
+    node_w, w_star = size_prior.node_weights(grid, cfg)
+    return np.asarray(node_w, dtype=float), float(w_star)
+
+
+def _columns(cfg: Config, scale: float, size_prior: SizePrior | None = None,
+             lnL_r_groups: np.ndarray | None = None) -> _Columns:  # fmt: skip
+    """The configuration's grid with its sizes in arcsec (``scale`` arcsec per pixel),
+    the size prior's weights, the e cells' weights in ``L(r)`` (the ellipticity prior
+    ``Prior()``, as :func:`pylensfit.likelihood.fit_stamps`'s default) and groups, and the
+    configuration's amplitude prior."""
+    if cfg.sersic_ladder or cfg.bulge_size_ratio2 > 0:
+        raise ValueError("fit_exposures: the Sersic ladder and a second bulge size are not "
+                         "supported; use one bulge size")  # fmt: skip
+    egrid = ellipticity_grid(cfg.e_step, emax=cfg.e_max)
+    radii = radius_grid(cfg.r_min, cfg.r_max, cfg.r_step, cfg.r_rel_step, cfg.r_floor)
+    runs = tuple((float(r.fraction), float(r.size)) for r in bank_runs(
+        cfg.model, cfg.bulge_fraction, cfg.bulge_size_ratio, int(cfg.n_bulge_fractions)))
+    node_w, w_star = _size_weights(cfg, radii, runs, size_prior)
+    e_w = Prior().pdf(egrid[:, 0], egrid[:, 1])
+    amp = amplitude_prior(cfg)
     return _Columns(egrid=egrid, radii=radii * scale, runs=runs, node_w=node_w,
-                    w_star=float(w_star), model=cfg.model)  # fmt: skip
+                    w_star=w_star, model=cfg.model, e_w=e_w / e_w.sum(),
+                    e_grp=e_groups(lnL_r_groups, egrid.shape[0]),
+                    amp=(*amp, *amplitude_table(amp.power)))  # fmt: skip
 
 
 def _interior(n: int) -> np.ndarray:
@@ -604,23 +677,23 @@ def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None) -> tuple[Fo
     return folds, _norms(blk, exps, parts, c)
 
 
-def _laplace(folds: Folds, norms: Norms, x0, y0, sums: Sums, cfg: Config,
+def _laplace(folds: Folds, norms: Norms, x0, y0, sums: Sums, cols: _Columns, active, cfg: Config,
              scale: float) -> Outputs:  # fmt: skip
-    """``ln L(e)``, ``ln L_b(e)`` per run and the most likely model's ``H*``, ``X*`` (from
-    the origin; arcsec) of the block, the models marginalised over the amplitude and the
-    position (module docstring) and summed over r with ``sums``
-    (:func:`pylensfit.joint_nb.laplace_grid`: the single-exposure fit's Newton step,
-    expected-Hessian fallback, amplitude integral, position prior and sum over r, on
-    the sums over the exposures). ``x0, y0``: the catalogue position from the origin,
-    arcsec."""
+    """``ln L(e)``, ``ln L_b(e)`` per run, ``ln L(r)`` per group of e cells and the most
+    likely ``active`` model's ``H*``, ``X*`` (from the origin; arcsec) of the block, the
+    models marginalised over the amplitude (``cols.amp``) and the position (module
+    docstring) and summed over r with ``sums`` (:func:`pylensfit.joint_nb.laplace_grid`:
+    the single-exposure fit's Newton step, expected-Hessian fallback, amplitude
+    integral, position prior and sum over r, on the sums over the exposures). ``x0,
+    y0``: the catalogue position from the origin, arcsec."""
     m = np.asarray(x0).size
     n_e, n_r = sums.e_w.size, sums.node_w.size
-    out = Outputs.empty(m, n_e, n_r // sums.n_sub, 1, n_r)
+    out = Outputs.empty(m, n_e, n_r // sums.n_sub, int(sums.e_grp.max()) + 1, n_r)
     out.h[:] = out.x[:] = out.y[:] = np.nan
     gals = Galaxies(np.ones(m), np.ascontiguousarray(x0, dtype=float),
                     np.ascontiguousarray(y0, dtype=float))  # fmt: skip
     pos = Laplace((cfg.position_prior_sigma * scale) ** 2, cfg.max_newton_step * scale, False)
-    laplace_grid(folds, norms, gals, sums, pos, out)
+    laplace_grid(folds, norms, gals, sums, cols.amp, pos, active, out)
     return out
 
 
@@ -683,17 +756,19 @@ def _fit_block(inp: _Inputs, exps: list[_Exposure], cols: _Columns, cfg: Config,
     blk = _block(inp, exps, sl)
     xc, yc, no_peak = _round_centre(inp, blk, exps, sl, cfg, scale)
     cc, sums_c = _coarse_columns(cols, cfg.e_step)
-    out = _laplace(*_products(blk, exps, xc, yc, cc), -xc, -yc, sums_c, cfg, scale)
+    every = np.r_[float(cols.amp[0] == AMP_UNIFORM), np.ones(cc.size)]
+    out = _laplace(*_products(blk, exps, xc, yc, cc), -xc, -yc, sums_c, cols, every, cfg,
+                   scale)  # fmt: skip
     xc = xc + np.nan_to_num(out.x)
     yc = yc + np.nan_to_num(out.y)
     folds, norms = _products(blk, exps, xc, yc)
-    out = _laplace(folds, norms, -xc, -yc, cols.sums(), cfg, scale)
+    out = _laplace(folds, norms, -xc, -yc, cols.sums(), cols, cols.active(), cfg, scale)
     g = np.arange(out.best.size)
     p = g if norms.S.shape[2] > 1 else 0
     Q = (norms.w2 * norms.S[:, 0, p, out.best].astype(np.float64)).sum(axis=0)
     return {"lnle": out.lnle, "lnlb": out.lnlb, "star": out.lnlr[:, 0, -1] + np.log(cols.w_star),
             "best": out.best, "no_peak": no_peak, "h": out.h, "Q": Q, "x": xc + out.x,
-            "y": yc + out.y}  # fmt: skip
+            "y": yc + out.y, "lnlr": out.lnlr}  # fmt: skip
 
 
 def fit_exposures(
@@ -707,6 +782,8 @@ def fit_exposures(
     centres: tuple[np.ndarray, np.ndarray] | None = None,
     config: Config | None = None,
     pixel_scale: float | None = None,
+    size_prior: SizePrior | None = None,
+    lnL_r_groups: np.ndarray | None = None,
 ) -> JointFits:
     """The likelihood ``L(e)`` of each galaxy from all of its exposures together.
 
@@ -743,12 +820,18 @@ def fit_exposures(
     config : Config, optional
         Grid, model and marginalisation settings (``e_step``, ``e_max``, the size grid,
         ``model``, ``n_bulge_fractions``, ``position_prior_sigma``, ``max_offset``,
-        ``centring_scale``, ``max_newton_step``, ``block_size``, ``dtype``). Its lengths
-        are in reference pixels of ``pixel_scale`` arcsec. The amplitude prior is the
-        uniform positive one; the models are not truncated at the stamp's edge, and the
-        position expansion is of second order (the single fit's ``cubic_snr = 0``).
+        ``centring_scale``, ``max_newton_step``, ``block_size``, ``dtype``, the
+        amplitude prior and its flux bounds in the common flux unit). Its lengths are in
+        reference pixels of ``pixel_scale`` arcsec. The models are not truncated at the
+        stamp's edge, and the position expansion is of second order (``cubic_snr = 0``).
     pixel_scale : float, optional
         Arcsec per reference pixel (default: the median of ``1 / sqrt|det J_k|``).
+    size_prior : pylensfit.prior.SizePrior, optional
+        Prior of the half-light radius (reference pixels) in the sum over r, as
+        :func:`pylensfit.likelihood.fit_stamps`'s (default flat).
+    lnL_r_groups : numpy.ndarray, optional
+        ``(n_e,)`` integer group of each e cell: keep ``L(r)`` per group as well
+        (``JointFits.lnL_r_grouped``; :func:`pylensfit.likelihood.e_annuli`).
 
     Returns
     -------
@@ -763,10 +846,14 @@ def fit_exposures(
     """
     cfg = config if config is not None else Config()
     inp = _inputs(stamps, psf, noise_sigma, jacobian, flux_scale, usable, centres)
-    K, n_gal, N = inp.stamps.shape[:3]
     scale = float(pixel_scale if pixel_scale is not None
                   else np.median(1.0 / np.sqrt(np.abs(np.linalg.det(inp.J)))))  # fmt: skip
-    cols = _columns(cfg, scale)
+    return _fit(inp, _columns(cfg, scale, size_prior, lnL_r_groups), cfg, scale)
+
+
+def _fit(inp: _Inputs, cols: _Columns, cfg: Config, scale: float) -> JointFits:
+    """:func:`fit_exposures` of the checked inputs, block by block, on one BLAS thread."""
+    K, n_gal, N = inp.stamps.shape[:3]
     good = np.isfinite(np.linalg.det(inp.J)) & (np.linalg.det(inp.J) != 0)
     eye = np.eye(2) / scale
     exps = [_exposure(cols, inp.J[k] if good[k] else eye, N, np.dtype(cfg.dtype))
@@ -778,12 +865,39 @@ def fit_exposures(
     return _assemble(parts, inp, cols, cfg, scale)
 
 
+def _size_rows(lnlr: np.ndarray, peak: np.ndarray, dead: np.ndarray, cols: _Columns,
+               cfg: Config, scale: float) -> dict:  # fmt: skip
+    """``ln L(r)`` (all e cells, and per group where there are several) shifted like ``ln
+    L(e)``, the size of its maximum (arcsec) and the point sources, as the single fit's
+    (:func:`pylensfit.likelihood.fit_stamps`)."""
+    n_r = cols.n_b * cols.n_sub
+    grouped = None
+    total = lnlr[:, 0].copy()
+    if lnlr.shape[1] > 1:
+        total[:, :n_r] = logsumexp_groups(lnlr[:, :, :n_r])
+        with np.errstate(invalid="ignore", over="ignore"):
+            grouped = (lnlr - peak[:, None, None]).astype(np.float32)
+        grouped[dead] = np.nan
+    with np.errstate(invalid="ignore", over="ignore"):
+        lnL_r = (total - peak[:, None]).astype(np.float32)
+    lnL_r[dead] = np.nan
+    radii = np.tile(cols.radii, cols.n_b)
+    ir = np.where(dead, n_r, np.nan_to_num(total, nan=-np.inf).argmax(axis=1))
+    r = np.append(radii, 0.0)[ir]
+    is_star = ((ir == n_r) | (r < cfg.point_source_size * scale)) & ~dead
+    return {"lnL_r": lnL_r, "lnL_r_grouped": grouped, "radii": radii,
+            "r_marginal": np.where(dead, np.nan, r), "is_star": is_star}  # fmt: skip
+
+
 def _assemble(parts: list[dict], inp: _Inputs, cols: _Columns, cfg: Config,
               scale: float) -> JointFits:  # fmt: skip
     """The :class:`JointFits` of the blocks' results."""
     cat = {k: np.concatenate([p[k] for p in parts]) if parts else np.zeros(0)
            for k in ("lnle", "lnlb", "star", "best", "no_peak", "h", "Q", "x", "y")}  # fmt: skip
     n_gal = inp.stamps.shape[1]
+    n_r = cols.n_b * cols.n_sub
+    lnlr = (np.concatenate([p["lnlr"] for p in parts]) if parts
+            else np.zeros((0, cols.n_grp, n_r + 1)))  # fmt: skip
     lnle = cat["lnle"].reshape(n_gal, cols.n_e)
     n_exp = inp.usable.sum(axis=0)
     flags = np.zeros(n_gal, dtype=np.int32)
@@ -803,6 +917,7 @@ def _assemble(parts: list[dict], inp: _Inputs, cols: _Columns, cfg: Config,
     r = np.where(star, 0.0, cols.radii[best % cols.n_sub])
     e = np.where(star[:, None], 0.0, cols.egrid[ie])
     multi = cols.n_b > 1
+    fracs = np.array([f for f, _ in cols.runs]) if multi else np.array([cfg.bulge_fraction])
     lnlb = cat["lnlb"].reshape(n_gal, cols.n_e, cols.n_b)
     return JointFits(
         egrid=cols.egrid.copy(), lnL=lnL, lnL_peak=peak * nan, n_exposures=n_exp,
@@ -812,14 +927,19 @@ def _assemble(parts: list[dict], inp: _Inputs, cols: _Columns, cfg: Config,
         lnL_bulge=(np.moveaxis(lnlb - peak[:, None, None], 2, 1) * nan[:, None, None]
                    ).astype(np.float32) if multi else None,
         lnL_star=(cat["star"] - peak) * nan if multi else None,
-        bulge_fractions=np.array([f for f, _ in cols.runs]) if multi else None,
+        bulge_fractions=fracs if multi else None,
         pixel_scale=scale,
         meta={"model": cfg.model, "e_step": cfg.e_step, "r_step": cfg.r_step * scale},
+        bulge_best=np.where(star, np.nan, fracs[(best % per_e) // cols.n_sub % fracs.size]) * nan,
+        exposures_used=(inp.usable.astype(np.int64)
+                        << np.arange(inp.usable.shape[0], dtype=np.int64)[:, None]).sum(axis=0),
+        **_size_rows(lnlr, peak, dead, cols, cfg, scale),
     )  # fmt: skip
 
 
 def fit_views(views: Sequence[ExposureStamps], *, config: Config | None = None,
-              pixel_scale: float | None = None) -> JointFits:  # fmt: skip
+              pixel_scale: float | None = None, size_prior: SizePrior | None = None,
+              lnL_r_groups: np.ndarray | None = None) -> JointFits:  # fmt: skip
     """:func:`fit_exposures` of the galaxies' views cut from their exposures.
 
     Parameters
@@ -829,7 +949,7 @@ def fit_views(views: Sequence[ExposureStamps], *, config: Config | None = None,
         at the galaxies; galaxy ``i`` is element ``i`` of each.
     config : Config, optional
         As :func:`fit_exposures`.
-    pixel_scale : float, optional
+    pixel_scale, size_prior, lnL_r_groups : optional
         As :func:`fit_exposures`.
 
     Returns
@@ -850,5 +970,6 @@ def fit_views(views: Sequence[ExposureStamps], *, config: Config | None = None,
         usable=np.stack([v.usable for v in views]),
         centres=(np.stack([v.centres[0] for v in views]),
                  np.stack([v.centres[1] for v in views])),
-        config=config, pixel_scale=pixel_scale,
+        config=config, pixel_scale=pixel_scale, size_prior=size_prior,
+        lnL_r_groups=lnL_r_groups,
     )  # fmt: skip

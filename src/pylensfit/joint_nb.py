@@ -4,8 +4,10 @@ likelihood's own tile kernels.
 One pass per galaxy (``prange``) over the models, a tile of
 :data:`~pylensfit.likelihood.tile_nb.TILE` columns at a time: the Newton step in position
 and the expected-Hessian fallback
-(:func:`~pylensfit.likelihood.laplace_nb.position_tile`), the uniform amplitude integral
-(:func:`~pylensfit.likelihood.amplitude_nb.amplitude_tile`) and the position prior
+(:func:`~pylensfit.likelihood.laplace_nb.position_tile`), the amplitude integral
+(:func:`~pylensfit.likelihood.amplitude_nb.amplitude_tile`: the uniform prior or the
+power law in the flux ``A = H / Q``, its bounds in the common flux unit) and the
+position prior
 (:func:`~pylensfit.likelihood.laplace_nb.fisher_tile`) of the single-exposure fit, read
 with the noise ``sigma = 1`` and the model's ``S`` replaced by the galaxy's ``Q = sum_k
 f_k^2 S_k / sigma_k^2`` (the module docstring of :mod:`pylensfit.joint`). The per-model
@@ -26,7 +28,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from .likelihood.amplitude_nb import AMP_UNIFORM, amplitude_tile
+from .likelihood.amplitude_nb import amplitude_tile
 from .likelihood.laplace_nb import fisher_tile, position_tile
 from .likelihood.radius_nb import collapse_models
 from .likelihood.tile_nb import TILE, W_DETM, W_HS, W_QUAD, W_ROWS, W_VAL, W_X, W_Y
@@ -66,10 +68,12 @@ class Norms(NamedTuple):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def _read_tile(folds, norms, g, t0, nt, V, cm):
+def _read_tile(folds, norms, g, t0, nt, V, cm, uniform):
     """Galaxy ``g``'s products of the models ``t0 .. t0 + nt``, summed over the exposures,
     into ``V`` (``(6, TILE)``) and the models' constants ``(Q, sqrt Q, mxx, mxy, myy, ln
-    Q)`` into ``cm`` (``(6, TILE)``); the rest of the tile a harmless model."""
+    Q)`` into ``cm`` (``(6, TILE)``; ``ln Q`` 0 under the ``uniform`` amplitude prior,
+    whose ``-ln(Q) / 2`` :func:`_store_tile` adds); the rest of the tile a harmless
+    model."""
     P, off, n_fc, n_chi, sgn, col = folds
     S, w2 = norms
     p = g % S.shape[2]  # one PSF for all (0) or one per galaxy
@@ -110,7 +114,9 @@ def _read_tile(folds, norms, g, t0, nt, V, cm):
             cm[row, k] = acc
     for k in range(nt):
         cm[1, k] = math.sqrt(cm[0, k])
-        cm[5, k] = 0.0  # ln Q: in _store_tile, with det M's log
+        # ln Q: under the uniform prior in _store_tile, with det M's log; a power law's
+        # integral has no -ln(Q) / 2 and reads ln Q for its power of the flux
+        cm[5, k] = 0.0 if uniform else math.log(cm[0, k])
     for k in range(nt, TILE):
         cm[0, k] = 1.0
         cm[1, k] = 1.0
@@ -121,18 +127,24 @@ def _read_tile(folds, norms, g, t0, nt, V, cm):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def _store_tile(W, cm, g, t0, nt, best, buf, hxy):
+def _store_tile(W, cm, g, t0, nt, best, buf, hxy, active):
     """The tile's ``ln L`` into ``buf`` (NaN where ``Q = 0``: no usable exposure); the most
-    likely model so far (its ``ln L`` is ``best``, returned) and its ``H*`` and peak into
-    ``hxy = (best, h, x, y)`` at ``g`` (the first model's where none is finite)."""
+    likely of the ``active`` models so far (its ``ln L`` is ``best``, returned) and its
+    ``H*`` and peak into ``hxy = (best, h, x, y, j0)`` at ``g`` (the first active
+    model's, ``j0``, where none is finite). ``active[0]``: a uniform amplitude prior
+    (the integral's ``-ln(Q) / 2`` added here); ``active[1:]`` per model: within the
+    size prior's support (the models of weight 0 enter no sum)."""
+    uniform = active[0] > 0.0
+    j0 = hxy[4]
     for k in range(nt):
         j = t0 + k
         ok = cm[0, k] > 0.0
-        # the amplitude integral's -ln(Q) / 2 (cm's ln Q is 0) and det M's in one log
-        lnl = (W[W_VAL, k] - 0.5 * math.log(W[W_DETM, k] * cm[0, k]) - 0.5 * W[W_QUAD, k]
-               if ok else math.nan)  # fmt: skip
+        # the uniform amplitude integral's -ln(Q) / 2 (cm's ln Q is 0) and det M's in one
+        # log; a power law's integral has none
+        lnl = (W[W_VAL, k] - 0.5 * math.log(W[W_DETM, k] * (cm[0, k] if uniform else 1.0))
+               - 0.5 * W[W_QUAD, k] if ok else math.nan)  # fmt: skip
         buf[j] = lnl
-        if j == 0 or lnl > best:
+        if active[j + 1] > 0.0 and (j == j0 or lnl > best):
             hxy[0][g] = j
             hxy[1][g] = W[W_HS, k] if ok else math.nan
             hxy[2][g] = W[W_X, k] if ok else math.nan
@@ -143,7 +155,7 @@ def _store_tile(W, cm, g, t0, nt, best, buf, hxy):
 
 
 @njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def laplace_grid(folds, norms, gals, sums, laplace, out):
+def laplace_grid(folds, norms, gals, sums, amp, laplace, active, out):
     """``ln L(e)`` summed over r, per run of sizes, and the most likely model's ``H*`` and
     ``X*`` of every galaxy of a block, into ``out``.
 
@@ -156,8 +168,13 @@ def laplace_grid(folds, norms, gals, sums, laplace, out):
     :class:`~pylensfit.likelihood.grid_nb.Sums`,
     :class:`~pylensfit.likelihood.grid_nb.Laplace` (``b2`` arcsec^2, ``max_step``
     arcsec; ``cubic`` is not read: second order) and
-    :class:`~pylensfit.likelihood.grid_nb.Outputs`. The sum over r is the single fit's
-    (:func:`~pylensfit.likelihood.radius_nb.collapse_models`).
+    :class:`~pylensfit.likelihood.grid_nb.Outputs`. ``amp``: the amplitude prior, the
+    likelihood's :class:`~pylensfit.likelihood.grid_nb.Amplitude` and its table
+    (:func:`~pylensfit.likelihood.amplitude_nb.amplitude_table`), ``(power, lns, lo,
+    hi, t0, tab)``, the flux bounds in the common flux unit; ``active``: ``(1 + c,)``,
+    1.0 for a uniform amplitude prior (else 0.0), then per model 1.0 where it may be the
+    most likely one (the size prior's support), else 0.0. The sum over r is the single
+    fit's (:func:`~pylensfit.likelihood.radius_nb.collapse_models`).
     """
     sigma, x0, y0 = gals
     node_w, w_star, ln_pi, e_w, e_grp, n_sub = sums
@@ -165,8 +182,12 @@ def laplace_grid(folds, norms, gals, sums, laplace, out):
     b2 = laplace[0]
     max2 = laplace[1] * laplace[1]
     m, c = sigma.size, folds.col.shape[1]
-    tab = np.empty((4, 0))
-    hxy = (out.best, out.h, out.x, out.y)
+    amp_pow, amp_lns, amp_lo, amp_hi, t0_tab, tab = amp
+    uniform = active[0] > 0.0
+    j0 = 0
+    while j0 < c - 1 and not active[j0 + 1] > 0.0:
+        j0 += 1
+    hxy = (out.best, out.h, out.x, out.y, j0)
     for g in prange(m):
         V = np.zeros((6, TILE))
         cm = np.empty((6, TILE))
@@ -175,11 +196,11 @@ def laplace_grid(folds, norms, gals, sums, laplace, out):
         best = -np.inf
         for t0 in range(0, c, TILE):
             nt = min(TILE, c - t0)
-            _read_tile(folds, norms, g, t0, nt, V, cm)
+            _read_tile(folds, norms, g, t0, nt, V, cm, uniform)
             position_tile(V, cm, sigma[g], max2, W)
-            amplitude_tile(cm, AMP_UNIFORM, 0.0, 0.0, math.inf, 0.0, tab, W)
+            amplitude_tile(cm, amp_pow, amp_lns, amp_lo, amp_hi, t0_tab, tab, W)
             fisher_tile(x0[g], y0[g], b2, W)
-            best = _store_tile(W, cm, g, t0, nt, best, buf, hxy)
+            best = _store_tile(W, cm, g, t0, nt, best, buf, hxy, active)
         collapse_models(g, buf, best, rsums, (out.lnle, out.lnlb, out.lnlr))
 
 

@@ -47,6 +47,7 @@ function.
 from __future__ import annotations
 
 from ..assemble import flag_low_snr, usable_galaxies
+from .exposures import calibrate_exposures, measure_exposure_stamps
 from .priors import (
     MIN_FLUX_RANGE_GALAXIES,
     MIN_GALAXIES,
@@ -66,8 +67,10 @@ __all__ = [
     "Recipe",
     "RecipePass",
     "calibrate",
+    "calibrate_exposures",
     "estimate_position_sigma",
     "flag_low_snr",
+    "measure_exposure_stamps",
     "measure_stamps",
     "run_recipe",
     "usable_galaxies",

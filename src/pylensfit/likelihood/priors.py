@@ -46,7 +46,7 @@ def _size_weights(cfg: Config, bank: ModelBank, fb: FoldedBank, size_prior: Size
     return node_w, w_star, fb
 
 
-def _e_groups(lnL_r_groups: np.ndarray | None, n_e: int) -> np.ndarray:
+def e_groups(lnL_r_groups: np.ndarray | None, n_e: int) -> np.ndarray:
     """The checked group of every e cell in ``lnL_r`` (all in group 0 by default)."""
     if lnL_r_groups is None:
         return np.zeros(n_e, dtype=np.int64)
@@ -57,7 +57,7 @@ def _e_groups(lnL_r_groups: np.ndarray | None, n_e: int) -> np.ndarray:
     return e_grp.astype(np.int64)
 
 
-def _amplitude_prior(cfg: Config) -> Amplitude:
+def amplitude_prior(cfg: Config) -> Amplitude:
     """The kernel's amplitude prior: its power
     (:data:`~pylensfit.likelihood.amplitude_nb.AMP_UNIFORM` for the uniform prior; any
     finite power is a power law), the power of ``S`` in ``ln L``, its limits."""
@@ -81,12 +81,12 @@ def kernel_weights(cfg: Config, bank: ModelBank, fb: FoldedBank, size_prior: Siz
     mp = size_marginal_prior if size_marginal_prior is not None else Prior()
     e_w = mp.pdf(bank.egrid[:, 0], bank.egrid[:, 1])
     e_w = e_w / e_w.sum()
-    e_grp = _e_groups(lnL_r_groups, bank.n_e)
+    e_grp = e_groups(lnL_r_groups, bank.n_e)
     r_w = np.asarray(bank.r_weights, dtype=float)
     rw_c = np.tile(r_w, bank.n_r // bank.n_sizes)[coarse.cols[:-1] % bank.n_r][: coarse.n_r]
     sums_c = Sums(rw_c, bank.star_weight, np.zeros(1), np.full(coarse.n_e, 1.0 / coarse.n_e),
                   np.zeros(coarse.n_e, dtype=np.int64), coarse.n_r)  # fmt: skip
     wts = Weights(n_b=n_b, n_grp=int(e_grp.max()) + 1,
                   sums=Sums(node_w, w_star, ln_pi, e_w, e_grp, bank.n_sizes), sums_c=sums_c,
-                  amp=_amplitude_prior(cfg), b2=cfg.position_prior_sigma**2)  # fmt: skip
+                  amp=amplitude_prior(cfg), b2=cfg.position_prior_sigma**2)  # fmt: skip
     return wts, fb
