@@ -49,6 +49,7 @@ from .catalogue_io import catalogue_frame, read_catalogue, write_catalogue
 from .exposure_set import (
     ExposureSet,
     detection_coadd,
+    jacobian_groups,
     measure_exposures,
     read_exposures,
     read_sky_positions,
@@ -70,6 +71,7 @@ __all__ = [
     "calibrate_images",
     "catalogue_frame",
     "detection_coadd",
+    "jacobian_groups",
     "measure",
     "measure_exposures",
     "read_exposures",

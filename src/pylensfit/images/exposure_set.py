@@ -21,8 +21,9 @@ version, Miller et al. 2013, arXiv:1210.8201).
    exposure where the galaxy is off the image, on its edge, on a masked or zero-weight
    centre or a chip gap drops out of that galaxy's fit alone;
 5. the joint fit and the shapes under the priors
-   (:func:`pylensfit.calibration.measure_exposure_stamps`), cell by cell of the sky
-   (``cell`` pixels of the co-add: one WCS Jacobian per exposure and cell), the priors
+   (:func:`pylensfit.calibration.measure_exposure_stamps`), by groups of galaxies
+   whose WCS Jacobians agree within 1e-4 in every exposure (:func:`jacobian_groups`:
+   one Jacobian per exposure and group), the priors
    given or estimated from the set's own joint fits
    (:func:`pylensfit.calibration.calibrate_exposures`);
 6. the catalogue: one row per position, shapes in the sky frame, ``n_exposures`` and
@@ -48,7 +49,7 @@ from ..calibration import Priors, calibrate_exposures, measure_exposure_stamps
 from ..catalogue import COLUMNS
 from ..config import Config
 from ..detection import close_pairs, detect
-from ..exposures import Exposure, cut_exposures, sky_offsets_to_world, sky_to_pixel
+from ..exposures import Exposure, cut_exposures, local_jacobian, sky_to_pixel
 from ..flags import FLAGS
 from ..psf import PSFResult
 from ..psfmodel import PSFModel
@@ -59,12 +60,8 @@ from .records import StarfieldTask
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ExposureSet", "detection_coadd", "measure_exposures", "read_exposures",
-           "read_sky_positions"]  # fmt: skip
-
-#: side of the sky cells fitted with one WCS Jacobian per exposure, co-add pixels
-DEFAULT_CELL = 256
-
+__all__ = ["ExposureSet", "detection_coadd", "jacobian_groups", "measure_exposures",
+           "read_exposures", "read_sky_positions"]  # fmt: skip
 
 @dataclass(frozen=True)
 class ExposureSet:
@@ -277,16 +274,40 @@ def detect_positions(coadd: tuple[np.ndarray, np.ndarray, WCS], cfg: Config) -> 
     return out
 
 
-def sky_cells(ra, dec, wcs: WCS, cell: int) -> np.ndarray:
-    """Each position's cell of ``cell x cell`` pixels of ``wcs``'s plane (int labels;
-    positions without a finite pixel share the label -1)."""
-    x, y = sky_to_pixel(wcs, ra, dec)
-    ok = np.isfinite(x) & np.isfinite(y)
-    ix = np.where(ok, np.floor(np.where(ok, x, 0.0) / cell), 0).astype(np.int64)
-    iy = np.where(ok, np.floor(np.where(ok, y, 0.0) / cell), 0).astype(np.int64)
-    ix -= ix.min(initial=0)
-    iy -= iy.min(initial=0)
-    return np.where(ok, iy * (ix.max(initial=0) + 1) + ix, -1)
+def jacobian_groups(exposures: Sequence[Exposure], ra, dec, tolerance: float) -> np.ndarray:
+    """Group the positions whose local WCS Jacobians agree within ``tolerance`` in every
+    exposure, so that one Jacobian per exposure serves each group.
+
+    Each exposure's Jacobian at a position, relative to the exposure's median one,
+    ``J J_med^-1 - I``, is rounded to multiples of ``tolerance``; positions with the same
+    rounded matrices in every exposure form a group. Within a group each exposure's
+    Jacobians differ by less than ``tolerance`` per element, which changes a model's
+    ellipticity by about as much (:func:`pylensfit.joint.fit_views`). A TAN projection
+    varies by 1e-6 over 5 arcmin: a field without distortion is one group.
+
+    Parameters
+    ----------
+    exposures : sequence of pylensfit.exposures.Exposure
+        The exposures.
+    ra, dec : array_like
+        The positions, degrees.
+    tolerance : float
+        The largest relative difference of the Jacobians within a group.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n,)`` int group labels; positions without a finite Jacobian in some exposure
+        are rounded there as if they had the median one.
+    """
+    keys = []
+    for e in exposures:
+        J = local_jacobian(e.wcs, ra, dec)
+        ok = np.all(np.isfinite(J), axis=(1, 2))
+        med = np.median(J[ok], axis=0) if ok.any() else np.eye(2)
+        D = np.where(ok[:, None, None], J @ np.linalg.inv(med) - np.eye(2), 0.0)
+        keys.append(np.round(D.reshape(len(J), 4) / tolerance).astype(np.int64))
+    return np.unique(np.concatenate(keys, axis=1), axis=0, return_inverse=True)[1].ravel()
 
 
 def _sample(n_ok: np.ndarray, size: int, seed: int) -> np.ndarray:
@@ -296,9 +317,16 @@ def _sample(n_ok: np.ndarray, size: int, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n_ok, size, replace=False))
 
 
-def _calibrate(eset: ExposureSet, ra, dec, usable: np.ndarray, cfg: Config) -> Priors:
-    """The priors of the set's own joint fits, on a seeded sample of its positions."""
-    idx = _sample(np.flatnonzero(usable), cfg.calibration_sample, cfg.calibration_seed)
+def _calibrate(eset: ExposureSet, ra, dec, usable: np.ndarray, tolerance: float,
+               cfg: Config) -> Priors:  # fmt: skip
+    """The priors of the set's own joint fits, on a seeded sample of the positions of its
+    largest group of one Jacobian per exposure (:func:`jacobian_groups`)."""
+    groups = np.full(len(ra), -1)
+    if usable.any():
+        groups[usable] = jacobian_groups(eset.exposures, ra[usable], dec[usable], tolerance)
+    largest = np.bincount(groups[usable]).argmax() if usable.any() else 0
+    idx = _sample(np.flatnonzero(usable & (groups == largest)), cfg.calibration_sample,
+                  cfg.calibration_seed)  # fmt: skip
     if idx.size == 0:
         raise InputError(f"{eset.paths[0]}: no position to calibrate the priors on")
     views = cut_exposures(eset.exposures, ra[idx], dec[idx], size=cfg.stamp_size)
@@ -314,14 +342,30 @@ def _positions(eset: ExposureSet, catalogue: str | None, cfg: Config) -> Table:
     return detect_positions(detection_coadd(eset.exposures), cfg)
 
 
-def _measure_cells(eset: ExposureSet, ra, dec, labels, priors: Priors, cfg: Config) -> Table:
-    """Every position measured, cell by cell, in the input order."""
+def _nowhere(ra: np.ndarray, dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The positions, those not finite put 30 degrees from the others (on no exposure,
+    where they are cut and fitted with nothing and flagged ``NOT_MEASURED``)."""
+    lost = ~(np.isfinite(ra) & np.isfinite(dec))
+    if not lost.any():
+        return ra, dec
+    d0 = float(np.mean(dec[~lost])) if (~lost).any() else 0.0
+    r0 = float(np.mean(ra[~lost])) if (~lost).any() else 0.0
+    return np.where(lost, r0, ra), np.where(lost, d0 - 30.0 if d0 > 0 else d0 + 30.0, dec)
+
+
+def _measure_groups(eset: ExposureSet, ra, dec, tolerance: float, chunk: int,
+                    priors: Priors, cfg: Config) -> Table:  # fmt: skip
+    """Every position measured, by groups of one Jacobian per exposure and chunks of at
+    most ``chunk`` positions, in the input order."""
+    ra, dec = _nowhere(ra, dec)
+    labels = jacobian_groups(eset.exposures, ra, dec, tolerance)
     parts, order = [], []
     for lab in np.unique(labels):
-        idx = np.flatnonzero(labels == lab)
-        views = cut_exposures(eset.exposures, ra[idx], dec[idx], size=cfg.stamp_size)
-        parts.append(measure_exposure_stamps(views, priors=priors, config=cfg))
-        order.append(idx)
+        members = np.flatnonzero(labels == lab)
+        for idx in np.array_split(members, -(-members.size // chunk)):
+            views = cut_exposures(eset.exposures, ra[idx], dec[idx], size=cfg.stamp_size)
+            parts.append(measure_exposure_stamps(views, priors=priors, config=cfg))
+            order.append(idx)
     t = vstack(parts, metadata_conflicts="silent")
     t = t[np.argsort(np.concatenate(order), kind="stable")]
     t.meta.update(parts[0].meta)
@@ -344,7 +388,7 @@ def _catalogue(t: Table, pos: Table, eset: ExposureSet, pairs: np.ndarray,
     out["id"] = np.arange(1, n + 1)
     out["image"] = np.full(n, Path(eset.paths[0]).name)
     out["object_id"] = out["id"]
-    out["ALPHA_J2000"], out["DELTA_J2000"] = _fitted_sky(t, ra, dec)
+    out["ALPHA_J2000"], out["DELTA_J2000"] = _fitted_sky(t, ra, dec, eset)
     for c in t.colnames:
         if c not in out.colnames and c not in ("x", "y", "x_detect", "y_detect"):
             out[c] = t[c]
@@ -362,22 +406,27 @@ def _catalogue(t: Table, pos: Table, eset: ExposureSet, pairs: np.ndarray,
     return out
 
 
-def _fitted_sky(t: Table, ra: np.ndarray, dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The fitted sky position: the catalogue's moved by the fit's offset (arcsec, W, N)
-    where the fit gave one."""
-    dw = np.asarray(t["x"], float) if "x" in t.colnames else np.zeros(len(t))
-    dn = np.asarray(t["y"], float) if "y" in t.colnames else np.zeros(len(t))
-    ok = np.isfinite(dw) & np.isfinite(dn) & np.isfinite(ra) & np.isfinite(dec)
-    r2, d2 = sky_offsets_to_world(np.where(ok, ra, 0.0), np.where(ok, dec, 0.0),
-                                  np.where(ok, dw, 0.0), np.where(ok, dn, 0.0))  # fmt: skip
-    return np.where(ok, r2, ra), np.where(ok, d2, dec)
+def _fitted_sky(t: Table, ra: np.ndarray, dec: np.ndarray,
+                eset: ExposureSet) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The fitted sky position: the fitted centre (``x, y`` in the pixels of each row's
+    first used exposure) through that exposure's WCS; the catalogue's where none."""
+    used = np.asarray(t["exposures_used"], np.int64)
+    first = np.where(used > 0, np.log2(np.maximum(used & -used, 1)).astype(int), -1)
+    x, y = np.asarray(t["x"], float), np.asarray(t["y"], float)
+    ra_f, dec_f = ra.copy(), dec.copy()
+    for k, e in enumerate(eset.exposures):
+        rows = (first == k) & np.isfinite(x) & np.isfinite(y)
+        if rows.any():
+            sky = e.wcs.celestial.pixel_to_world(x[rows], y[rows])
+            ra_f[rows], dec_f[rows] = sky.spherical.lon.deg, sky.spherical.lat.deg
+    return ra_f, dec_f
 
 
 def measure_exposures(
     exposures: Sequence[str], *, stars: Sequence[str] | None = None,
     catalogue: str | None = None, psf=None, priors: Priors | str | None = None,
     config: Config | None = None, output: str | os.PathLike | None = None,
-    overwrite: bool = False, cell: int = DEFAULT_CELL,
+    overwrite: bool = False, jacobian_tolerance: float = 1e-4, chunk: int = 2000,
     reference_zero_point: float | None = None,
 ) -> Table:
     """Shapes of the galaxies of one field, each fitted jointly on all of its exposures.
@@ -406,10 +455,12 @@ def measure_exposures(
         Write the catalogue here (FITS, atomically; :func:`pylensfit.write_catalogue`).
     overwrite : bool
         Replace an existing ``output``.
-    cell : int
-        Side of the sky cells fitted with one WCS Jacobian per exposure, in pixels of
-        the first exposure (256: 51" at 0.2"/px, where a TAN projection's Jacobian
-        changes by less than 1e-6).
+    jacobian_tolerance : float
+        The galaxies fitted together, with one WCS Jacobian per exposure, have Jacobians
+        within this relative difference in every exposure (:func:`jacobian_groups`).
+    chunk : int
+        The most galaxies cut and fitted at a time (memory: ``chunk`` x exposures x
+        ``stamp_size^2`` x 8 bytes of stamps, and as much of PSF images).
     reference_zero_point : float, optional
         The common flux unit's zero point (default: the first exposure's).
 
@@ -445,9 +496,8 @@ def measure_exposures(
     pairs = np.zeros(len(pos), bool)
     pairs[ok] = close_pairs(x0[ok], y0[ok], stamp_size=cfg.stamp_size)
     if priors is None:
-        priors = _calibrate(eset, ra, dec, ok & ~pairs, cfg)
-    t = _measure_cells(eset, ra, dec, sky_cells(ra, dec, eset.exposures[0].wcs, cell),
-                       priors, cfg)  # fmt: skip
+        priors = _calibrate(eset, ra, dec, ok & ~pairs, jacobian_tolerance, cfg)
+    t = _measure_groups(eset, ra, dec, jacobian_tolerance, chunk, priors, cfg)
     cat = _catalogue(t, pos, eset, pairs, cfg)
     if output is not None:
         write_catalogue(cat, output, overwrite=overwrite)
