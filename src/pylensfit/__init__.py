@@ -24,7 +24,14 @@ from .calibration import (
 )
 from .config import Config, ConfigError
 from .grid import ellipticity_grid
-from .images import InputError, calibrate_images, measure, read_catalogue, write_catalogue
+from .images import (
+    InputError,
+    calibrate_images,
+    measure,
+    measure_exposures,
+    read_catalogue,
+    write_catalogue,
+)
 from .likelihood import StampFits, fit_stamps
 from .prior import (
     BinnedPrior,
@@ -59,6 +66,7 @@ __all__ = [
     "estimate_shear",
     "fit_stamps",
     "measure",
+    "measure_exposures",
     "read_catalogue",
     "shapes",
     "shear_fixed_point",

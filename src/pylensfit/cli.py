@@ -32,7 +32,14 @@ from astropy.table import Table, vstack
 
 from .catalogue import METACAL_COLUMNS
 from .config import PRESETS, Config
-from .images import InputError, calibrate_images, catalogue_frame, measure, read_catalogue
+from .images import (
+    InputError,
+    calibrate_images,
+    catalogue_frame,
+    measure,
+    measure_exposures,
+    read_catalogue,
+)
 from .prior import RadialPrior, estimate_prior
 from .shear import shapes, shear_table
 from .skyframe import sensitivity_to_sky, to_sky
@@ -55,10 +62,37 @@ def _config(args: argparse.Namespace):
     return Config.from_yaml(args.config) if getattr(args, "config", None) else Config()
 
 
+def _measure_exposures(args: argparse.Namespace, cfg: Config) -> int:
+    """``measure --exposures``: the images are exposures of one field, fitted jointly."""
+    for opt in ("weights", "masks", "star_column", "prior", "size_prior", "psf_dir",
+                "scheduler"):
+        if getattr(args, opt):
+            raise InputError(f"--{opt.replace('_', '-')} is not an option of measure "
+                             "--exposures (each exposure's WEIGHT HDU is read; priors: "
+                             "--priors)")  # fmt: skip
+    if args.catalogues and len(args.catalogues) != 1:
+        raise InputError("measure --exposures: give one catalogue of sky positions (ra, dec)")
+    if cfg.response != "model":
+        raise InputError("measure --exposures: response 'metacal' is not available for "
+                         "joint fits")  # fmt: skip
+    cat = measure_exposures(
+        args.images, stars=args.stars or None,
+        catalogue=args.catalogues[0] if args.catalogues else None, psf=_psf_arg(args.psf),
+        priors=args.priors, config=cfg, output=args.output, overwrite=args.overwrite)  # fmt: skip
+    ok = np.asarray(cat["weight"]) > 0
+    k = float(np.median(cat["n_exposures"][ok])) if ok.any() else 0.0
+    print(f"{args.output}: {len(cat)} objects on {len(args.images)} exposures, "
+          f"{int(ok.sum())} galaxies measured (median {k:g} exposures each); "
+          f"{cat.meta['priors']!r}")  # fmt: skip
+    return 0
+
+
 def _measure(args: argparse.Namespace) -> int:
     cfg = _config(args)
     if args.response is not None:
         cfg = cfg.replace(response=args.response)
+    if args.exposures:
+        return _measure_exposures(args, cfg)
     cat = measure(
         args.images, stars=args.stars, weights=args.weights, masks=args.masks,
         catalogues=args.catalogues, star_column=args.star_column, config=cfg,
@@ -377,6 +411,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "'metacal' also measures each galaxy's response on itself "
                    "(metacalibration, with the selection response's columns; five more fits "
                    "of each galaxy); default the configuration's ('model')")  # fmt: skip
+    m.add_argument("--exposures", action="store_true", help="the images are exposures of "
+                   "one field (each with its WCS, WEIGHT HDU and MAGZP zero point): every "
+                   "galaxy fitted jointly on all the exposures that hold it; --stars: one star "
+                   "field per exposure (default each exposure's own stars); --catalogues: one "
+                   "catalogue of sky positions, ra and dec in degrees (default detection on "
+                   "a co-add made for it)")  # fmt: skip
     m.set_defaults(func=_measure)
 
     _add_prior_parser(sub)

@@ -92,11 +92,31 @@ def _convergence(args: argparse.Namespace) -> int:
     return 0
 
 
+def _validate_dither(args: argparse.Namespace) -> int:
+    """``pylensfit validate --dither SET...``."""
+    from .dither_validate import validate_dither  # start-up cost: only for this command
+
+    if args.out:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+    res = validate_dither(args.dither, config=_config(args), out=args.out)
+    for what, t in (("shear per set", res.shears), ("m and c", res.bias),
+                    ("PSF of each exposure against its truth", res.psf)):
+        print(f"\n{what}:")
+        t = t.copy()
+        for c in t.colnames:
+            if t[c].dtype.kind == "f":
+                t[c].info.format = ".4g"
+        t.pprint_all()
+    return 0
+
+
 def _validate(args: argparse.Namespace) -> int:
     from .validate import validate  # start-up cost: only for this command
 
     if args.precision:
         return _precision(args)
+    if args.dither:
+        return _validate_dither(args)
     if args.convergence:
         return _convergence(args)
     cfg = _config(args) if args.config else None
@@ -291,6 +311,12 @@ def add_validate(sub) -> None:
     v.add_argument("--quick", action="store_true",
                    help="simulate small STEP1 and STEP2 sets and validate both (< 10 min with "
                         "--jobs 2; output in --out, default quick_validation)")  # fmt: skip
+    dv = v.add_argument_group("dithered exposures, fitted jointly (no directory needed)")
+    dv.add_argument("--dither", nargs="+", metavar="SET",
+                    help="sets from `pylensfit simulate dither` of one --seed that differ by "
+                         "their --shear: m and c of the joint fit (measure --exposures) and of "
+                         "one exposure alone, and each exposure's PSF against its truth "
+                         "(catalogues in --out)")  # fmt: skip
     _add_precision_args(v)
     cv = v.add_argument_group("convergence study (paper Figure 2), no directory needed")
     cv.add_argument("--convergence", action="store_true",
@@ -359,6 +385,9 @@ def _simulate_parser() -> argparse.ArgumentParser:
     p.add_argument("--exposures", type=int, default=None, metavar="K",
                    help="dither: exposures of the patch (default 5; surveys take 3-8), "
                         "each with its own pointing, WCS, PSF, noise and zero point")
+    p.add_argument("--shear", type=float, nargs=2, default=None, metavar=("G1", "G2"),
+                   help="dither: the shear of the patch, sky frame (default 0 0); sets of "
+                        "the same --seed differ only by it (the same galaxies and noise)")
     return p
 
 
@@ -367,6 +396,8 @@ def _simulate_dither(a: argparse.Namespace) -> int:
     from .dither import DitherSpec, read_dither, simulate_dither  # start-up cost: this command
 
     kw = {"n_exposures": 5 if a.exposures is None else a.exposures, "noise_sigma": a.noise}
+    if a.shear is not None:
+        kw["g1"], kw["g2"] = a.shear
     if a.ngal is not None:
         kw["ngal"] = a.ngal
     if a.star_field_size:
@@ -406,8 +437,8 @@ def simulate_main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     if a.kind == "dither":
         return _simulate_dither(a)
-    if a.exposures is not None:
-        p.error("--exposures is an option of the dither kind")
+    if a.exposures is not None or a.shear is not None:
+        p.error("--exposures and --shear are options of the dither kind")
     if a.ngal is None:
         a.ngal = 20000
     d = simulate_step(

@@ -37,13 +37,23 @@ weights, masks and positions; the up-front checks), :mod:`~pylensfit.images.imag
 :mod:`~pylensfit.images.task` (one image's task and its rows),
 :mod:`~pylensfit.images.parts` (resuming: task keys, part files, temporaries),
 :mod:`~pylensfit.images.passes` (the recipe's glue: calibration and measuring passes,
-the assembly of the rows), :mod:`~pylensfit.images.catalogue_io` (the catalogue's file)
-and :mod:`~pylensfit.images.run` (:func:`measure`). ``pylensfit.pipeline`` re-exports
+the assembly of the rows), :mod:`~pylensfit.images.catalogue_io` (the catalogue's file),
+:mod:`~pylensfit.images.run` (:func:`measure`) and
+:mod:`~pylensfit.images.exposure_set` (:func:`measure_exposures`: the exposures of one
+field, each galaxy fitted jointly on all of them). ``pylensfit.pipeline`` re-exports
 the public names.
 """
 
 
 from .catalogue_io import catalogue_frame, read_catalogue, write_catalogue
+from .exposure_set import (
+    ExposureSet,
+    detection_coadd,
+    jacobian_groups,
+    measure_exposures,
+    read_exposures,
+    read_sky_positions,
+)
 from .image_psf import PSF_SUSPECT_CHI2, PSF_SUSPECT_PVALUE
 from .inputs import InputError
 from .neighbours import NeighbourScene, subtract_neighbours
@@ -51,6 +61,7 @@ from .records import ImageResult, PSFSummary
 from .run import calibrate_images, measure
 
 __all__ = [
+    "ExposureSet",
     "InputError",
     "ImageResult",
     "NeighbourScene",
@@ -59,7 +70,12 @@ __all__ = [
     "PSF_SUSPECT_PVALUE",
     "calibrate_images",
     "catalogue_frame",
+    "detection_coadd",
+    "jacobian_groups",
     "measure",
+    "measure_exposures",
+    "read_exposures",
+    "read_sky_positions",
     "read_catalogue",
     "subtract_neighbours",
     "write_catalogue",

@@ -1,0 +1,504 @@
+"""From the exposures of one field to a shear catalogue, each galaxy fitted jointly on
+every exposure that holds it (:func:`pylensfit.joint.fit_exposures`; lensfit's survey
+version, Miller et al. 2013, arXiv:1210.8201).
+
+:func:`measure_exposures` walks the path:
+
+1. read each exposure (:meth:`pylensfit.exposures.Exposure.from_fits`): image, ``WEIGHT``
+   HDU, celestial WCS (SIP and TPV distortions included) and zero point, which gives the
+   exposure's flux scale against the common unit (the first exposure's zero point unless
+   one is given);
+2. each exposure's PSF: given (a PSF image or a model over the field, one per exposure or
+   one for all), or from its star field (``stars``, one per exposure), or from its own
+   stars, by the single-image pipeline's rules (``Config.psf_model``: a stack, or a
+   polynomial model where the stars show the PSF varying);
+3. the galaxies' sky positions: an input catalogue (``ra, dec`` or ``ALPHA_J2000,
+   DELTA_J2000``, degrees), or detection on a co-add of the exposures made for detection
+   only (:func:`detection_coadd`: each exposure resampled with reproject onto one tangent
+   plane, in the common flux unit, weighted by its inverse variance; the co-add is never
+   fitted);
+4. every galaxy's stamp in every exposure (:func:`pylensfit.exposures.cut_exposures`); an
+   exposure where the galaxy is off the image, on its edge, on a masked or zero-weight
+   centre or a chip gap drops out of that galaxy's fit alone;
+5. the joint fit and the shapes under the priors
+   (:func:`pylensfit.calibration.measure_exposure_stamps`), by groups of galaxies
+   whose WCS Jacobians agree within 1e-4 in every exposure (:func:`jacobian_groups`:
+   one Jacobian per exposure and group), the priors
+   given or estimated from the set's own joint fits
+   (:func:`pylensfit.calibration.calibrate_exposures`);
+6. the catalogue: one row per position, shapes in the sky frame, ``n_exposures`` and
+   ``exposures_used`` saying which exposures each galaxy's fit used, written atomically.
+
+Neighbours are flagged (``CLOSE_PAIR``, from the positions), not subtracted.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import astropy.units as u
+import numpy as np
+from astropy.table import Table, vstack
+from astropy.wcs import WCS
+
+from ..calibration import Priors, calibrate_exposures, measure_exposure_stamps
+from ..catalogue import COLUMNS
+from ..config import Config
+from ..detection import close_pairs, detect
+from ..exposures import Exposure, cut_exposures, local_jacobian, sky_to_pixel
+from ..flags import FLAGS
+from ..psf import PSFResult
+from ..psfmodel import PSFModel
+from .catalogue_io import write_catalogue
+from .image_psf import starfield_task
+from .inputs import InputError, check_inputs, load_given, open_input, read_given_psfs
+from .records import StarfieldTask
+
+log = logging.getLogger(__name__)
+
+__all__ = ["ExposureSet", "detection_coadd", "jacobian_groups", "measure_exposures",
+           "read_exposures", "read_sky_positions"]  # fmt: skip
+
+@dataclass(frozen=True)
+class ExposureSet:
+    """The exposures of one field, read, with their PSFs.
+
+    Attributes
+    ----------
+    exposures : list of pylensfit.exposures.Exposure
+        In the order given; ``Exposure.psf`` set.
+    paths : list of str
+        Their files.
+    zero_point : float or None
+        The common flux unit's zero point (magnitudes), None where the files have none.
+    psf_sources : list of str
+        Where each exposure's PSF came from, in words.
+    psf_suspect : numpy.ndarray
+        ``(K,)`` bool: the exposure's PSF model fails its check on held-out stars (the
+        rows fitted with it are flagged ``PSF_SUSPECT``).
+    """
+
+    exposures: list[Exposure]
+    paths: list[str]
+    zero_point: float | None
+    psf_sources: list[str]
+    psf_suspect: np.ndarray
+
+
+def _zero_point(path: str, key: str) -> float | None:
+    """The zero point card of ``path``'s first HDU, or None."""
+    with open_input(path, "exposure") as h:
+        v = h[0].header.get(key)
+    return None if v is None else float(v)
+
+
+def _psf_of(k: int, path: str, star_field: str | None, given, cfg: Config):
+    """Exposure ``k``'s PSF (an image or a model with ``draw``) and its source."""
+    if given is not None:
+        if isinstance(given, PSFModel):
+            return given, "given model"
+        return (given.image if isinstance(given, PSFResult) else np.asarray(given)), "given"
+    src = star_field if star_field is not None else path
+    try:
+        res = starfield_task(StarfieldTask(path=src, index=k, config=cfg))
+    except InputError as err:
+        what = "its star field" if star_field is not None else "its own stars"
+        raise InputError(f"{path}: no PSF from {what} ({err})") from None
+    kind = "polynomial model" if isinstance(res, PSFModel) else "stack"
+    where = "star field" if star_field is not None else "exposure's stars"
+    return (res if isinstance(res, PSFModel) else res.image), f"{kind} of the {where}"
+
+
+def read_exposures(paths: Sequence[str], *, stars: Sequence[str] | None = None, psf=None,
+                   config: Config | None = None, reference_zero_point: float | None = None,
+                   zero_point_key: str = "MAGZP") -> ExposureSet:  # fmt: skip
+    """Read the exposures of a field and find each one's PSF.
+
+    Parameters
+    ----------
+    paths : sequence of str
+        The exposures' FITS files (image in the first HDU with a celestial WCS, inverse
+        variance in a ``WEIGHT`` HDU if present, zero point in ``zero_point_key``).
+    stars : sequence of str, optional
+        One star-field image per exposure, for its PSF (default: the exposure's own
+        stars).
+    psf : optional
+        The PSFs instead: a FITS image or PSF model file, a ``PSFResult``, a
+        ``PSFModel`` or an array, for every exposure or one per exposure.
+    config : Config, optional
+        ``psf_model``, ``psf_order``, ``psf_min_stars`` and the star selection's
+        settings (default ``Config()``).
+    reference_zero_point : float, optional
+        The common flux unit's zero point, magnitudes (default: the first exposure's).
+    zero_point_key : str
+        The zero point's header card.
+
+    Returns
+    -------
+    ExposureSet
+        The exposures; each galaxy's flux is in the common unit.
+
+    Raises
+    ------
+    InputError
+        One line naming the file and the problem (missing, unreadable, no WCS, no PSF).
+    """
+    cfg = config if config is not None else Config()
+    paths = [os.fspath(p) for p in paths]
+    stars = [os.fspath(s) for s in stars] if stars else []
+    if not paths:
+        raise InputError("no exposure given")
+    if stars and len(stars) != len(paths):
+        raise InputError(f"stars: {len(stars)} star field(s) for {len(paths)} exposures "
+                         "(give one per exposure, or none)")  # fmt: skip
+    check_inputs(paths, [None] * len(paths), [None] * len(paths), stars)
+    given = read_given_psfs(psf, paths) or [None] * len(paths)
+    zp = reference_zero_point
+    if zp is None:
+        zp = _zero_point(paths[0], zero_point_key)
+    exposures, sources, suspect = [], [], []
+    for k, p in enumerate(paths):
+        image_psf, source = _psf_of(k, p, stars[k] if stars else None, given[k], cfg)
+        suspect.append(isinstance(image_psf, PSFModel)
+                       and image_psf.diagnostics.get("heldout_suspect") == 1.0)  # fmt: skip
+        try:
+            e = Exposure.from_fits(p, psf=image_psf, zero_point_key=zero_point_key,
+                                   reference_zero_point=zp)  # fmt: skip
+        except ValueError as err:
+            raise InputError(str(err) if str(err).startswith(p) else f"{p}: {err}") from None
+        exposures.append(e)
+        sources.append(source)
+    return ExposureSet(exposures=exposures, paths=paths, zero_point=zp, psf_sources=sources,
+                       psf_suspect=np.array(suspect, bool))  # fmt: skip
+
+
+def detection_coadd(exposures: Sequence[Exposure]) -> tuple[np.ndarray, np.ndarray, WCS]:
+    """The exposures co-added for detection only: common flux unit, inverse-variance
+    weights, on a tangent plane that covers them all.
+
+    Each exposure's background-subtracted image, divided by its flux scale, and its
+    weight times the flux scale squared are resampled bilinearly (reproject) onto the
+    plane; the co-add is ``sum w d / sum w`` and its weight ``sum w``. Resampling
+    correlates the noise, so the weight is a detection threshold's guide, not the
+    co-add's true variance (the co-add is never fitted).
+
+    Parameters
+    ----------
+    exposures : sequence of pylensfit.exposures.Exposure
+        The exposures.
+
+    Returns
+    -------
+    tuple
+        ``(image, weight, wcs)``: the co-add (common flux unit per pixel), its weight
+        (0 where no exposure has data) and its WCS.
+    """
+    # reproject: the field's library for co-adds, needed by this step alone
+    from reproject import reproject_interp
+    from reproject.mosaicking import find_optimal_celestial_wcs
+
+    scale = np.sqrt(abs(np.linalg.det(exposures[0].wcs.celestial.pixel_scale_matrix)))
+    wcs, shape = find_optimal_celestial_wcs([(e.shape, e.wcs.celestial) for e in exposures],
+                                            resolution=float(scale) * u.deg)  # fmt: skip
+    num = np.zeros(shape)
+    den = np.zeros(shape)
+    for e in exposures:
+        w = (np.asarray(e.weight, float) if e.weight is not None
+             else np.full(e.shape, 1.0 / max(e.noise_sigma or 1.0, 1e-30) ** 2))  # fmt: skip
+        w = np.where(e.good() & np.isfinite(e.image), w * e.flux_scale**2, 0.0)
+        d = np.where(w > 0, (np.asarray(e.image) - e.background) / e.flux_scale, 0.0)
+        rd, fp = reproject_interp((d * w, e.wcs.celestial), wcs, shape, order="bilinear")
+        rw, _ = reproject_interp((w, e.wcs.celestial), wcs, shape, order="bilinear")
+        ok = (fp > 0) & np.isfinite(rd) & np.isfinite(rw) & (rw > 0)
+        num += np.where(ok, rd, 0.0)
+        den += np.where(ok, rw, 0.0)
+    image = np.divide(num, den, out=np.zeros(shape), where=den > 0)
+    return image, den, wcs
+
+
+def read_sky_positions(path: str) -> Table:
+    """An input catalogue of sky positions: ``ra, dec`` or ``ALPHA_J2000, DELTA_J2000``
+    (degrees); its other columns are kept.
+
+    Raises
+    ------
+    InputError
+        One line naming the file: missing, unreadable, empty, or without the columns.
+    """
+    try:
+        t = Table.read(path)
+    except FileNotFoundError:
+        raise InputError(f"{path}: input catalogue not found") from None
+    except Exception as err:  # astropy raises many kinds for a file it cannot read
+        raise InputError(f"{path}: cannot read the input catalogue ({err})") from None
+    if len(t) == 0:
+        raise InputError(f"{path}: empty input catalogue")
+    names = {c.lower(): c for c in t.colnames}
+    pair = next(((names[a], names[b]) for a, b in (("ra", "dec"), ("alpha_j2000", "delta_j2000"))
+                 if a in names and b in names), None)  # fmt: skip
+    if pair is None:
+        raise InputError(f"{path}: input catalogue needs columns ra, dec or ALPHA_J2000, "
+                         "DELTA_J2000 (degrees)")  # fmt: skip
+    out = Table()
+    try:
+        out["ra"] = np.asarray(t[pair[0]], dtype=float)
+        out["dec"] = np.asarray(t[pair[1]], dtype=float)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{path}: the sky positions are not numbers ({err})") from None
+    for c in t.colnames:
+        if c not in pair and c not in out.colnames:
+            out[c] = t[c]
+    return out
+
+
+def detect_positions(coadd: tuple[np.ndarray, np.ndarray, WCS], cfg: Config) -> Table:
+    """The objects detected on the co-add (:func:`detection_coadd`), with ``ra, dec``
+    (degrees) and the detection's photometry (:func:`pylensfit.detection.detect`)."""
+    image, weight, wcs = coadd
+    det = detect(image, weight=weight, mask=weight <= 0, threshold=cfg.detect_threshold,
+                 min_area=cfg.detect_min_area, stamp_size=cfg.stamp_size)  # fmt: skip
+    if len(det) == 0:
+        raise InputError("the co-add of the exposures: no object detected")
+    sky = wcs.pixel_to_world(np.asarray(det["x"]), np.asarray(det["y"]))
+    out = Table()
+    out["ra"] = sky.spherical.lon.deg
+    out["dec"] = sky.spherical.lat.deg
+    for c in ("flux", "flux_err", "snr", "r_half", "mag"):
+        if c in det.colnames:
+            out[c] = det[c]
+    out["x_coadd"], out["y_coadd"] = det["x"], det["y"]
+    return out
+
+
+def jacobian_groups(exposures: Sequence[Exposure], ra, dec, tolerance: float) -> np.ndarray:
+    """Group the positions whose local WCS Jacobians agree within ``tolerance`` in every
+    exposure, so that one Jacobian per exposure serves each group.
+
+    Each exposure's Jacobian at a position, relative to the exposure's median one,
+    ``J J_med^-1 - I``, is rounded to multiples of ``tolerance``; positions with the same
+    rounded matrices in every exposure form a group. Within a group each exposure's
+    Jacobians differ by less than ``tolerance`` per element, which changes a model's
+    ellipticity by about as much (:func:`pylensfit.joint.fit_views`). A TAN projection
+    varies by 1e-6 over 5 arcmin: a field without distortion is one group.
+
+    Parameters
+    ----------
+    exposures : sequence of pylensfit.exposures.Exposure
+        The exposures.
+    ra, dec : array_like
+        The positions, degrees.
+    tolerance : float
+        The largest relative difference of the Jacobians within a group.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n,)`` int group labels; positions without a finite Jacobian in some exposure
+        are rounded there as if they had the median one.
+    """
+    keys = []
+    for e in exposures:
+        J = local_jacobian(e.wcs, ra, dec)
+        ok = np.all(np.isfinite(J), axis=(1, 2))
+        med = np.median(J[ok], axis=0) if ok.any() else np.eye(2)
+        D = np.where(ok[:, None, None], J @ np.linalg.inv(med) - np.eye(2), 0.0)
+        keys.append(np.round(D.reshape(len(J), 4) / tolerance).astype(np.int64))
+    return np.unique(np.concatenate(keys, axis=1), axis=0, return_inverse=True)[1].ravel()
+
+
+def _sample(n_ok: np.ndarray, size: int, seed: int) -> np.ndarray:
+    """A seeded draw of at most ``size`` of the indices ``n_ok``, in order."""
+    if n_ok.size <= size:
+        return n_ok
+    return np.sort(np.random.default_rng(seed).choice(n_ok, size, replace=False))
+
+
+def _calibrate(eset: ExposureSet, ra, dec, usable: np.ndarray, tolerance: float,
+               cfg: Config) -> Priors:  # fmt: skip
+    """The priors of the set's own joint fits, on a seeded sample of the positions of its
+    largest group of one Jacobian per exposure (:func:`jacobian_groups`)."""
+    groups = np.full(len(ra), -1)
+    if usable.any():
+        groups[usable] = jacobian_groups(eset.exposures, ra[usable], dec[usable], tolerance)
+    largest = np.bincount(groups[usable]).argmax() if usable.any() else 0
+    idx = _sample(np.flatnonzero(usable & (groups == largest)), cfg.calibration_sample,
+                  cfg.calibration_seed)  # fmt: skip
+    if idx.size == 0:
+        raise InputError(f"{eset.paths[0]}: no position to calibrate the priors on")
+    views = cut_exposures(eset.exposures, ra[idx], dec[idx], size=cfg.stamp_size)
+    log.info("calibrating the priors on the joint fits of %d of %d positions", idx.size,
+             len(ra))  # fmt: skip
+    return calibrate_exposures(views, config=cfg)
+
+
+def _positions(eset: ExposureSet, catalogue: str | None, cfg: Config) -> Table:
+    """The input catalogue's sky positions, or the co-add's detections."""
+    if catalogue is not None:
+        return read_sky_positions(os.fspath(catalogue))
+    return detect_positions(detection_coadd(eset.exposures), cfg)
+
+
+def _nowhere(ra: np.ndarray, dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The positions, those not finite put 30 degrees from the others (on no exposure,
+    where they are cut and fitted with nothing and flagged ``NOT_MEASURED``)."""
+    lost = ~(np.isfinite(ra) & np.isfinite(dec))
+    if not lost.any():
+        return ra, dec
+    d0 = float(np.mean(dec[~lost])) if (~lost).any() else 0.0
+    r0 = float(np.mean(ra[~lost])) if (~lost).any() else 0.0
+    return np.where(lost, r0, ra), np.where(lost, d0 - 30.0 if d0 > 0 else d0 + 30.0, dec)
+
+
+def _measure_groups(eset: ExposureSet, ra, dec, tolerance: float, chunk: int,
+                    priors: Priors, cfg: Config) -> Table:  # fmt: skip
+    """Every position measured, by groups of one Jacobian per exposure and chunks of at
+    most ``chunk`` positions, in the input order."""
+    ra, dec = _nowhere(ra, dec)
+    labels = jacobian_groups(eset.exposures, ra, dec, tolerance)
+    parts, order = [], []
+    for lab in np.unique(labels):
+        members = np.flatnonzero(labels == lab)
+        for idx in np.array_split(members, -(-members.size // chunk)):
+            views = cut_exposures(eset.exposures, ra[idx], dec[idx], size=cfg.stamp_size)
+            parts.append(measure_exposure_stamps(views, priors=priors, config=cfg))
+            order.append(idx)
+    t = vstack(parts, metadata_conflicts="silent")
+    t = t[np.argsort(np.concatenate(order), kind="stable")]
+    t.meta.update(parts[0].meta)
+    return t
+
+
+def _catalogue(t: Table, pos: Table, eset: ExposureSet, pairs: np.ndarray,
+               cfg: Config) -> Table:  # fmt: skip
+    """The catalogue's columns about the measured table ``t`` (input order)."""
+    n = len(t)
+    ra, dec = np.asarray(pos["ra"], float), np.asarray(pos["dec"], float)
+    lost = ~(np.isfinite(ra) & np.isfinite(dec))
+    flags = np.asarray(t["flags"], np.int64)
+    flags |= np.where(lost, FLAGS["BAD_POSITION"][0] | FLAGS["NOT_MEASURED"][0], 0)
+    flags |= np.where(pairs & ~lost, FLAGS["CLOSE_PAIR"][0], 0)
+    suspect_bits = int(np.sum(np.left_shift(1, np.flatnonzero(eset.psf_suspect))))
+    suspect = (np.asarray(t["exposures_used"], np.int64) & suspect_bits) != 0
+    flags |= np.where(suspect, FLAGS["PSF_SUSPECT"][0], 0)
+    out = Table()
+    out["id"] = np.arange(1, n + 1)
+    out["image"] = np.full(n, Path(eset.paths[0]).name)
+    out["object_id"] = out["id"]
+    out["ALPHA_J2000"], out["DELTA_J2000"] = _fitted_sky(t, ra, dec, eset)
+    for c in t.colnames:
+        if c not in out.colnames and c not in ("x", "y", "x_detect", "y_detect"):
+            out[c] = t[c]
+    out["flags"] = flags.astype(np.int32)
+    added = (flags & ~np.asarray(t["flags"], np.int64)) != 0  # the bits given here
+    out["weight"] = np.where(added, 0.0, np.asarray(t["weight"], float))
+    for c in ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2"):
+        out[c] = np.where(added, np.nan, np.asarray(out[c], float))
+    for c in out.colnames:
+        if c in COLUMNS:
+            out[c].unit, out[c].description = COLUMNS[c][0] or None, COLUMNS[c][1]
+    out.meta.update(t.meta)
+    out.meta.update(config=cfg, frame="sky", exposures=list(eset.paths),
+                    psf_sources=list(eset.psf_sources))  # fmt: skip
+    return out
+
+
+def _fitted_sky(t: Table, ra: np.ndarray, dec: np.ndarray,
+                eset: ExposureSet) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The fitted sky position: the fitted centre (``x, y`` in the pixels of each row's
+    first used exposure) through that exposure's WCS; the catalogue's where none."""
+    used = np.asarray(t["exposures_used"], np.int64)
+    first = np.where(used > 0, np.log2(np.maximum(used & -used, 1)).astype(int), -1)
+    x, y = np.asarray(t["x"], float), np.asarray(t["y"], float)
+    ra_f, dec_f = ra.copy(), dec.copy()
+    for k, e in enumerate(eset.exposures):
+        rows = (first == k) & np.isfinite(x) & np.isfinite(y)
+        if rows.any():
+            sky = e.wcs.celestial.pixel_to_world(x[rows], y[rows])
+            ra_f[rows], dec_f[rows] = sky.spherical.lon.deg, sky.spherical.lat.deg
+    return ra_f, dec_f
+
+
+def measure_exposures(
+    exposures: Sequence[str], *, stars: Sequence[str] | None = None,
+    catalogue: str | None = None, psf=None, priors: Priors | str | None = None,
+    config: Config | None = None, output: str | os.PathLike | None = None,
+    overwrite: bool = False, jacobian_tolerance: float = 1e-4, chunk: int = 2000,
+    reference_zero_point: float | None = None,
+) -> Table:
+    """Shapes of the galaxies of one field, each fitted jointly on all of its exposures.
+
+    The path of the module docstring: exposures read, each one's PSF, the positions (an
+    input catalogue or the co-add's detections), the stamps, the joint fits under the
+    priors (given, or estimated from the set's own joint fits on a sample of
+    ``Config.calibration_sample`` positions), the catalogue.
+
+    Parameters
+    ----------
+    exposures : sequence of str
+        The exposures' FITS files (:func:`read_exposures`).
+    stars : sequence of str, optional
+        One star-field image per exposure, for its PSF.
+    catalogue : str, optional
+        An input catalogue of sky positions (:func:`read_sky_positions`) instead of
+        detection on the co-add.
+    psf : optional
+        The PSFs instead of the stars' (:func:`read_exposures`).
+    priors : Priors or str, optional
+        Every prior (or a saved one's path, ``Priors.save``); default estimated here.
+    config : Config, optional
+        Settings (default ``Config()``); ``stamp_size`` is each exposure's stamp side.
+    output : str, optional
+        Write the catalogue here (FITS, atomically; :func:`pylensfit.write_catalogue`).
+    overwrite : bool
+        Replace an existing ``output``.
+    jacobian_tolerance : float
+        The galaxies fitted together, with one WCS Jacobian per exposure, have Jacobians
+        within this relative difference in every exposure (:func:`jacobian_groups`).
+    chunk : int
+        The most galaxies cut and fitted at a time (memory: ``chunk`` x exposures x
+        ``stamp_size^2`` x 8 bytes of stamps, and as much of PSF images).
+    reference_zero_point : float, optional
+        The common flux unit's zero point (default: the first exposure's).
+
+    Returns
+    -------
+    astropy.table.Table
+        One row per position, in the catalogue's order: ``ALPHA_J2000, DELTA_J2000``
+        (the fitted position), the shapes in the sky frame (``e1, e2``, their covariance,
+        ``sens1, sens2``), ``weight``, ``flags`` (``CLOSE_PAIR`` where another position
+        lies within a stamp; ``BAD_POSITION`` for a non-finite input position;
+        ``NOT_MEASURED`` where no exposure is usable), ``n_exposures``,
+        ``exposures_used`` and the fit's columns; ``lnL`` per row. ``meta``: ``egrid``,
+        ``priors``, ``exposures``, ``psf_sources``.
+
+    Raises
+    ------
+    InputError
+        One line naming the file and the problem, before any output is written.
+    FileExistsError
+        If ``output`` exists and ``overwrite`` is false.
+    """
+    cfg = config if config is not None else Config()
+    if output is not None and Path(output).exists() and not overwrite:
+        raise FileExistsError(f"{output}: output exists (use --overwrite to replace it)")
+    if priors is not None:
+        priors = load_given(priors, Priors, "priors")
+    eset = read_exposures(exposures, stars=stars, psf=psf, config=cfg,
+                          reference_zero_point=reference_zero_point)  # fmt: skip
+    pos = _positions(eset, catalogue, cfg)
+    ra, dec = np.asarray(pos["ra"], float), np.asarray(pos["dec"], float)
+    x0, y0 = sky_to_pixel(eset.exposures[0].wcs, ra, dec)
+    ok = np.isfinite(x0) & np.isfinite(y0)
+    pairs = np.zeros(len(pos), bool)
+    pairs[ok] = close_pairs(x0[ok], y0[ok], stamp_size=cfg.stamp_size)
+    if priors is None:
+        priors = _calibrate(eset, ra, dec, ok & ~pairs, jacobian_tolerance, cfg)
+    t = _measure_groups(eset, ra, dec, jacobian_tolerance, chunk, priors, cfg)
+    cat = _catalogue(t, pos, eset, pairs, cfg)
+    if output is not None:
+        write_catalogue(cat, output, overwrite=overwrite)
+    return cat

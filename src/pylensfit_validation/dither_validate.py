@@ -1,0 +1,180 @@
+"""The joint fit of dithered exposures validated: shear bias from sets that differ only
+by their shear, the same galaxies on one exposure beside it, each exposure's PSF
+against its truth.
+
+Sets written by :func:`pylensfit_validation.dither.simulate_dither` with the same seed
+and spec but for the shear (``pylensfit simulate dither --seed S --shear G1 G2``) hold
+the same galaxies, exposures and noise: their shear estimates differ by the response to
+the shear, most of the shape noise and the noise cancels in ``m`` and ``c``.
+
+Every set is measured with :func:`pylensfit.measure_exposures` under one set of priors,
+estimated from the first set's own joint fits, and with :func:`pylensfit.measure` on one
+of its exposures alone (its star field's PSF; priors from that exposure of the first
+set). The shear of each set is :func:`pylensfit.estimate_shear` of every usable row,
+nothing matched to the truth. ``m`` and ``c`` per component are the least-squares line
+of the measured against the true shears (weighted by the sets' errors, which treat the
+sets as independent: an upper bound for paired sets).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from astropy.table import Table
+
+from pylensfit import Config, calibrate_images, estimate_shear, measure, measure_exposures
+from pylensfit.calibration import calibrate_exposures
+from pylensfit.exposures import cut_exposures
+from pylensfit.images import read_exposures
+
+from .dither import DitherSet, read_dither
+from .galaxies import PSFProfile
+
+log = logging.getLogger(__name__)
+
+__all__ = ["DitherValidation", "psf_residuals", "validate_dither"]
+
+
+@dataclass
+class DitherValidation:
+    """The result of :func:`validate_dither`.
+
+    Attributes
+    ----------
+    shears : astropy.table.Table
+        One row per set and method: ``set``, ``method`` (``joint K``, ``exposure k``),
+        the true ``g1_true, g2_true``, the estimates ``g1, g2`` with ``g1_err, g2_err``,
+        ``n`` usable rows.
+    bias : astropy.table.Table
+        One row per method: ``m1, c1, m2, c2`` and their errors (NaN where the sets do
+        not span two values of the component).
+    psf : astropy.table.Table
+        One row per exposure of the first set: the PSF used against the true one
+        (:func:`psf_residuals`).
+    """
+
+    shears: Table
+    bias: Table
+    psf: Table
+
+
+def psf_residuals(s: DitherSet, config: Config | None = None) -> Table:
+    """Each exposure's PSF as the pipeline finds it (from its star field) against the
+    true one: adaptive-moment ellipticity (pixel frame) and size differences.
+
+    Returns
+    -------
+    astropy.table.Table
+        ``exposure, e1_true, e2_true, de1, de2, dsigma`` (``dsigma``: relative size
+        difference ``sigma / sigma_true - 1``).
+    """
+    # GalSim: the independent renderer of the true PSF and its moments
+    import galsim
+
+    cfg = config if config is not None else Config()
+    eset = read_exposures([str(s.path(k)) for k in range(len(s.exposures))],
+                          stars=[str(s.star_path(k)) for k in range(len(s.exposures))],
+                          config=cfg)  # fmt: skip
+    rows = []
+    for k, (e, ex) in enumerate(zip(s.exposures, eset.exposures, strict=True)):
+        img = ex.psf if isinstance(ex.psf, np.ndarray) else ex.psf.draw(
+            np.array([ex.shape[1] / 2.0]), np.array([ex.shape[0] / 2.0]))[0]  # fmt: skip
+        n = img.shape[0]
+        true = PSFProfile("moffat", e.psf_fwhm, s.spec.psf_beta, e.psf_e1, e.psf_e2).galsim()
+        ti = true.drawImage(nx=n, ny=n, scale=1.0)
+        m = galsim.hsm.FindAdaptiveMom(galsim.ImageD(np.asarray(img, float)))
+        mt = galsim.hsm.FindAdaptiveMom(ti)
+        g, gt = m.observed_shape, mt.observed_shape
+        rows.append((k, gt.g1, gt.g2, g.g1 - gt.g1, g.g2 - gt.g2,
+                     m.moments_sigma / mt.moments_sigma - 1.0))  # fmt: skip
+    return Table(rows=rows, names=("exposure", "e1_true", "e2_true", "de1", "de2", "dsigma"))
+
+
+def _joint_priors(s: DitherSet, cfg: Config):
+    """The priors of the first set's joint fits, at its truth positions."""
+    eset = read_exposures([str(s.path(k)) for k in range(len(s.exposures))],
+                          stars=[str(s.star_path(k)) for k in range(len(s.exposures))],
+                          config=cfg)  # fmt: skip
+    views = cut_exposures(eset.exposures, s.truth["ra"], s.truth["dec"], size=cfg.stamp_size)
+    return calibrate_exposures(views, config=cfg)
+
+
+def _shear_row(name: str, method: str, s: DitherSet, cat: Table) -> tuple:
+    est = estimate_shear(cat)
+    n = int(np.sum(np.asarray(cat["weight"]) > 0))
+    return (name, method, s.spec.g1, s.spec.g2, est.g1, est.g1_err, est.g2, est.g2_err, n)
+
+
+def _line(x: np.ndarray, y: np.ndarray, err: np.ndarray) -> tuple[float, float, float, float]:
+    """``m, m_err, c, c_err`` of ``y - x = m x + c`` (weights ``1 / err^2``)."""
+    if np.unique(np.round(x, 12)).size < 2:
+        return (np.nan,) * 4
+    w = 1.0 / np.maximum(err, 1e-12) ** 2
+    A = np.column_stack([x, np.ones_like(x)])
+    cov = np.linalg.inv(A.T @ (A * w[:, None]))
+    m, c = cov @ (A.T @ (w * (y - x)))
+    return float(m), float(np.sqrt(cov[0, 0])), float(c), float(np.sqrt(cov[1, 1]))
+
+
+def _bias(shears: Table) -> Table:
+    rows = []
+    for method in dict.fromkeys(shears["method"]):
+        t = shears[shears["method"] == method]
+        r1 = _line(np.asarray(t["g1_true"]), np.asarray(t["g1"]), np.asarray(t["g1_err"]))
+        r2 = _line(np.asarray(t["g2_true"]), np.asarray(t["g2"]), np.asarray(t["g2_err"]))
+        rows.append((method, *r1, *r2, int(np.sum(t["n"]))))
+    return Table(rows=rows, names=("method", "m1", "m1_err", "c1", "c1_err", "m2", "m2_err",
+                                   "c2", "c2_err", "n"))  # fmt: skip
+
+
+def validate_dither(directories: Sequence[str | Path], *, config: Config | None = None,
+                    exposure: int | None = 0, out: str | Path | None = None,
+                    ) -> DitherValidation:  # fmt: skip
+    """Shear bias of the joint fit on dithered sets that differ by their shear, the same
+    galaxies on one exposure beside it, and each exposure's PSF against its truth.
+
+    Parameters
+    ----------
+    directories : sequence of str or pathlib.Path
+        Sets of one seed and spec, differing only by the shear (module docstring).
+    config : Config, optional
+        Settings (default ``Config()``).
+    exposure : int or None
+        The exposure measured alone beside the joint fit (None: none).
+    out : str or pathlib.Path, optional
+        Directory for the catalogues (``<set>_joint.fits``, ``<set>_exp<k>.fits``).
+
+    Returns
+    -------
+    DitherValidation
+        The shears per set and method, ``m`` and ``c`` per method, the PSF residuals.
+    """
+    cfg = config if config is not None else Config()
+    sets = [read_dither(d) for d in directories]
+    priors = _joint_priors(sets[0], cfg)
+    single = None
+    if exposure is not None:
+        single = calibrate_images([str(sets[0].path(exposure))],
+                                  stars=[str(sets[0].star_path(exposure))], config=cfg,
+                                  progress=False)  # fmt: skip
+    rows = []
+    for s in sets:
+        name = s.directory.name
+        paths = [str(s.path(k)) for k in range(len(s.exposures))]
+        stars = [str(s.star_path(k)) for k in range(len(s.exposures))]
+        o = None if out is None else Path(out) / f"{name}_joint.fits"
+        cat = measure_exposures(paths, stars=stars, priors=priors, config=cfg, output=o,
+                                overwrite=True)  # fmt: skip
+        rows.append(_shear_row(name, f"joint {len(paths)}", s, cat))
+        if single is not None:
+            o = None if out is None else Path(out) / f"{name}_exp{exposure}.fits"
+            one = measure([paths[exposure]], stars=[stars[exposure]], priors=single,
+                          config=cfg, output=o, overwrite=True, progress=False)  # fmt: skip
+            rows.append(_shear_row(name, f"exposure {exposure}", s, one))
+    shears = Table(rows=rows, names=("set", "method", "g1_true", "g2_true", "g1", "g1_err",
+                                     "g2", "g2_err", "n"))  # fmt: skip
+    return DitherValidation(shears=shears, bias=_bias(shears), psf=psf_residuals(sets[0], cfg))

@@ -1,0 +1,167 @@
+"""``measure_exposures`` / ``pylensfit measure --exposures``: the exposures of one field
+from FITS to a catalogue, each galaxy fitted jointly on every exposure that holds it.
+
+A small dithered set (three exposures, each with its own pointing, rotation, pixel scale,
+seeing, PSF ellipticity, noise, zero point and chip gap; one flipped) of bright galaxies,
+PSFs from each exposure's star field."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from astropy.coordinates import SkyCoord
+from astropy.io import fits
+from astropy.table import Table
+
+import pylensfit as plf
+from pylensfit import Config, Priors, measure_exposures
+from pylensfit.cli import main
+from pylensfit.flags import FLAGS
+from pylensfit_validation.dither import DitherSpec, read_dither, simulate_dither
+
+pytest.importorskip("galsim")
+
+SPEC = DitherSpec(n_exposures=3, ngal=25, snr_range=(200.0, 300.0), size_range=(0.3, 0.5),
+                  spacing=10.0, star_field_size=160, g1=0.0, g2=0.0)
+CFG = Config()
+
+
+@pytest.fixture(scope="module")
+def dset(tmp_path_factory):
+    return read_dither(simulate_dither(tmp_path_factory.mktemp("dx"), SPEC, seed=11))
+
+
+def _files(s):
+    k = range(len(s.exposures))
+    return [str(s.path(i)) for i in k], [str(s.star_path(i)) for i in k]
+
+
+@pytest.fixture(scope="module")
+def from_truth(dset, tmp_path_factory):
+    """The truth's positions as an input catalogue, with a row without a position and
+    one off every exposure; the priors' defaults (no calibration: 25 galaxies)."""
+    t = dset.truth
+    ra = np.concatenate([t["ra"], [np.nan, t["ra"][0] + 1.0]])
+    dec = np.concatenate([t["dec"], [np.nan, t["dec"][0]]])
+    path = tmp_path_factory.mktemp("cat") / "positions.fits"
+    Table({"ra": ra, "dec": dec}).write(path)
+    exps, stars = _files(dset)
+    return measure_exposures(exps, stars=stars, catalogue=str(path), priors=Priors(),
+                             config=CFG), path  # fmt: skip
+
+
+def test_every_position_leaves_a_row(from_truth, dset):
+    cat, _ = from_truth
+    n = len(dset.truth)
+    assert len(cat) == n + 2
+    assert cat["flags"][n] & FLAGS["BAD_POSITION"][0]
+    assert cat["flags"][n + 1] & FLAGS["NOT_MEASURED"][0] and cat["n_exposures"][n + 1] == 0
+    assert np.all(cat["weight"][n:] == 0) and np.all(np.isnan(cat["e1"][n:]))
+    assert np.sum(cat["weight"][:n] > 0) >= n - 2
+    assert cat.meta["frame"] == "sky" and len(cat.meta["exposures"]) == 3
+
+
+def test_an_exposure_where_a_galaxy_is_on_the_gap_drops_out_alone(from_truth, dset):
+    """The truth says which exposures have data at each galaxy's centre: the joint fit
+    uses those exposures (``exposures_used``) and the galaxy is measured from them."""
+    cat, _ = from_truth
+    n = len(dset.truth)
+    on = np.zeros((3, n), bool)
+    for k in range(3):
+        with fits.open(dset.path(k)) as h:
+            on[k] = np.asarray(h["TRUTH"].data["on_data"], bool)
+    used = np.asarray(cat["exposures_used"][:n])
+    bits = np.array([(used >> k) & 1 for k in range(3)], bool)
+    # an exposure used always has data at the centre; edge and gap cuts may drop more
+    assert not np.any(bits & ~on)
+    dropped = (on.sum(axis=0) < 3) & (on.sum(axis=0) > 0)
+    assert dropped.any(), "the set should put a galaxy on a chip gap"
+    assert np.all(cat["n_exposures"][:n] == bits.sum(axis=0))
+    assert np.all(cat["weight"][:n][dropped & (bits.sum(axis=0) > 0)] > 0)
+
+
+def test_the_shapes_are_those_of_the_sky(from_truth, dset):
+    """Bright galaxies: the sky-frame posterior means follow the true sheared shapes with
+    slope ~1 on both components, through rotated, rescaled and flipped exposures (a
+    shape left in an exposure's pixel frame gives slope ~-1 on e2 under the flip and a
+    scatter of the rotation's)."""
+    cat, _ = from_truth
+    n = len(dset.truth)
+    ok = np.asarray(cat["weight"][:n]) > 0
+    for c in ("e1", "e2"):
+        x, y = np.asarray(dset.truth[c])[ok], np.asarray(cat[c][:n])[ok]
+        slope, icpt = np.polyfit(x, y, 1)
+        assert 0.8 < slope < 1.2 and abs(icpt) < 0.03, (c, slope, icpt)
+        assert np.median(np.abs(y - x)) < 0.06, c
+
+
+def test_detection_on_the_coadd_finds_every_galaxy(dset, tmp_path):
+    exps, stars = _files(dset)
+    out = tmp_path / "cat.fits"
+    # a high threshold: the test is of the co-add's path, not of fitting noise peaks
+    cat = measure_exposures(exps, stars=stars, priors=Priors(),
+                            config=CFG.replace(detect_threshold=4.0), output=out)  # fmt: skip
+    t = dset.truth
+    a = SkyCoord(cat["ALPHA_J2000"], cat["DELTA_J2000"], unit="deg")
+    b = SkyCoord(t["ra"], t["dec"], unit="deg")
+    _, sep, _ = b.match_to_catalog_sky(a)
+    assert np.all(sep.arcsec < 0.3)
+    back = plf.read_catalogue(out)
+    assert len(back) == len(cat) and "n_exposures" in back.colnames
+
+
+def test_the_command_line(dset, tmp_path, capsys, from_truth):
+    exps, stars = _files(dset)
+    _, positions = from_truth
+    priors = tmp_path / "priors.json"
+    Priors().save(priors)
+    out = tmp_path / "cli.fits"
+    rc = main(["measure", "--exposures", *exps, "--stars", *stars, "--catalogues",
+               str(positions), "--priors", str(priors), "-o", str(out)])  # fmt: skip
+    assert rc == 0 and out.exists()
+    assert "3 exposures" in capsys.readouterr().out
+    rc = main(["measure", "--exposures", *exps, "--stars", stars[0], "-o",
+               str(tmp_path / "x.fits")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc != 0 and "1 star field(s) for 3 exposures" in err and "Traceback" not in err
+    assert not (tmp_path / "x.fits").exists()
+
+
+def _wcs(sip: float = 0.0):
+    from astropy.wcs import WCS
+
+    w = WCS(naxis=2)
+    w.wcs.ctype = ["RA---TAN-SIP", "DEC--TAN-SIP"] if sip else ["RA---TAN", "DEC--TAN"]
+    w.wcs.crval = [150.0, 2.0]
+    w.wcs.crpix = [1024.0, 1024.0]
+    w.wcs.cd = np.array([[-0.2, 0.01], [0.01, 0.2]]) / 3600.0
+    if sip:
+        from astropy.wcs import Sip
+
+        a = np.zeros((3, 3))
+        b = np.zeros((3, 3))
+        a[2, 0] = b[0, 2] = sip  # x' = x + sip x^2: a scale change of 2 sip x
+        w.sip = Sip(a, b, np.zeros((1, 1)), np.zeros((1, 1)), w.wcs.crpix)
+    return w
+
+
+def test_one_jacobian_per_group_within_the_tolerance():
+    """A TAN field of 7 arcmin is one group; under a SIP distortion whose scale changes by
+    4e-3 across it the groups hold Jacobians within the tolerance of their median."""
+    from pylensfit.exposures import Exposure, local_jacobian
+    from pylensfit.images import jacobian_groups
+
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0, 2048, (400, 2))
+    for sip, n_min in ((0.0, 1), (1e-6, 5)):
+        w = _wcs(sip)
+        ex = Exposure(image=np.zeros((2048, 2048), np.float32), wcs=w)
+        sky = w.pixel_to_world(xy[:, 0], xy[:, 1])
+        ra, dec = sky.ra.deg, sky.dec.deg
+        g = jacobian_groups([ex, ex], ra, dec, 1e-4)
+        assert (np.unique(g).size == 1) if sip == 0 else (np.unique(g).size >= n_min)
+        J = local_jacobian(w, ra, dec)
+        for lab in np.unique(g):
+            Jg = J[g == lab]
+            rel = Jg @ np.linalg.inv(np.median(Jg, axis=0)) - np.eye(2)
+            assert np.abs(rel).max() < 1e-4 * 1.01
