@@ -12,8 +12,9 @@ estimated from the first set's own joint fits, and with :func:`pylensfit.measure
 of its exposures alone (its star field's PSF; priors from that exposure of the first
 set). The shear of each set is :func:`pylensfit.estimate_shear` of every usable row,
 nothing matched to the truth. ``m`` and ``c`` per component are the least-squares line
-of the measured against the true shears (weighted by the sets' errors, which treat the
-sets as independent: an upper bound for paired sets).
+of the measured against the true shears; their errors are the jackknife over
+``JACKKNIFE_SIDE^2`` cells of the sky, each cell left out of every set at once, so that
+the shape noise and noise the sets share cancel in them as in ``m`` and ``c``.
 """
 
 from __future__ import annotations
@@ -50,8 +51,8 @@ class DitherValidation:
         the true ``g1_true, g2_true``, the estimates ``g1, g2`` with ``g1_err, g2_err``,
         ``n`` usable rows.
     bias : astropy.table.Table
-        One row per method: ``m1, c1, m2, c2`` and their errors (NaN where the sets do
-        not span two values of the component).
+        One row per method: ``m1, c1, m2, c2`` and their jackknife errors (NaN where
+        the sets do not span two values of the component).
     psf : astropy.table.Table
         One row per exposure of the first set: the PSF used against the true one
         (:func:`psf_residuals`).
@@ -109,26 +110,47 @@ def _shear_row(name: str, method: str, s: DitherSet, cat: Table) -> tuple:
     return (name, method, s.spec.g1, s.spec.g2, est.g1, est.g1_err, est.g2, est.g2_err, n)
 
 
-def _line(x: np.ndarray, y: np.ndarray, err: np.ndarray) -> tuple[float, float, float, float]:
-    """``m, m_err, c, c_err`` of ``y - x = m x + c`` (weights ``1 / err^2``)."""
+#: sky cells per side of the jackknife of m and c
+JACKKNIFE_SIDE = 4
+
+
+def _line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """``m, c`` of the least-squares line ``y - x = m x + c`` (NaN without two ``x``)."""
     if np.unique(np.round(x, 12)).size < 2:
-        return (np.nan,) * 4
-    w = 1.0 / np.maximum(err, 1e-12) ** 2
-    A = np.column_stack([x, np.ones_like(x)])
-    cov = np.linalg.inv(A.T @ (A * w[:, None]))
-    m, c = cov @ (A.T @ (w * (y - x)))
-    return float(m), float(np.sqrt(cov[0, 0])), float(c), float(np.sqrt(cov[1, 1]))
+        return np.nan, np.nan
+    m, c = np.polyfit(x, y - x, 1)
+    return float(m), float(c)
 
 
-def _bias(shears: Table) -> Table:
-    rows = []
-    for method in dict.fromkeys(shears["method"]):
-        t = shears[shears["method"] == method]
-        r1 = _line(np.asarray(t["g1_true"]), np.asarray(t["g1"]), np.asarray(t["g1_err"]))
-        r2 = _line(np.asarray(t["g2_true"]), np.asarray(t["g2"]), np.asarray(t["g2_err"]))
-        rows.append((method, *r1, *r2, int(np.sum(t["n"]))))
-    return Table(rows=rows, names=("method", "m1", "m1_err", "c1", "c1_err", "m2", "m2_err",
-                                   "c2", "c2_err", "n"))  # fmt: skip
+def _cells(cats: list[Table], side: int) -> list[np.ndarray]:
+    """Each row's jackknife cell: ``side x side`` cells of RA and Dec over all rows."""
+    ra = np.concatenate([np.asarray(c["ALPHA_J2000"], float) for c in cats])
+    dec = np.concatenate([np.asarray(c["DELTA_J2000"], float) for c in cats])
+    ok = np.isfinite(ra) & np.isfinite(dec)
+    er = np.quantile(ra[ok], np.linspace(0, 1, side + 1)[1:-1])
+    ed = np.quantile(dec[ok], np.linspace(0, 1, side + 1)[1:-1])
+    return [np.searchsorted(er, np.asarray(c["ALPHA_J2000"], float)) * side
+            + np.searchsorted(ed, np.asarray(c["DELTA_J2000"], float)) for c in cats]  # fmt: skip
+
+
+def _bias(method: str, sets: list[DitherSet], cats: list[Table]) -> tuple:
+    """``m1, m1_err, c1, c1_err, m2, ...`` of one method's catalogues of the sets: the
+    line through their shears, its error the jackknife over cells of the sky (each cell
+    left out of every set at once, so that what the sets share cancels)."""
+    cells = _cells(cats, JACKKNIFE_SIDE)
+    g1t = np.array([s.spec.g1 for s in sets])
+    g2t = np.array([s.spec.g2 for s in sets])
+    out = []
+    for drop in range(-1, JACKKNIFE_SIDE**2):
+        est = [estimate_shear(c[cl != drop]) for c, cl in zip(cats, cells, strict=True)]
+        out.append(_line(g1t, np.array([e.g1 for e in est]))
+                   + _line(g2t, np.array([e.g2 for e in est])))  # fmt: skip
+    v = np.array(out)
+    k = len(v) - 1
+    err = np.sqrt((k - 1) / k * ((v[1:] - v[1:].mean(0)) ** 2).sum(0))
+    m1, c1, m2, c2 = v[0]
+    return (method, m1, err[0], c1, err[1], m2, err[2], c2, err[3],
+            int(sum(np.sum(np.asarray(c["weight"]) > 0) for c in cats)))  # fmt: skip
 
 
 def validate_dither(directories: Sequence[str | Path], *, config: Config | None = None,
@@ -162,6 +184,7 @@ def validate_dither(directories: Sequence[str | Path], *, config: Config | None 
                                   stars=[str(sets[0].star_path(exposure))], config=cfg,
                                   progress=False)  # fmt: skip
     rows = []
+    cats: dict[str, list[Table]] = {}
     for s in sets:
         name = s.directory.name
         paths = [str(s.path(k)) for k in range(len(s.exposures))]
@@ -170,11 +193,16 @@ def validate_dither(directories: Sequence[str | Path], *, config: Config | None 
         cat = measure_exposures(paths, stars=stars, priors=priors, config=cfg, output=o,
                                 overwrite=True)  # fmt: skip
         rows.append(_shear_row(name, f"joint {len(paths)}", s, cat))
+        cats.setdefault(f"joint {len(paths)}", []).append(cat)
         if single is not None:
             o = None if out is None else Path(out) / f"{name}_exp{exposure}.fits"
             one = measure([paths[exposure]], stars=[stars[exposure]], priors=single,
                           config=cfg, output=o, overwrite=True, progress=False)  # fmt: skip
             rows.append(_shear_row(name, f"exposure {exposure}", s, one))
+            cats.setdefault(f"exposure {exposure}", []).append(one)
     shears = Table(rows=rows, names=("set", "method", "g1_true", "g2_true", "g1", "g1_err",
                                      "g2", "g2_err", "n"))  # fmt: skip
-    return DitherValidation(shears=shears, bias=_bias(shears), psf=psf_residuals(sets[0], cfg))
+    bias = Table(rows=[_bias(k, sets, v) for k, v in cats.items()],
+                 names=("method", "m1", "m1_err", "c1", "c1_err", "m2", "m2_err", "c2",
+                        "c2_err", "n"))  # fmt: skip
+    return DitherValidation(shears=shears, bias=bias, psf=psf_residuals(sets[0], cfg))
