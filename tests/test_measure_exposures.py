@@ -165,3 +165,24 @@ def test_one_jacobian_per_group_within_the_tolerance():
             Jg = J[g == lab]
             rel = Jg @ np.linalg.inv(np.median(Jg, axis=0)) - np.eye(2)
             assert np.abs(rel).max() < 1e-4 * 1.01
+
+
+def test_bad_inputs_are_one_line_and_leave_no_output(dset, tmp_path, capsys):
+    exps, stars = _files(dset)
+    nowcs = tmp_path / "nowcs.fits"
+    fits.PrimaryHDU(np.ones((64, 64), np.float32)).writeto(nowcs)
+    badcat = tmp_path / "xy.fits"
+    Table({"x": [1.0], "y": [2.0]}).write(badcat)
+    out = tmp_path / "o.fits"
+    cases = [
+        ([*exps[:2], str(tmp_path / "gone.fits"), "--stars", *stars], "gone.fits: exposure "
+         "not found"),
+        ([*exps[:2], str(nowcs), "--psf", str(nowcs)], "nowcs.fits: no celestial WCS"),
+        ([*exps, "--stars", *stars, "--catalogues", str(badcat)], "needs columns ra, dec"),
+    ]  # fmt: skip
+    for args, says in cases:
+        rc = main(["measure", "--exposures", *args, "-o", str(out)])
+        err = capsys.readouterr().err
+        assert rc != 0 and says in err and "Traceback" not in err, err
+        assert len(err.strip().splitlines()) == 1, err
+        assert not out.exists()

@@ -155,6 +155,9 @@ def read_exposures(paths: Sequence[str], *, stars: Sequence[str] | None = None, 
     if stars and len(stars) != len(paths):
         raise InputError(f"stars: {len(stars)} star field(s) for {len(paths)} exposures "
                          "(give one per exposure, or none)")  # fmt: skip
+    for p in [*paths, *stars]:
+        if not Path(p).exists():
+            raise InputError(f"{p}: {'star field' if p in stars else 'exposure'} not found")
     check_inputs(paths, [None] * len(paths), [None] * len(paths), stars)
     given = read_given_psfs(psf, paths) or [None] * len(paths)
     zp = reference_zero_point
