@@ -190,6 +190,23 @@ def sheared_k(kx: np.ndarray, ky: np.ndarray, e1, e2) -> np.ndarray:
     return np.hypot(ux, uy)
 
 
+def _bulge_disc_transform(q: np.ndarray, bf: np.ndarray, bulge_size_ratio: float) -> np.ndarray:
+    """``bf F_bulge(q bulge_size_ratio) + (1 - bf) F_disc(q)`` for ``(m, ...)``
+    dimensionless wavenumbers ``q`` and one bulge fraction ``bf`` per model, each
+    component evaluated only for the models that hold it: a pure disc's bulge term
+    (``0 * F``) and a pure bulge's disc term are exactly 0, so the numbers are those of
+    the sum over every model."""
+    F = np.zeros_like(q)
+    shape = (-1,) + (1,) * (q.ndim - 1)
+    bulge, disc = bf != 0.0, bf != 1.0
+    if bulge.any():
+        F[bulge] = bf[bulge].reshape(shape) * fourier_profile(q[bulge] * bulge_size_ratio,
+                                                              "devaucouleurs")  # fmt: skip
+    if disc.any():
+        F[disc] += (1.0 - bf[disc]).reshape(shape) * fourier_profile(q[disc], "exponential")
+    return F
+
+
 def render_models(
     n: int,
     psf: np.ndarray,
@@ -240,8 +257,7 @@ def render_models(
     P = psf_transform(psf, n)
     q = sheared_k(kx[None], ky[None], e1[:, None, None], e2[:, None, None]) * r[:, None, None]
     if model == "bulge+disc":
-        F = (bf[:, None, None] * fourier_profile(q * bulge_size_ratio, "devaucouleurs")
-             + (1.0 - bf[:, None, None]) * fourier_profile(q, "exponential"))  # fmt: skip
+        F = _bulge_disc_transform(q, bf, bulge_size_ratio)
     else:
         F = fourier_profile(q, model)
     phase = np.exp(-1j * (kx[None] * x[:, None, None] + ky[None] * y[:, None, None]))
