@@ -309,3 +309,28 @@ def test_render_models_bulge_disc_mixture_is_the_full_sum_bit_for_bit():
     got = render_models(n, psf_img, x, y, e1, e2, r, flux, model="bulge+disc",
                         bulge_fraction=bf, bulge_size_ratio=0.6)  # fmt: skip
     assert np.array_equal(got, want)
+
+
+def test_model_bank_read_back_from_the_disk_cache_is_the_built_one(tmp_path, monkeypatch):
+    """A bank built once is kept on disk (PYLENSFIT_CACHE_DIR) and read back by the next
+    process bit for bit; a damaged file is built again, and "off" keeps nothing."""
+    from pylensfit import models
+
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.25, r_max=3.0,
+                 stamp_size=16, max_stamp_size=0)  # fmt: skip
+    monkeypatch.setenv("PYLENSFIT_CACHE_DIR", "off")
+    models._cached_bank.cache_clear()
+    built = np.array(model_bank(cfg).G)
+    assert not list(tmp_path.glob("*"))
+    monkeypatch.setenv("PYLENSFIT_CACHE_DIR", str(tmp_path))
+    for _ in range(2):  # written, then read (the in-process cache cleared: a new process)
+        models._cached_bank.cache_clear()
+        G = model_bank(cfg).G
+        assert G.dtype == built.dtype and G.tobytes() == built.tobytes()
+        assert not G.flags.writeable
+    (f,) = tmp_path.glob("model-bank-*.npy")
+    f.write_bytes(f.read_bytes()[:100])  # a damaged file
+    models._cached_bank.cache_clear()
+    assert model_bank(cfg).G.tobytes() == built.tobytes()
+    assert np.load(f).tobytes() == built.tobytes()  # written again whole
+    models._cached_bank.cache_clear()

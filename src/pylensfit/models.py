@@ -45,7 +45,10 @@ from scipy.optimize import brentq
 from scipy.special import gamma, gammainc, gammaincinv
 
 from ._kernels_nb import wrapped_wings
-from ._util import rfft_frequencies  # re-exported: part of this module's API
+from ._util import (
+    disk_cached,
+    rfft_frequencies,  # re-exported: part of this module's API
+)
 from .bankruns import DISC_HLR, Run, bank_runs  # re-exported: part of this module's API
 from .config import Config
 from .grid import ellipticity_grid
@@ -595,34 +598,15 @@ def radius_weights(radii: np.ndarray, r_min: float) -> tuple[np.ndarray, float]:
     return w, float(r[0])
 
 
-@lru_cache(maxsize=8)
-def _cached_bank(
-    n: int,
-    e_step: float,
-    e_max: float,
-    r_min: float,
-    r_max: float,
-    r_step: float,
-    model: str,
-    bulge_fraction: float,
-    bulge_size_ratio: float,
-    dtype: str,
-    n_bulge: int = 1,
-    r_rel_step: float = 0.0,
-    truncate: bool = False,
-    k_max: float = 0.0,
-    bulge_size_ratio2: float = 0.0,
-    sersic_ladder: tuple[float, ...] = (),
-    r_floor: float = 0.0,
-) -> ModelBank:
-    egrid = ellipticity_grid(e_step, emax=e_max)
-    radii = radius_grid(r_min, r_max, r_step, r_rel_step, r_floor)
-    r_w, w_star = radius_weights(radii, r_min)
-    runs = bank_runs(model, bulge_fraction, bulge_size_ratio, n_bulge, bulge_size_ratio2,
-                     sersic_ladder)  # fmt: skip
+def _bank_transforms(n: int, k_max: float, egrid: np.ndarray, radii: np.ndarray,
+                     runs: tuple[Run, ...], model: str, bulge_size_ratio: float, dtype: str,
+                     truncate: bool) -> np.ndarray:  # fmt: skip
+    """:class:`ModelBank`'s ``G``: ``(n_freq, n_e * n_runs * n_r + 1)`` transforms of every
+    model (ellipticity cell, run, size; the point source last) on the frequencies of
+    :func:`frequency_rows` ``(n, k_max)``, less the wings the periodic models wrap into
+    the stamp with ``truncate`` (:func:`wrap_correction`)."""
     fracs = np.array([run.fraction for run in runs])
     n_sub = radii.size
-    bulge = fracs if len(runs) == 1 else np.array([run.bulge_fraction for run in runs])
     kx, ky, _ = rfft_frequencies(n)
     rows = frequency_rows(n, k_max)
     kx = kx.ravel() if rows is None else kx.ravel()[rows]
@@ -651,7 +635,43 @@ def _cached_bank(
                             runs=runs if mix else None)  # fmt: skip
         G[:, :-1] -= W.astype(dtype)
         del W
-    G.setflags(write=False)
+    return G
+
+
+@lru_cache(maxsize=8)
+def _cached_bank(
+    n: int,
+    e_step: float,
+    e_max: float,
+    r_min: float,
+    r_max: float,
+    r_step: float,
+    model: str,
+    bulge_fraction: float,
+    bulge_size_ratio: float,
+    dtype: str,
+    n_bulge: int = 1,
+    r_rel_step: float = 0.0,
+    truncate: bool = False,
+    k_max: float = 0.0,
+    bulge_size_ratio2: float = 0.0,
+    sersic_ladder: tuple[float, ...] = (),
+    r_floor: float = 0.0,
+) -> ModelBank:
+    egrid = ellipticity_grid(e_step, emax=e_max)
+    radii = radius_grid(r_min, r_max, r_step, r_rel_step, r_floor)
+    r_w, w_star = radius_weights(radii, r_min)
+    runs = bank_runs(model, bulge_fraction, bulge_size_ratio, n_bulge, bulge_size_ratio2,
+                     sersic_ladder)  # fmt: skip
+    fracs = np.array([run.fraction for run in runs])
+    n_sub = radii.size
+    bulge = fracs if len(runs) == 1 else np.array([run.bulge_fraction for run in runs])
+    rows = frequency_rows(n, k_max)
+    key = (n, e_step, e_max, r_min, r_max, r_step, model, bulge_fraction, bulge_size_ratio,
+           dtype, n_bulge, r_rel_step, truncate, k_max, bulge_size_ratio2, sersic_ladder,
+           r_floor)  # fmt: skip
+    G = disk_cached("model-bank", key, lambda: _bank_transforms(
+        n, k_max, egrid, radii, runs, model, bulge_size_ratio, dtype, truncate))
     run_w = None
     if len(runs) > 1:
         hlr = np.array([run_half_light_radius(run) for run in runs])
