@@ -283,3 +283,54 @@ def test_size_grid_floor():
     assert 0.2 <= base[0] < 0.22 and 0.05 <= low[0] < 0.055
     np.testing.assert_allclose(low[-base.size:], base)
     assert np.all(np.diff(low) <= 0.1 * low[1:] + 1e-9)
+
+
+def test_render_models_bulge_disc_mixture_is_the_full_sum_bit_for_bit():
+    """Each component of the bulge+disc mixture is evaluated only for the models that
+    hold it (a pure disc's or a pure bulge's other term is exactly 0): the images are
+    those of ``bf F_bulge + (1 - bf) F_disc`` summed over every model, to the last bit,
+    point sources included."""
+    rng = np.random.default_rng(7)
+    m, n = 30, 64
+    x, y = rng.uniform(28, 36, m), rng.uniform(28, 36, m)
+    e1, e2 = rng.uniform(-0.4, 0.4, m), rng.uniform(-0.4, 0.4, m)
+    r = rng.uniform(0.0, 4.0, m)
+    r[:3] = 0.0
+    flux = rng.uniform(10.0, 1000.0, m)
+    bf = rng.choice([0.0, 0.5, 1.0, 0.3], m)
+    psf_img = PSFS["moffat_e1"].drawImage(nx=32, ny=32, scale=1.0).array
+    kx, ky, _ = rfft_frequencies(n)
+    q = sheared_k(kx[None], ky[None], e1[:, None, None], e2[:, None, None]) * r[:, None, None]
+    F = (bf[:, None, None] * fourier_profile(q * 0.6, "devaucouleurs")
+         + (1.0 - bf[:, None, None]) * fourier_profile(q, "exponential"))  # fmt: skip
+    phase = np.exp(-1j * (kx[None] * x[:, None, None] + ky[None] * y[:, None, None]))
+    want = np.fft.irfft2(flux[:, None, None] * F * psf_transform(psf_img, n)[None] * phase,
+                         s=(n, n))  # fmt: skip
+    got = render_models(n, psf_img, x, y, e1, e2, r, flux, model="bulge+disc",
+                        bulge_fraction=bf, bulge_size_ratio=0.6)  # fmt: skip
+    assert np.array_equal(got, want)
+
+
+def test_model_bank_read_back_from_the_disk_cache_is_the_built_one(tmp_path, monkeypatch):
+    """A bank built once is kept on disk (PYLENSFIT_CACHE_DIR) and read back by the next
+    process bit for bit; a damaged file is built again, and "off" keeps nothing."""
+    from pylensfit import models
+
+    cfg = Config(model="bulge+disc", n_bulge_fractions=3, e_step=0.25, r_max=3.0,
+                 stamp_size=16, max_stamp_size=0)  # fmt: skip
+    monkeypatch.setenv("PYLENSFIT_CACHE_DIR", "off")
+    models._cached_bank.cache_clear()
+    built = np.array(model_bank(cfg).G)
+    assert not list(tmp_path.glob("*"))
+    monkeypatch.setenv("PYLENSFIT_CACHE_DIR", str(tmp_path))
+    for _ in range(2):  # written, then read (the in-process cache cleared: a new process)
+        models._cached_bank.cache_clear()
+        G = model_bank(cfg).G
+        assert G.dtype == built.dtype and G.tobytes() == built.tobytes()
+        assert not G.flags.writeable
+    (f,) = tmp_path.glob("model-bank-*.npy")
+    f.write_bytes(f.read_bytes()[:100])  # a damaged file
+    models._cached_bank.cache_clear()
+    assert model_bank(cfg).G.tobytes() == built.tobytes()
+    assert np.load(f).tobytes() == built.tobytes()  # written again whole
+    models._cached_bank.cache_clear()

@@ -746,3 +746,24 @@ def test_a_size_prior_per_run_survives_the_catalogue_file(tmp_path):
     np.testing.assert_array_equal(back.density, dens)
     np.testing.assert_array_equal(back.ln_h, knots)
     assert back.star == pytest.approx(2e-3) and back.smoothing == 0.05
+
+
+def test_patches_add_in_the_order_of_numpy_add_at():
+    """The compiled sum of overlapping patches, clipped at the edges, is numpy.add.at's
+    over the same elements to the last bit (the neighbour fields, hence the refits, do
+    not depend on how the patches are added)."""
+    from pylensfit.stamps import add_patches
+
+    rng = np.random.default_rng(5)
+    base = rng.normal(size=(60, 70))
+    patches = rng.normal(size=(40, 24, 24)) * 10.0 ** rng.uniform(-8, 3, (40, 1, 1))
+    ix0, iy0 = rng.integers(-20, 65, 40), rng.integers(-20, 55, 40)
+    off = np.arange(24)
+    rows = np.broadcast_to(iy0[:, None, None] + off[None, :, None], patches.shape)
+    cols = np.broadcast_to(ix0[:, None, None] + off[None, None, :], patches.shape)
+    ok = (rows >= 0) & (rows < 60) & (cols >= 0) & (cols < 70)
+    want = base.copy()
+    np.add.at(want, (rows[ok], cols[ok]), patches[ok])
+    got = base.copy()
+    add_patches(got, patches, ix0, iy0)
+    assert np.array_equal(got, want)

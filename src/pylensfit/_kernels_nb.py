@@ -178,3 +178,25 @@ def _wrapped_wings_nb(e1s, e2s, radii, fracs, profile, n, max_copies, out):
 
 
 wrapped_wings = one_launch_at_a_time(_wrapped_wings_nb)
+
+
+@njit(cache=True)
+def add_patches_nb(canvas, patches, ix0, iy0):
+    """Add ``(m, M, M)`` ``patches`` into the 2-D ``canvas`` in place, element ``[0, 0]``
+    of patch ``k`` on pixel ``(ix0[k], iy0[k])``, pixels outside the canvas dropped.
+
+    One patch after the other, row by row: the order in which ``numpy.add.at`` adds the
+    same elements, so that the sums are the same to the last bit (overlapping patches
+    add up).
+    """
+    ny, nx = canvas.shape
+    m, my, mx = patches.shape
+    for k in range(m):
+        for i in range(my):
+            r = iy0[k] + i
+            if r < 0 or r >= ny:
+                continue
+            for j in range(mx):
+                c = ix0[k] + j
+                if 0 <= c < nx:
+                    canvas[r, c] += patches[k, i, j]

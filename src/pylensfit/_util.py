@@ -4,15 +4,18 @@ Array checks (:func:`per_object`, :func:`check_egrid`, :func:`check_lnL`), the
 ``rfft2`` frequency grid and a Fourier-series peak finder shared by the PSF and
 likelihood stages (:func:`rfft_frequencies`, :func:`newton_peak`), and the reading and
 writing of the package's JSON files (:func:`read_json`, :func:`jsonable`,
-:func:`json_kind`, :func:`other_file_hint`), and the atomic write of every file the
-package writes (:func:`atomic_write_with`).
+:func:`json_kind`, :func:`other_file_hint`), the atomic write of every file the
+package writes (:func:`atomic_write_with`), and the on-disk cache of arrays that take
+long to build (:func:`disk_cached`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
+import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -25,6 +28,7 @@ __all__ = [
     "atomic_write_with",
     "check_egrid",
     "check_lnL",
+    "disk_cached",
     "json_kind",
     "jsonable",
     "newton_peak",
@@ -374,3 +378,115 @@ def atomic_write(hdulist, path: str | Path, *, overwrite: bool = False) -> None:
     """
     atomic_write_with(lambda tmp: hdulist.writeto(tmp, overwrite=True), path,
                       overwrite=overwrite)  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------
+# The on-disk cache of built arrays
+# ----------------------------------------------------------------------------------------
+#: environment variable naming the folder of :func:`disk_cached`'s arrays; empty or
+#: ``"off"``: no cache on disk
+CACHE_ENV = "PYLENSFIT_CACHE_DIR"
+#: the most bytes :func:`disk_cached` keeps: the least recently used arrays go first
+CACHE_MAX_BYTES = 2 * 2**30
+
+
+def cache_dir() -> Path | None:
+    """The folder of :func:`disk_cached`'s arrays: ``$PYLENSFIT_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/pylensfit`` (``~/.cache/pylensfit``); ``None`` where the variable
+    is set empty or to ``"off"``."""
+    given = os.environ.get(CACHE_ENV)
+    if given is not None:
+        return None if given.strip() in ("", "off", "0") else Path(given).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join("~", ".cache")
+    return Path(base).expanduser() / "pylensfit"
+
+
+_SOURCE_DIGEST: list[str] = []
+
+
+def _source_digest() -> str:
+    """A digest of every source file of the package and of the versions of the
+    libraries that compute with it: a cached array is reused only by the same code."""
+    if not _SOURCE_DIGEST:
+        h = hashlib.sha256()
+        for f in sorted(Path(__file__).resolve().parent.rglob("*.py")):
+            h.update(f.as_posix().encode() + b"\0" + f.read_bytes())
+        for mod in ("numpy", "scipy", "numba"):
+            h.update(f"{mod} {getattr(sys.modules.get(mod), '__version__', '')}".encode())
+        _SOURCE_DIGEST.append(h.hexdigest())
+    return _SOURCE_DIGEST[0]
+
+
+def disk_cached(name: str, key: tuple, build: Callable[[], np.ndarray]) -> np.ndarray:
+    """``build()``, kept on disk under :func:`cache_dir` for the next process to read.
+
+    An array that takes seconds to build (a model bank: 10-40 s per process and stamp
+    tier, paid again by every worker of a pool) is read back instead, the same to the
+    last bit: the file is keyed by ``name``, ``repr(key)`` and a digest of the package's
+    source and of the numpy, scipy and numba versions. Written atomically (a reader sees
+    a whole file or none); a file that cannot be read is built again, and a folder that
+    cannot be written leaves the array uncached. The least recently used files go once
+    the folder holds more than :data:`CACHE_MAX_BYTES`.
+
+    Parameters
+    ----------
+    name : str
+        What the array is (a file-name prefix).
+    key : tuple
+        Everything the array depends on besides the package's code (its ``repr`` is
+        hashed).
+    build : callable
+        Builds the array.
+
+    Returns
+    -------
+    numpy.ndarray
+        The array, read-only.
+    """
+    folder = cache_dir()
+    path = None
+    if folder is not None:
+        digest = hashlib.sha256(f"{name}\0{key!r}\0{_source_digest()}".encode()).hexdigest()
+        path = folder / f"{name}-{digest[:32]}.npy"
+        try:
+            out = np.load(path, allow_pickle=False)
+            os.utime(path)  # recently used
+            out.setflags(write=False)
+            return out
+        except (OSError, ValueError, EOFError):
+            pass
+    out = build()
+    if path is not None:
+        try:
+            atomic_write_with(lambda tmp: _save_npy(tmp, out), path, overwrite=True)
+            _evict(folder, CACHE_MAX_BYTES)
+        except OSError:
+            pass
+    out.setflags(write=False)
+    return out
+
+
+def _save_npy(path: str, array: np.ndarray) -> None:
+    """``array`` in ``.npy`` format at ``path`` exactly (no suffix added)."""
+    with open(path, "wb") as fh:
+        np.save(fh, array, allow_pickle=False)
+
+
+def _evict(folder: Path, max_bytes: int) -> None:
+    """Delete the least recently used ``.npy`` files of ``folder`` beyond ``max_bytes``."""
+    files = []
+    for f in folder.glob("*.npy"):
+        try:
+            st = f.stat()
+        except OSError:
+            continue
+        files.append((st.st_mtime, st.st_size, f))
+    total = sum(s for _, s, _ in files)
+    for _, size, f in sorted(files, key=lambda t: t[0]):
+        if total <= max_bytes:
+            break
+        try:
+            f.unlink()
+            total -= size
+        except OSError:
+            pass

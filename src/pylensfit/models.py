@@ -45,7 +45,10 @@ from scipy.optimize import brentq
 from scipy.special import gamma, gammainc, gammaincinv
 
 from ._kernels_nb import wrapped_wings
-from ._util import rfft_frequencies  # re-exported: part of this module's API
+from ._util import (
+    disk_cached,
+    rfft_frequencies,  # re-exported: part of this module's API
+)
 from .bankruns import DISC_HLR, Run, bank_runs  # re-exported: part of this module's API
 from .config import Config
 from .grid import ellipticity_grid
@@ -190,6 +193,23 @@ def sheared_k(kx: np.ndarray, ky: np.ndarray, e1, e2) -> np.ndarray:
     return np.hypot(ux, uy)
 
 
+def _bulge_disc_transform(q: np.ndarray, bf: np.ndarray, bulge_size_ratio: float) -> np.ndarray:
+    """``bf F_bulge(q bulge_size_ratio) + (1 - bf) F_disc(q)`` for ``(m, ...)``
+    dimensionless wavenumbers ``q`` and one bulge fraction ``bf`` per model, each
+    component evaluated only for the models that hold it: a pure disc's bulge term
+    (``0 * F``) and a pure bulge's disc term are exactly 0, so the numbers are those of
+    the sum over every model."""
+    F = np.zeros_like(q)
+    shape = (-1,) + (1,) * (q.ndim - 1)
+    bulge, disc = bf != 0.0, bf != 1.0
+    if bulge.any():
+        F[bulge] = bf[bulge].reshape(shape) * fourier_profile(q[bulge] * bulge_size_ratio,
+                                                              "devaucouleurs")  # fmt: skip
+    if disc.any():
+        F[disc] += (1.0 - bf[disc]).reshape(shape) * fourier_profile(q[disc], "exponential")
+    return F
+
+
 def render_models(
     n: int,
     psf: np.ndarray,
@@ -240,8 +260,7 @@ def render_models(
     P = psf_transform(psf, n)
     q = sheared_k(kx[None], ky[None], e1[:, None, None], e2[:, None, None]) * r[:, None, None]
     if model == "bulge+disc":
-        F = (bf[:, None, None] * fourier_profile(q * bulge_size_ratio, "devaucouleurs")
-             + (1.0 - bf[:, None, None]) * fourier_profile(q, "exponential"))  # fmt: skip
+        F = _bulge_disc_transform(q, bf, bulge_size_ratio)
     else:
         F = fourier_profile(q, model)
     phase = np.exp(-1j * (kx[None] * x[:, None, None] + ky[None] * y[:, None, None]))
@@ -579,34 +598,15 @@ def radius_weights(radii: np.ndarray, r_min: float) -> tuple[np.ndarray, float]:
     return w, float(r[0])
 
 
-@lru_cache(maxsize=8)
-def _cached_bank(
-    n: int,
-    e_step: float,
-    e_max: float,
-    r_min: float,
-    r_max: float,
-    r_step: float,
-    model: str,
-    bulge_fraction: float,
-    bulge_size_ratio: float,
-    dtype: str,
-    n_bulge: int = 1,
-    r_rel_step: float = 0.0,
-    truncate: bool = False,
-    k_max: float = 0.0,
-    bulge_size_ratio2: float = 0.0,
-    sersic_ladder: tuple[float, ...] = (),
-    r_floor: float = 0.0,
-) -> ModelBank:
-    egrid = ellipticity_grid(e_step, emax=e_max)
-    radii = radius_grid(r_min, r_max, r_step, r_rel_step, r_floor)
-    r_w, w_star = radius_weights(radii, r_min)
-    runs = bank_runs(model, bulge_fraction, bulge_size_ratio, n_bulge, bulge_size_ratio2,
-                     sersic_ladder)  # fmt: skip
+def _bank_transforms(n: int, k_max: float, egrid: np.ndarray, radii: np.ndarray,
+                     runs: tuple[Run, ...], model: str, bulge_size_ratio: float, dtype: str,
+                     truncate: bool) -> np.ndarray:  # fmt: skip
+    """:class:`ModelBank`'s ``G``: ``(n_freq, n_e * n_runs * n_r + 1)`` transforms of every
+    model (ellipticity cell, run, size; the point source last) on the frequencies of
+    :func:`frequency_rows` ``(n, k_max)``, less the wings the periodic models wrap into
+    the stamp with ``truncate`` (:func:`wrap_correction`)."""
     fracs = np.array([run.fraction for run in runs])
     n_sub = radii.size
-    bulge = fracs if len(runs) == 1 else np.array([run.bulge_fraction for run in runs])
     kx, ky, _ = rfft_frequencies(n)
     rows = frequency_rows(n, k_max)
     kx = kx.ravel() if rows is None else kx.ravel()[rows]
@@ -635,7 +635,43 @@ def _cached_bank(
                             runs=runs if mix else None)  # fmt: skip
         G[:, :-1] -= W.astype(dtype)
         del W
-    G.setflags(write=False)
+    return G
+
+
+@lru_cache(maxsize=8)
+def _cached_bank(
+    n: int,
+    e_step: float,
+    e_max: float,
+    r_min: float,
+    r_max: float,
+    r_step: float,
+    model: str,
+    bulge_fraction: float,
+    bulge_size_ratio: float,
+    dtype: str,
+    n_bulge: int = 1,
+    r_rel_step: float = 0.0,
+    truncate: bool = False,
+    k_max: float = 0.0,
+    bulge_size_ratio2: float = 0.0,
+    sersic_ladder: tuple[float, ...] = (),
+    r_floor: float = 0.0,
+) -> ModelBank:
+    egrid = ellipticity_grid(e_step, emax=e_max)
+    radii = radius_grid(r_min, r_max, r_step, r_rel_step, r_floor)
+    r_w, w_star = radius_weights(radii, r_min)
+    runs = bank_runs(model, bulge_fraction, bulge_size_ratio, n_bulge, bulge_size_ratio2,
+                     sersic_ladder)  # fmt: skip
+    fracs = np.array([run.fraction for run in runs])
+    n_sub = radii.size
+    bulge = fracs if len(runs) == 1 else np.array([run.bulge_fraction for run in runs])
+    rows = frequency_rows(n, k_max)
+    key = (n, e_step, e_max, r_min, r_max, r_step, model, bulge_fraction, bulge_size_ratio,
+           dtype, n_bulge, r_rel_step, truncate, k_max, bulge_size_ratio2, sersic_ladder,
+           r_floor)  # fmt: skip
+    G = disk_cached("model-bank", key, lambda: _bank_transforms(
+        n, k_max, egrid, radii, runs, model, bulge_size_ratio, dtype, truncate))
     run_w = None
     if len(runs) > 1:
         hlr = np.array([run_half_light_radius(run) for run in runs])

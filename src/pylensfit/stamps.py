@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._kernels_nb import add_patches_nb
 from .flags import flag_value
 
 __all__ = ["add_patches", "cut_stamps", "patch_origins"]
@@ -93,11 +94,9 @@ def patch_origins(x: np.ndarray, y: np.ndarray, size: int) -> tuple[np.ndarray, 
 def add_patches(canvas: np.ndarray, patches: np.ndarray, ix0: np.ndarray, iy0: np.ndarray) -> None:
     """Add ``(m, M, M)`` patches into ``canvas`` in place, element ``[0, 0]`` of patch ``k``
     on pixel ``(ix0[k], iy0[k])``; what falls outside the canvas is dropped. Overlapping
-    patches add up."""
-    ny, nx = canvas.shape
-    m, size, _ = patches.shape
-    off = np.arange(size)
-    rows = np.broadcast_to(np.asarray(iy0)[:, None, None] + off[None, :, None], patches.shape)
-    cols = np.broadcast_to(np.asarray(ix0)[:, None, None] + off[None, None, :], patches.shape)
-    ok = (rows >= 0) & (rows < ny) & (cols >= 0) & (cols < nx)
-    np.add.at(canvas, (rows[ok], cols[ok]), patches[ok])
+    patches add up, in the order of ``numpy.add.at`` over the patches' elements (compiled:
+    :func:`~pylensfit._kernels_nb.add_patches_nb`)."""
+    patches = np.ascontiguousarray(patches)
+    if patches.shape[0]:
+        add_patches_nb(canvas, patches, np.asarray(ix0, dtype=np.int64),
+                       np.asarray(iy0, dtype=np.int64))  # fmt: skip
