@@ -1,8 +1,17 @@
-"""Shared helpers: GalSim renderings with the pylensfit centring convention."""
+"""Shared helpers: GalSim renderings with the pylensfit centring convention; the
+suite's model banks kept in a temporary folder, not the user's cache."""
+
+import os
+import tempfile
+from pathlib import Path
 
 import galsim
 import numpy as np
 import pytest
+
+# every worker of the suite shares one folder of model banks (pylensfit._util.disk_cached)
+os.environ.setdefault("PYLENSFIT_CACHE_DIR",
+                      str(Path(tempfile.gettempdir()) / f"pylensfit-tests-{os.getuid()}"))
 
 N = 32
 
