@@ -3,8 +3,9 @@ and the mean of single-exposure fits.
 
 STEP2-like galaxies (the dithered simulation's population,
 :mod:`pylensfit_validation.dither`: exponential, de Vaucouleurs and bulge+disc in turn,
-sizes 0.24-0.7 arcsec, intrinsic shapes from the functional prior, S/N 15-150
-log-uniform in the deep exposure) are rendered by GalSim, each with its 90-degree
+sizes 0.24-0.7 arcsec, intrinsic shapes from the functional prior, S/N log-uniform in
+``--snr`` (15-150 by default) in the deep exposure, half that in each of the K) are
+rendered by GalSim, each with its 90-degree
 rotated twin (``e_int -> -e_int``, its own noise), sheared by ``+g`` and ``-g`` (``g =
 0.02``) on each component in turn, the same noise for ``+g`` and ``-g``:
 
@@ -18,13 +19,24 @@ rotated twin (``e_int -> -e_int``, its own noise), sheared by ``+g`` and ``-g`` 
 The priors come from an unsheared set of the same population (``2 --ngal`` other
 galaxies): :func:`pylensfit.calibrate_exposures` for the joint fit,
 :func:`pylensfit.calibrate` on the deep exposure for the deep fit and on exposure 0
-for the single-exposure fits. Then:
+for the single-exposure fits, on the co-add of its K exposures for the co-add fit.
+Then:
 
 * ``joint``: :func:`pylensfit.measure_exposure_stamps` on the four exposures;
 * ``deep``: :func:`pylensfit.measure_stamps` on the deep exposure;
 * ``single mean``: :func:`pylensfit.measure_stamps` on each exposure alone, the shapes
   and sensitivities turned into the sky frame (:func:`pylensfit.skyframe.to_sky`) and
-  averaged per galaxy with the tables' weights.
+  averaged per galaxy with the tables' weights;
+* ``coadd``: :func:`pylensfit.measure_stamps` on the co-add of the K exposures
+  (:func:`coadd`): each exposure's stamp resampled by a quintic spline onto one
+  sky-aligned grid of 0.2" pixels (x to the west, y to the north: the package's sky
+  frame ``(W, N)``, the deep exposure's grid), the galaxy at a random sub-pixel position
+  of it, times the ratio of the pixels' areas (surface brightness kept), and summed
+  with one inverse-variance weight per exposure (:func:`coadd_weights`, normalised to
+  1). Its PSF is the same weighted sum of the exposures' PSF images resampled the same
+  way about their centres: the co-add's exact PSF, up to the interpolation. The
+  resampling correlates the noise; the fit assumes white noise of the co-add's per-pixel
+  sigma, measured on co-adds of pure noise (:func:`coadd_sigma`).
 
 The shear of a set is ``g_i = sum w e_i / sum w sens_i`` over the galaxies of positive
 weight in both sets of a pair (the mean of their two weights). Printed per method:
@@ -33,14 +45,18 @@ bootstrap errors over the galaxies (twins kept together); ``sigma_g`` the shear 
 per galaxy, ``sqrt(n)`` times the bootstrap error of ``g_i(+)`` (rms over the four sets:
 the twins cancel the shape noise, so it is the measurement's noise); its ratio to the
 deep exposure's (target <= 1.1); and the cost of the measurement per (galaxy, exposure)
-(wall clock, the calibration not included). All fits with ``Config()`` on 48-pixel
-stamps (``max_stamp_size = 0``: no tiers); the joint fit is of second order in position
-and its models are not truncated at the stamp's edge (``cubic_snr`` and
-``truncate_models`` apply to the single fits only).
+(wall clock, the calibration not included; the co-add's resampling counted). Then the
+paired differences of m between the joint fit and each other method: the difference on
+the same galaxies, its error the standard deviation of the difference over the same
+bootstrap resamplings, and the difference in units of that error. All fits with
+``Config()`` on 48-pixel stamps (``max_stamp_size = 0``: no tiers); the joint fit is of
+second order in position and its models are not truncated at the stamp's edge
+(``cubic_snr`` and ``truncate_models`` apply to the single fits only).
 
 Usage::
 
     python benchmarks/joint_shear.py --ngal 300 --seed 1 --jobs 2   # ~6 min on 2 cores
+    python benchmarks/joint_shear.py --ngal 400 --snr 10 15 --jobs 2  # the faint regime
 """
 
 from __future__ import annotations
@@ -52,6 +68,7 @@ import galsim
 import numba
 import numpy as np
 from astropy.wcs import WCS
+from scipy.ndimage import map_coordinates
 
 import pylensfit as plf
 from pylensfit.exposures import ExposureStamps
@@ -68,6 +85,7 @@ K = 4
 FWHM = 0.7  # arcsec, the mean PSF's
 BETA = 3.5
 SIGMA = 1.0  # the deep exposure's noise; each of the K has 2 SIGMA
+ORDER = 5  # spline order of the co-add's resampling
 
 
 def exposures(rng: np.random.Generator) -> list[dict]:
@@ -97,9 +115,10 @@ def exposure(J: np.ndarray, psf, sigma: float) -> dict:
             "frame": local_frame(w, [N / 2], [N / 2])}  # fmt: skip
 
 
-def population(n: int, rng: np.random.Generator, deep: dict) -> dict:
-    """``n`` galaxies: kind, size (arcsec), intrinsic shape, flux for the S/N."""
-    spec = DitherSpec()
+def population(n: int, rng: np.random.Generator, deep: dict, snr_range=None) -> dict:
+    """``n`` galaxies: kind, size (arcsec), intrinsic shape, flux for an S/N log-uniform in
+    ``snr_range`` in the deep exposure (default the dithered simulation's)."""
+    spec = DitherSpec() if snr_range is None else DitherSpec(snr_range=tuple(snr_range))
     kinds = [MIXED_KINDS[i % len(MIXED_KINDS)] for i in range(n)]
     r = rng.uniform(*spec.size_range, n)
     e = draw_shapes(Prior(B=spec.prior_params[0], C=spec.prior_params[1],
@@ -144,6 +163,57 @@ def views(stamps: list, exps: list, offsets: list) -> list[ExposureStamps]:
     return out
 
 
+def resample(img: np.ndarray, J: np.ndarray, centre_in, centre_out, size: int) -> np.ndarray:
+    """An exposure's image ``img`` resampled onto ``size x size`` pixels of the sky grid
+    (``SCALE`` arcsec, x to the west, y to the north) by a spline of order ``ORDER``:
+    the grid's point ``centre_out`` (x, y) falls on ``img``'s point ``centre_in``,
+    ``J`` the exposure's Jacobian (pixels per arcsec), the values times the ratio of the
+    pixels' areas (the surface brightness kept)."""
+    y, x = np.mgrid[:size, :size].astype(float)
+    sky = SCALE * np.stack([x - centre_out[0], y - centre_out[1]])  # (W, N) arcsec
+    p = np.tensordot(J, sky, axes=1) + np.asarray(centre_in, float)[:, None, None]
+    area = SCALE**2 * abs(np.linalg.det(J))
+    return area * map_coordinates(img, [p[1], p[0]], order=ORDER, mode="mirror")
+
+
+def coadd_weights(exps: list) -> np.ndarray:
+    """One inverse-variance weight per exposure (its noise in the sky grid's units),
+    normalised to a sum of 1."""
+    v = np.array([(SCALE**2 * abs(np.linalg.det(ex["J"])) * ex["sigma"]) ** 2 for ex in exps])
+    return (1 / v) / (1 / v).sum()
+
+
+def coadd(stamps: list, exps: list, offsets: list, off_c: np.ndarray) -> np.ndarray:
+    """``(n, N, N)`` co-add of the exposures' stamps: each galaxy, at ``N // 2 +
+    offsets[k]`` in exposure k, resampled to ``N // 2 + off_c`` on the sky grid and
+    summed with :func:`coadd_weights`."""
+    w = coadd_weights(exps)
+    out = np.zeros_like(stamps[0])
+    for s, ex, off, wk in zip(stamps, exps, offsets, w, strict=True):
+        for i in range(len(s)):
+            out[i] += wk * resample(s[i], ex["J"], N // 2 + off[i], N // 2 + off_c[i], N)
+    return out
+
+
+def coadd_psf(exps: list) -> np.ndarray:
+    """The co-add's PSF: the exposures' PSF images resampled about their centres and
+    summed with the co-add's weights."""
+    w = coadd_weights(exps)
+    return sum(wk * resample(ex["psf_img"], ex["J"], (M // 2, M // 2), (M // 2, M // 2), M)
+               for ex, wk in zip(exps, w, strict=True))  # fmt: skip
+
+
+def coadd_sigma(exps: list, rng: np.random.Generator, n: int = 200) -> tuple[float, float]:
+    """The co-add's per-pixel noise sigma, measured on ``n`` co-adds of pure noise (their
+    pixels 4 or more from the edge), and the white-noise sum ``sqrt(sum (w_k a_k
+    sigma_k)^2)`` it would be without the resampling's smoothing."""
+    noise = [rng.normal(0, ex["sigma"], (n, N, N)) for ex in exps]
+    offs = [rng.uniform(-0.5, 0.5, (n, 2)) for _ in range(len(exps) + 1)]
+    c = coadd(noise, exps, offs[:-1], offs[-1])
+    a = np.array([SCALE**2 * abs(np.linalg.det(ex["J"])) * ex["sigma"] for ex in exps])
+    return float(c[:, 4:-4, 4:-4].std()), float(np.sqrt(((coadd_weights(exps) * a) ** 2).sum()))
+
+
 def repeat_frame(frame: SkyFrame, n: int) -> SkyFrame:
     """One object's frame for ``n`` objects."""
     return SkyFrame(*(np.repeat(getattr(frame, a), n) for a in ("angle", "flip", "g1", "g2",
@@ -175,11 +245,17 @@ def as_dict(t) -> dict:
     return {c: np.asarray(t[c], dtype=float) for c in ("e1", "e2", "sens1", "sens2", "weight")}
 
 
-def shear_stats(sets: dict, n_base: int, rng: np.random.Generator, n_boot: int = 300) -> dict:
-    """m, c (paired) and sigma_g of the four sets ``{(i, sign): shapes}``, bootstrap over
-    the base galaxies (twins kept together)."""
+def bootstrap(n_base: int, rng: np.random.Generator, n_boot: int = 300) -> np.ndarray:
+    """``(n_boot, 2 n_base)`` bootstrap counts over the base galaxies, the twins kept
+    with their galaxy: one set of resamplings for every method (paired errors)."""
     boot = rng.multinomial(n_base, np.full(n_base, 1.0 / n_base), size=n_boot).astype(float)
-    boot = np.concatenate([boot, boot], axis=1)  # the twins follow their galaxy
+    return np.concatenate([boot, boot], axis=1)
+
+
+def shear_stats(sets: dict, boot: np.ndarray) -> dict:
+    """m, c (paired) and sigma_g of the four sets ``{(i, sign): shapes}`` with their
+    bootstrap errors over the resamplings ``boot``; ``m1_boot, m2_boot`` the resampled
+    m (for the paired differences between methods)."""
     res, sig = {}, []
     for i in (0, 1):
         p, m = sets[(i, 1)], sets[(i, -1)]
@@ -191,7 +267,8 @@ def shear_stats(sets: dict, n_base: int, rng: np.random.Generator, n_boot: int =
         est_p = (boot @ gp[0]) / (boot @ gp[1])
         est_m = (boot @ gm[0]) / (boot @ gm[1])
         gp0, gm0 = gp[0].sum() / gp[1].sum(), gm[0].sum() / gm[1].sum()
-        res[f"m{i + 1}"] = ((gp0 - gm0) / (2 * G) - 1, np.std((est_p - est_m) / (2 * G)))
+        res[f"m{i + 1}_boot"] = (est_p - est_m) / (2 * G) - 1
+        res[f"m{i + 1}"] = ((gp0 - gm0) / (2 * G) - 1, np.std(res[f"m{i + 1}_boot"]))
         res[f"c{i + 1}"] = (0.5 * (gp0 + gm0), np.std(0.5 * (est_p + est_m)))
         n_used = int((w > 0).sum())
         sig += [np.std(est_p) * np.sqrt(n_used), np.std(est_m) * np.sqrt(n_used)]
@@ -203,6 +280,9 @@ def shear_stats(sets: dict, n_base: int, rng: np.random.Generator, n_boot: int =
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--ngal", type=int, default=200, help="galaxies per set (each with a twin)")
+    p.add_argument("--snr", type=float, nargs=2, metavar=("LO", "HI"),
+                   default=DitherSpec().snr_range,
+                   help="S/N range of the deep exposure (the K together)")  # fmt: skip
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--jobs", type=int, default=2, help="threads of the fits' kernels")
     args = p.parse_args()
@@ -212,33 +292,40 @@ def main() -> None:
     exps = exposures(rng)
     deep = exposure(np.eye(2) / SCALE, galsim.Moffat(beta=BETA, fwhm=FWHM), SIGMA)
     t0 = time.time()
-    base = population(args.ngal, rng, deep)
-    cal = population(2 * args.ngal, rng, deep)
+    base = population(args.ngal, rng, deep, args.snr)
+    cal = population(2 * args.ngal, rng, deep, args.snr)
     n = args.ngal
     # the calibration set: unsheared, no twins
     off_c = [rng.uniform(-0.5, 0.5, (2 * n, 2)) for _ in range(K + 1)]
     cal_st = [render(cal, ex, (0, 0), 1.0, o, rng.normal(0, ex["sigma"], (2 * n, N, N)))
               for ex, o in zip(exps + [deep], off_c, strict=True)]  # fmt: skip
     print(f"rendered the calibration set in {time.time() - t0:.0f} s")
+    co = {"psf": coadd_psf(exps)}
+    co["sigma"], white = coadd_sigma(exps, np.random.default_rng([args.seed, 1]))
+    print(f"co-add: weights {np.round(coadd_weights(exps), 4)}, noise sigma {co['sigma']:.4f} "
+          f"per pixel ({white:.4f} without the resampling's smoothing)")  # fmt: skip
     t0 = time.time()
     pri_j = plf.calibrate_exposures(views(cal_st[:K], exps, off_c[:K]), config=cfg)
     pri_d = plf.calibrate(cal_st[K], deep["psf_img"], SIGMA, config=cfg,
                           centres=tuple((N // 2 + off_c[K]).T))  # fmt: skip
     pri_s = plf.calibrate(cal_st[0], exps[0]["psf_img"], 2 * SIGMA, config=cfg,
                           centres=tuple((N // 2 + off_c[0]).T))  # fmt: skip
+    pri_c = plf.calibrate(coadd(cal_st[:K], exps, off_c[:K], off_c[K]), co["psf"], co["sigma"],
+                          config=cfg, centres=tuple((N // 2 + off_c[K]).T))  # fmt: skip
     print(f"calibrated in {time.time() - t0:.0f} s")
-    run(base, n, exps, deep, cfg, (pri_j, pri_d, pri_s), rng)
+    print(f"S/N {args.snr[0]:g}-{args.snr[1]:g} in the deep exposure")
+    run(base, n, exps, deep, co, cfg, (pri_j, pri_d, pri_s, pri_c), rng)
 
 
-def run(base, n, exps, deep, cfg, priors, rng) -> None:
-    """Render the sheared sets, measure them three ways and print the table."""
-    pri_j, pri_d, pri_s = priors
+def run(base, n, exps, deep, co, cfg, priors, rng) -> None:
+    """Render the sheared sets, measure them four ways and print the tables."""
+    pri_j, pri_d, pri_s, pri_c = priors
     twins = {k: np.concatenate([base[k], base[k]]) for k in ("r", "flux")}
     twins["kind"] = list(base["kind"]) * 2
     twins["e"] = np.concatenate([base["e"], -base["e"]])
     off = [rng.uniform(-0.5, 0.5, (2 * n, 2)) for _ in range(K + 1)]
     noise = [rng.normal(0, ex["sigma"], (2 * n, N, N)) for ex in exps + [deep]]
-    out = {m: {} for m in ("joint", "deep", "single mean")}
+    out = {m: {} for m in ("joint", "deep", "single mean", "coadd")}
     cost = {m: 0.0 for m in out}
     for i in (0, 1):
         for sign in (1, -1):
@@ -260,8 +347,20 @@ def run(base, n, exps, deep, cfg, priors, rng) -> None:
                     for k in range(K)]  # fmt: skip
             cost["single mean"] += time.time() - t
             out["single mean"][(i, sign)] = single_mean(tabs, exps)
-    per = {"joint": 4 * 2 * n * K, "deep": 4 * 2 * n, "single mean": 4 * 2 * n * K}
-    stats = {m: shear_stats(out[m], n, np.random.default_rng(0)) for m in out}
+            t = time.time()
+            out["coadd"][(i, sign)] = as_dict(plf.measure_stamps(
+                coadd(st[:K], exps, off[:K], off[K]), co["psf"], co["sigma"], priors=pri_c,
+                config=cfg, centres=tuple((N // 2 + off[K]).T)))  # fmt: skip
+            cost["coadd"] += time.time() - t
+    per = {"joint": 2 * n * K, "deep": 2 * n, "single mean": 2 * n * K, "coadd": 2 * n * K}
+    boot = bootstrap(n, np.random.default_rng(0))
+    stats = {m: shear_stats(out[m], boot) for m in out}
+    report(stats, {m: 1e3 * cost[m] / (4 * per[m]) for m in out}, n)
+
+
+def report(stats: dict, ms: dict, n: int) -> None:
+    """Print each method's m, c, sigma_g and cost, then the joint fit's paired differences
+    of m from the others."""
     sd = stats["deep"]["sigma_g"]
     print(f"\n{2 * n} galaxies per set ({n} and their twins), g = {G}, K = {K}\n")
     print(f"{'method':<12} {'m1':>16} {'m2':>16} {'c1':>18} {'c2':>18} {'n':>5} "
@@ -269,7 +368,16 @@ def run(base, n, exps, deep, cfg, priors, rng) -> None:
     for m, s in stats.items():
         f = "  ".join(f"{s[k][0]:+.4f}+-{s[k][1]:.4f}" for k in ("m1", "m2", "c1", "c2"))
         print(f"{m:<12} {f}  {s['n']:>5} {s['sigma_g']:8.3f} {s['sigma_g'] / sd:6.3f} "
-              f"{1e3 * cost[m] / per[m]:13.1f}")  # fmt: skip
+              f"{ms[m]:13.1f}")  # fmt: skip
+    print("\npaired differences of m (the same galaxies and bootstrap resamplings)\n")
+    print(f"{'pair':<20} {'dm1':>16} {'dm1/err':>8} {'dm2':>16} {'dm2/err':>8}")
+    for other in ("single mean", "coadd", "deep"):
+        row = ""
+        for k in ("m1", "m2"):
+            d = stats["joint"][k][0] - stats[other][k][0]
+            e = float(np.std(stats["joint"][f"{k}_boot"] - stats[other][f"{k}_boot"]))
+            row += f" {d:+.4f}+-{e:.4f} {d / e:+8.2f}"
+        print(f"{'joint - ' + other:<20}{row}")
 
 
 if __name__ == "__main__":
