@@ -389,10 +389,10 @@ def lattice_symmetries(jacobian: np.ndarray, tol: float = 1e-9) -> tuple[np.ndar
     return np.array(hs), np.array(ss)
 
 
-#: the column subsets of the folded banks last used (the centring pass's, the size
+#: the column subsets of the folded banks last used (all, the centring pass's, the size
 #: prior's), per exposure
 _SUBSETS: dict = {}
-_SUBSETS_KEPT = 8
+_SUBSETS_KEPT = 24
 
 
 @dataclass(frozen=True)
@@ -412,18 +412,23 @@ class _Fold:
     w: np.ndarray  # (n_k0,) orbit weights
     chi: np.ndarray  # (n_h, n_h) characters of H: chi[c, slot of h]
     keep: tuple  # per character, the k0 where it can be non-zero
-    G: tuple  # per character, (len(keep), n_fc) folded model transforms
-    G2: tuple  # per character, those of the squared transforms (the norms)
+    G: tuple  # per character, (len(keep), n_base) folded transforms of the base columns
+    G2: tuple  # per character, (len(keep), n_fc) those of the squared transforms (norms)
     members: np.ndarray  # (n_fc, n_h) the model s(h) e of folded column c, slot h
     kind: tuple  # (H, s): exposures of one kind have the same folded columns
+    mix: tuple  # (base, a, b, f), (n_fc,) each: _mixed_columns
 
-    def columns(self, cols: np.ndarray | None, n_cols: int) -> tuple[tuple, tuple, np.ndarray]:
-        """``G``, ``G2`` and ``members`` of the models ``cols`` (a set closed under the
-        symmetries; None: all), the members numbered in ``cols`` (kept for later blocks:
-        the last :data:`_SUBSETS_KEPT`)."""
-        if cols is None:
-            return self.G, self.G2, self.members
-        key = (id(self), n_cols, cols.tobytes())
+    def columns(self, cols: np.ndarray | None, n_cols: int) -> tuple:
+        """The products' transforms, ``G2``, ``members`` and the mixing of the models
+        ``cols`` (a set closed under the symmetries; None: all), the members numbered in
+        ``cols`` (kept for later calls: the last :data:`_SUBSETS_KEPT`).
+
+        ``G`` holds the base columns that the folded columns of ``cols`` read, in their
+        order; the folded column ``i``'s products are ``(1 - f[i])`` times those of
+        ``G``'s column ``a[i]`` plus ``f[i]`` times those of ``b[i]``: the third tuple,
+        ``(a, b, f)``.
+        """
+        key = (id(self), n_cols, None if cols is None else cols.tobytes())
         hit = _SUBSETS.get(key)
         if hit is not None and hit[0] is self:
             return hit[1]
@@ -431,13 +436,48 @@ class _Fold:
         keep_last(_SUBSETS, key, (self, out), _SUBSETS_KEPT)
         return out
 
-    def _subset(self, cols: np.ndarray, n_cols: int) -> tuple[tuple, tuple, np.ndarray]:
-        pos = np.full(n_cols, -1, dtype=np.int64)
-        pos[cols] = np.arange(cols.size)
-        fc = np.flatnonzero(pos[self.members[:, 0]] >= 0)
-        mem = np.where(self.members[fc] >= 0, pos[self.members[fc]], -1)
-        return (tuple(g[:, fc] for g in self.G), tuple(g[:, fc] for g in self.G2),
-                np.ascontiguousarray(mem))  # fmt: skip
+    def _subset(self, cols: np.ndarray | None, n_cols: int) -> tuple:
+        if cols is None:
+            fc, mem, G2 = np.arange(self.members.shape[0]), self.members, self.G2
+        else:
+            pos = np.full(n_cols, -1, dtype=np.int64)
+            pos[cols] = np.arange(cols.size)
+            fc = np.flatnonzero(pos[self.members[:, 0]] >= 0)
+            mem = np.ascontiguousarray(np.where(self.members[fc] >= 0, pos[self.members[fc]],
+                                                -1))  # fmt: skip
+            G2 = tuple(g[:, fc] for g in self.G2)
+        a, b, f = (x[fc] for x in self.mix[1:])
+        direct = np.union1d(a, b)  # the base columns read, in the order of G's
+        on = self.mix[0][direct]
+        G = (self.G if direct.size == self.G[0].shape[1]
+             else tuple(np.ascontiguousarray(g[:, on]) for g in self.G))  # fmt: skip
+        return G, G2, mem, (np.searchsorted(direct, a), np.searchsorted(direct, b), f)
+
+
+def _mixed_columns(cols: _Columns, n_rep: int) -> tuple[np.ndarray, ...]:
+    """The folded columns (``n_rep`` cells' runs of sizes, then the point source) as mixes
+    of the base columns: the bulge+disc fractions between 0 and 1 are ``(1 - f)`` times
+    the pure disc's transform plus ``f`` times the pure bulge's (of the same bulge size),
+    and so are their products with the data (the single fit's
+    :func:`pylensfit.likelihood.folded.mixed_columns`). Returns, per folded column, its
+    place among the base columns (-1: mixed), the two base columns it reads (its own
+    where not mixed; folded columns' numbers) and its ``f`` (0 where not mixed)."""
+    per_e = cols.n_b * cols.n_sub
+    n_fc = n_rep * per_e + 1
+    a = np.arange(n_fc)
+    b, f = a.copy(), np.zeros(n_fc)
+    ends = {(fr, sz): ib for ib, (fr, sz) in enumerate(cols.runs) if fr in (0.0, 1.0)}
+    if cols.model == "bulge+disc":
+        for ib, (fr, sz) in enumerate(cols.runs):
+            if 0.0 < fr < 1.0 and (0.0, sz) in ends and (1.0, sz) in ends:
+                j = (np.arange(n_rep)[:, None] * per_e + ib * cols.n_sub
+                     + np.arange(cols.n_sub)[None, :]).ravel()  # fmt: skip
+                a[j] = j + (ends[(0.0, sz)] - ib) * cols.n_sub
+                b[j] = j + (ends[(1.0, sz)] - ib) * cols.n_sub
+                f[j] = fr
+    is_base = f == 0.0
+    base = np.where(is_base, np.cumsum(is_base) - 1, -1)
+    return base, a, b, f
 
 
 def _frequency_orbits(n: int, H: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -491,13 +531,16 @@ def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype) -> _Fol
     per_e = cols.n_b * cols.n_sub
     members = (img.T[:, None, :] * per_e + np.arange(per_e)[None, :, None]).reshape(-1, H.size)
     members = np.vstack([members, np.r_[cols.n_cols - 1, np.full(H.size - 1, -1)]])
-    fold = [(np.einsum("h,hkc->kc", c, G[:, kp]), np.einsum("h,hkc->kc", c, G[:, kp] ** 2))
+    mix = _mixed_columns(cols, rep.size)
+    on = np.flatnonzero(mix[0] >= 0)
+    fold = [(np.einsum("h,hkc->kc", c, G[:, kp][..., on]),
+             np.einsum("h,hkc->kc", c, G[:, kp] ** 2))
             for c, kp in zip(chi, keep, strict=True)]  # fmt: skip
     return _Fold(idx=_sel_positions(n, sel, imgs), w=size / H.size**2, chi=chi, keep=keep,
                  G=tuple(np.ascontiguousarray(g, dtype=dtype) for g, _ in fold),
                  G2=tuple(np.ascontiguousarray(g2, dtype=dtype) for _, g2 in fold),
                  members=np.ascontiguousarray(members, dtype=np.int64),
-                 kind=(tuple(H), tuple(S)))  # fmt: skip
+                 kind=(tuple(H), tuple(S)), mix=mix)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -548,10 +591,15 @@ class _Inputs:
 
 
 def _psf_transforms(psf, K: int, n_gal: int, N: int) -> tuple[np.ndarray, np.ndarray]:
-    """The PSF transforms, ``(K, 1 or n, N, N // 2 + 1)``, and which are finite."""
+    """The PSF transforms, ``(K, 1 or n, N, N // 2 + 1)``, and which are finite: one per
+    exposure where each exposure's galaxies are given the same image (the models' norms
+    then one product per exposure, not per galaxy)."""
     psf = np.asarray(psf, dtype=float)
     if psf.ndim == 2:
         psf = np.broadcast_to(psf, (K, *psf.shape))
+    if psf.ndim == 4 and n_gal > 0 and psf.shape[:2] == (K, n_gal) and np.array_equal(
+            psf, np.broadcast_to(psf[:, :1], psf.shape)):  # fmt: skip
+        psf = psf[:, 0]
     if psf.ndim not in (3, 4) or psf.shape[0] != K or (psf.ndim == 4 and psf.shape[1] != n_gal):
         raise ValueError(f"psf must be (s, s), (K, s, s) or (K, n, s, s) for K={K}, n={n_gal}; "
                          f"got {psf.shape}")  # fmt: skip
@@ -667,7 +715,7 @@ def _norms(blk: _Block, exps: list[_Exposure], parts: list[tuple], c: int) -> No
     """The models' norms per exposure (:class:`~pylensfit.joint_nb.Norms`: ``Q`` and the
     expected Hessian per unit weight, one product per exposure and PSF, unfolded)."""
     S = np.zeros((len(exps), 4 * blk.W[0].shape[0], c))
-    for k, (W, ex, (_, G2, members)) in enumerate(zip(blk.W, exps, parts, strict=True)):
+    for k, (W, ex, (_, G2, members, _)) in enumerate(zip(blk.W, exps, parts, strict=True)):
         q = np.stack([W, -W * ex.qx * ex.qx, -W * ex.qx * ex.qy, -W * ex.qy * ex.qy])
         q = q.reshape(-1, q.shape[-1])
         Sf = np.empty((len(G2), q.shape[0], G2[0].shape[1]), dtype=G2[0].dtype)
@@ -694,15 +742,18 @@ def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None) -> tuple[Fo
     off[:, :] = np.r_[0, np.cumsum(sizes.prod(1) * 6 * m)[:-1]][:, None]
     off += np.arange(4)[None, :] * sizes[:, 1:] * 6 * m
     P = np.empty(int((sizes.prod(1) * 6 * m).sum()), dtype=parts[0][0][0].dtype)
-    sgn, col = np.zeros((n_k, 4, c)), np.zeros((n_k, c), dtype=np.int64)
+    sgn, col = np.zeros((n_k, 4, c)), np.zeros((n_k, 2, c), dtype=np.int64)
+    frac = np.zeros((n_k, c))
     for i, g in enumerate(groups):
         (n_chi, n_fc), fold = sizes[i], exps[g[0]].fold
         view = P[off[i, 0] : off[i, 0] + n_chi * 6 * m * n_fc].reshape(n_chi, 6 * m, n_fc)
         Rs = [_rows(blk.D[k], exps[k], xc, yc).reshape(6 * m, -1) for k in g]
         _folded([exps[k].fold for k in g], Rs, [parts[k][0] for k in g], view)
-        col[i], slot = _places(parts[g[0]][2], c)
+        fcol, slot = _places(parts[g[0]][2], c)
+        a, b, f = parts[g[0]][3]
+        col[i, 0], col[i, 1], frac[i] = a[fcol], b[fcol], f[fcol]
         sgn[i, :n_chi] = fold.chi[:, slot]
-    folds = Folds(P, off, sizes[:, 1].copy(), sizes[:, 0].copy(), sgn, col)
+    folds = Folds(P, off, sizes[:, 1].copy(), sizes[:, 0].copy(), sgn, col, frac)
     return folds, _norms(blk, exps, parts, c)
 
 
@@ -833,7 +884,8 @@ def fit_exposures(
     psf : numpy.ndarray
         The PSF images including the pixel response, centred on element ``[s//2, s//2]``:
         ``(s, s)`` for all, ``(K, s, s)`` one per exposure or ``(K, n, s, s)`` one per
-        galaxy and exposure (any normalisation).
+        galaxy and exposure (any normalisation; where each exposure's images are all the
+        same, read as one per exposure).
     noise_sigma : float or array_like
         Per-pixel noise, counts: a scalar, ``(K,)`` or ``(K, n)``.
     jacobian : numpy.ndarray
