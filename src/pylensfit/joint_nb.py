@@ -95,18 +95,15 @@ def _read_tile(folds, norms, g, t0, nt, V, cm, uniform):
     for q in range(6):
         for k in range(TILE):
             V[q, k] = 0.0
-    o = np.empty(4, dtype=np.int64)
-    sg = np.empty(4)
     for e in range(off.shape[0]):
         nc = n_chi[e]
         step = m * n_fc[e]  # from one row q to the next
-        for c in range(4):
-            o[c] = off[e, c] + g * n_fc[e]
+        o0 = g * n_fc[e]
+        o = (off[e, 0] + o0, off[e, 1] + o0, off[e, 2] + o0, off[e, 3] + o0)
         for k in range(nt):
             j = t0 + k
             fa, fb, fm = col[e, 0, j], col[e, 1, j], frac[e, j]
-            for c in range(4):
-                sg[c] = sgn[e, c, j]
+            sg = (sgn[e, 0, j], sgn[e, 1, j], sgn[e, 2, j], sgn[e, 3, j])
             if fm == 0.0:
                 for q in range(6):
                     V[q, k] += _column(P, o, q * step + fa, nc, sg)
@@ -218,16 +215,26 @@ def unfold(P, chi, members, out):
     """Add the folded products ``P`` (``(n_chi, rows, n_fc)``) to ``out`` (``(rows, c)``,
     float64) model by model: ``out[r, members[f, h]] += sum_c chi[c, h] P[c, r, f]``
     (``members[f, h] = -1``: no model), the models of an exposure's folded columns
-    (:func:`pylensfit.joint.lattice_symmetries`)."""
+    (:func:`pylensfit.joint.lattice_symmetries`); each row written in the models' order,
+    read from their columns."""
     n_chi, n_rows, n_fc = P.shape
     n_h = members.shape[1]
+    c = out.shape[1]
+    col = np.full(c, -1, dtype=np.int64)
+    slot = np.zeros(c, dtype=np.int64)
+    for f in range(n_fc):
+        for h in range(n_h):
+            j = members[f, h]
+            if j >= 0:
+                col[j] = f
+                slot[j] = h
     for r in prange(n_rows):
-        for f in range(n_fc):
-            for h in range(n_h):
-                j = members[f, h]
-                if j < 0:
-                    continue
-                v = 0.0
-                for c in range(n_chi):
-                    v += chi[c, h] * P[c, r, f]
-                out[r, j] += v
+        for j in range(c):
+            f = col[j]
+            if f < 0:
+                continue
+            h = slot[j]
+            v = 0.0
+            for ch in range(n_chi):
+                v += chi[ch, h] * P[ch, r, f]
+            out[r, j] += v
