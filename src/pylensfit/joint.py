@@ -333,11 +333,23 @@ def _bank(cols: _Columns, qx: np.ndarray, qy: np.ndarray, dtype) -> np.ndarray:
         ks = sheared_k(qx[:, None], qy[:, None], eg[None, :, 0], eg[None, :, 1])
         q = ks[:, :, None] * cols.radii[None, None, :]
         blk = np.empty((n_f, eg.shape[0], cols.n_b, cols.n_sub))
-        for ib, (f, s) in enumerate(cols.runs):
-            blk[:, :, ib] = fourier_profile(q, cols.model, bulge_fraction=f, bulge_size_ratio=s)
+        for ib, prof in enumerate(_run_profiles(cols, q)):
+            blk[:, :, ib] = prof
         G[:, e0 * per_e : (e0 + eg.shape[0]) * per_e] = blk.reshape(n_f, -1)
     G[:, -1] = 1.0
     return G
+
+
+def _run_profiles(cols: _Columns, q: np.ndarray) -> list[np.ndarray]:
+    """:func:`pylensfit.models.fourier_profile` at ``q`` of each run: the bulge+disc
+    runs' ``f B + (1 - f) D`` with the bulge's ``B`` evaluated once per bulge size and
+    the disc's ``D`` once."""
+    if cols.model != "bulge+disc":
+        return [fourier_profile(q, cols.model, bulge_fraction=f, bulge_size_ratio=s)
+                for f, s in cols.runs]  # fmt: skip
+    disc = fourier_profile(q, "exponential")
+    bulge = {s: fourier_profile(q * s, "devaucouleurs") for s in {s for _, s in cols.runs}}
+    return [f * bulge[s] + (1.0 - f) * disc for f, s in cols.runs]
 
 
 #: the square pixel grid's symmetries ``h = 1, s1, s2, s1 s2`` (modulo ``k -> -k``) as
@@ -533,9 +545,10 @@ def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype) -> _Fol
     members = np.vstack([members, np.r_[cols.n_cols - 1, np.full(H.size - 1, -1)]])
     mix = _mixed_columns(cols, rep.size)
     on = np.flatnonzero(mix[0] >= 0)
-    fold = [(np.einsum("h,hkc->kc", c, G[:, kp][..., on]),
-             np.einsum("h,hkc->kc", c, G[:, kp] ** 2))
-            for c, kp in zip(chi, keep, strict=True)]  # fmt: skip
+    fold = []
+    for c, kp in zip(chi, keep, strict=True):
+        Gk = G[:, kp]
+        fold.append((np.einsum("h,hkc->kc", c, Gk[..., on]), np.einsum("h,hkc->kc", c, Gk * Gk)))
     return _Fold(idx=_sel_positions(n, sel, imgs), w=size / H.size**2, chi=chi, keep=keep,
                  G=tuple(np.ascontiguousarray(g, dtype=dtype) for g, _ in fold),
                  G2=tuple(np.ascontiguousarray(g2, dtype=dtype) for _, g2 in fold),
