@@ -89,8 +89,8 @@ from .psf import psf_transform
 
 __all__ = ["JointFits", "fit_exposures", "fit_views", "lattice_symmetries", "sky_frequencies"]
 
-#: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 64 x n_r)
-_E_CHUNK = 64
+#: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 16 x n_r)
+_E_CHUNK = 16
 
 
 @dataclass
@@ -323,11 +323,12 @@ def sky_frequencies(jacobian: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarra
     return J[0, 0] * kx + J[1, 0] * ky, J[0, 1] * kx + J[1, 1] * ky
 
 
-def _bank(cols: _Columns, qx: np.ndarray, qy: np.ndarray, dtype) -> np.ndarray:
-    """``(n_freq, n_cols)`` sky-frame model transforms at the frequencies ``q``; the last
-    column is the point source."""
+def _bank_chunks(cols: _Columns, qx: np.ndarray, qy: np.ndarray):
+    """The sky-frame model transforms at the frequencies ``q``, a few e cells at a time:
+    yields ``(j0, G)``, ``G`` the ``(n_freq, n)`` float64 columns ``j0 .. j0 + n`` of the
+    grid (cell ``ie``'s runs of sizes at ``ie * n_b * n_sub``), the point source last
+    (its own chunk)."""
     n_f, per_e = qx.size, cols.n_b * cols.n_sub
-    G = np.empty((n_f, cols.n_cols), dtype=dtype)
     for e0 in range(0, cols.n_e, _E_CHUNK):  # vectorised blocks of (freq x e x r)
         eg = cols.egrid[e0 : e0 + _E_CHUNK]
         ks = sheared_k(qx[:, None], qy[:, None], eg[None, :, 0], eg[None, :, 1])
@@ -335,9 +336,8 @@ def _bank(cols: _Columns, qx: np.ndarray, qy: np.ndarray, dtype) -> np.ndarray:
         blk = np.empty((n_f, eg.shape[0], cols.n_b, cols.n_sub))
         for ib, prof in enumerate(_run_profiles(cols, q)):
             blk[:, :, ib] = prof
-        G[:, e0 * per_e : (e0 + eg.shape[0]) * per_e] = blk.reshape(n_f, -1)
-    G[:, -1] = 1.0
-    return G
+        yield e0 * per_e, blk.reshape(n_f, -1)
+    yield cols.n_e * per_e, np.ones((n_f, 1))
 
 
 def _run_profiles(cols: _Columns, q: np.ndarray) -> list[np.ndarray]:
@@ -538,22 +538,36 @@ def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype) -> _Fol
     keep = tuple(np.flatnonzero(~(stab & (c[:, None] < 0)).any(axis=0)) for c in chi)
     rep, img = _model_orbits(cols, S)
     q = 2 * np.pi / n * imgs.reshape(-1, 2) @ np.asarray(J, dtype=float)  # J^T k per row
-    G = _bank(replace(cols, egrid=cols.egrid[rep]), q[:, 0], q[:, 1], np.float64)
-    G = G.reshape(H.size, k0.shape[0], -1)
     per_e = cols.n_b * cols.n_sub
     members = (img.T[:, None, :] * per_e + np.arange(per_e)[None, :, None]).reshape(-1, H.size)
     members = np.vstack([members, np.r_[cols.n_cols - 1, np.full(H.size - 1, -1)]])
     mix = _mixed_columns(cols, rep.size)
-    on = np.flatnonzero(mix[0] >= 0)
-    fold = []
-    for c, kp in zip(chi, keep, strict=True):
-        Gk = G[:, kp]
-        fold.append((np.einsum("h,hkc->kc", c, Gk[..., on]), np.einsum("h,hkc->kc", c, Gk * Gk)))
+    G, G2 = _fold_transforms(replace(cols, egrid=cols.egrid[rep]), q, chi, keep, mix[0], dtype)
     return _Fold(idx=_sel_positions(n, sel, imgs), w=size / H.size**2, chi=chi, keep=keep,
-                 G=tuple(np.ascontiguousarray(g, dtype=dtype) for g, _ in fold),
-                 G2=tuple(np.ascontiguousarray(g2, dtype=dtype) for _, g2 in fold),
-                 members=np.ascontiguousarray(members, dtype=np.int64),
+                 G=G, G2=G2, members=np.ascontiguousarray(members, dtype=np.int64),
                  kind=(tuple(H), tuple(S)), mix=mix)  # fmt: skip
+
+
+def _fold_transforms(cols: _Columns, q: np.ndarray, chi: np.ndarray, keep: tuple,
+                     base: np.ndarray, dtype) -> tuple[tuple, tuple]:  # fmt: skip
+    """Per character ``chi[c]``, the folded transforms ``sum_h chi[c, h] G(h k0)`` of the
+    base columns (``base >= 0``) and those of the squares of every column, on its
+    ``keep[c]``, in ``dtype``; ``q`` the sky frequencies of the images ``h k0``
+    (``(n_h * n_k0, 2)``), ``cols`` the representatives' grid; a chunk of e cells at a
+    time."""
+    n_h = chi.shape[1]
+    G = tuple(np.empty((kp.size, int((base >= 0).sum())), dtype=dtype) for kp in keep)
+    G2 = tuple(np.empty((kp.size, base.size), dtype=dtype) for kp in keep)
+    for j0, blk in _bank_chunks(cols, q[:, 0], q[:, 1]):
+        j1 = j0 + blk.shape[1]
+        on = np.flatnonzero(base[j0:j1] >= 0)
+        b0 = base[j0 + on[0]] if on.size else 0
+        blk = blk.reshape(n_h, -1, blk.shape[1])
+        for c, kp, g, g2 in zip(chi, keep, G, G2, strict=True):
+            Gk = blk[:, kp]
+            g[:, b0 : b0 + on.size] = np.einsum("h,hkc->kc", c, Gk[..., on])
+            g2[:, j0:j1] = np.einsum("h,hkc->kc", c, Gk * Gk)
+    return G, G2
 
 
 @dataclass(frozen=True)
