@@ -8,7 +8,9 @@ in the same process, each after a warm-up call on a few galaxies:
 * ``fit_exposures`` of every galaxy on its first K = 1, 2, 4 exposures (the exposures'
   model banks, built in the warm-up, reused as ``fit_stamps`` reuses its bank);
 * ``fit_exposures`` on the 4 exposures with each exposure's PSF image given once per
-  galaxy, ``(K, n, s, s)``, as :func:`pylensfit.joint.fit_views` gives them;
+  galaxy, ``(K, n, s, s)``, as :func:`pylensfit.joint.fit_views` gives them (``PSF/gal``),
+  and the same with each galaxy's image scaled by its own factor (``PSF/gal*``: the
+  same fit, the models' norms computed per galaxy as for a PSF that varies);
 * ``fit_exposures`` on the 4 exposures with Jacobians new to the process (scaled by
   ``1 + 1e-9``): the call builds their banks.
 
@@ -130,6 +132,11 @@ def main() -> None:
     per_gal = np.repeat(psfs[:, None], args.ngal, axis=1)
     calls["fit_exposures K=4, PSF/gal"] = (args.ngal * 4, lambda: fit_exposures(
         stamps, per_gal, 1.0, J, config=cfg, pixel_scale=SCALE))  # fmt: skip
+    # the same images, each galaxy's scaled by its own factor (a PSF's normalisation is
+    # not read): the models' norms computed per galaxy, as for a PSF that varies
+    scaled = per_gal * (1.0 + np.arange(args.ngal) / args.ngal)[None, :, None, None]
+    calls["fit_exposures K=4, PSF/gal*"] = (args.ngal * 4, lambda: fit_exposures(
+        stamps, scaled, 1.0, J, config=cfg, pixel_scale=SCALE))  # fmt: skip
     with threadpool_limits(limits=1, user_api="blas"):
         # warm-up: numba, the banks
         fit_stamps(stamps[0, :4], psfs[0], 1.0, config=cfg)

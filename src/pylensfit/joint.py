@@ -36,7 +36,9 @@ and ``Q = sum_k f_k^2 S_k / sigma_k^2``:
   axes or diagonals (a quarter of the operations, as the single fit's), the quarter turn
   ``e -> -e`` for any rotation or mirror image times a scale (half), none for a sheared
   ``J``; the exposures of one kind are summed in one matrix product, and the kernel
-  reads each model's products from its folded column. One Newton step gives ``X*`` and
+  reads each model's products from its folded column (those of a bulge+disc fraction
+  between 0 and 1 mixed from the pure disc's and the pure bulge's columns, as the
+  single fit's: the products are linear in the model). One Newton step gives ``X*`` and
   ``H*``, and the Laplace approximation with the Gaussian position prior of width ``b``
   (arcsec) about the catalogue position is that of the single-exposure fit::
 
