@@ -36,7 +36,9 @@ and ``Q = sum_k f_k^2 S_k / sigma_k^2``:
   axes or diagonals (a quarter of the operations, as the single fit's), the quarter turn
   ``e -> -e`` for any rotation or mirror image times a scale (half), none for a sheared
   ``J``; the exposures of one kind are summed in one matrix product, and the kernel
-  reads each model's products from its folded column. One Newton step gives ``X*`` and
+  reads each model's products from its folded column (those of a bulge+disc fraction
+  between 0 and 1 mixed from the pure disc's and the pure bulge's columns, as the
+  single fit's: the products are linear in the model). One Newton step gives ``X*`` and
   ``H*``, and the Laplace approximation with the Gaussian position prior of width ``b``
   (arcsec) about the catalogue position is that of the single-exposure fit::
 
@@ -89,8 +91,8 @@ from .psf import psf_transform
 
 __all__ = ["JointFits", "fit_exposures", "fit_views", "lattice_symmetries", "sky_frequencies"]
 
-#: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 64 x n_r)
-_E_CHUNK = 64
+#: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 16 x n_r)
+_E_CHUNK = 16
 
 
 @dataclass
@@ -323,21 +325,33 @@ def sky_frequencies(jacobian: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarra
     return J[0, 0] * kx + J[1, 0] * ky, J[0, 1] * kx + J[1, 1] * ky
 
 
-def _bank(cols: _Columns, qx: np.ndarray, qy: np.ndarray, dtype) -> np.ndarray:
-    """``(n_freq, n_cols)`` sky-frame model transforms at the frequencies ``q``; the last
-    column is the point source."""
+def _bank_chunks(cols: _Columns, qx: np.ndarray, qy: np.ndarray):
+    """The sky-frame model transforms at the frequencies ``q``, a few e cells at a time:
+    yields ``(j0, G)``, ``G`` the ``(n_freq, n)`` float64 columns ``j0 .. j0 + n`` of the
+    grid (cell ``ie``'s runs of sizes at ``ie * n_b * n_sub``), the point source last
+    (its own chunk)."""
     n_f, per_e = qx.size, cols.n_b * cols.n_sub
-    G = np.empty((n_f, cols.n_cols), dtype=dtype)
     for e0 in range(0, cols.n_e, _E_CHUNK):  # vectorised blocks of (freq x e x r)
         eg = cols.egrid[e0 : e0 + _E_CHUNK]
         ks = sheared_k(qx[:, None], qy[:, None], eg[None, :, 0], eg[None, :, 1])
         q = ks[:, :, None] * cols.radii[None, None, :]
         blk = np.empty((n_f, eg.shape[0], cols.n_b, cols.n_sub))
-        for ib, (f, s) in enumerate(cols.runs):
-            blk[:, :, ib] = fourier_profile(q, cols.model, bulge_fraction=f, bulge_size_ratio=s)
-        G[:, e0 * per_e : (e0 + eg.shape[0]) * per_e] = blk.reshape(n_f, -1)
-    G[:, -1] = 1.0
-    return G
+        for ib, prof in enumerate(_run_profiles(cols, q)):
+            blk[:, :, ib] = prof
+        yield e0 * per_e, blk.reshape(n_f, -1)
+    yield cols.n_e * per_e, np.ones((n_f, 1))
+
+
+def _run_profiles(cols: _Columns, q: np.ndarray) -> list[np.ndarray]:
+    """:func:`pylensfit.models.fourier_profile` at ``q`` of each run: the bulge+disc
+    runs' ``f B + (1 - f) D`` with the bulge's ``B`` evaluated once per bulge size and
+    the disc's ``D`` once."""
+    if cols.model != "bulge+disc":
+        return [fourier_profile(q, cols.model, bulge_fraction=f, bulge_size_ratio=s)
+                for f, s in cols.runs]  # fmt: skip
+    disc = fourier_profile(q, "exponential")
+    bulge = {s: fourier_profile(q * s, "devaucouleurs") for s in {s for _, s in cols.runs}}
+    return [f * bulge[s] + (1.0 - f) * disc for f, s in cols.runs]
 
 
 #: the square pixel grid's symmetries ``h = 1, s1, s2, s1 s2`` (modulo ``k -> -k``) as
@@ -389,10 +403,10 @@ def lattice_symmetries(jacobian: np.ndarray, tol: float = 1e-9) -> tuple[np.ndar
     return np.array(hs), np.array(ss)
 
 
-#: the column subsets of the folded banks last used (the centring pass's, the size
+#: the column subsets of the folded banks last used (all, the centring pass's, the size
 #: prior's), per exposure
 _SUBSETS: dict = {}
-_SUBSETS_KEPT = 8
+_SUBSETS_KEPT = 24
 
 
 @dataclass(frozen=True)
@@ -412,18 +426,23 @@ class _Fold:
     w: np.ndarray  # (n_k0,) orbit weights
     chi: np.ndarray  # (n_h, n_h) characters of H: chi[c, slot of h]
     keep: tuple  # per character, the k0 where it can be non-zero
-    G: tuple  # per character, (len(keep), n_fc) folded model transforms
-    G2: tuple  # per character, those of the squared transforms (the norms)
+    G: tuple  # per character, (len(keep), n_base) folded transforms of the base columns
+    G2: tuple  # per character, (len(keep), n_fc) those of the squared transforms (norms)
     members: np.ndarray  # (n_fc, n_h) the model s(h) e of folded column c, slot h
     kind: tuple  # (H, s): exposures of one kind have the same folded columns
+    mix: tuple  # (base, a, b, f), (n_fc,) each: _mixed_columns
 
-    def columns(self, cols: np.ndarray | None, n_cols: int) -> tuple[tuple, tuple, np.ndarray]:
-        """``G``, ``G2`` and ``members`` of the models ``cols`` (a set closed under the
-        symmetries; None: all), the members numbered in ``cols`` (kept for later blocks:
-        the last :data:`_SUBSETS_KEPT`)."""
-        if cols is None:
-            return self.G, self.G2, self.members
-        key = (id(self), n_cols, cols.tobytes())
+    def columns(self, cols: np.ndarray | None, n_cols: int) -> tuple:
+        """The products' transforms, ``G2``, ``members`` and the mixing of the models
+        ``cols`` (a set closed under the symmetries; None: all), the members numbered in
+        ``cols`` (kept for later calls: the last :data:`_SUBSETS_KEPT`).
+
+        ``G`` holds the base columns that the folded columns of ``cols`` read, in their
+        order; the folded column ``i``'s products are ``(1 - f[i])`` times those of
+        ``G``'s column ``a[i]`` plus ``f[i]`` times those of ``b[i]``: the third tuple,
+        ``(a, b, f)``.
+        """
+        key = (id(self), n_cols, None if cols is None else cols.tobytes())
         hit = _SUBSETS.get(key)
         if hit is not None and hit[0] is self:
             return hit[1]
@@ -431,13 +450,48 @@ class _Fold:
         keep_last(_SUBSETS, key, (self, out), _SUBSETS_KEPT)
         return out
 
-    def _subset(self, cols: np.ndarray, n_cols: int) -> tuple[tuple, tuple, np.ndarray]:
-        pos = np.full(n_cols, -1, dtype=np.int64)
-        pos[cols] = np.arange(cols.size)
-        fc = np.flatnonzero(pos[self.members[:, 0]] >= 0)
-        mem = np.where(self.members[fc] >= 0, pos[self.members[fc]], -1)
-        return (tuple(g[:, fc] for g in self.G), tuple(g[:, fc] for g in self.G2),
-                np.ascontiguousarray(mem))  # fmt: skip
+    def _subset(self, cols: np.ndarray | None, n_cols: int) -> tuple:
+        if cols is None:
+            fc, mem, G2 = np.arange(self.members.shape[0]), self.members, self.G2
+        else:
+            pos = np.full(n_cols, -1, dtype=np.int64)
+            pos[cols] = np.arange(cols.size)
+            fc = np.flatnonzero(pos[self.members[:, 0]] >= 0)
+            mem = np.ascontiguousarray(np.where(self.members[fc] >= 0, pos[self.members[fc]],
+                                                -1))  # fmt: skip
+            G2 = tuple(g[:, fc] for g in self.G2)
+        a, b, f = (x[fc] for x in self.mix[1:])
+        direct = np.union1d(a, b)  # the base columns read, in the order of G's
+        on = self.mix[0][direct]
+        G = (self.G if direct.size == self.G[0].shape[1]
+             else tuple(np.ascontiguousarray(g[:, on]) for g in self.G))  # fmt: skip
+        return G, G2, mem, (np.searchsorted(direct, a), np.searchsorted(direct, b), f)
+
+
+def _mixed_columns(cols: _Columns, n_rep: int) -> tuple[np.ndarray, ...]:
+    """The folded columns (``n_rep`` cells' runs of sizes, then the point source) as mixes
+    of the base columns: the bulge+disc fractions between 0 and 1 are ``(1 - f)`` times
+    the pure disc's transform plus ``f`` times the pure bulge's (of the same bulge size),
+    and so are their products with the data (the single fit's
+    :func:`pylensfit.likelihood.folded.mixed_columns`). Returns, per folded column, its
+    place among the base columns (-1: mixed), the two base columns it reads (its own
+    where not mixed; folded columns' numbers) and its ``f`` (0 where not mixed)."""
+    per_e = cols.n_b * cols.n_sub
+    n_fc = n_rep * per_e + 1
+    a = np.arange(n_fc)
+    b, f = a.copy(), np.zeros(n_fc)
+    ends = {(fr, sz): ib for ib, (fr, sz) in enumerate(cols.runs) if fr in (0.0, 1.0)}
+    if cols.model == "bulge+disc":
+        for ib, (fr, sz) in enumerate(cols.runs):
+            if 0.0 < fr < 1.0 and (0.0, sz) in ends and (1.0, sz) in ends:
+                j = (np.arange(n_rep)[:, None] * per_e + ib * cols.n_sub
+                     + np.arange(cols.n_sub)[None, :]).ravel()  # fmt: skip
+                a[j] = j + (ends[(0.0, sz)] - ib) * cols.n_sub
+                b[j] = j + (ends[(1.0, sz)] - ib) * cols.n_sub
+                f[j] = fr
+    is_base = f == 0.0
+    base = np.where(is_base, np.cumsum(is_base) - 1, -1)
+    return base, a, b, f
 
 
 def _frequency_orbits(n: int, H: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -486,18 +540,36 @@ def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype) -> _Fol
     keep = tuple(np.flatnonzero(~(stab & (c[:, None] < 0)).any(axis=0)) for c in chi)
     rep, img = _model_orbits(cols, S)
     q = 2 * np.pi / n * imgs.reshape(-1, 2) @ np.asarray(J, dtype=float)  # J^T k per row
-    G = _bank(replace(cols, egrid=cols.egrid[rep]), q[:, 0], q[:, 1], np.float64)
-    G = G.reshape(H.size, k0.shape[0], -1)
     per_e = cols.n_b * cols.n_sub
     members = (img.T[:, None, :] * per_e + np.arange(per_e)[None, :, None]).reshape(-1, H.size)
     members = np.vstack([members, np.r_[cols.n_cols - 1, np.full(H.size - 1, -1)]])
-    fold = [(np.einsum("h,hkc->kc", c, G[:, kp]), np.einsum("h,hkc->kc", c, G[:, kp] ** 2))
-            for c, kp in zip(chi, keep, strict=True)]  # fmt: skip
+    mix = _mixed_columns(cols, rep.size)
+    G, G2 = _fold_transforms(replace(cols, egrid=cols.egrid[rep]), q, chi, keep, mix[0], dtype)
     return _Fold(idx=_sel_positions(n, sel, imgs), w=size / H.size**2, chi=chi, keep=keep,
-                 G=tuple(np.ascontiguousarray(g, dtype=dtype) for g, _ in fold),
-                 G2=tuple(np.ascontiguousarray(g2, dtype=dtype) for _, g2 in fold),
-                 members=np.ascontiguousarray(members, dtype=np.int64),
-                 kind=(tuple(H), tuple(S)))  # fmt: skip
+                 G=G, G2=G2, members=np.ascontiguousarray(members, dtype=np.int64),
+                 kind=(tuple(H), tuple(S)), mix=mix)  # fmt: skip
+
+
+def _fold_transforms(cols: _Columns, q: np.ndarray, chi: np.ndarray, keep: tuple,
+                     base: np.ndarray, dtype) -> tuple[tuple, tuple]:  # fmt: skip
+    """Per character ``chi[c]``, the folded transforms ``sum_h chi[c, h] G(h k0)`` of the
+    base columns (``base >= 0``) and those of the squares of every column, on its
+    ``keep[c]``, in ``dtype``; ``q`` the sky frequencies of the images ``h k0``
+    (``(n_h * n_k0, 2)``), ``cols`` the representatives' grid; a chunk of e cells at a
+    time."""
+    n_h = chi.shape[1]
+    G = tuple(np.empty((kp.size, int((base >= 0).sum())), dtype=dtype) for kp in keep)
+    G2 = tuple(np.empty((kp.size, base.size), dtype=dtype) for kp in keep)
+    for j0, blk in _bank_chunks(cols, q[:, 0], q[:, 1]):
+        j1 = j0 + blk.shape[1]
+        on = np.flatnonzero(base[j0:j1] >= 0)
+        b0 = base[j0 + on[0]] if on.size else 0
+        blk = blk.reshape(n_h, -1, blk.shape[1])
+        for c, kp, g, g2 in zip(chi, keep, G, G2, strict=True):
+            Gk = blk[:, kp]
+            g[:, b0 : b0 + on.size] = np.einsum("h,hkc->kc", c, Gk[..., on])
+            g2[:, j0:j1] = np.einsum("h,hkc->kc", c, Gk * Gk)
+    return G, G2
 
 
 @dataclass(frozen=True)
@@ -548,10 +620,15 @@ class _Inputs:
 
 
 def _psf_transforms(psf, K: int, n_gal: int, N: int) -> tuple[np.ndarray, np.ndarray]:
-    """The PSF transforms, ``(K, 1 or n, N, N // 2 + 1)``, and which are finite."""
+    """The PSF transforms, ``(K, 1 or n, N, N // 2 + 1)``, and which are finite: one per
+    exposure where each exposure's galaxies are given the same image (the models' norms
+    then one product per exposure, not per galaxy)."""
     psf = np.asarray(psf, dtype=float)
     if psf.ndim == 2:
         psf = np.broadcast_to(psf, (K, *psf.shape))
+    if psf.ndim == 4 and n_gal > 0 and psf.shape[:2] == (K, n_gal) and np.array_equal(
+            psf, np.broadcast_to(psf[:, :1], psf.shape)):  # fmt: skip
+        psf = psf[:, 0]
     if psf.ndim not in (3, 4) or psf.shape[0] != K or (psf.ndim == 4 and psf.shape[1] != n_gal):
         raise ValueError(f"psf must be (s, s), (K, s, s) or (K, n, s, s) for K={K}, n={n_gal}; "
                          f"got {psf.shape}")  # fmt: skip
@@ -667,7 +744,7 @@ def _norms(blk: _Block, exps: list[_Exposure], parts: list[tuple], c: int) -> No
     """The models' norms per exposure (:class:`~pylensfit.joint_nb.Norms`: ``Q`` and the
     expected Hessian per unit weight, one product per exposure and PSF, unfolded)."""
     S = np.zeros((len(exps), 4 * blk.W[0].shape[0], c))
-    for k, (W, ex, (_, G2, members)) in enumerate(zip(blk.W, exps, parts, strict=True)):
+    for k, (W, ex, (_, G2, members, _)) in enumerate(zip(blk.W, exps, parts, strict=True)):
         q = np.stack([W, -W * ex.qx * ex.qx, -W * ex.qx * ex.qy, -W * ex.qy * ex.qy])
         q = q.reshape(-1, q.shape[-1])
         Sf = np.empty((len(G2), q.shape[0], G2[0].shape[1]), dtype=G2[0].dtype)
@@ -694,15 +771,18 @@ def _products(blk: _Block, exps: list[_Exposure], xc, yc, cols=None) -> tuple[Fo
     off[:, :] = np.r_[0, np.cumsum(sizes.prod(1) * 6 * m)[:-1]][:, None]
     off += np.arange(4)[None, :] * sizes[:, 1:] * 6 * m
     P = np.empty(int((sizes.prod(1) * 6 * m).sum()), dtype=parts[0][0][0].dtype)
-    sgn, col = np.zeros((n_k, 4, c)), np.zeros((n_k, c), dtype=np.int64)
+    sgn, col = np.zeros((n_k, 4, c)), np.zeros((n_k, 2, c), dtype=np.int64)
+    frac = np.zeros((n_k, c))
     for i, g in enumerate(groups):
         (n_chi, n_fc), fold = sizes[i], exps[g[0]].fold
         view = P[off[i, 0] : off[i, 0] + n_chi * 6 * m * n_fc].reshape(n_chi, 6 * m, n_fc)
         Rs = [_rows(blk.D[k], exps[k], xc, yc).reshape(6 * m, -1) for k in g]
         _folded([exps[k].fold for k in g], Rs, [parts[k][0] for k in g], view)
-        col[i], slot = _places(parts[g[0]][2], c)
+        fcol, slot = _places(parts[g[0]][2], c)
+        a, b, f = parts[g[0]][3]
+        col[i, 0], col[i, 1], frac[i] = a[fcol], b[fcol], f[fcol]
         sgn[i, :n_chi] = fold.chi[:, slot]
-    folds = Folds(P, off, sizes[:, 1].copy(), sizes[:, 0].copy(), sgn, col)
+    folds = Folds(P, off, sizes[:, 1].copy(), sizes[:, 0].copy(), sgn, col, frac)
     return folds, _norms(blk, exps, parts, c)
 
 
@@ -833,7 +913,8 @@ def fit_exposures(
     psf : numpy.ndarray
         The PSF images including the pixel response, centred on element ``[s//2, s//2]``:
         ``(s, s)`` for all, ``(K, s, s)`` one per exposure or ``(K, n, s, s)`` one per
-        galaxy and exposure (any normalisation).
+        galaxy and exposure (any normalisation; where each exposure's images are all the
+        same, read as one per exposure).
     noise_sigma : float or array_like
         Per-pixel noise, counts: a scalar, ``(K,)`` or ``(K, n)``.
     jacobian : numpy.ndarray

@@ -44,8 +44,10 @@ class Folds(NamedTuple):
     Kind ``e``'s product of character ``c`` with folded column ``f`` in row ``r``
     (``r = q * m + g`` for galaxy ``g`` and ``q`` = ``H``, its gradient ``x, y``, its
     Hessian ``xx, xy, yy``) is ``P[off[e, c] + r * n_fc[e] + f]``; model ``j``'s
-    product is ``sum_c sgn[e, c, j]`` times those of its column ``col[e, j]`` (``sgn``
-    the character ``c`` of its slot in the column).
+    product is ``sum_c sgn[e, c, j]`` times ``(1 - frac[e, j])`` those of the column
+    ``col[e, 0, j]`` plus ``frac[e, j]`` those of ``col[e, 1, j]`` (``sgn`` the
+    character ``c`` of its slot in the column; ``frac`` 0 but for the bulge+disc
+    fractions between the pure disc and the pure bulge, mixed from their columns).
     """
 
     P: np.ndarray  # flat float32 (or float64) products
@@ -53,7 +55,19 @@ class Folds(NamedTuple):
     n_fc: np.ndarray  # (n_kinds,) int: folded columns per kind
     n_chi: np.ndarray  # (n_kinds,) int: characters per kind (1, 2 or 4)
     sgn: np.ndarray  # (n_kinds, 4, n_models) float +-1 (0 for c >= n_chi)
-    col: np.ndarray  # (n_kinds, n_models) int
+    col: np.ndarray  # (n_kinds, 2, n_models) int
+    frac: np.ndarray  # (n_kinds, n_models) float
+
+
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
+def _column(P, o, a, nc, sg):
+    """``sum_c sg[c] P[o[c] + a]`` over the ``nc`` characters."""
+    if nc == 4:
+        return (sg[0] * P[o[0] + a] + sg[1] * P[o[1] + a] + sg[2] * P[o[2] + a]
+                + sg[3] * P[o[3] + a])  # fmt: skip
+    if nc == 2:
+        return sg[0] * P[o[0] + a] + sg[1] * P[o[1] + a]
+    return sg[0] * P[o[0] + a]
 
 
 class Norms(NamedTuple):
@@ -74,7 +88,7 @@ def _read_tile(folds, norms, g, t0, nt, V, cm, uniform):
     Q)`` into ``cm`` (``(6, TILE)``; ``ln Q`` 0 under the ``uniform`` amplitude prior,
     whose ``-ln(Q) / 2`` :func:`_store_tile` adds); the rest of the tile a harmless
     model."""
-    P, off, n_fc, n_chi, sgn, col = folds
+    P, off, n_fc, n_chi, sgn, col, frac = folds
     S, w2 = norms
     p = g % S.shape[2]  # one PSF for all (0) or one per galaxy
     m = w2.shape[1]
@@ -84,27 +98,19 @@ def _read_tile(folds, norms, g, t0, nt, V, cm, uniform):
     for e in range(off.shape[0]):
         nc = n_chi[e]
         step = m * n_fc[e]  # from one row q to the next
-        o0 = off[e, 0] + g * n_fc[e]
-        o1 = off[e, 1] + g * n_fc[e]
-        o2 = off[e, 2] + g * n_fc[e]
-        o3 = off[e, 3] + g * n_fc[e]
+        o0 = g * n_fc[e]
+        o = (off[e, 0] + o0, off[e, 1] + o0, off[e, 2] + o0, off[e, 3] + o0)
         for k in range(nt):
             j = t0 + k
-            f = col[e, j]
-            if nc == 4:
-                s0, s1, s2, s3 = sgn[e, 0, j], sgn[e, 1, j], sgn[e, 2, j], sgn[e, 3, j]
+            fa, fb, fm = col[e, 0, j], col[e, 1, j], frac[e, j]
+            sg = (sgn[e, 0, j], sgn[e, 1, j], sgn[e, 2, j], sgn[e, 3, j])
+            if fm == 0.0:
                 for q in range(6):
-                    a = q * step + f
-                    V[q, k] += (s0 * P[o0 + a] + s1 * P[o1 + a] + s2 * P[o2 + a]
-                                + s3 * P[o3 + a])  # fmt: skip
-            elif nc == 2:
-                s0, s1 = sgn[e, 0, j], sgn[e, 1, j]
+                    V[q, k] += _column(P, o, q * step + fa, nc, sg)
+            else:  # a fraction between the pure ends, mixed from their products
                 for q in range(6):
-                    a = q * step + f
-                    V[q, k] += s0 * P[o0 + a] + s1 * P[o1 + a]
-            else:
-                for q in range(6):
-                    V[q, k] += P[o0 + q * step + f]
+                    V[q, k] += ((1.0 - fm) * _column(P, o, q * step + fa, nc, sg)
+                                + fm * _column(P, o, q * step + fb, nc, sg))  # fmt: skip
     for r in range(4):
         row = 0 if r == 0 else r + 1  # Q, then the Hessian after sqrt Q
         for k in range(nt):
@@ -183,7 +189,7 @@ def laplace_grid(folds, norms, gals, sums, amp, laplace, models, out):
     rsums = (node_w, np.log(node_w), w_star, ln_pi, np.exp(ln_pi), e_w, e_grp, n_sub)
     b2 = laplace[0]
     max2 = laplace[1] * laplace[1]
-    m, c = sigma.size, folds.col.shape[1]
+    m, c = sigma.size, folds.frac.shape[1]
     amp_pow, amp_lns, amp_lo, amp_hi, t0_tab, tab = amp
     uniform = models[0] > 0.0
     n_mod = e_w.size * node_w.size + 1
@@ -209,16 +215,26 @@ def unfold(P, chi, members, out):
     """Add the folded products ``P`` (``(n_chi, rows, n_fc)``) to ``out`` (``(rows, c)``,
     float64) model by model: ``out[r, members[f, h]] += sum_c chi[c, h] P[c, r, f]``
     (``members[f, h] = -1``: no model), the models of an exposure's folded columns
-    (:func:`pylensfit.joint.lattice_symmetries`)."""
+    (:func:`pylensfit.joint.lattice_symmetries`); each row written in the models' order,
+    read from their columns."""
     n_chi, n_rows, n_fc = P.shape
     n_h = members.shape[1]
+    c = out.shape[1]
+    col = np.full(c, -1, dtype=np.int64)
+    slot = np.zeros(c, dtype=np.int64)
+    for f in range(n_fc):
+        for h in range(n_h):
+            j = members[f, h]
+            if j >= 0:
+                col[j] = f
+                slot[j] = h
     for r in prange(n_rows):
-        for f in range(n_fc):
-            for h in range(n_h):
-                j = members[f, h]
-                if j < 0:
-                    continue
-                v = 0.0
-                for c in range(n_chi):
-                    v += chi[c, h] * P[c, r, f]
-                out[r, j] += v
+        for j in range(c):
+            f = col[j]
+            if f < 0:
+                continue
+            h = slot[j]
+            v = 0.0
+            for ch in range(n_chi):
+                v += chi[ch, h] * P[ch, r, f]
+            out[r, j] += v
