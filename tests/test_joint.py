@@ -296,3 +296,20 @@ def test_folded_products_are_the_unfolded_ones(deg):
     near = a.lnL > -30
     assert np.abs(a.lnL - b.lnL)[near].max() < 1e-4  # measured 2e-6: float32 output
     np.testing.assert_allclose(a.lnL_peak, b.lnL_peak, rtol=1e-7)
+
+
+def test_the_bank_caches_keep_within_their_bytes():
+    """``keep_last`` with a byte budget drops the oldest entries until the arrays kept fit
+    (the newest always kept); a view counts as its base, once."""
+    from pylensfit.likelihood.bank import array_bytes, keep_last
+
+    cache: dict = {}
+    big = np.zeros(1000)  # 8,000 bytes
+    for k in range(5):
+        keep_last(cache, k, (np.zeros(1000), big[:10]), 8, max_bytes=40_000)
+    assert array_bytes(cache[4]) == 16_000 and list(cache) == [3, 4]
+    keep_last(cache, 9, np.zeros(10_000), 8, max_bytes=40_000)
+    assert list(cache) == [9]
+    for k in range(12):
+        keep_last(cache, k, np.zeros(1), 8)
+    assert list(cache) == list(range(4, 12))

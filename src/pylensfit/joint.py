@@ -407,6 +407,9 @@ def lattice_symmetries(jacobian: np.ndarray, tol: float = 1e-9) -> tuple[np.ndar
 #: prior's), per exposure
 _SUBSETS: dict = {}
 _SUBSETS_KEPT = 24
+#: the most bytes of arrays that the banks and their subsets keep, each (a Config() bank
+#: of 48-pixel stamps holds about 0.2 GB)
+_CACHE_BYTES = 1.5e9
 
 
 @dataclass(frozen=True)
@@ -447,7 +450,7 @@ class _Fold:
         if hit is not None and hit[0] is self:
             return hit[1]
         out = self._subset(cols, n_cols)
-        keep_last(_SUBSETS, key, (self, out), _SUBSETS_KEPT)
+        keep_last(_SUBSETS, key, (self, out), _SUBSETS_KEPT, _CACHE_BYTES)
         return out
 
     def _subset(self, cols: np.ndarray | None, n_cols: int) -> tuple:
@@ -601,7 +604,7 @@ def _exposure(cols: _Columns, J: np.ndarray, n: int, dtype) -> _Exposure:
         hit = _Exposure(fold=_fold(cols, J, n, sel, dtype), qx=qx, qy=qy,
                         coef=np.full(sel.size, 1.0 / n**2), herm=w.ravel()[sel],
                         sel=sel)  # fmt: skip
-        keep_last(_BANKS, key, hit, _BANKS_KEPT)
+        keep_last(_BANKS, key, hit, _BANKS_KEPT, _CACHE_BYTES)
     return hit
 
 

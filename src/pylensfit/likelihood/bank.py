@@ -56,11 +56,39 @@ def interior(n: int, k_max: float = 0.0) -> np.ndarray:
     return keep.ravel()
 
 
-def keep_last(cache: dict, key, value, size: int) -> None:
-    """Store ``value`` in ``cache``, dropping the oldest entry beyond ``size``."""
-    if len(cache) >= size:
-        cache.pop(next(iter(cache)))
+def keep_last(cache: dict, key, value, size: int, max_bytes: float | None = None) -> None:
+    """Store ``value`` in ``cache``, dropping the oldest entries beyond ``size`` entries
+    or, with ``max_bytes``, beyond that many bytes of arrays (:func:`array_bytes`; the
+    newest entry is kept whatever its size)."""
     cache[key] = value
+    while len(cache) > size:
+        cache.pop(next(iter(cache)))
+    if max_bytes is not None:
+        sizes = {k: array_bytes(v) for k, v in cache.items()}
+        total = sum(sizes.values())
+        for k in list(cache)[:-1]:
+            if total <= max_bytes:
+                break
+            total -= sizes[k]
+            cache.pop(k)
+
+
+def array_bytes(obj, seen: set | None = None) -> int:
+    """The bytes of the numpy arrays that ``obj`` holds (in tuples, lists, dicts and
+    dataclasses; each array counted once, a view as its base)."""
+    seen = set() if seen is None else seen
+    if id(obj) in seen:
+        return 0
+    seen.add(id(obj))
+    if isinstance(obj, np.ndarray):  # a view holds its base's memory
+        return obj.nbytes if obj.base is None else array_bytes(obj.base, seen)
+    if isinstance(obj, (tuple, list)):
+        return sum(array_bytes(x, seen) for x in obj)
+    if isinstance(obj, dict):
+        return sum(array_bytes(x, seen) for x in obj.values())
+    if hasattr(obj, "__dataclass_fields__"):
+        return sum(array_bytes(getattr(obj, f), seen) for f in obj.__dataclass_fields__)
+    return 0
 
 
 #: the last PSFs' banks: a pipeline fits an image's galaxies with one PSF in several
