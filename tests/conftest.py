@@ -13,6 +13,32 @@ import pytest
 os.environ.setdefault("PYLENSFIT_CACHE_DIR",
                       str(Path(tempfile.gettempdir()) / f"pylensfit-tests-{os.getuid()}"))
 
+#: the package's in-memory caches of banks (module, name): emptied after each test file,
+#: so that a worker running many files holds the banks of one file at a time
+_CACHES = (("pylensfit.joint", "_SUBSETS"), ("pylensfit.joint", "_BANKS"),
+           ("pylensfit.likelihood.bank", "_PSF_BANKS"),
+           ("pylensfit.likelihood.folded", "_FOLDED"), ("pylensfit.likelihood.folded", "_ACTIVE"),
+           ("pylensfit.likelihood.pairs", "_PAIR_BANKS"), ("pylensfit.likelihood.pairs", "_G2HAT"),
+           ("pylensfit.likelihood.device", "_ON_DEVICE"))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_bank_caches():
+    yield
+    import gc  # only at a test file's end
+    import sys
+
+    for mod, name in _CACHES:
+        m = sys.modules.get(mod)
+        if m is not None:
+            getattr(m, name).clear()
+    models = sys.modules.get("pylensfit.models")
+    if models is not None:
+        for f in vars(models).values():
+            if hasattr(f, "cache_clear"):
+                f.cache_clear()
+    gc.collect()
+
 N = 32
 
 
