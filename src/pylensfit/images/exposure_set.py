@@ -320,13 +320,11 @@ def _sample(n_ok: np.ndarray, size: int, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n_ok, size, replace=False))
 
 
-def _calibrate(eset: ExposureSet, ra, dec, usable: np.ndarray, tolerance: float,
+def _calibrate(eset: ExposureSet, ra, dec, usable: np.ndarray, groups: np.ndarray,
                cfg: Config) -> Priors:  # fmt: skip
-    """The priors of the set's own joint fits, on a seeded sample of the positions of its
-    largest group of one Jacobian per exposure (:func:`jacobian_groups`)."""
-    groups = np.full(len(ra), -1)
-    if usable.any():
-        groups[usable] = jacobian_groups(eset.exposures, ra[usable], dec[usable], tolerance)
+    """The priors of the set's own joint fits, on a seeded sample of the usable positions
+    of its largest group of one Jacobian per exposure (``groups``,
+    :func:`jacobian_groups`)."""
     largest = np.bincount(groups[usable]).argmax() if usable.any() else 0
     idx = _sample(np.flatnonzero(usable & (groups == largest)), cfg.calibration_sample,
                   cfg.calibration_seed)  # fmt: skip
@@ -345,6 +343,16 @@ def _positions(eset: ExposureSet, catalogue: str | None, cfg: Config) -> Table:
     return detect_positions(detection_coadd(eset.exposures), cfg)
 
 
+def _pairs(eset: ExposureSet, ra, dec, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+    """Which positions fall on the first exposure's plane, and which of those have
+    another position inside their stamp (:func:`pylensfit.detection.close_pairs`)."""
+    x0, y0 = sky_to_pixel(eset.exposures[0].wcs, ra, dec)
+    ok = np.isfinite(x0) & np.isfinite(y0)
+    pairs = np.zeros(len(ra), bool)
+    pairs[ok] = close_pairs(x0[ok], y0[ok], stamp_size=cfg.stamp_size)
+    return ok, pairs
+
+
 def _nowhere(ra: np.ndarray, dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The positions, those not finite put 30 degrees from the others (on no exposure,
     where they are cut and fitted with nothing and flagged ``NOT_MEASURED``)."""
@@ -356,12 +364,10 @@ def _nowhere(ra: np.ndarray, dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(lost, r0, ra), np.where(lost, d0 - 30.0 if d0 > 0 else d0 + 30.0, dec)
 
 
-def _measure_groups(eset: ExposureSet, ra, dec, tolerance: float, chunk: int,
+def _measure_groups(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
                     priors: Priors, cfg: Config) -> Table:  # fmt: skip
-    """Every position measured, by groups of one Jacobian per exposure and chunks of at
-    most ``chunk`` positions, in the input order."""
-    ra, dec = _nowhere(ra, dec)
-    labels = jacobian_groups(eset.exposures, ra, dec, tolerance)
+    """Every position measured, by groups of one Jacobian per exposure (``labels``) and
+    chunks of at most ``chunk`` positions, in the input order."""
     parts, order = [], []
     for lab in np.unique(labels):
         members = np.flatnonzero(labels == lab)
@@ -494,13 +500,12 @@ def measure_exposures(
                           reference_zero_point=reference_zero_point)  # fmt: skip
     pos = _positions(eset, catalogue, cfg)
     ra, dec = np.asarray(pos["ra"], float), np.asarray(pos["dec"], float)
-    x0, y0 = sky_to_pixel(eset.exposures[0].wcs, ra, dec)
-    ok = np.isfinite(x0) & np.isfinite(y0)
-    pairs = np.zeros(len(pos), bool)
-    pairs[ok] = close_pairs(x0[ok], y0[ok], stamp_size=cfg.stamp_size)
+    ok, pairs = _pairs(eset, ra, dec, cfg)
+    ra_n, dec_n = _nowhere(ra, dec)
+    groups = jacobian_groups(eset.exposures, ra_n, dec_n, jacobian_tolerance)
     if priors is None:
-        priors = _calibrate(eset, ra, dec, ok & ~pairs, jacobian_tolerance, cfg)
-    t = _measure_groups(eset, ra, dec, jacobian_tolerance, chunk, priors, cfg)
+        priors = _calibrate(eset, ra_n, dec_n, ok & ~pairs, groups, cfg)
+    t = _measure_groups(eset, ra_n, dec_n, groups, chunk, priors, cfg)
     cat = _catalogue(t, pos, eset, pairs, cfg)
     if output is not None:
         write_catalogue(cat, output, overwrite=overwrite)
