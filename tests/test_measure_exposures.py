@@ -17,7 +17,7 @@ import pylensfit as plf
 from pylensfit import Config, Priors, measure_exposures
 from pylensfit.cli import main
 from pylensfit.flags import FLAGS
-from pylensfit_validation.dither import DitherSpec, read_dither, simulate_dither
+from pylensfit_validation.dither import DitherSpec, read_dither, render_exposure, simulate_dither
 
 pytest.importorskip("galsim")
 
@@ -186,3 +186,37 @@ def test_bad_inputs_are_one_line_and_leave_no_output(dset, tmp_path, capsys):
         assert rc != 0 and says in err and "Traceback" not in err, err
         assert len(err.strip().splitlines()) == 1, err
         assert not out.exists()
+
+
+def test_the_neighbours_are_taken_out_of_every_exposure(tmp_path):
+    """Galaxies 6" apart (their neighbours outside the 48-px stamps, their wings inside):
+    each even galaxy is measured with its odd neighbours present, and alone (the same
+    exposures and noise rendered without the odd galaxies). With the neighbours' models
+    rendered into each exposure through its WCS and PSF and taken out, the shapes are
+    those of the galaxies alone to a few 1e-3; without, several times further off."""
+    spec = DitherSpec(n_exposures=3, ngal=25, snr_range=(200.0, 300.0), size_range=(0.4, 0.7),
+                      spacing=6.0, jitter=0.3, star_field_size=160, g1=0.0, g2=0.0)  # fmt: skip
+    s = read_dither(simulate_dither(tmp_path / "crowded", spec, seed=11))
+    exps, stars = _files(s)
+    keep = np.arange(len(s.truth)) % 2 == 0  # a checkerboard of the 5 x 5 lattice
+    alone = []
+    for k, path in enumerate(exps):
+        img = render_exposure(spec, s.exposures[k], s.truth[keep])[0]
+        with fits.open(path) as h:
+            h[0].data = img
+            alone.append(str(tmp_path / f"alone{k}.fits"))
+            h.writeto(alone[-1])
+    pos = {}
+    for name, sel in (("all", np.ones(len(s.truth), bool)), ("alone", keep)):
+        pos[name] = str(tmp_path / f"{name}.fits")
+        Table({"ra": s.truth["ra"][sel], "dec": s.truth["dec"][sel]}).write(pos[name])
+    ref = measure_exposures(alone, stars=stars, catalogue=pos["alone"], priors=Priors())
+    rms = {}
+    for sub in (False, True):
+        cat = measure_exposures(exps, stars=stars, catalogue=pos["all"], priors=Priors(),
+                                config=CFG.replace(subtract_neighbours=sub))[keep]  # fmt: skip
+        d = np.concatenate([np.asarray(cat[c]) - np.asarray(ref[c]) for c in ("e1", "e2")])
+        rms[sub] = float(np.sqrt(np.mean(d**2)))
+        assert np.all(cat["flags"] == 0)
+    assert rms[True] < 0.003  # measured 0.0015
+    assert rms[True] < 0.4 * rms[False]  # measured 0.0056 without

@@ -83,6 +83,34 @@ def test_render_models_places_each_model_as_galsim_does():
     assert np.abs(moved[0] - ours[0]).max() > 3 * tol * ours[0].max()
 
 
+def test_render_models_through_a_jacobian_is_galsims_sky_profile_in_the_pixels():
+    """Sky-frame models (``e`` in the (W, N) frame, ``r`` in arcsec) seen through a
+    rotated, sheared, mirror-image Jacobian, each with its own PSF image: GalSim's
+    ``JacobianWCS.toImage`` of the same sky profile, convolved with the pixel-frame PSF.
+    The same models without the mirror fail the tolerance."""
+    tol = 5e-4
+    a = np.radians(33.0)
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    J = np.diag([1.0, -1.0]) @ rot @ np.array([[1.03, 0.02], [0.02, 0.97]]) / 0.2
+    wcs = galsim.JacobianWCS(*np.linalg.inv(J).ravel())  # d(u, v)/d(x, y), (u, v) = (W, N)
+    psfs = [PSFS["moffat_e1"], PSFS["kolmogorov_e2"]]
+    psf_imgs = np.stack([draw(p, n=BIG) for p in psfs])
+    x, y = np.array([60.3, 70.6]), np.array([64.6, 55.2])
+    e1, e2, r = np.array([0.3, -0.1]), np.array([-0.2, 0.4]), np.array([0.4, 0.6])
+    flux = np.array([100.0, 40.0])
+    ours = render_models(BIG, psf_imgs, x, y, e1, e2, r, flux, model="exponential",
+                         jacobian=J)  # fmt: skip
+    mirror = render_models(BIG, psf_imgs, x, y, e1, e2, r, flux, model="exponential",
+                           jacobian=np.diag([1.0, -1.0]) @ J)  # fmt: skip
+    for k in range(2):
+        gal = wcs.toImage(galsim_model("exponential", r[k], e1[k], e2[k]))
+        ref = draw(galsim.Convolve(gal, psfs[k]), n=BIG, flux=flux[k],
+                   offset=(x[k] - BIG // 2, y[k] - BIG // 2))  # fmt: skip
+        assert np.abs(ours[k] - ref).max() < tol * ref.max()
+        assert ours[k].sum() == pytest.approx(flux[k], rel=1e-9)
+        assert np.abs(mirror[k] - ref).max() > 3 * tol * ref.max()
+
+
 def test_shear_convention_distinguishes_e1_sign():
     """A wrong sign or axis of the shear would fail the comparison above; check it does."""
     psf_img = draw(PSFS["moffat_round"], n=BIG)

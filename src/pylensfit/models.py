@@ -223,6 +223,7 @@ def render_models(
     model: str = "exponential",
     bulge_fraction=0.5,
     bulge_size_ratio: float = 0.6,
+    jacobian=None,
 ) -> np.ndarray:
     """Real-space images of PSF-convolved models on an ``n x n`` canvas.
 
@@ -237,15 +238,23 @@ def render_models(
     n : int
         Canvas side in pixels.
     psf : numpy.ndarray
-        2-D PSF image including the pixel response, centred on ``[s//2, s//2]``.
+        2-D PSF image including the pixel response, centred on ``[s//2, s//2]``, or
+        ``(m, s, s)``: one per model.
     x, y, e1, e2, r, flux : array_like
-        ``(m,)`` centre, ellipticity, size (pixels) and flux of each model.
+        ``(m,)`` centre (pixels), ellipticity, size (pixels; with ``jacobian``, arcsec)
+        and flux of each model.
     model : {"exponential", "devaucouleurs", "bulge+disc"}
         Profile family.
     bulge_fraction : float or array_like
         Bulge fraction of each ``"bulge+disc"`` model.
     bulge_size_ratio : float
         Bulge half-light radius over disc scale length.
+    jacobian : array_like, optional
+        ``(2, 2)`` or ``(m, 2, 2)`` local WCS Jacobian ``d(x, y)/d(W, N)``, pixels per
+        arcsec: the models are then sky-frame profiles (``e`` in the sky frame ``(W,
+        N)``, ``r`` in arcsec) seen through it, the transform of ``m(J^-1 x) / |det J|``
+        at ``k`` being ``M(J^T k)`` (:func:`pylensfit.joint.sky_frequencies`; the flux is
+        kept). Default: the pixel frame.
 
     Returns
     -------
@@ -257,14 +266,21 @@ def render_models(
     m = x.size
     bf = np.broadcast_to(np.asarray(bulge_fraction, dtype=float), (m,))
     kx, ky, _ = rfft_frequencies(n)
-    P = psf_transform(psf, n)
-    q = sheared_k(kx[None], ky[None], e1[:, None, None], e2[:, None, None]) * r[:, None, None]
+    psf = np.asarray(psf, dtype=float)
+    P = (psf_transform(psf, n)[None] if psf.ndim == 2
+         else np.stack([psf_transform(p, n) for p in psf]))  # fmt: skip
+    if jacobian is None:
+        qx, qy = kx[None], ky[None]
+    else:
+        J = np.broadcast_to(np.asarray(jacobian, dtype=float), (m, 2, 2))[:, :, :, None, None]
+        qx, qy = J[:, 0, 0] * kx + J[:, 1, 0] * ky, J[:, 0, 1] * kx + J[:, 1, 1] * ky
+    q = sheared_k(qx, qy, e1[:, None, None], e2[:, None, None]) * r[:, None, None]
     if model == "bulge+disc":
         F = _bulge_disc_transform(q, bf, bulge_size_ratio)
     else:
         F = fourier_profile(q, model)
     phase = np.exp(-1j * (kx[None] * x[:, None, None] + ky[None] * y[:, None, None]))
-    return np.fft.irfft2(flux[:, None, None] * F * P[None] * phase, s=(n, n))
+    return np.fft.irfft2(flux[:, None, None] * F * P * phase, s=(n, n))
 
 
 @dataclass(frozen=True)

@@ -26,10 +26,13 @@ version, Miller et al. 2013, arXiv:1210.8201).
    one Jacobian per exposure and group), the priors
    given or estimated from the set's own joint fits
    (:func:`pylensfit.calibration.calibrate_exposures`);
-6. the catalogue: one row per position, shapes in the sky frame, ``n_exposures`` and
-   ``exposures_used`` saying which exposures each galaxy's fit used, written atomically.
-
-Neighbours are flagged (``CLOSE_PAIR``, from the positions), not subtracted.
+6. the neighbours taken out of each exposure (:func:`_subtract_neighbours`: every
+   object's sky-frame model rendered into every exposure through its WCS, PSF and flux
+   scale, :func:`pylensfit.images.neighbours.exposure_light`) and the galaxies whose
+   stamps hold their light fitted again, ``Config.neighbour_iterations`` rounds;
+7. the catalogue: one row per position, shapes in the sky frame, ``n_exposures`` and
+   ``exposures_used`` saying which exposures each galaxy's fit used, ``CLOSE_PAIR`` as
+   the single-image pipeline sets it (from the fits' S/N), written atomically.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import astropy.units as u
@@ -49,13 +52,15 @@ from ..calibration import Priors, calibrate_exposures, measure_exposure_stamps
 from ..catalogue import COLUMNS
 from ..config import Config
 from ..detection import close_pairs, detect
-from ..exposures import Exposure, cut_exposures, local_jacobian, sky_to_pixel
+from ..exposures import Exposure, ExposureStamps, cut_exposures, local_jacobian, sky_to_pixel
 from ..flags import FLAGS
 from ..psf import PSFResult
 from ..psfmodel import PSFModel
+from ..skyframe import SkyFrame
 from .catalogue_io import write_catalogue
 from .image_psf import starfield_task
 from .inputs import InputError, check_inputs, load_given, open_input, read_given_psfs
+from .neighbours import exposure_light, exposure_neighbour_stamps, sky_models
 from .records import StarfieldTask
 
 log = logging.getLogger(__name__)
@@ -343,13 +348,22 @@ def _positions(eset: ExposureSet, catalogue: str | None, cfg: Config) -> Table:
     return detect_positions(detection_coadd(eset.exposures), cfg)
 
 
-def _pairs(eset: ExposureSet, ra, dec, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
-    """Which positions fall on the first exposure's plane, and which of those have
-    another position inside their stamp (:func:`pylensfit.detection.close_pairs`)."""
+def _pairs(eset: ExposureSet, ra, dec, cfg: Config,
+           t: Table | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Which positions fall on the first exposure's plane, and which of those are close
+    pairs (:func:`pylensfit.detection.close_pairs`): with the fits ``t``, as the
+    single-image pipeline flags them (a galaxy whose stamp holds another object of
+    ``model_SNratio >= Config.close_pair_min_snr``, with ``close_pair_faint_ratio``;
+    a fainter object if its stamp holds anything); without, every other position."""
     x0, y0 = sky_to_pixel(eset.exposures[0].wcs, ra, dec)
     ok = np.isfinite(x0) & np.isfinite(y0)
     pairs = np.zeros(len(ra), bool)
     pairs[ok] = close_pairs(x0[ok], y0[ok], stamp_size=cfg.stamp_size)
+    if t is not None:
+        flux = np.nan_to_num(np.asarray(t["model_flux"], dtype=float))
+        sig = ok & (np.nan_to_num(np.asarray(t["model_SNratio"], float)) >= cfg.close_pair_min_snr)
+        pairs[sig] = close_pairs(x0[sig], y0[sig], flux=flux[sig], stamp_size=cfg.stamp_size,
+                                 faint_ratio=cfg.close_pair_faint_ratio or None)  # fmt: skip
     return ok, pairs
 
 
@@ -378,6 +392,83 @@ def _measure_groups(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
     t = vstack(parts, metadata_conflicts="silent")
     t = t[np.argsort(np.concatenate(order), kind="stable")]
     t.meta.update(parts[0].meta)
+    return t
+
+
+def _take(view: ExposureStamps, sel: np.ndarray, less: np.ndarray) -> ExposureStamps:
+    """The galaxies ``sel`` of one exposure's view, ``less`` taken out of their stamps
+    (where the stamps have data)."""
+    fr = SkyFrame(*(np.asarray(getattr(view.frame, a))[sel]
+                    for a in ("angle", "flip", "g1", "g2", "has_wcs")))  # fmt: skip
+    w = view.weights[sel]
+    return replace(view, stamps=view.stamps[sel] - np.where(w > 0, less[sel], 0.0), weights=w,
+                   noise_sigma=view.noise_sigma[sel],
+                   psf=None if view.psf is None else view.psf[sel], x=view.x[sel],
+                   y=view.y[sel], x0=view.x0[sel], y0=view.y0[sel],
+                   jacobian=view.jacobian[sel], frame=fr, flags=view.flags[sel])  # fmt: skip
+
+
+def _refittable(t: Table) -> np.ndarray:
+    """The rows whose neighbours are taken out: measured galaxies (a finite ``L(e)``,
+    no flag but ``CLOSE_PAIR``); ``LOW_SNR`` rows (weight 0, most of them noise peaks of
+    the detection) and stars are not fitted again."""
+    lnL = np.asarray(t["lnL"], dtype=float)
+    keep = FLAGS["CLOSE_PAIR"][0]
+    return np.isfinite(lnL).all(axis=1) & ((np.asarray(t["flags"], np.int64) & ~keep) == 0)
+
+
+def _neighbour_round(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
+                     priors: Priors, cfg: Config, t: Table) -> int:  # fmt: skip
+    """One round of the neighbours taken out: every object's current model rendered into
+    every exposure (:func:`~pylensfit.images.neighbours.exposure_light`), and the
+    galaxies (:func:`_refittable`) whose stamps hold more than
+    ``Config.neighbour_min_chi2`` noise variances of other objects' light, summed over
+    their exposures, fitted again on their stamps less that light; their rows of ``t``
+    replaced. Returns how many were fitted again."""
+    ra_f, dec_f = _fitted_sky(t, ra, dec, eset)
+    models = sky_models(t, ra_f, dec_f, cfg)
+    fields = [exposure_light(e, models, cfg) for e in eset.exposures]
+    cand = _refittable(t)
+    n_done = 0
+    for lab in np.unique(labels[cand]):
+        members = np.flatnonzero(cand & (labels == lab))
+        for idx in np.array_split(members, -(-members.size // chunk)):
+            n_done += _refit(eset, ra, dec, idx, (models, fields), priors, cfg, t)
+    return n_done
+
+
+def _refit(eset: ExposureSet, ra, dec, idx: np.ndarray, light: tuple, priors: Priors,
+           cfg: Config, t: Table) -> int:  # fmt: skip
+    """:func:`_neighbour_round` on the galaxies ``idx`` of one Jacobian group; ``light``
+    the models and each exposure's image of them."""
+    models, fields = light
+    views = cut_exposures(eset.exposures, ra[idx], dec[idx], size=cfg.stamp_size)
+    less = [exposure_neighbour_stamps(f, v, e, models, idx, cfg)
+            for f, v, e in zip(fields, views, eset.exposures, strict=True)]  # fmt: skip
+    pairs = list(zip(views, less, strict=True))
+    chi2 = sum(np.sum(lo * lo * v.weights, axis=(1, 2)) for v, lo in pairs)
+    go = np.flatnonzero(chi2 > cfg.neighbour_min_chi2)
+    if go.size:
+        new = measure_exposure_stamps([_take(v, go, lo) for v, lo in pairs], priors=priors,
+                                      config=cfg)  # fmt: skip
+        for c in new.colnames:
+            t[c][idx[go]] = new[c]
+    return int(go.size)
+
+
+def _subtract_neighbours(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
+                         priors: Priors, cfg: Config, t: Table) -> Table:  # fmt: skip
+    """``Config.neighbour_iterations`` rounds of :func:`_neighbour_round` (none with
+    ``Config.subtract_neighbours`` off); the second fits each galaxy's neighbours with its
+    own model taken out in turn (the single-image pipeline's rounds,
+    :func:`~pylensfit.images.neighbours.subtract_neighbours`)."""
+    if not cfg.subtract_neighbours:
+        return t
+    for i in range(int(cfg.neighbour_iterations)):
+        n = _neighbour_round(eset, ra, dec, labels, chunk, priors, cfg, t)
+        log.info("neighbours taken out, round %d: %d galaxies fitted again", i + 1, n)
+        if n == 0:
+            break
     return t
 
 
@@ -443,7 +534,8 @@ def measure_exposures(
     The path of the module docstring: exposures read, each one's PSF, the positions (an
     input catalogue or the co-add's detections), the stamps, the joint fits under the
     priors (given, or estimated from the set's own joint fits on a sample of
-    ``Config.calibration_sample`` positions), the catalogue.
+    ``Config.calibration_sample`` positions), the neighbours taken out of every exposure
+    and the galaxies they touch fitted again, the catalogue.
 
     Parameters
     ----------
@@ -478,9 +570,9 @@ def measure_exposures(
     astropy.table.Table
         One row per position, in the catalogue's order: ``ALPHA_J2000, DELTA_J2000``
         (the fitted position), the shapes in the sky frame (``e1, e2``, their covariance,
-        ``sens1, sens2``), ``weight``, ``flags`` (``CLOSE_PAIR`` where another position
-        lies within a stamp; ``BAD_POSITION`` for a non-finite input position;
-        ``NOT_MEASURED`` where no exposure is usable), ``n_exposures``,
+        ``sens1, sens2``), ``weight``, ``flags`` (``CLOSE_PAIR`` as ``measure`` sets it;
+        ``BAD_POSITION`` for a non-finite input position; ``NOT_MEASURED`` where no
+        exposure is usable), ``n_exposures``,
         ``exposures_used`` and the fit's columns; ``lnL`` per row. ``meta``: ``egrid``,
         ``priors``, ``exposures``, ``psf_sources``.
 
@@ -505,8 +597,9 @@ def measure_exposures(
     groups = jacobian_groups(eset.exposures, ra_n, dec_n, jacobian_tolerance)
     if priors is None:
         priors = _calibrate(eset, ra_n, dec_n, ok & ~pairs, groups, cfg)
-    t = _measure_groups(eset, ra_n, dec_n, groups, chunk, priors, cfg)
-    cat = _catalogue(t, pos, eset, pairs, cfg)
+    t = _subtract_neighbours(eset, ra_n, dec_n, groups, chunk, priors, cfg,
+                             _measure_groups(eset, ra_n, dec_n, groups, chunk, priors, cfg))
+    cat = _catalogue(t, pos, eset, _pairs(eset, ra, dec, cfg, t)[1], cfg)
     if output is not None:
         write_catalogue(cat, output, overwrite=overwrite)
     return cat

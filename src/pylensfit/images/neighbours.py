@@ -12,11 +12,21 @@ import numpy as np
 
 from .. import flags as _flags
 from ..config import Config
+from ..exposures import cut_stamps as cut_exposure_stamps
 from ..grid import refine_lnL
 from ..models import render_models
 from ..stamps import add_patches, cut_stamps, patch_origins
 
-__all__ = ["NeighbourScene", "subtract_neighbours", "implausible_models", "neighbour_light"]
+__all__ = [
+    "NeighbourScene",
+    "subtract_neighbours",
+    "implausible_models",
+    "neighbour_light",
+    "SkyModels",
+    "sky_models",
+    "exposure_light",
+    "exposure_neighbour_stamps",
+]
 
 
 _MODEL_KEYS = ("flux", "x", "y", "is_star", "r_best", "lnL", "bulge_best", "flags", "stamp")
@@ -356,3 +366,185 @@ def neighbour_light(shape, x, y, xf, yf, fitted, f, psf, cfg: Config, block: int
         aside = cut_stamps(aside, x, y, n_stamp)[0]
         aside[obj[~into]] -= own[obj[~into]]
     return stamps, field, own, aside
+
+
+@dataclass(frozen=True)
+class SkyModels:
+    """The best-fit models of a field's objects in the sky frame (:func:`sky_models`),
+    to be rendered into each exposure (:func:`exposure_light`).
+
+    Attributes
+    ----------
+    ra, dec : numpy.ndarray
+        ``(n,)`` fitted positions, degrees.
+    e1, e2 : numpy.ndarray
+        ``(n,)`` sky-frame ``(W, N)`` ellipticity: the mean of ``L(e)`` (0 for a point
+        source).
+    r : numpy.ndarray
+        ``(n,)`` size, arcsec (0: a point source).
+    flux : numpy.ndarray
+        ``(n,)`` amplitude, in the common flux unit.
+    bulge : numpy.ndarray
+        ``(n,)`` bulge fraction.
+    rendered : numpy.ndarray
+        ``(n,)`` bool: the object has a model (a finite, positive flux at a finite
+        position, a measured fit); the others are rendered nowhere.
+    """
+
+    ra: np.ndarray
+    dec: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    r: np.ndarray
+    flux: np.ndarray
+    bulge: np.ndarray
+    rendered: np.ndarray
+
+
+def sky_models(table, ra, dec, cfg: Config) -> SkyModels:
+    """The models of :func:`pylensfit.measure_exposure_stamps`' rows at the fitted sky
+    positions ``ra, dec`` (degrees): as :func:`neighbour_light`'s, the size and bulge
+    fraction of the most likely model (``scalelength`` in the table's reference pixels,
+    ``meta["pixel_scale"]`` arcsec), its flux (``model_flux``) and the mean ellipticity
+    of ``L(e)``; a point source for a ``STAR`` row. Rows flagged ``NOT_MEASURED``,
+    ``FIT_FAILED`` or ``NO_PEAK`` have no model."""
+    lnL = np.asarray(table["lnL"], dtype=float)
+    flags = np.asarray(table["flags"], dtype=np.int64)
+    none = (
+        _flags.flag_value("NOT_MEASURED")
+        | _flags.flag_value("FIT_FAILED")
+        | _flags.flag_value("NO_PEAK")
+    )
+    star = (flags & _flags.flag_value("STAR")) != 0
+    flux = np.asarray(table["model_flux"], dtype=float)
+    ra, dec = np.asarray(ra, dtype=float), np.asarray(dec, dtype=float)
+    with np.errstate(invalid="ignore"):
+        rendered = (
+            ((flags & none) == 0)
+            & np.isfinite(lnL).all(axis=1)
+            & (flux > 0)
+            & np.isfinite(flux)
+            & np.isfinite(ra)
+            & np.isfinite(dec)
+        )
+    e = np.zeros((lnL.shape[0], 2))
+    if rendered.any():
+        e[rendered] = _likelihood_mean_e(lnL[rendered], np.asarray(table.meta["egrid"]))
+    e[star] = 0.0
+    r = np.nan_to_num(np.asarray(table["scalelength"], dtype=float)) * float(
+        table.meta["pixel_scale"]
+    )
+    bulge = np.nan_to_num(np.asarray(table["bulge_best"], dtype=float), nan=cfg.bulge_fraction)
+    return SkyModels(ra=ra, dec=dec, e1=e[:, 0], e2=e[:, 1], r=np.where(star, 0.0, r),
+                     flux=np.where(rendered, flux, 0.0), bulge=bulge,
+                     rendered=rendered)  # fmt: skip
+
+
+def _canvas(cfg: Config) -> int:
+    """The side of each model's canvas: :func:`neighbour_light`'s."""
+    return max(4 * cfg.stamp_size, 2 * cfg.largest_stamp)
+
+
+def _exposure_patches(exposure, models: SkyModels, idx: np.ndarray, cfg: Config):
+    """The models ``idx`` in one exposure's pixels, each on a canvas of
+    :func:`_canvas` about its position: ``(patches, bx0, by0)`` of those on the
+    exposure (and ``sel``, which of ``idx`` they are)."""
+    n_big = _canvas(cfg)
+    at = cut_exposure_stamps(exposure, models.ra[idx], models.dec[idx], size=1)
+    ny, nx = exposure.shape
+    with np.errstate(invalid="ignore"):
+        near = (
+            (at.x > -n_big / 2)
+            & (at.x < nx + n_big / 2)
+            & (at.y > -n_big / 2)
+            & (at.y < ny + n_big / 2)
+        )
+    sel = np.flatnonzero(models.rendered[idx] & near & (at.psf is not None)
+                         & np.isfinite(at.jacobian).all(axis=(1, 2)))  # fmt: skip
+    if at.psf is not None:
+        sel = sel[np.isfinite(at.psf[sel]).all(axis=(1, 2))]
+    bx0, by0 = patch_origins(at.x[sel], at.y[sel], n_big)
+    j = idx[sel]
+    pat = render_models(n_big, at.psf[sel], at.x[sel] - bx0, at.y[sel] - by0, models.e1[j],
+                        models.e2[j], models.r[j], models.flux[j] * exposure.flux_scale,
+                        model=cfg.model, bulge_fraction=models.bulge[j],
+                        bulge_size_ratio=cfg.bulge_size_ratio,
+                        jacobian=at.jacobian[sel])  # fmt: skip
+    return pat, bx0, by0, sel
+
+
+def exposure_light(exposure, models: SkyModels, cfg: Config, block: int = 256) -> np.ndarray:
+    """The image of every model of ``models`` in one exposure, counts.
+
+    Each sky-frame model is carried into the exposure's pixels by the local Jacobian of
+    its WCS at the object (:func:`pylensfit.models.render_models` with ``jacobian``),
+    convolved with the exposure's PSF there, scaled by its ``flux_scale`` and rendered
+    on a canvas of four stamp sides about its position (:func:`neighbour_light`'s);
+    the canvases are added into an image of the exposure's shape.
+
+    Parameters
+    ----------
+    exposure : pylensfit.exposures.Exposure
+        The exposure (its WCS, PSF and flux scale).
+    models : SkyModels
+        The objects' models (:func:`sky_models`).
+    cfg : Config
+        ``stamp_size``, ``model``, ``bulge_size_ratio``.
+    block : int
+        Models rendered at a time (memory: ``block`` canvases).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(ny, nx)`` float64.
+    """
+    field = np.zeros(exposure.shape)
+    todo = np.flatnonzero(models.rendered)
+    for s0 in range(0, todo.size, block):
+        pat, bx0, by0, _ = _exposure_patches(exposure, models, todo[s0 : s0 + block], cfg)
+        add_patches(field, pat, bx0, by0)
+    return field
+
+
+def exposure_neighbour_stamps(field: np.ndarray, view, exposure, models: SkyModels,
+                              idx: np.ndarray, cfg: Config) -> np.ndarray:  # fmt: skip
+    """The light of every other object in the stamps of one exposure's view.
+
+    Parameters
+    ----------
+    field : numpy.ndarray
+        :func:`exposure_light` of the exposure.
+    view : pylensfit.exposures.ExposureStamps
+        The galaxies' stamps in the exposure (their windows ``x0, y0``).
+    exposure : pylensfit.exposures.Exposure
+        The exposure.
+    models : SkyModels
+        Every object's model; galaxy ``i`` of ``view`` is model ``idx[i]``.
+    idx : numpy.ndarray
+        ``(n,)`` int.
+    cfg : Config
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, N, N)``: ``field`` on each stamp's window (0 off the image) less the
+        galaxy's own model there, rendered as in ``field``.
+    """
+    N = view.stamps.shape[-1]
+    ny, nx = field.shape
+    rows = view.y0[:, None] + np.arange(N)
+    cols = view.x0[:, None] + np.arange(N)
+    inside = ((rows >= 0) & (rows < ny))[:, :, None] & ((cols >= 0) & (cols < nx))[:, None, :]
+    out = np.where(inside, field[np.clip(rows, 0, ny - 1)[:, :, None],
+                                 np.clip(cols, 0, nx - 1)[:, None, :]], 0.0)  # fmt: skip
+    pat, bx0, by0, sel = _exposure_patches(exposure, models, np.asarray(idx), cfg)
+    if not sel.size:
+        return out
+    n_big = pat.shape[-1]
+    own = np.zeros((sel.size, n_big + 2 * N, n_big + 2 * N))  # each patch, padded by N
+    own[:, N : N + n_big, N : N + n_big] = pat
+    dx = np.clip(view.x0[sel] - bx0 + N, 0, n_big + N)[:, None] + np.arange(N)
+    dy = np.clip(view.y0[sel] - by0 + N, 0, n_big + N)[:, None] + np.arange(N)
+    win = own[np.arange(sel.size)[:, None, None], dy[:, :, None], dx[:, None, :]]
+    out[sel] -= np.where(inside[sel], win, 0.0)
+    return out
