@@ -534,8 +534,7 @@ def measure_exposures(
     The path of the module docstring: exposures read, each one's PSF, the positions (an
     input catalogue or the co-add's detections), the stamps, the joint fits under the
     priors (given, or estimated from the set's own joint fits on a sample of
-    ``Config.calibration_sample`` positions), the neighbours taken out of every exposure
-    and the galaxies they touch fitted again, the catalogue.
+    ``Config.calibration_sample`` positions), the neighbours taken out, the catalogue.
 
     Parameters
     ----------
@@ -573,8 +572,8 @@ def measure_exposures(
         ``sens1, sens2``), ``weight``, ``flags`` (``CLOSE_PAIR`` as ``measure`` sets it;
         ``BAD_POSITION`` for a non-finite input position; ``NOT_MEASURED`` where no
         exposure is usable), ``n_exposures``,
-        ``exposures_used`` and the fit's columns; ``lnL`` per row. ``meta``: ``egrid``,
-        ``priors``, ``exposures``, ``psf_sources``.
+        ``exposures_used``, the fit's columns and ``lnL``. ``meta``: ``egrid``, ``priors``,
+        ``exposures``, ``psf_sources``.
 
     Raises
     ------
