@@ -220,3 +220,38 @@ def test_the_neighbours_are_taken_out_of_every_exposure(tmp_path):
         assert np.all(cat["flags"] == 0)
     assert rms[True] < 0.003  # measured 0.0015
     assert rms[True] < 0.4 * rms[False]  # measured 0.0056 without
+
+
+def test_a_cosmic_ray_on_a_galaxy_drops_that_exposure_alone(dset, from_truth, tmp_path):
+    """Cosmic rays (3-pixel tracks of 50 sigma) 2 px from the centres of nine galaxies in
+    exposure 0: masked (``Config.cosmic_rays``), those galaxies are fitted on the other
+    two exposures, near their shapes from all three; every other galaxy keeps its
+    exposures. Unmasked, the same hits pull the nine shapes far off."""
+    clean, path = from_truth
+    n = len(dset.truth)
+    exps, stars = _files(dset)
+    hit = np.arange(0, n, 3)
+    with fits.open(exps[0]) as h:
+        tr = h["TRUTH"].data
+        hit = hit[np.asarray(tr["on_data"], bool)[hit]]
+        img = h[0].data.astype(np.float32)
+        sigma = 1.0 / np.sqrt(np.median(h["WEIGHT"].data[h["WEIGHT"].data > 0]))
+        for i in hit:
+            x, y = int(round(tr["x"][i])) + 2, int(round(tr["y"][i]))
+            img[y, x : x + 3] += 50.0 * sigma
+        h[0].data = img
+        exps = [str(tmp_path / "cr0.fits"), *exps[1:]]
+        h.writeto(exps[0])
+    de = {}
+    for on in (True, False):
+        cat = measure_exposures(exps, stars=stars, catalogue=str(path), priors=Priors(),
+                                config=CFG.replace(cosmic_rays=on))[:n]  # fmt: skip
+        de[on] = np.hypot(cat["e1"] - clean["e1"][:n], cat["e2"] - clean["e2"][:n])
+        if on:
+            used = np.asarray(cat["exposures_used"])
+            assert np.all(used[hit] & 1 == 0) and np.all(cat["weight"][hit] > 0)
+            rest = np.setdiff1d(np.arange(n), hit)
+            assert np.array_equal(used[rest], np.asarray(clean["exposures_used"][:n])[rest])
+            assert np.nanmax(de[on][rest]) < 1e-3
+    assert np.median(de[True][hit]) < 0.005  # measured 0.0005
+    assert np.median(de[False][hit]) > 5 * np.median(de[True][hit])  # measured 0.022

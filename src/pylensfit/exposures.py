@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import enum
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
@@ -65,6 +65,7 @@ __all__ = [
     "flux_scale_from_zero_point",
     "galaxy_views",
     "local_jacobian",
+    "mask_cosmic_rays",
     "sky_offsets_to_world",
     "sky_to_exposure_shear",
     "sky_to_pixel",
@@ -400,6 +401,51 @@ class Exposure:
         return cls(image=image, wcs=wcs, weight=w, background=float(background),
                    noise_sigma=noise, flux_scale=scale, psf=psf, path=str(path),
                    name=Path(path).name)  # fmt: skip
+
+
+def mask_cosmic_rays(exposure: Exposure, *, sigclip: float = 6.0,
+                     objlim: float = 5.0) -> tuple[Exposure, int]:  # fmt: skip
+    """The exposure with its cosmic rays masked: L.A.Cosmic (van Dokkum 2001, PASP 113,
+    1420), by astroscrappy.
+
+    The Laplacian of the image against its noise (the weight's inverse, else
+    ``noise_sigma^2``) finds the edges sharper than the PSF; ``objlim`` keeps the cores
+    of stars and galaxies, which the PSF has smoothed. On pure noise of unit variance,
+    ``sigclip = 6`` flags no pixel in 4 million, and a hit of 10 sigma in one pixel is
+    found (the default 4.5 flags one in 70,000 noise pixels: one stamp of 48^2 in 30).
+
+    Parameters
+    ----------
+    exposure : Exposure
+        The exposure; pixels without data (:meth:`Exposure.good`) are not searched.
+    sigclip : float
+        Laplacian-to-noise limit of a cosmic-ray pixel (astroscrappy's ``sigclip``).
+    objlim : float
+        Contrast of the Laplacian against the fine-structure image below which a sharp
+        pixel is taken for an object (astroscrappy's ``objlim``).
+
+    Returns
+    -------
+    exposure : Exposure
+        The same with ``mask`` true on the cosmic rays too.
+    n : int
+        The pixels masked.
+    """
+    import astroscrappy  # a compiled extension, needed only here
+
+    good = exposure.good() & np.isfinite(exposure.image)
+    if exposure.weight is not None:
+        w = np.asarray(exposure.weight, dtype=float)
+        var = np.where(good, 1.0 / np.where(good, w, 1.0), 1.0)
+    else:
+        var = np.full(exposure.shape, float(exposure.noise_sigma or 1.0) ** 2)
+    hits, _ = astroscrappy.detect_cosmics(
+        np.where(good, exposure.image, 0.0).astype(np.float32), inmask=~good,
+        invar=var.astype(np.float32), sigclip=sigclip, objlim=objlim, gain=1.0,
+        readnoise=0.0, satlevel=np.inf)  # fmt: skip
+    hits = np.asarray(hits, bool) & good
+    mask = hits if exposure.mask is None else hits | np.asarray(exposure.mask, bool)
+    return replace(exposure, mask=mask), int(hits.sum())
 
 
 @dataclass(frozen=True, eq=False)

@@ -314,6 +314,9 @@ NEIGHBOURS = Section("neighbours", "Neighbours and defects", "Close pairs, the r
     P("close_pair_faint_ratio", float, 0.0, "Keep a galaxy whose neighbours inside its stamp "
       "are all fainter than this fraction of its flux (0: reject every close pair).", "",
       "[0, 1)"),
+    P("cosmic_rays", bool, True, "measure --exposures: mask each exposure's cosmic rays "
+      "(L.A.Cosmic by astroscrappy, pylensfit.exposures.mask_cosmic_rays); a galaxy whose "
+      "stamp holds one in an exposure is fitted without that exposure."),
     P("subtract_neighbours", bool, True, "Fit every galaxy again with its neighbours' "
       "best-fit models subtracted from its stamp."),
     P("model_background", bool, True, "Measure the sky background again on the image less "

@@ -52,7 +52,14 @@ from ..calibration import Priors, calibrate_exposures, measure_exposure_stamps
 from ..catalogue import COLUMNS
 from ..config import Config
 from ..detection import close_pairs, detect
-from ..exposures import Exposure, ExposureStamps, cut_exposures, local_jacobian, sky_to_pixel
+from ..exposures import (
+    Exposure,
+    ExposureStamps,
+    cut_exposures,
+    local_jacobian,
+    mask_cosmic_rays,
+    sky_to_pixel,
+)
 from ..flags import FLAGS
 from ..psf import PSFResult
 from ..psfmodel import PSFModel
@@ -178,6 +185,9 @@ def read_exposures(paths: Sequence[str], *, stars: Sequence[str] | None = None, 
                                    reference_zero_point=zp)  # fmt: skip
         except ValueError as err:
             raise InputError(str(err) if str(err).startswith(p) else f"{p}: {err}") from None
+        if cfg.cosmic_rays:
+            e, n_cr = mask_cosmic_rays(e)
+            log.info("%s: %d cosmic-ray pixels masked", p, n_cr)
         exposures.append(e)
         sources.append(source)
     return ExposureSet(exposures=exposures, paths=paths, zero_point=zp, psf_sources=sources,
