@@ -53,10 +53,27 @@ bootstrap resamplings, and the difference in units of that error. All fits with
 second order in position and its models are not truncated at the stamp's edge
 (``cubic_snr`` and ``truncate_models`` apply to the single fits only).
 
+``--noise-twins``: every galaxy and its rotated twin are rendered again with their noise
+negated (``-noise`` in every exposure and in the deep exposure, the same sub-pixel
+offsets), which cancels the noise's first-order terms in m and c; the bootstrap keeps a
+galaxy's four renderings together, and ``sigma_g`` is measured on the renderings of
+independent noise (the noise twins left out).
+
+``--psf-e E``: the PSF's leakage instead of m. The sets are unsheared (``g = 0``) and
+every PSF (each exposure's, on top of its own ellipticity, the deep exposure's and so
+the co-add's) is sheared by ``+E`` and ``-E`` on component 1, then on component 2, in
+the sky frame (the PSF profile is in world coordinates, (W, N) arcsec, and
+``drawImage(wcs=...)`` maps it onto each exposure's pixels); the same galaxies and
+noise in the four sets, the priors those of the PSFs without ``E``. Printed in m's
+place: ``alpha_i = (c_i(+E) - c_i(-E)) / (2 E)`` per method and the paired differences
+of alpha; c is then the mean of the ``+E`` and ``-E`` sets' shears.
+
 Usage::
 
     python benchmarks/joint_shear.py --ngal 300 --seed 1 --jobs 2   # ~6 min on 2 cores
     python benchmarks/joint_shear.py --ngal 400 --snr 10 15 --jobs 2  # the faint regime
+    python benchmarks/joint_shear.py --ngal 150 --seed 1 --jobs 2 --noise-twins
+    python benchmarks/joint_shear.py --ngal 150 --seed 2 --jobs 2 --psf-e 0.1 --noise-twins
 """
 
 from __future__ import annotations
@@ -127,7 +144,7 @@ def population(n: int, rng: np.random.Generator, deep: dict, snr_range=None) -> 
     flux = np.empty(n)
     for i in range(n):  # GalSim renders one object at a time
         img = galsim.Convolve(galaxy_profile(kinds[i], r[i]).shear(g1=e[i, 0], g2=e[i, 1]),
-                              deep["psf"]).drawImage(nx=N, ny=N, wcs=deep["wcs"]).array
+                              deep["psf"]).drawImage(nx=N, ny=N, wcs=deep["wcs"]).array  # fmt: skip
         flux[i] = snr[i] * SIGMA / np.sqrt((img**2).sum())
     return {"kind": kinds, "r": r, "e": e, "flux": flux}
 
@@ -245,34 +262,60 @@ def as_dict(t) -> dict:
     return {c: np.asarray(t[c], dtype=float) for c in ("e1", "e2", "sens1", "sens2", "weight")}
 
 
-def bootstrap(n_base: int, rng: np.random.Generator, n_boot: int = 300) -> np.ndarray:
-    """``(n_boot, 2 n_base)`` bootstrap counts over the base galaxies, the twins kept
-    with their galaxy: one set of resamplings for every method (paired errors)."""
+def bootstrap(n_base: int, rng: np.random.Generator, copies: int, n_boot: int = 300) -> np.ndarray:
+    """``(n_boot, copies n_base)`` bootstrap counts over the base galaxies, each galaxy's
+    ``copies`` renderings (twins, noise twins) kept together: one set of resamplings for
+    every method (paired errors)."""
     boot = rng.multinomial(n_base, np.full(n_base, 1.0 / n_base), size=n_boot).astype(float)
-    return np.concatenate([boot, boot], axis=1)
+    return np.tile(boot, copies)
 
 
-def shear_stats(sets: dict, boot: np.ndarray) -> dict:
-    """m, c (paired) and sigma_g of the four sets ``{(i, sign): shapes}`` with their
-    bootstrap errors over the resamplings ``boot``; ``m1_boot, m2_boot`` the resampled
-    m (for the paired differences between methods)."""
+def shear_stats(sets: dict, boot: np.ndarray, n_indep: int, step: float = G,
+                name: str = "m") -> dict:  # fmt: skip
+    """The slope (m or alpha), c and sigma_g of the four sets ``{(i, sign): shapes}``
+    with their bootstrap errors over the resamplings ``boot``.
+
+    Parameters
+    ----------
+    sets : dict
+        The shapes of each set, ``(i, sign)`` for ``+-step`` on component ``i``.
+    boot : numpy.ndarray
+        The bootstrap counts, one column per rendering.
+    n_indep : int
+        The renderings of independent noise (the first ones: the noise twins excluded),
+        on which ``sigma_g`` is measured.
+    step : float
+        The shear (or PSF ellipticity) of the sets.
+    name : str
+        ``"m"``: ``m_i = (g_i(+) - g_i(-)) / (2 step) - 1``; ``"alpha"``: the same
+        without the ``- 1`` (the PSF's leakage).
+
+    Returns
+    -------
+    dict
+        ``name1, name2, c1, c2``: (value, error); ``name1_boot, name2_boot`` the
+        resampled slopes (for the paired differences between methods); ``n`` the
+        renderings used; ``sigma_g``.
+    """
     res, sig = {}, []
+    one = 1.0 if name == "m" else 0.0
+    indep = boot * (np.arange(boot.shape[1]) < n_indep)
     for i in (0, 1):
         p, m = sets[(i, 1)], sets[(i, -1)]
         w = np.where((p["weight"] > 0) & (m["weight"] > 0), 0.5 * (p["weight"] + m["weight"]), 0.0)
-        c = f"e{i + 1}"
-        s = f"sens{i + 1}"
+        c, s, k = f"e{i + 1}", f"sens{i + 1}", f"{name}{i + 1}"
         gp = [np.nan_to_num(w * p[c]), np.nan_to_num(w * p[s])]
         gm = [np.nan_to_num(w * m[c]), np.nan_to_num(w * m[s])]
         est_p = (boot @ gp[0]) / (boot @ gp[1])
         est_m = (boot @ gm[0]) / (boot @ gm[1])
         gp0, gm0 = gp[0].sum() / gp[1].sum(), gm[0].sum() / gm[1].sum()
-        res[f"m{i + 1}_boot"] = (est_p - est_m) / (2 * G) - 1
-        res[f"m{i + 1}"] = ((gp0 - gm0) / (2 * G) - 1, np.std(res[f"m{i + 1}_boot"]))
+        res[f"{k}_boot"] = (est_p - est_m) / (2 * step) - one
+        res[k] = ((gp0 - gm0) / (2 * step) - one, np.std(res[f"{k}_boot"]))
         res[f"c{i + 1}"] = (0.5 * (gp0 + gm0), np.std(0.5 * (est_p + est_m)))
-        n_used = int((w > 0).sum())
-        sig += [np.std(est_p) * np.sqrt(n_used), np.std(est_m) * np.sqrt(n_used)]
-        res["n"] = n_used
+        n_used = int((w[:n_indep] > 0).sum())
+        for g in gp, gm:
+            sig.append(np.std((indep @ g[0]) / (indep @ g[1])) * np.sqrt(n_used))
+        res["n"] = int((w > 0).sum())
     res["sigma_g"] = float(np.sqrt(np.mean(np.square(sig))))
     return res
 
@@ -283,6 +326,11 @@ def main() -> None:
     p.add_argument("--snr", type=float, nargs=2, metavar=("LO", "HI"),
                    default=DitherSpec().snr_range,
                    help="S/N range of the deep exposure (the K together)")  # fmt: skip
+    p.add_argument("--noise-twins", action="store_true",
+                   help="render every galaxy and twin again with its noise negated")  # fmt: skip
+    p.add_argument("--psf-e", type=float, default=0.0, metavar="E",
+                   help="measure the PSF leakage alpha: unsheared sets with a sky-frame PSF "
+                        "ellipticity +-E shared by every exposure")  # fmt: skip
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--jobs", type=int, default=2, help="threads of the fits' kernels")
     args = p.parse_args()
@@ -295,7 +343,7 @@ def main() -> None:
     base = population(args.ngal, rng, deep, args.snr)
     cal = population(2 * args.ngal, rng, deep, args.snr)
     n = args.ngal
-    # the calibration set: unsheared, no twins
+    # the calibration set: unsheared, no twins, the PSFs without --psf-e
     off_c = [rng.uniform(-0.5, 0.5, (2 * n, 2)) for _ in range(K + 1)]
     cal_st = [render(cal, ex, (0, 0), 1.0, o, rng.normal(0, ex["sigma"], (2 * n, N, N)))
               for ex, o in zip(exps + [deep], off_c, strict=True)]  # fmt: skip
@@ -314,69 +362,113 @@ def main() -> None:
                           config=cfg, centres=tuple((N // 2 + off_c[K]).T))  # fmt: skip
     print(f"calibrated in {time.time() - t0:.0f} s")
     print(f"S/N {args.snr[0]:g}-{args.snr[1]:g} in the deep exposure")
-    run(base, n, exps, deep, co, cfg, (pri_j, pri_d, pri_s, pri_c), rng)
+    run(base, n, (exps, deep, co), cfg, (pri_j, pri_d, pri_s, pri_c), rng,
+        args.noise_twins, args.psf_e)  # fmt: skip
 
 
-def run(base, n, exps, deep, co, cfg, priors, rng) -> None:
-    """Render the sheared sets, measure them four ways and print the tables."""
+def with_psf_shear(ex: dict, e: tuple) -> dict:
+    """The exposure ``ex`` with its PSF sheared by ``e`` (g1, g2) in the sky frame (the
+    PSF profile is in world coordinates, (W, N) arcsec)."""
+    return exposure(ex["J"], ex["psf"].shear(g1=e[0], g2=e[1]), ex["sigma"])
+
+
+def setting(i: int, sign: int, frames: tuple, psf_e: float) -> tuple:
+    """The shear and the exposures of the set ``(i, sign)``: ``g = sign G`` on component
+    ``i`` or, with ``psf_e``, ``g = 0`` and a sky-frame PSF ellipticity ``sign psf_e``
+    on component ``i`` added to every exposure's PSF, the deep exposure's and the
+    co-add's."""
+    step = sign * (psf_e if psf_e else G)
+    v = (step, 0.0) if i == 0 else (0.0, step)
+    if not psf_e:
+        return v, frames
+    exps, deep, co = frames
+    exps = [with_psf_shear(ex, v) for ex in exps]
+    co = {"psf": coadd_psf(exps), "sigma": co["sigma"]}
+    return (0.0, 0.0), (exps, with_psf_shear(deep, v), co)
+
+
+def measure(st: list, frames: tuple, off: list, cfg, priors: tuple, cost: dict) -> dict:
+    """One set's stamps ``st`` (the K exposures', the deep exposure's) measured four ways;
+    the time of each added to ``cost``."""
+    exps, deep, co = frames
     pri_j, pri_d, pri_s, pri_c = priors
-    twins = {k: np.concatenate([base[k], base[k]]) for k in ("r", "flux")}
-    twins["kind"] = list(base["kind"]) * 2
-    twins["e"] = np.concatenate([base["e"], -base["e"]])
-    off = [rng.uniform(-0.5, 0.5, (2 * n, 2)) for _ in range(K + 1)]
+    out = {}
+    t = time.time()
+    out["joint"] = as_dict(plf.measure_exposure_stamps(
+        views(st[:K], exps, off[:K]), priors=pri_j, config=cfg))  # fmt: skip
+    cost["joint"] += time.time() - t
+    t = time.time()
+    out["deep"] = as_dict(plf.measure_stamps(
+        st[K], deep["psf_img"], SIGMA, priors=pri_d, config=cfg,
+        centres=tuple((N // 2 + off[K]).T)))  # fmt: skip
+    cost["deep"] += time.time() - t
+    t = time.time()
+    tabs = [plf.measure_stamps(st[k], exps[k]["psf_img"], 2 * SIGMA, priors=pri_s,
+                               config=cfg, centres=tuple((N // 2 + off[k]).T))
+            for k in range(K)]  # fmt: skip
+    cost["single mean"] += time.time() - t
+    out["single mean"] = single_mean(tabs, exps)
+    t = time.time()
+    out["coadd"] = as_dict(plf.measure_stamps(
+        coadd(st[:K], exps, off[:K], off[K]), co["psf"], co["sigma"], priors=pri_c,
+        config=cfg, centres=tuple((N // 2 + off[K]).T)))  # fmt: skip
+    cost["coadd"] += time.time() - t
+    return out
+
+
+def run(base, n, frames, cfg, priors, rng, noise_twins=False, psf_e=0.0) -> None:
+    """Render the four sets (``+-g`` or, with ``psf_e``, the PSF's ``+-psf_e`` on each
+    component), measure them four ways and print the tables."""
+    copies = 4 if noise_twins else 2
+    gals = {k: np.tile(base[k], copies) for k in ("r", "flux")}
+    gals["kind"] = list(base["kind"]) * copies
+    gals["e"] = np.tile(np.concatenate([base["e"], -base["e"]]), (copies // 2, 1))
+    exps, deep = frames[:2]
+    off = [np.tile(rng.uniform(-0.5, 0.5, (2 * n, 2)), (copies // 2, 1)) for _ in range(K + 1)]
     noise = [rng.normal(0, ex["sigma"], (2 * n, N, N)) for ex in exps + [deep]]
+    if noise_twins:
+        noise = [np.concatenate([nz, -nz]) for nz in noise]
     out = {m: {} for m in ("joint", "deep", "single mean", "coadd")}
-    cost = {m: 0.0 for m in out}
+    cost = dict.fromkeys(out, 0.0)
     for i in (0, 1):
         for sign in (1, -1):
-            g = (sign * G, 0.0) if i == 0 else (0.0, sign * G)
-            st = [render(twins, ex, g, 1.0, o, nz)
-                  for ex, o, nz in zip(exps + [deep], off, noise, strict=True)]  # fmt: skip
-            t = time.time()
-            out["joint"][(i, sign)] = as_dict(plf.measure_exposure_stamps(
-                views(st[:K], exps, off[:K]), priors=pri_j, config=cfg))  # fmt: skip
-            cost["joint"] += time.time() - t
-            t = time.time()
-            out["deep"][(i, sign)] = as_dict(plf.measure_stamps(
-                st[K], deep["psf_img"], SIGMA, priors=pri_d, config=cfg,
-                centres=tuple((N // 2 + off[K]).T)))  # fmt: skip
-            cost["deep"] += time.time() - t
-            t = time.time()
-            tabs = [plf.measure_stamps(st[k], exps[k]["psf_img"], 2 * SIGMA, priors=pri_s,
-                                       config=cfg, centres=tuple((N // 2 + off[k]).T))
-                    for k in range(K)]  # fmt: skip
-            cost["single mean"] += time.time() - t
-            out["single mean"][(i, sign)] = single_mean(tabs, exps)
-            t = time.time()
-            out["coadd"][(i, sign)] = as_dict(plf.measure_stamps(
-                coadd(st[:K], exps, off[:K], off[K]), co["psf"], co["sigma"], priors=pri_c,
-                config=cfg, centres=tuple((N // 2 + off[K]).T)))  # fmt: skip
-            cost["coadd"] += time.time() - t
-    per = {"joint": 2 * n * K, "deep": 2 * n, "single mean": 2 * n * K, "coadd": 2 * n * K}
-    boot = bootstrap(n, np.random.default_rng(0))
-    stats = {m: shear_stats(out[m], boot) for m in out}
-    report(stats, {m: 1e3 * cost[m] / (4 * per[m]) for m in out}, n)
+            g, fr = setting(i, sign, frames, psf_e)
+            st = [render(gals, ex, g, 1.0, o, nz)
+                  for ex, o, nz in zip(fr[0] + [fr[1]], off, noise, strict=True)]  # fmt: skip
+            for m, shapes in measure(st, fr, off, cfg, priors, cost).items():
+                out[m][(i, sign)] = shapes
+    per = {"joint": K, "deep": 1, "single mean": K, "coadd": K}
+    boot = bootstrap(n, np.random.default_rng(0), copies)
+    name = "alpha" if psf_e else "m"
+    stats = {m: shear_stats(out[m], boot, 2 * n, psf_e or G, name) for m in out}
+    twins = "rotated twins and the noise twins of both" if noise_twins else "rotated twins"
+    what = f"g = 0, PSF e = +-{psf_e} (sky frame)" if psf_e else f"g = {G}"
+    head = f"{copies * n} renderings per set ({n} galaxies and their {twins}), {what}, K = {K}"
+    report(stats, {m: 1e3 * cost[m] / (4 * copies * n * per[m]) for m in out}, head, name)
 
 
-def report(stats: dict, ms: dict, n: int) -> None:
-    """Print each method's m, c, sigma_g and cost, then the joint fit's paired differences
-    of m from the others."""
+def report(stats: dict, ms: dict, head: str, name: str = "m") -> None:
+    """Print each method's slope ``name`` (m or alpha), c, sigma_g and cost, then the
+    joint fit's paired differences of the slope from the others."""
     sd = stats["deep"]["sigma_g"]
-    print(f"\n{2 * n} galaxies per set ({n} and their twins), g = {G}, K = {K}\n")
-    print(f"{'method':<12} {'m1':>16} {'m2':>16} {'c1':>18} {'c2':>18} {'n':>5} "
+    k1, k2 = f"{name}1", f"{name}2"
+    print(f"\n{head}\n")
+    print(f"{'method':<12} {k1:>16} {k2:>16} {'c1':>18} {'c2':>18} {'n':>5} "
           f"{'sigma_g':>8} {'/deep':>6} {'ms/(gal,exp)':>13}")  # fmt: skip
     for m, s in stats.items():
-        f = "  ".join(f"{s[k][0]:+.4f}+-{s[k][1]:.4f}" for k in ("m1", "m2", "c1", "c2"))
+        f = "  ".join(f"{s[k][0]:+.4f}+-{s[k][1]:.4f}" for k in (k1, k2, "c1", "c2"))
         print(f"{m:<12} {f}  {s['n']:>5} {s['sigma_g']:8.3f} {s['sigma_g'] / sd:6.3f} "
               f"{ms[m]:13.1f}")  # fmt: skip
-    print("\npaired differences of m (the same galaxies and bootstrap resamplings)\n")
-    print(f"{'pair':<20} {'dm1':>16} {'dm1/err':>8} {'dm2':>16} {'dm2/err':>8}")
+    print(f"\npaired differences of {name} (the same galaxies and bootstrap resamplings)\n")
+    w = len(name) + 7
+    print(f"{'pair':<20} {'d' + k1:>16} {'d' + k1 + '/err':>{w}} {'d' + k2:>16} "
+          f"{'d' + k2 + '/err':>{w}}")  # fmt: skip
     for other in ("single mean", "coadd", "deep"):
         row = ""
-        for k in ("m1", "m2"):
+        for k in (k1, k2):
             d = stats["joint"][k][0] - stats[other][k][0]
             e = float(np.std(stats["joint"][f"{k}_boot"] - stats[other][f"{k}_boot"]))
-            row += f" {d:+.4f}+-{e:.4f} {d / e:+8.2f}"
+            row += f" {d:+.4f}+-{e:.4f} {d / e:+{w}.2f}"
         print(f"{'joint - ' + other:<20}{row}")
 
 
