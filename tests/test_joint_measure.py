@@ -111,6 +111,35 @@ def test_one_exposure_with_priors_is_the_single_fit(amp, model, n_b):
         assert np.abs(unif.lnL - joint.lnL)[near].max() > 0.05
 
 
+def test_one_exposure_on_a_larger_tier_is_the_single_fits_tier():
+    """K = 1, J = I, 64-pixel stamps: with ``k_max = pi / 2`` (the frequencies of the
+    64-pixel stamp that a 32-pixel bank holds) fit_exposures gives fit_stamps' ln L(e)
+    of galaxies it fits on its 64-pixel tier (``max_stamp_size = 64`` over
+    ``stamp_size = 32``) to float32 rounding (the galaxies near the stamps' centres, so
+    that the single fit's window about its first centre is the whole stamp); on every
+    frequency of the stamp it does not."""
+    big = 64
+    rng = np.random.default_rng(8)
+    psf = gaussian_psf()
+    ng = 6
+    img = render_models(big, psf, 32 + rng.uniform(-0.3, 0.3, ng), 32 + rng.uniform(-0.3, 0.3, ng),
+                        rng.uniform(-0.4, 0.4, ng), rng.uniform(-0.4, 0.4, ng),
+                        rng.uniform(2.5, 5.0, ng), rng.uniform(600.0, 900.0, ng),
+                        model="exponential") + rng.normal(0.0, 1.0, (ng, big, big))  # fmt: skip
+    single = fit_stamps(img, psf, 1.0, config=CFG.replace(max_stamp_size=big,
+                                                          stamp_hlr_ratio=1e3))  # fmt: skip
+    assert np.all(single.stamp == big)
+    tier = CFG.replace(stamp_size=big, k_max=np.pi / 2)
+    joint = fit_exposures(img[None], psf[None], 1.0, np.eye(2)[None], config=tier)
+    full = fit_exposures(img[None], psf[None], 1.0, np.eye(2)[None],
+                         config=CFG.replace(stamp_size=big))  # fmt: skip
+    near = single.lnL > -30
+    a = single.lnL + single.lnL_peak[:, None]
+    assert np.abs(a - (joint.lnL + joint.lnL_peak[:, None]))[near].max() < 1e-4
+    assert np.abs(a - (full.lnL + full.lnL_peak[:, None]))[near].max() > 0.05
+    np.testing.assert_allclose(joint.flux, single.flux, rtol=1e-6)
+
+
 SHAPES = ("e1", "e2", "e1_var", "e2_var", "e12_cov", "sens1", "sens2", "model_flux",
           "model_SNratio", "scalelength", "e1_best", "e2_best", "noise_sigma", "weight",
           "flags", "fitclass", "is_star", "bulge_best")  # fmt: skip

@@ -193,7 +193,10 @@ def test_the_neighbours_are_taken_out_of_every_exposure(tmp_path):
     each even galaxy is measured with its odd neighbours present, and alone (the same
     exposures and noise rendered without the odd galaxies). With the neighbours' models
     rendered into each exposure through its WCS and PSF and taken out, the shapes are
-    those of the galaxies alone to a few 1e-3; without, several times further off."""
+    those of the galaxies alone to a few 1e-3; without, several times further off (all
+    on the base stamp, ``max_stamp_size = 0``). With the stamp tiers, the galaxies alone
+    that need more than 32 px and have no neighbour within 64 px are fitted on 64; the
+    others are not."""
     spec = DitherSpec(n_exposures=3, ngal=25, snr_range=(200.0, 300.0), size_range=(0.4, 0.7),
                       spacing=6.0, jitter=0.3, star_field_size=160, g1=0.0, g2=0.0)  # fmt: skip
     s = read_dither(simulate_dither(tmp_path / "crowded", spec, seed=11))
@@ -210,16 +213,24 @@ def test_the_neighbours_are_taken_out_of_every_exposure(tmp_path):
     for name, sel in (("all", np.ones(len(s.truth), bool)), ("alone", keep)):
         pos[name] = str(tmp_path / f"{name}.fits")
         Table({"ra": s.truth["ra"][sel], "dec": s.truth["dec"][sel]}).write(pos[name])
-    ref = measure_exposures(alone, stars=stars, catalogue=pos["alone"], priors=Priors())
+    base = CFG.replace(max_stamp_size=0)
+    ref = measure_exposures(alone, stars=stars, catalogue=pos["alone"], priors=Priors(),
+                            config=base)  # fmt: skip
     rms = {}
     for sub in (False, True):
         cat = measure_exposures(exps, stars=stars, catalogue=pos["all"], priors=Priors(),
-                                config=CFG.replace(subtract_neighbours=sub))[keep]  # fmt: skip
+                                config=base.replace(subtract_neighbours=sub))[keep]  # fmt: skip
         d = np.concatenate([np.asarray(cat[c]) - np.asarray(ref[c]) for c in ("e1", "e2")])
         rms[sub] = float(np.sqrt(np.mean(d**2)))
         assert np.all(cat["flags"] == 0)
     assert rms[True] < 0.003  # measured 0.0015
     assert rms[True] < 0.4 * rms[False]  # measured 0.0056 without
+    tiers = measure_exposures(alone, stars=stars, catalogue=pos["alone"], priors=Priors())
+    # the checkerboard's galaxies are 8.5" apart diagonally: within 64 px of each other
+    # but at the set's edge
+    assert np.all(tiers["stamp_size"] >= 32) and np.sum(tiers["stamp_size"] == 64) >= 1
+    crowded = measure_exposures(exps, stars=stars, catalogue=pos["all"], priors=Priors())
+    assert np.all(crowded["stamp_size"] == 32)
 
 
 def test_a_cosmic_ray_on_a_galaxy_drops_that_exposure_alone(dset, from_truth, tmp_path):

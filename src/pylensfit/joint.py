@@ -81,6 +81,7 @@ from .models import (
     ModelBank,
     fourier_profile,
     half_light_radius,
+    in_disc,
     radius_grid,
     radius_weights,
     rfft_frequencies,
@@ -291,14 +292,18 @@ def _columns(cfg: Config, scale: float, size_prior: SizePrior | None = None,
                     amp=(*amp, *amplitude_table(amp.power)))  # fmt: skip
 
 
-def _interior(n: int) -> np.ndarray:
+def _interior(n: int, k_max: float = 0.0) -> np.ndarray:
     """Flattened ``rfft2`` indices of an ``n x n`` stamp that are not Nyquist (``|j| <
-    n/2``), the frequencies the single-exposure fit sums over."""
+    n/2``) and, with ``k_max > 0``, within ``|k| <= k_max`` (the stamp tiers): the
+    frequencies the single-exposure fit sums over."""
     kx, ky, _ = rfft_frequencies(n)
     jmax = (n - 1) // 2
     jx = np.rint(kx * n / (2 * np.pi)).astype(int)
     jy = np.rint(ky * n / (2 * np.pi)).astype(int)
-    return np.flatnonzero(((np.abs(jx) <= jmax) & (np.abs(jy) <= jmax)).ravel())
+    on = (np.abs(jx) <= jmax) & (np.abs(jy) <= jmax)
+    if k_max > 0:
+        on &= in_disc(kx, ky, k_max)
+    return np.flatnonzero(on.ravel())
 
 
 def sky_frequencies(jacobian: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -497,13 +502,16 @@ def _mixed_columns(cols: _Columns, n_rep: int) -> tuple[np.ndarray, ...]:
     return base, a, b, f
 
 
-def _frequency_orbits(n: int, H: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The interior frequencies of an ``n x n`` stamp modulo ``+-H``: each orbit's
-    representative ``k0`` (integer ``(jx, jy)``, ``(n_k0, 2)``), its images ``h k0``
-    (``(n_h, n_k0, 2)``) and the orbit's size."""
+def _frequency_orbits(n: int, H: np.ndarray,
+                      k_max: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The interior frequencies of an ``n x n`` stamp (within ``|k| <= k_max`` where it
+    is positive) modulo ``+-H``: each orbit's representative ``k0`` (integer ``(jx,
+    jy)``, ``(n_k0, 2)``), its images ``h k0`` (``(n_h, n_k0, 2)``) and the orbit's size."""
     jmax = (n - 1) // 2
     jy, jx = np.mgrid[-jmax : jmax + 1, -jmax : jmax + 1]
     pts = np.stack([jx.ravel(), jy.ravel()], axis=1)
+    if k_max > 0:  # the symmetries keep |k|: the disc is a union of orbits
+        pts = pts[in_disc(2 * np.pi / n * pts[:, 0], 2 * np.pi / n * pts[:, 1], k_max)]
     key = lambda p: (p[..., 1] + jmax) * (2 * jmax + 1) + p[..., 0] + jmax  # noqa: E731
     imgs = np.einsum("hab,pb->hpa", _SYMMETRIES[H], pts)
     both = np.concatenate([key(imgs), key(-imgs)])  # (2 n_h, n_pts) the orbit's keys
@@ -534,10 +542,11 @@ def _model_orbits(cols: _Columns, S: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return rep, img[:, rep]
 
 
-def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype) -> _Fold:
+def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype,
+          k_max: float = 0.0) -> _Fold:  # fmt: skip
     """The exposure's bank folded by the symmetries its Jacobian keeps."""
     H, S = lattice_symmetries(J)
-    k0, imgs, size = _frequency_orbits(n, H)
+    k0, imgs, size = _frequency_orbits(n, H, k_max)
     chi = _CHI[np.unique(_CHI[:, H], axis=0, return_index=True)[1]][:, H]
     stab = (imgs == k0[None]).all(-1) | (imgs == -k0[None]).all(-1)  # (n_h, n_k0)
     keep = tuple(np.flatnonzero(~(stab & (c[:, None] < 0)).any(axis=0)) for c in chi)
@@ -592,16 +601,17 @@ _BANKS: dict = {}
 _BANKS_KEPT = 8
 
 
-def _exposure(cols: _Columns, J: np.ndarray, n: int, dtype) -> _Exposure:
-    """The bank of the exposure of Jacobian ``J`` (cached: the last ``_BANKS_KEPT``)."""
+def _exposure(cols: _Columns, J: np.ndarray, n: int, dtype, k_max: float = 0.0) -> _Exposure:
+    """The bank of the exposure of Jacobian ``J`` on ``n x n`` stamps, the frequencies
+    ``|k| <= k_max`` where it is positive (cached: the last ``_BANKS_KEPT``)."""
     key = (np.asarray(J, dtype=float).tobytes(), n, np.dtype(dtype).str, cols.model, cols.runs,
-           cols.egrid.tobytes(), cols.radii.tobytes())  # fmt: skip
+           cols.egrid.tobytes(), cols.radii.tobytes(), float(k_max))  # fmt: skip
     hit = _BANKS.get(key)
     if hit is None:
-        sel = _interior(n)
+        sel = _interior(n, k_max)
         qx, qy = (a.ravel()[sel] for a in sky_frequencies(J, n))
         _, _, w = rfft_frequencies(n)
-        hit = _Exposure(fold=_fold(cols, J, n, sel, dtype), qx=qx, qy=qy,
+        hit = _Exposure(fold=_fold(cols, J, n, sel, dtype, k_max), qx=qx, qy=qy,
                         coef=np.full(sel.size, 1.0 / n**2), herm=w.ravel()[sel],
                         sel=sel)  # fmt: skip
         keep_last(_BANKS, key, hit, _BANKS_KEPT, _CACHE_BYTES)
@@ -937,9 +947,11 @@ def fit_exposures(
         Grid, model and marginalisation settings (``e_step``, ``e_max``, the size grid,
         ``model``, ``n_bulge_fractions``, ``position_prior_sigma``, ``max_offset``,
         ``centring_scale``, ``max_newton_step``, ``block_size``, ``dtype``, the
-        amplitude prior and its flux bounds in the common flux unit). Its lengths are in
-        reference pixels of ``pixel_scale`` arcsec. The models are not truncated at the
-        stamp's edge, and the position expansion is of second order (``cubic_snr = 0``).
+        amplitude prior and its flux bounds in the common flux unit, ``k_max``: a stamp
+        tier sums the frequencies ``|k| <= k_max`` alone, as the single fit's tiers do).
+        Its lengths are in reference pixels of ``pixel_scale`` arcsec. The models are not
+        truncated at the stamp's edge, and the position expansion is of second order
+        (``cubic_snr = 0``).
     pixel_scale : float, optional
         Arcsec per reference pixel (default: the median of ``1 / sqrt|det J_k|``).
     size_prior : pylensfit.prior.SizePrior, optional
@@ -973,7 +985,7 @@ def _fit(inp: _Inputs, cols: _Columns, cfg: Config, scale: float) -> JointFits:
     K, n_gal, N = inp.stamps.shape[:3]
     good = np.isfinite(np.linalg.det(inp.J)) & (np.linalg.det(inp.J) != 0)
     eye = np.eye(2) / scale
-    exps = [_exposure(cols, inp.J[k] if good[k] else eye, N, np.dtype(cfg.dtype))
+    exps = [_exposure(cols, inp.J[k] if good[k] else eye, N, np.dtype(cfg.dtype), cfg.k_max)
             for k in range(K)]
     with threadpool_limits(limits=1, user_api="blas"):  # as fit_stamps: the same bits anywhere
         parts = [_fit_block(inp, exps, cols, cfg, scale, slice(s, min(s + cfg.block_size,

@@ -26,11 +26,16 @@ version, Miller et al. 2013, arXiv:1210.8201).
    one Jacobian per exposure and group), the priors
    given or estimated from the set's own joint fits
    (:func:`pylensfit.calibration.calibrate_exposures`);
-6. the neighbours taken out of each exposure (:func:`_subtract_neighbours`: every
+6. the stamp tiers (:func:`_retier`): a galaxy that needs a larger stamp by the
+   single-image fit's rule (``Config.stamp_hlr_ratio``, up to ``max_stamp_size``) and
+   holds no other object of ``model_SNratio >= Config.close_pair_min_snr`` within it is
+   fitted again on it, on the frequencies ``|k| <= pi / j`` of a stamp ``j`` times the
+   base;
+7. the neighbours taken out of each exposure (:func:`_subtract_neighbours`: every
    object's sky-frame model rendered into every exposure through its WCS, PSF and flux
    scale, :func:`pylensfit.images.neighbours.exposure_light`) and the galaxies whose
    stamps hold their light fitted again, ``Config.neighbour_iterations`` rounds;
-7. the catalogue: one row per position, shapes in the sky frame, ``n_exposures`` and
+8. the catalogue: one row per position, shapes in the sky frame, ``n_exposures`` and
    ``exposures_used`` saying which exposures each galaxy's fit used, ``CLOSE_PAIR`` as
    the single-image pipeline sets it (from the fits' S/N), written atomically.
 """
@@ -61,6 +66,7 @@ from ..exposures import (
     sky_to_pixel,
 )
 from ..flags import FLAGS
+from ..likelihood.tiers import stamp_tiers, tier_sizes
 from ..psf import PSFResult
 from ..psfmodel import PSFModel
 from ..skyframe import SkyFrame
@@ -388,10 +394,44 @@ def _nowhere(ra: np.ndarray, dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(lost, r0, ra), np.where(lost, d0 - 30.0 if d0 > 0 else d0 + 30.0, dec)
 
 
+def _tier_config(cfg: Config, side: int) -> Config:
+    """The configuration of the joint fits on ``side``-pixel stamps: a stamp tier ``j``
+    times ``Config.stamp_size`` sums the frequencies ``|k| <= pi / j``, as the
+    single-image fit's tiers do."""
+    if side == cfg.stamp_size:
+        return cfg
+    return cfg.replace(stamp_size=int(side), max_stamp_size=0,
+                       k_max=float(np.pi * cfg.stamp_size / side))  # fmt: skip
+
+
+def _tier_sides(eset: ExposureSet, ra, dec, idx: np.ndarray, cfg: Config) -> np.ndarray:
+    """Each galaxy's stamp side, by the single-image fit's rule
+    (:func:`pylensfit.likelihood.tiers.stamp_tiers`: ``Config.stamp_hlr_ratio`` of its
+    PSF-convolved half-light radius) on its first exposure usable at the largest side; a
+    galaxy that some exposure holds at the base side but not at the largest keeps the
+    base side."""
+    n0, top = cfg.stamp_size, cfg.largest_stamp
+    sides = np.full(idx.size, n0)
+    if top <= n0 or idx.size == 0:
+        return sides
+    base = cut_exposures(eset.exposures, ra[idx], dec[idx], size=n0)
+    big = cut_exposures(eset.exposures, ra[idx], dec[idx], size=top)
+    use_t = np.stack([v.usable for v in big])
+    ok = (use_t == np.stack([v.usable for v in base])).all(axis=0) & use_t.any(axis=0)
+    first = np.argmax(use_t, axis=0)
+    sizes = tier_sizes(cfg, (top, top))
+    for k in np.unique(first[ok]):
+        i = np.flatnonzero(ok & (first == k))
+        cx, cy = big[k].centres
+        sides[i] = stamp_tiers(big[k].stamps[i], big[k].psf[i[i.size // 2]],
+                               big[k].noise_sigma[i], cfg, cx[i], cy[i], sizes)[0]  # fmt: skip
+    return sides
+
+
 def _measure_groups(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
                     priors: Priors, cfg: Config) -> Table:  # fmt: skip
-    """Every position measured, by groups of one Jacobian per exposure (``labels``) and
-    chunks of at most ``chunk`` positions, in the input order."""
+    """Every position measured on the base stamp, by groups of one Jacobian per exposure
+    (``labels``) and chunks of at most ``chunk`` positions, in the input order."""
     parts, order = [], []
     for lab in np.unique(labels):
         members = np.flatnonzero(labels == lab)
@@ -403,6 +443,44 @@ def _measure_groups(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
     t = t[np.argsort(np.concatenate(order), kind="stable")]
     t.meta.update(parts[0].meta)
     return t
+
+
+def _retier(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int, priors: Priors,
+            cfg: Config, t: Table) -> None:  # fmt: skip
+    """The stamp tiers: the galaxies (:func:`_refittable`) that :func:`_tier_sides` gives
+    a larger stamp, and that hold no other object of ``model_SNratio >=
+    Config.close_pair_min_snr`` within it, fitted again on it; their rows of ``t``
+    replaced."""
+    top = cfg.largest_stamp
+    if top <= cfg.stamp_size:
+        return
+    x0, y0 = sky_to_pixel(eset.exposures[0].wcs, ra, dec)
+    sig = np.isfinite(x0) & (np.nan_to_num(np.asarray(t["model_SNratio"], float))
+                             >= cfg.close_pair_min_snr)  # fmt: skip
+    alone = np.ones(len(ra), bool)
+    alone[sig] = ~close_pairs(x0[sig], y0[sig], stamp_size=top)
+    cand = _refittable(t) & alone
+    for lab in np.unique(labels[cand]):
+        members = np.flatnonzero(cand & (labels == lab))
+        for idx in np.array_split(members, -(-members.size // chunk)):
+            sides = _tier_sides(eset, ra, dec, idx, cfg)
+            for side in np.unique(sides[sides > cfg.stamp_size]):
+                sub = idx[sides == side]
+                views = cut_exposures(eset.exposures, ra[sub], dec[sub], size=int(side))
+                new = measure_exposure_stamps(views, priors=priors,
+                                              config=_tier_config(cfg, side))  # fmt: skip
+                for c in new.colnames:
+                    t[c][sub] = new[c]
+
+
+def _measure(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int, priors: Priors,
+             cfg: Config) -> Table:  # fmt: skip
+    """The joint fits of every position: on the base stamp (:func:`_measure_groups`),
+    then on the larger stamp tiers (:func:`_retier`), then with the neighbours taken out
+    (:func:`_subtract_neighbours`)."""
+    t = _measure_groups(eset, ra, dec, labels, chunk, priors, cfg)
+    _retier(eset, ra, dec, labels, chunk, priors, cfg, t)
+    return _subtract_neighbours(eset, ra, dec, labels, chunk, priors, cfg, t)
 
 
 def _take(view: ExposureStamps, sel: np.ndarray, less: np.ndarray) -> ExposureStamps:
@@ -443,17 +521,21 @@ def _neighbour_round(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
     for lab in np.unique(labels[cand]):
         members = np.flatnonzero(cand & (labels == lab))
         for idx in np.array_split(members, -(-members.size // chunk)):
-            n_done += _refit(eset, ra, dec, idx, (models, fields), priors, cfg, t)
+            sides = np.asarray(t["stamp_size"], dtype=int)[idx]
+            for side in np.unique(sides):
+                n_done += _refit(eset, ra, dec, idx[sides == side], (models, fields, cfg),
+                                 priors, _tier_config(cfg, side), t)  # fmt: skip
     return n_done
 
 
 def _refit(eset: ExposureSet, ra, dec, idx: np.ndarray, light: tuple, priors: Priors,
            cfg: Config, t: Table) -> int:  # fmt: skip
-    """:func:`_neighbour_round` on the galaxies ``idx`` of one Jacobian group; ``light``
-    the models and each exposure's image of them."""
-    models, fields = light
+    """:func:`_neighbour_round` on the galaxies ``idx`` of one Jacobian group and stamp
+    tier (``cfg``, :func:`_tier_config`); ``light`` the models, each exposure's image of
+    them and the configuration they were rendered with."""
+    models, fields, drawn = light
     views = cut_exposures(eset.exposures, ra[idx], dec[idx], size=cfg.stamp_size)
-    less = [exposure_neighbour_stamps(f, v, e, models, idx, cfg)
+    less = [exposure_neighbour_stamps(f, v, e, models, idx, drawn)
             for f, v, e in zip(fields, views, eset.exposures, strict=True)]  # fmt: skip
     pairs = list(zip(views, less, strict=True))
     chi2 = sum(np.sum(lo * lo * v.weights, axis=(1, 2)) for v, lo in pairs)
@@ -606,8 +688,7 @@ def measure_exposures(
     groups = jacobian_groups(eset.exposures, ra_n, dec_n, jacobian_tolerance)
     if priors is None:
         priors = _calibrate(eset, ra_n, dec_n, ok & ~pairs, groups, cfg)
-    t = _subtract_neighbours(eset, ra_n, dec_n, groups, chunk, priors, cfg,
-                             _measure_groups(eset, ra_n, dec_n, groups, chunk, priors, cfg))
+    t = _measure(eset, ra_n, dec_n, groups, chunk, priors, cfg)
     cat = _catalogue(t, pos, eset, _pairs(eset, ra, dec, cfg, t)[1], cfg)
     if output is not None:
         write_catalogue(cat, output, overwrite=overwrite)
