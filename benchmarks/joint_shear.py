@@ -50,8 +50,8 @@ paired differences of m between the joint fit and each other method: the differe
 the same galaxies, its error the standard deviation of the difference over the same
 bootstrap resamplings, and the difference in units of that error. All fits with
 ``Config()`` on 48-pixel stamps (``max_stamp_size = 0``: no tiers); the joint fit is of
-second order in position and its models are not truncated at the stamp's edge
-(``cubic_snr`` and ``truncate_models`` apply to the single fits only).
+second order in position (``cubic_snr`` applies to the single fits only); every fit's
+models are cut at the stamp's edge (``truncate_models``).
 
 ``--noise-twins``: every galaxy and its rotated twin are rendered again with their noise
 negated (``-noise`` in every exposure and in the deep exposure, the same sub-pixel

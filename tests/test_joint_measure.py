@@ -13,7 +13,7 @@ from pylensfit.catalogue import COLUMNS
 from pylensfit.config import Config
 from pylensfit.exposures import ExposureStamps
 from pylensfit.flags import flag_value
-from pylensfit.joint import fit_exposures
+from pylensfit.joint import fit_exposures, pixel_cells
 from pylensfit.likelihood import e_annuli, fit_stamps
 from pylensfit.models import render_models
 from pylensfit.prior import SizePrior
@@ -275,3 +275,53 @@ def _mean_h(size: SizePrior) -> float:
     h = np.exp(size.ln_h)
     d = size.marginal()
     return float(np.sum(h * d) / np.sum(d))
+
+
+def test_pixel_cells_are_the_models_seen_through_the_jacobian():
+    """A sky-frame model through a rotated, sheared, mirror-image Jacobian
+    (render_models(jacobian=)) is the pixel-frame model of pixel_cells' ellipticity and
+    size, to float64 rounding."""
+    J = np.diag([1.0, -1.0]) @ rotation(33.0) @ np.array([[1.03, 0.02], [0.02, 0.97]]) / 0.2
+    eg = np.array([[0.3, -0.2], [-0.45, 0.1], [0.0, 0.6], [0.0, 0.0]])
+    e_pix, scale = pixel_cells(eg, J)
+    psf = gaussian_psf()
+    n = 64
+    sky = render_models(n, psf, [32.2] * 4, [31.7] * 4, eg[:, 0], eg[:, 1], [0.5] * 4, [1.0] * 4,
+                        model="exponential", jacobian=J)  # fmt: skip
+    pix = render_models(n, psf, [32.2] * 4, [31.7] * 4, e_pix[:, 0], e_pix[:, 1],
+                        [0.5 * scale] * 4, [1.0] * 4, model="exponential")  # fmt: skip
+    assert np.abs(sky - pix).max() < 1e-12
+    assert np.hypot(*e_pix[3]) > 0.03  # the WCS's own shear makes a round model elliptical
+    e_conf, _ = pixel_cells(eg, np.diag([1.0, -1.0]) @ rotation(33.0) / 0.2)
+    assert np.abs(e_conf[3]).max() < 1e-12  # a rotation and a mirror keep it round
+    # and rotate the others by twice the angle after the mirror's e2 -> -e2
+    z = (eg[:3, 0] - 1j * eg[:3, 1]) * np.exp(-2j * np.radians(33.0))
+    np.testing.assert_allclose(e_conf[:3, 0] + 1j * e_conf[:3, 1], z, atol=1e-12)
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_truncated_models_through_a_jacobian_are_the_single_fits(flip):
+    """Large galaxies whose models wrap round 32-pixel stamps, with ``truncate_models``:
+    K = 1 with J = I gives fit_stamps' ln L(e) (its models cut at the stamp's edge) to
+    float32 rounding; with the mirror image J = diag(1, -1) the sky frame's ln L(e1, e2)
+    is the single fit's ln L(e1, -e2) of the same pixels. Without the truncation the
+    joint fit is off by far more."""
+    cfg = CFG.replace(truncate_models=True)
+    rng = np.random.default_rng(11)
+    psf = gaussian_psf()
+    ng = 6
+    img = render_models(N, psf, 16 + rng.uniform(-0.3, 0.3, ng), 16 + rng.uniform(-0.3, 0.3, ng),
+                        rng.uniform(-0.4, 0.4, ng), rng.uniform(-0.4, 0.4, ng),
+                        rng.uniform(3.0, 5.5, ng), rng.uniform(600.0, 900.0, ng),
+                        model="exponential") + rng.normal(0.0, 1.0, (ng, N, N))  # fmt: skip
+    single = fit_stamps(img, psf, 1.0, config=cfg)
+    J = np.diag([1.0, -1.0]) if flip else np.eye(2)
+    joint = fit_exposures(img[None], psf[None], 1.0, J[None], config=cfg)
+    loose = fit_exposures(img[None], psf[None], 1.0, J[None], config=CFG)
+    eg = single.egrid
+    cell = {(round(a, 6), round(b, 6)): i for i, (a, b) in enumerate(eg)}
+    order = np.array([cell[(round(a, 6), round(-b if flip else b, 6))] for a, b in eg])
+    a = (single.lnL + single.lnL_peak[:, None])[:, order]
+    near = single.lnL[:, order] > -30
+    assert np.abs(a - (joint.lnL + joint.lnL_peak[:, None]))[near].max() < 1e-4
+    assert np.abs(a - (loose.lnL + loose.lnL_peak[:, None]))[near].max() > 0.05

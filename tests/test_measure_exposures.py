@@ -23,7 +23,9 @@ pytest.importorskip("galsim")
 
 SPEC = DitherSpec(n_exposures=3, ngal=25, snr_range=(200.0, 300.0), size_range=(0.3, 0.5),
                   spacing=10.0, star_field_size=160, g1=0.0, g2=0.0)
-CFG = Config()
+#: the defaults but for the models cut at each exposure's stamp edge: the wrapped wings
+#: cost seconds per exposure and tier, and tests/test_joint_measure.py tests them
+CFG = Config().replace(truncate_models=False)
 
 
 @pytest.fixture(scope="module")
@@ -116,8 +118,10 @@ def test_the_command_line(dset, tmp_path, capsys, from_truth):
     priors = tmp_path / "priors.json"
     Priors().save(priors)
     out = tmp_path / "cli.fits"
+    CFG.to_yaml(tmp_path / "cfg.yaml")
     rc = main(["measure", "--exposures", *exps, "--stars", *stars, "--catalogues",
-               str(positions), "--priors", str(priors), "-o", str(out)])  # fmt: skip
+               str(positions), "--priors", str(priors), "--config", str(tmp_path / "cfg.yaml"),
+               "-o", str(out)])  # fmt: skip
     assert rc == 0 and out.exists()
     assert "3 exposures" in capsys.readouterr().out
     rc = main(["measure", "--exposures", *exps, "--stars", stars[0], "-o",
@@ -225,11 +229,13 @@ def test_the_neighbours_are_taken_out_of_every_exposure(tmp_path):
         assert np.all(cat["flags"] == 0)
     assert rms[True] < 0.003  # measured 0.0015
     assert rms[True] < 0.4 * rms[False]  # measured 0.0056 without
-    tiers = measure_exposures(alone, stars=stars, catalogue=pos["alone"], priors=Priors())
+    tiers = measure_exposures(alone, stars=stars, catalogue=pos["alone"], priors=Priors(),
+                              config=CFG)  # fmt: skip
     # the checkerboard's galaxies are 8.5" apart diagonally: within 64 px of each other
     # but at the set's edge
     assert np.all(tiers["stamp_size"] >= 32) and np.sum(tiers["stamp_size"] == 64) >= 1
-    crowded = measure_exposures(exps, stars=stars, catalogue=pos["all"], priors=Priors())
+    crowded = measure_exposures(exps, stars=stars, catalogue=pos["all"], priors=Priors(),
+                                config=CFG)  # fmt: skip
     assert np.all(crowded["stamp_size"] == 32)
 
 

@@ -86,11 +86,13 @@ from .models import (
     radius_weights,
     rfft_frequencies,
     sheared_k,
+    wing_transforms,
 )
 from .prior import Prior, SizePrior
 from .psf import psf_transform
 
-__all__ = ["JointFits", "fit_exposures", "fit_views", "lattice_symmetries", "sky_frequencies"]
+__all__ = ["JointFits", "fit_exposures", "fit_views", "lattice_symmetries", "pixel_cells",
+           "sky_frequencies"]
 
 #: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 16 x n_r)
 _E_CHUNK = 16
@@ -204,6 +206,7 @@ class _Columns:
     e_w: np.ndarray  # (n_e,) the e cells' weights in L(r), summing to 1
     e_grp: np.ndarray  # (n_e,) int: the group of each e cell in L(r)
     amp: tuple  # the amplitude prior and its table, joint_nb.laplace_grid's ``amp``
+    truncate: bool = False  # the models cut at each exposure's stamp edge (truncate_models)
 
     @property
     def n_e(self) -> int:
@@ -289,7 +292,8 @@ def _columns(cfg: Config, scale: float, size_prior: SizePrior | None = None,
     return _Columns(egrid=egrid, radii=radii * scale, runs=runs, node_w=node_w,
                     w_star=w_star, model=cfg.model, e_w=e_w / e_w.sum(),
                     e_grp=e_groups(lnL_r_groups, egrid.shape[0]),
-                    amp=(*amp, *amplitude_table(amp.power)))  # fmt: skip
+                    amp=(*amp, *amplitude_table(amp.power)),
+                    truncate=bool(cfg.truncate_models))  # fmt: skip
 
 
 def _interior(n: int, k_max: float = 0.0) -> np.ndarray:
@@ -542,6 +546,63 @@ def _model_orbits(cols: _Columns, S: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return rep, img[:, rep]
 
 
+def pixel_cells(egrid: np.ndarray, jacobian: np.ndarray) -> tuple[np.ndarray, float]:
+    """The sky-frame models seen through a Jacobian as pixel-frame models.
+
+    The sky profile ``f(|S(e)^-1 u| / r)`` is ``f(|S(e)^-1 J^-1 x| / r)`` in the pixels:
+    the pixel-frame model of ellipticity ``e'`` (the distortion ``chi`` of ``J S(e)^2
+    J^T``, ``e' = chi / (1 + sqrt(1 - |chi|^2))``) and size ``r sqrt|det J|``; a mirror
+    image needs nothing more.
+
+    Parameters
+    ----------
+    egrid : numpy.ndarray
+        ``(n_e, 2)`` sky-frame ellipticities.
+    jacobian : numpy.ndarray
+        ``(2, 2)`` ``J = d(x, y)/d(W, N)``, pixels per arcsec.
+
+    Returns
+    -------
+    e : numpy.ndarray
+        ``(n_e, 2)`` pixel-frame ellipticities.
+    scale : float
+        Pixels per arcsec of the sizes, ``sqrt|det J|``.
+    """
+    e1, e2 = np.asarray(egrid, float).T
+    ee = e1 * e1 + e2 * e2
+    S2 = np.stack([np.stack([1 + 2 * e1 + ee, 2 * e2], -1),
+                   np.stack([2 * e2, 1 - 2 * e1 + ee], -1)], -2)  # fmt: skip
+    J = np.asarray(jacobian, float)
+    B = J @ S2 @ J.T
+    chi = np.stack([B[:, 0, 0] - B[:, 1, 1], 2 * B[:, 0, 1]], -1) / \
+        (B[:, 0, 0] + B[:, 1, 1])[:, None]
+    c = np.hypot(chi[:, 0], chi[:, 1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.where(c > 0, 1.0 / (1.0 + np.sqrt(np.clip(1.0 - c * c, 0.0, None))), 0.5)
+    return chi * f[:, None], float(np.sqrt(abs(np.linalg.det(J))))
+
+
+def _wings(cols: _Columns, J: np.ndarray, n: int, imgs: np.ndarray):
+    """Where ``cols.truncate``, the function ``(e0, e1) -> (n_rows, (e1 - e0) * per_e)``
+    of the wrapped wings' transforms (:func:`pylensfit.models.wing_transforms`) of the
+    cells ``e0 .. e1`` of ``cols`` seen through ``J`` on ``n``-pixel stamps, at the
+    integer frequencies ``imgs`` (``(..., 2)``, rows in their order); else None."""
+    if not cols.truncate:
+        return None
+    e_pix, scale = pixel_cells(cols.egrid, J)
+    k = imgs.reshape(-1, 2)
+    flip = k[:, 0] < 0
+    jx, jy = np.where(flip, -k[:, 0], k[:, 0]), np.where(flip, -k[:, 1], k[:, 1]) % n
+    runs = cols.runs if cols.model == "bulge+disc" else cols.runs[:1]
+
+    def wings(e0: int, e1: int) -> np.ndarray:
+        W = wing_transforms(e_pix[e0:e1, 0], e_pix[e0:e1, 1], cols.radii * scale,
+                            cols.model, runs, n)  # fmt: skip
+        return W[:, :, jy, jx].transpose(2, 0, 1).reshape(k.shape[0], -1)
+
+    return wings
+
+
 def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype,
           k_max: float = 0.0) -> _Fold:  # fmt: skip
     """The exposure's bank folded by the symmetries its Jacobian keeps."""
@@ -556,14 +617,15 @@ def _fold(cols: _Columns, J: np.ndarray, n: int, sel: np.ndarray, dtype,
     members = (img.T[:, None, :] * per_e + np.arange(per_e)[None, :, None]).reshape(-1, H.size)
     members = np.vstack([members, np.r_[cols.n_cols - 1, np.full(H.size - 1, -1)]])
     mix = _mixed_columns(cols, rep.size)
-    G, G2 = _fold_transforms(replace(cols, egrid=cols.egrid[rep]), q, chi, keep, mix[0], dtype)
+    rcols = replace(cols, egrid=cols.egrid[rep])
+    G, G2 = _fold_transforms(rcols, q, chi, keep, mix[0], dtype, _wings(rcols, J, n, imgs))
     return _Fold(idx=_sel_positions(n, sel, imgs), w=size / H.size**2, chi=chi, keep=keep,
                  G=G, G2=G2, members=np.ascontiguousarray(members, dtype=np.int64),
                  kind=(tuple(H), tuple(S)), mix=mix)  # fmt: skip
 
 
 def _fold_transforms(cols: _Columns, q: np.ndarray, chi: np.ndarray, keep: tuple,
-                     base: np.ndarray, dtype) -> tuple[tuple, tuple]:  # fmt: skip
+                     base: np.ndarray, dtype, wings=None) -> tuple[tuple, tuple]:  # fmt: skip
     """Per character ``chi[c]``, the folded transforms ``sum_h chi[c, h] G(h k0)`` of the
     base columns (``base >= 0``) and those of the squares of every column, on its
     ``keep[c]``, in ``dtype``; ``q`` the sky frequencies of the images ``h k0``
@@ -572,8 +634,11 @@ def _fold_transforms(cols: _Columns, q: np.ndarray, chi: np.ndarray, keep: tuple
     n_h = chi.shape[1]
     G = tuple(np.empty((kp.size, int((base >= 0).sum())), dtype=dtype) for kp in keep)
     G2 = tuple(np.empty((kp.size, base.size), dtype=dtype) for kp in keep)
+    per_e = cols.n_b * cols.n_sub
     for j0, blk in _bank_chunks(cols, q[:, 0], q[:, 1]):
         j1 = j0 + blk.shape[1]
+        if wings is not None and j0 < cols.n_e * per_e:  # the models cut at the stamp's edge
+            blk = blk - wings(j0 // per_e, j1 // per_e)
         on = np.flatnonzero(base[j0:j1] >= 0)
         b0 = base[j0 + on[0]] if on.size else 0
         blk = blk.reshape(n_h, -1, blk.shape[1])
@@ -605,7 +670,7 @@ def _exposure(cols: _Columns, J: np.ndarray, n: int, dtype, k_max: float = 0.0) 
     """The bank of the exposure of Jacobian ``J`` on ``n x n`` stamps, the frequencies
     ``|k| <= k_max`` where it is positive (cached: the last ``_BANKS_KEPT``)."""
     key = (np.asarray(J, dtype=float).tobytes(), n, np.dtype(dtype).str, cols.model, cols.runs,
-           cols.egrid.tobytes(), cols.radii.tobytes(), float(k_max))  # fmt: skip
+           cols.egrid.tobytes(), cols.radii.tobytes(), float(k_max), cols.truncate)  # fmt: skip
     hit = _BANKS.get(key)
     if hit is None:
         sel = _interior(n, k_max)
@@ -912,11 +977,10 @@ def fit_exposures(
 ) -> JointFits:
     """The likelihood ``L(e)`` of each galaxy from all of its exposures together.
 
-    One sky-frame (e, r) grid serves every exposure: each exposure's models are the
-    sky-frame models at its frequencies ``J_k^T k``; flux and position are shared and
-    marginalised once over the sum of the exposures (module docstring). The matrix
-    products run block by block (``config.block_size`` galaxies), one bank per
-    Jacobian (folded: :func:`lattice_symmetries`; kept for later calls, the last eight).
+    One sky-frame (e, r) grid serves every exposure (its models at ``J_k^T k``); flux and
+    position are shared and marginalised once over the sum of the exposures (module
+    docstring). One bank per Jacobian (folded, :func:`lattice_symmetries`; the last eight
+    kept), the products by blocks of ``config.block_size`` galaxies.
 
     Parameters
     ----------
@@ -947,11 +1011,10 @@ def fit_exposures(
         Grid, model and marginalisation settings (``e_step``, ``e_max``, the size grid,
         ``model``, ``n_bulge_fractions``, ``position_prior_sigma``, ``max_offset``,
         ``centring_scale``, ``max_newton_step``, ``block_size``, ``dtype``, the
-        amplitude prior and its flux bounds in the common flux unit, ``k_max``: a stamp
-        tier sums the frequencies ``|k| <= k_max`` alone, as the single fit's tiers do).
-        Its lengths are in reference pixels of ``pixel_scale`` arcsec. The models are not
-        truncated at the stamp's edge, and the position expansion is of second order
-        (``cubic_snr = 0``).
+        amplitude prior and flux bounds in the common flux unit, ``k_max`` of a stamp
+        tier, ``truncate_models``: the wrapped wings of each cell's pixel-frame model,
+        :func:`pixel_cells`, subtracted), lengths in reference pixels of ``pixel_scale``
+        arcsec. The position expansion is of second order (``cubic_snr = 0``).
     pixel_scale : float, optional
         Arcsec per reference pixel (default: the median of ``1 / sqrt|det J_k|``).
     size_prior : pylensfit.prior.SizePrior, optional

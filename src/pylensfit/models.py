@@ -67,6 +67,7 @@ __all__ = [
     "render_models",
     "rfft_frequencies",
     "sheared_k",
+    "wing_transforms",
     "wrap_correction",
 ]
 
@@ -459,6 +460,51 @@ def wrap_correction(
     else:
         w = _fraction_wings(rep, fracs, model, code, bulge_size_ratio, n)
     return _wing_transforms(eg, ie_rep, w, n, rows)
+
+
+def wing_transforms(e1, e2, radii, model: str, runs, n: int) -> np.ndarray:
+    """:func:`wrap_correction`'s transforms for any ellipticities, one cell at a time.
+
+    Parameters
+    ----------
+    e1, e2 : array_like
+        ``(m,)`` ellipticities in the stamp's pixel frame (not a grid closed under the
+        square's symmetries: each is computed).
+    radii : array_like
+        ``(n_r,)`` sizes, pixels.
+    model : str
+        Model family.
+    runs : sequence of tuple
+        ``(bulge fraction, bulge size ratio)`` of each run (one, ignored, for the models
+        other than ``"bulge+disc"``).
+    n : int
+        Stamp side.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(m, len(runs) * n_r, n, n // 2 + 1)`` real transforms on the ``rfft2``
+        frequencies, phase-referenced to the stamp's centre (the bank's columns' order
+        within an e cell: run, then size).
+    """
+    rep = (np.atleast_1d(np.asarray(e1, float)).copy(), np.atleast_1d(np.asarray(e2, float)).copy(),
+           np.atleast_1d(np.asarray(radii, float)))  # fmt: skip
+    code = MODEL_TYPES.index(model)
+    sizes = list(dict.fromkeys(s for _, s in runs))
+    parts = {s: _fraction_wings(rep, [f for f, t in runs if t == s], model, code, s, n)
+             for s in sizes}  # one profile evaluation per component, per bulge size
+    n_r = rep[2].size
+    at = {s: 0 for s in sizes}
+    cols = []
+    for _, s in runs:  # the runs' order
+        cols.append(parts[s][:, at[s] * n_r : (at[s] + 1) * n_r])
+        at[s] += 1
+    w = np.concatenate(cols, axis=1)
+    out = np.zeros((*w.shape[:2], n, n // 2 + 1))
+    live = np.flatnonzero(np.any(w != 0, axis=(0, 2, 3)))  # models that wrap
+    if live.size:
+        out[:, live] = np.fft.rfft2(np.fft.ifftshift(w[:, live].astype(float), axes=(2, 3))).real
+    return out
 
 
 def _run_wings(rep: tuple, runs: tuple[Run, ...], n: int) -> np.ndarray:

@@ -394,6 +394,36 @@ def _nowhere(ra: np.ndarray, dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(lost, r0, ra), np.where(lost, d0 - 30.0 if d0 > 0 else d0 + 30.0, dec)
 
 
+@dataclass(frozen=True)
+class _Groups:
+    """The positions' groups of one WCS Jacobian per exposure (:func:`jacobian_groups`)
+    and that Jacobian: the median of the members', fixed for every fit of the group, so
+    that each exposure's bank (and its wrapped wings) is built once per group and tier."""
+
+    labels: np.ndarray  # (n,) int
+    jacobians: np.ndarray  # (n_groups, K, 2, 2), pixels per arcsec
+
+    @classmethod
+    def of(cls, eset: ExposureSet, ra, dec, labels: np.ndarray) -> _Groups:
+        K = len(eset.exposures)
+        jac = np.tile(np.eye(2), (int(labels.max(initial=0)) + 1, K, 1, 1))
+        for lab in np.unique(labels):
+            m = labels == lab
+            for k, e in enumerate(eset.exposures):
+                J = local_jacobian(e.wcs, ra[m], dec[m])
+                fin = np.isfinite(J).all(axis=(1, 2))
+                if fin.any():
+                    jac[lab, k] = np.median(J[fin], axis=0)
+        return cls(labels=labels, jacobians=jac)
+
+    def views(self, eset: ExposureSet, ra, dec, idx: np.ndarray, size: int) -> list:
+        """The stamps of the positions ``idx`` (one group) with the group's Jacobians."""
+        views = cut_exposures(eset.exposures, ra[idx], dec[idx], size=int(size))
+        jac = self.jacobians[self.labels[idx[0]]] if idx.size else None
+        return [v if jac is None else replace(v, jacobian=np.broadcast_to(jac[k], (idx.size, 2, 2)))
+                for k, v in enumerate(views)]  # fmt: skip
+
+
 def _tier_config(cfg: Config, side: int) -> Config:
     """The configuration of the joint fits on ``side``-pixel stamps: a stamp tier ``j``
     times ``Config.stamp_size`` sums the frequencies ``|k| <= pi / j``, as the
@@ -428,15 +458,15 @@ def _tier_sides(eset: ExposureSet, ra, dec, idx: np.ndarray, cfg: Config) -> np.
     return sides
 
 
-def _measure_groups(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
+def _measure_groups(eset: ExposureSet, ra, dec, groups: _Groups, chunk: int,
                     priors: Priors, cfg: Config) -> Table:  # fmt: skip
     """Every position measured on the base stamp, by groups of one Jacobian per exposure
-    (``labels``) and chunks of at most ``chunk`` positions, in the input order."""
+    (``groups``) and chunks of at most ``chunk`` positions, in the input order."""
     parts, order = [], []
-    for lab in np.unique(labels):
-        members = np.flatnonzero(labels == lab)
+    for lab in np.unique(groups.labels):
+        members = np.flatnonzero(groups.labels == lab)
         for idx in np.array_split(members, -(-members.size // chunk)):
-            views = cut_exposures(eset.exposures, ra[idx], dec[idx], size=cfg.stamp_size)
+            views = groups.views(eset, ra, dec, idx, cfg.stamp_size)
             parts.append(measure_exposure_stamps(views, priors=priors, config=cfg))
             order.append(idx)
     t = vstack(parts, metadata_conflicts="silent")
@@ -445,7 +475,7 @@ def _measure_groups(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
     return t
 
 
-def _retier(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int, priors: Priors,
+def _retier(eset: ExposureSet, ra, dec, groups: _Groups, chunk: int, priors: Priors,
             cfg: Config, t: Table) -> None:  # fmt: skip
     """The stamp tiers: the galaxies (:func:`_refittable`) that :func:`_tier_sides` gives
     a larger stamp, and that hold no other object of ``model_SNratio >=
@@ -460,27 +490,27 @@ def _retier(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int, priors: 
     alone = np.ones(len(ra), bool)
     alone[sig] = ~close_pairs(x0[sig], y0[sig], stamp_size=top)
     cand = _refittable(t) & alone
-    for lab in np.unique(labels[cand]):
-        members = np.flatnonzero(cand & (labels == lab))
+    for lab in np.unique(groups.labels[cand]):
+        members = np.flatnonzero(cand & (groups.labels == lab))
         for idx in np.array_split(members, -(-members.size // chunk)):
             sides = _tier_sides(eset, ra, dec, idx, cfg)
             for side in np.unique(sides[sides > cfg.stamp_size]):
                 sub = idx[sides == side]
-                views = cut_exposures(eset.exposures, ra[sub], dec[sub], size=int(side))
+                views = groups.views(eset, ra, dec, sub, side)
                 new = measure_exposure_stamps(views, priors=priors,
                                               config=_tier_config(cfg, side))  # fmt: skip
                 for c in new.colnames:
                     t[c][sub] = new[c]
 
 
-def _measure(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int, priors: Priors,
+def _measure(eset: ExposureSet, ra, dec, groups: _Groups, chunk: int, priors: Priors,
              cfg: Config) -> Table:  # fmt: skip
     """The joint fits of every position: on the base stamp (:func:`_measure_groups`),
     then on the larger stamp tiers (:func:`_retier`), then with the neighbours taken out
     (:func:`_subtract_neighbours`)."""
-    t = _measure_groups(eset, ra, dec, labels, chunk, priors, cfg)
-    _retier(eset, ra, dec, labels, chunk, priors, cfg, t)
-    return _subtract_neighbours(eset, ra, dec, labels, chunk, priors, cfg, t)
+    t = _measure_groups(eset, ra, dec, groups, chunk, priors, cfg)
+    _retier(eset, ra, dec, groups, chunk, priors, cfg, t)
+    return _subtract_neighbours(eset, ra, dec, groups, chunk, priors, cfg, t)
 
 
 def _take(view: ExposureStamps, sel: np.ndarray, less: np.ndarray) -> ExposureStamps:
@@ -505,7 +535,7 @@ def _refittable(t: Table) -> np.ndarray:
     return np.isfinite(lnL).all(axis=1) & ((np.asarray(t["flags"], np.int64) & ~keep) == 0)
 
 
-def _neighbour_round(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
+def _neighbour_round(eset: ExposureSet, ra, dec, groups: _Groups, chunk: int,
                      priors: Priors, cfg: Config, t: Table) -> int:  # fmt: skip
     """One round of the neighbours taken out: every object's current model rendered into
     every exposure (:func:`~pylensfit.images.neighbours.exposure_light`), and the
@@ -518,12 +548,12 @@ def _neighbour_round(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
     fields = [exposure_light(e, models, cfg) for e in eset.exposures]
     cand = _refittable(t)
     n_done = 0
-    for lab in np.unique(labels[cand]):
-        members = np.flatnonzero(cand & (labels == lab))
+    for lab in np.unique(groups.labels[cand]):
+        members = np.flatnonzero(cand & (groups.labels == lab))
         for idx in np.array_split(members, -(-members.size // chunk)):
             sides = np.asarray(t["stamp_size"], dtype=int)[idx]
             for side in np.unique(sides):
-                n_done += _refit(eset, ra, dec, idx[sides == side], (models, fields, cfg),
+                n_done += _refit(eset, ra, dec, idx[sides == side], (models, fields, cfg, groups),
                                  priors, _tier_config(cfg, side), t)  # fmt: skip
     return n_done
 
@@ -532,9 +562,9 @@ def _refit(eset: ExposureSet, ra, dec, idx: np.ndarray, light: tuple, priors: Pr
            cfg: Config, t: Table) -> int:  # fmt: skip
     """:func:`_neighbour_round` on the galaxies ``idx`` of one Jacobian group and stamp
     tier (``cfg``, :func:`_tier_config`); ``light`` the models, each exposure's image of
-    them and the configuration they were rendered with."""
-    models, fields, drawn = light
-    views = cut_exposures(eset.exposures, ra[idx], dec[idx], size=cfg.stamp_size)
+    them, the configuration they were rendered with and the groups."""
+    models, fields, drawn, groups = light
+    views = groups.views(eset, ra, dec, idx, cfg.stamp_size)
     less = [exposure_neighbour_stamps(f, v, e, models, idx, drawn)
             for f, v, e in zip(fields, views, eset.exposures, strict=True)]  # fmt: skip
     pairs = list(zip(views, less, strict=True))
@@ -548,7 +578,7 @@ def _refit(eset: ExposureSet, ra, dec, idx: np.ndarray, light: tuple, priors: Pr
     return int(go.size)
 
 
-def _subtract_neighbours(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: int,
+def _subtract_neighbours(eset: ExposureSet, ra, dec, groups: _Groups, chunk: int,
                          priors: Priors, cfg: Config, t: Table) -> Table:  # fmt: skip
     """``Config.neighbour_iterations`` rounds of :func:`_neighbour_round` (none with
     ``Config.subtract_neighbours`` off); the second fits each galaxy's neighbours with its
@@ -557,7 +587,7 @@ def _subtract_neighbours(eset: ExposureSet, ra, dec, labels: np.ndarray, chunk: 
     if not cfg.subtract_neighbours:
         return t
     for i in range(int(cfg.neighbour_iterations)):
-        n = _neighbour_round(eset, ra, dec, labels, chunk, priors, cfg, t)
+        n = _neighbour_round(eset, ra, dec, groups, chunk, priors, cfg, t)
         log.info("neighbours taken out, round %d: %d galaxies fitted again", i + 1, n)
         if n == 0:
             break
@@ -688,7 +718,7 @@ def measure_exposures(
     groups = jacobian_groups(eset.exposures, ra_n, dec_n, jacobian_tolerance)
     if priors is None:
         priors = _calibrate(eset, ra_n, dec_n, ok & ~pairs, groups, cfg)
-    t = _measure(eset, ra_n, dec_n, groups, chunk, priors, cfg)
+    t = _measure(eset, ra_n, dec_n, _Groups.of(eset, ra_n, dec_n, groups), chunk, priors, cfg)
     cat = _catalogue(t, pos, eset, _pairs(eset, ra, dec, cfg, t)[1], cfg)
     if output is not None:
         write_catalogue(cat, output, overwrite=overwrite)
