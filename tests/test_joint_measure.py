@@ -111,6 +111,17 @@ def test_one_exposure_with_priors_is_the_single_fit(amp, model, n_b):
         assert np.abs(unif.lnL - joint.lnL)[near].max() > 0.05
 
 
+def large_galaxies(n: int, seed: int, psf: np.ndarray, r_range) -> np.ndarray:
+    """Six bright exponentials of sizes ``r_range`` (pixels) within 0.3 px of the
+    centres of ``n``-pixel stamps, noise 1."""
+    rng = np.random.default_rng(seed)
+    c, ng = n // 2, 6
+    return render_models(n, psf, c + rng.uniform(-0.3, 0.3, ng), c + rng.uniform(-0.3, 0.3, ng),
+                         rng.uniform(-0.4, 0.4, ng), rng.uniform(-0.4, 0.4, ng),
+                         rng.uniform(*r_range, ng), rng.uniform(600.0, 900.0, ng),
+                         model="exponential") + rng.normal(0.0, 1.0, (ng, n, n))  # fmt: skip
+
+
 def test_one_exposure_on_a_larger_tier_is_the_single_fits_tier():
     """K = 1, J = I, 64-pixel stamps: with ``k_max = pi / 2`` (the frequencies of the
     64-pixel stamp that a 32-pixel bank holds) fit_exposures gives fit_stamps' ln L(e)
@@ -119,13 +130,8 @@ def test_one_exposure_on_a_larger_tier_is_the_single_fits_tier():
     that the single fit's window about its first centre is the whole stamp); on every
     frequency of the stamp it does not."""
     big = 64
-    rng = np.random.default_rng(8)
     psf = gaussian_psf()
-    ng = 6
-    img = render_models(big, psf, 32 + rng.uniform(-0.3, 0.3, ng), 32 + rng.uniform(-0.3, 0.3, ng),
-                        rng.uniform(-0.4, 0.4, ng), rng.uniform(-0.4, 0.4, ng),
-                        rng.uniform(2.5, 5.0, ng), rng.uniform(600.0, 900.0, ng),
-                        model="exponential") + rng.normal(0.0, 1.0, (ng, big, big))  # fmt: skip
+    img = large_galaxies(big, 8, psf, (2.5, 5.0))
     single = fit_stamps(img, psf, 1.0, config=CFG.replace(max_stamp_size=big,
                                                           stamp_hlr_ratio=1e3))  # fmt: skip
     assert np.all(single.stamp == big)
@@ -307,13 +313,8 @@ def test_truncated_models_through_a_jacobian_are_the_single_fits(flip):
     is the single fit's ln L(e1, -e2) of the same pixels. Without the truncation the
     joint fit is off by far more."""
     cfg = CFG.replace(truncate_models=True)
-    rng = np.random.default_rng(11)
     psf = gaussian_psf()
-    ng = 6
-    img = render_models(N, psf, 16 + rng.uniform(-0.3, 0.3, ng), 16 + rng.uniform(-0.3, 0.3, ng),
-                        rng.uniform(-0.4, 0.4, ng), rng.uniform(-0.4, 0.4, ng),
-                        rng.uniform(3.0, 5.5, ng), rng.uniform(600.0, 900.0, ng),
-                        model="exponential") + rng.normal(0.0, 1.0, (ng, N, N))  # fmt: skip
+    img = large_galaxies(N, 11, psf, (3.0, 5.5))
     single = fit_stamps(img, psf, 1.0, config=cfg)
     J = np.diag([1.0, -1.0]) if flip else np.eye(2)
     joint = fit_exposures(img[None], psf[None], 1.0, J[None], config=cfg)
