@@ -574,8 +574,7 @@ class ExposureStamps:
 
     def __getitem__(self, i: int) -> ExposureStamp:
         i = int(i)
-        fr = SkyFrame(*(np.asarray(getattr(self.frame, a))[i:i + 1]
-                        for a in ("angle", "flip", "g1", "g2", "has_wcs")))  # fmt: skip
+        fr = self.frame.take(slice(i, i + 1))
         return ExposureStamp(
             stamp=self.stamps[i], weight=self.weights[i], noise_sigma=float(self.noise_sigma[i]),
             psf=None if self.psf is None else self.psf[i], x=float(self.x[i]),

@@ -90,6 +90,7 @@ from .models import (
 )
 from .prior import Prior, SizePrior
 from .psf import psf_transform
+from .skyframe import jacobian_frame, shear_to_pixel
 
 __all__ = ["JointFits", "fit_exposures", "fit_views", "lattice_symmetries", "pixel_cells",
            "sky_frequencies"]
@@ -550,9 +551,9 @@ def pixel_cells(egrid: np.ndarray, jacobian: np.ndarray) -> tuple[np.ndarray, fl
     """The sky-frame models seen through a Jacobian as pixel-frame models.
 
     The sky profile ``f(|S(e)^-1 u| / r)`` is ``f(|S(e)^-1 J^-1 x| / r)`` in the pixels:
-    the pixel-frame model of ellipticity ``e'`` (the distortion ``chi`` of ``J S(e)^2
-    J^T``, ``e' = chi / (1 + sqrt(1 - |chi|^2))``) and size ``r sqrt|det J|``; a mirror
-    image needs nothing more.
+    the pixel-frame model of ellipticity ``e'``, the exact map of the ellipse into the
+    frame of ``J^-1 = d(W, N)/d(x, y)`` (:func:`pylensfit.skyframe.shear_to_pixel` of
+    :func:`pylensfit.skyframe.jacobian_frame`), and size ``r sqrt|det J|``.
 
     Parameters
     ----------
@@ -568,18 +569,9 @@ def pixel_cells(egrid: np.ndarray, jacobian: np.ndarray) -> tuple[np.ndarray, fl
     scale : float
         Pixels per arcsec of the sizes, ``sqrt|det J|``.
     """
-    e1, e2 = np.asarray(egrid, float).T
-    ee = e1 * e1 + e2 * e2
-    S2 = np.stack([np.stack([1 + 2 * e1 + ee, 2 * e2], -1),
-                   np.stack([2 * e2, 1 - 2 * e1 + ee], -1)], -2)  # fmt: skip
     J = np.asarray(jacobian, float)
-    B = J @ S2 @ J.T
-    chi = np.stack([B[:, 0, 0] - B[:, 1, 1], 2 * B[:, 0, 1]], -1) / \
-        (B[:, 0, 0] + B[:, 1, 1])[:, None]
-    c = np.hypot(chi[:, 0], chi[:, 1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        f = np.where(c > 0, 1.0 / (1.0 + np.sqrt(np.clip(1.0 - c * c, 0.0, None))), 0.5)
-    return chi * f[:, None], float(np.sqrt(abs(np.linalg.det(J))))
+    e1, e2 = shear_to_pixel(*np.asarray(egrid, float).T, jacobian_frame(np.linalg.inv(J)))
+    return np.stack([e1, e2], axis=-1), float(np.sqrt(abs(np.linalg.det(J))))
 
 
 def _wings(cols: _Columns, J: np.ndarray, n: int, imgs: np.ndarray):

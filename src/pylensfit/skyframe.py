@@ -37,6 +37,7 @@ __all__ = [
     "to_sky",
     "covariance_to_sky",
     "frame_of_table",
+    "jacobian_frame",
     "sensitivity_to_sky",
     "shear_to_pixel",
     "wcs_from_header",
@@ -71,6 +72,11 @@ class SkyFrame:
     def n(self) -> int:
         """Number of objects."""
         return int(np.size(self.angle))
+
+    def take(self, idx) -> SkyFrame:
+        """The frames of the objects ``idx`` (an index array, boolean mask or slice)."""
+        return SkyFrame(*(np.asarray(getattr(self, a))[idx]
+                          for a in ("angle", "flip", "g1", "g2", "has_wcs")))  # fmt: skip
 
     def is_identity(self, tol: float = 1e-9) -> bool:
         """Whether the sky frame is the pixel frame everywhere (to ``tol``)."""
@@ -126,6 +132,45 @@ def _jacobian(wcs, x: np.ndarray, y: np.ndarray, h: float = 0.5) -> np.ndarray:
     return J
 
 
+def jacobian_frame(jacobian) -> SkyFrame:
+    """The sky frame of local Jacobians ``J = d(W, N)/d(x, y)`` (any units).
+
+    ``J`` is decomposed as ``a R(theta) S F`` (module docstring); a Jacobian that is not
+    finite or is singular gives the pixel frame.
+
+    Parameters
+    ----------
+    jacobian : array_like
+        ``(n, 2, 2)``.
+
+    Returns
+    -------
+    SkyFrame
+    """
+    J = np.asarray(jacobian, dtype=float).reshape(-1, 2, 2)
+    out = pixel_frame(J.shape[0])
+    fin = np.isfinite(J).all(axis=(1, 2))
+    J = np.where(fin[:, None, None], J, np.eye(2))
+    det = np.linalg.det(J)
+    good = fin & (det != 0)
+    flip = det < 0
+    K = J.copy()
+    K[:, :, 1] *= np.where(flip, -1.0, 1.0)[:, None]  # K = J F: det K > 0
+    # K = R(theta) P with P symmetric positive definite (polar decomposition)
+    theta = np.arctan2(K[:, 1, 0] - K[:, 0, 1], K[:, 0, 0] + K[:, 1, 1])
+    c, s = np.cos(theta), np.sin(theta)
+    p00 = c * K[:, 0, 0] + s * K[:, 1, 0]
+    p11 = -s * K[:, 0, 1] + c * K[:, 1, 1]
+    p01 = 0.5 * (c * K[:, 0, 1] + s * K[:, 1, 1] - s * K[:, 0, 0] + c * K[:, 1, 0])
+    tr = p00 + p11
+    # P / (tr / 2) = [[1 + g1, g2], [g2, 1 - g1]] to first order; exactly, the reduced
+    # shear g of P has |g| = (l1 - l2) / (l1 + l2) for its eigenvalues l1 >= l2
+    g1, g2 = (p00 - p11) / tr, 2 * p01 / tr
+    return SkyFrame(angle=np.where(good, np.degrees(theta), out.angle),
+                    flip=np.where(good, flip, out.flip), g1=np.where(good, g1, out.g1),
+                    g2=np.where(good, g2, out.g2), has_wcs=good)  # fmt: skip
+
+
 def local_frame(wcs, x, y) -> SkyFrame:
     """The sky frame at pixel positions ``x, y`` (0-based) of an image with ``wcs``.
 
@@ -146,31 +191,14 @@ def local_frame(wcs, x, y) -> SkyFrame:
     ok = np.isfinite(x) & np.isfinite(y)
     if wcs is None or not ok.any():
         return out
-    J = _jacobian(wcs, x[ok], y[ok])
-    det = np.linalg.det(J)
-    good = np.isfinite(det) & (det != 0)
-    flip = det < 0
-    K = J.copy()
-    K[:, :, 1] *= np.where(flip, -1.0, 1.0)[:, None]  # K = J F: det K > 0
-    # K = R(theta) P with P symmetric positive definite (polar decomposition)
-    theta = np.arctan2(K[:, 1, 0] - K[:, 0, 1], K[:, 0, 0] + K[:, 1, 1])
-    c, s = np.cos(theta), np.sin(theta)
-    p00 = c * K[:, 0, 0] + s * K[:, 1, 0]
-    p11 = -s * K[:, 0, 1] + c * K[:, 1, 1]
-    p01 = 0.5 * (c * K[:, 0, 1] + s * K[:, 1, 1] - s * K[:, 0, 0] + c * K[:, 1, 0])
-    tr = p00 + p11
-    # P / (tr / 2) = [[1 + g1, g2], [g2, 1 - g1]] to first order; exactly, the reduced
-    # shear g of P has |g| = (l1 - l2) / (l1 + l2) for its eigenvalues l1 >= l2
-    g1, g2 = (p00 - p11) / tr, 2 * p01 / tr
-    idx = np.flatnonzero(ok)[good]
-    ang = out.angle.copy()
-    fl = out.flip.copy()
-    G1, G2, has = out.g1.copy(), out.g2.copy(), out.has_wcs.copy()
-    ang[idx] = np.degrees(theta[good])
-    fl[idx] = flip[good]
-    G1[idx], G2[idx] = g1[good], g2[good]
-    has[idx] = True
-    return SkyFrame(angle=ang, flip=fl, g1=G1, g2=G2, has_wcs=has)
+    fr = jacobian_frame(_jacobian(wcs, x[ok], y[ok]))
+    idx = np.flatnonzero(ok)
+    parts = []
+    for a in ("angle", "flip", "g1", "g2", "has_wcs"):
+        v = np.asarray(getattr(out, a)).copy()
+        v[idx] = getattr(fr, a)
+        parts.append(v)
+    return SkyFrame(*parts)
 
 
 def _phase(frame: SkyFrame) -> np.ndarray:

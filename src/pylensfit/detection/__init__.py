@@ -84,7 +84,7 @@ from . import inputs
 from .background import Background, measure_background
 from .extraction import detect
 from .masks import grow_mask, saturation_level, saturation_mask
-from .pairs import close_pairs
+from .pairs import close_pairs, flag_close_pairs
 from .stars import select_stars
 
 #: SEP's object and aperture flags, name -> bit (the ``sep_flag`` column).
@@ -93,6 +93,7 @@ SEP_FLAGS = inputs.SEP_FLAGS
 __all__ = [
     "Background",
     "close_pairs",
+    "flag_close_pairs",
     "detect",
     "grow_mask",
     "measure_background",

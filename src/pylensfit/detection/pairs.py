@@ -1,4 +1,5 @@
-"""Objects with another object inside their postage stamp: :func:`close_pairs`."""
+"""Objects with another object inside their postage stamp: :func:`close_pairs`, and the
+pipeline's rule on them, :func:`flag_close_pairs`."""
 
 from __future__ import annotations
 
@@ -73,3 +74,35 @@ def close_pairs(
     out[i[i_spoiled]] = True
     out[j[j_spoiled]] = True
     return out
+
+
+def flag_close_pairs(x, y, flux, snr, *, stamp_size: int, min_snr: float,
+                     faint_ratio: float | None = None) -> np.ndarray:  # fmt: skip
+    """The pipeline's ``CLOSE_PAIR`` rule: a significant object (``snr >= min_snr``) is a
+    close pair when another significant one lies inside its stamp (with ``faint_ratio``,
+    one not that much fainter, :func:`close_pairs`); a fainter object (often a noise
+    peak) when anything does.
+
+    Parameters
+    ----------
+    x, y, flux, snr : array_like
+        ``(n,)`` positions (pixels), fluxes and S/N (NaN: not significant).
+    stamp_size : int
+        Postage-stamp side, pixels.
+    min_snr : float
+        The S/N from which an object makes another a close pair.
+    faint_ratio : float, optional
+        As :func:`close_pairs`' (None or 0: every significant pair).
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean, True for the close pairs.
+    """
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    flux = np.asarray(flux, dtype=float)
+    pair = close_pairs(x, y, flux=flux, stamp_size=stamp_size)
+    sig = np.nan_to_num(np.asarray(snr, dtype=float)) >= min_snr
+    pair[sig] = close_pairs(x[sig], y[sig], flux=flux[sig], stamp_size=stamp_size,
+                            faint_ratio=faint_ratio or None)  # fmt: skip
+    return pair

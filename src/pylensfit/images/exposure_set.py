@@ -56,7 +56,7 @@ from astropy.wcs import WCS
 from ..calibration import Priors, calibrate_exposures, measure_exposure_stamps
 from ..catalogue import COLUMNS
 from ..config import Config
-from ..detection import close_pairs, detect
+from ..detection import close_pairs, detect, flag_close_pairs
 from ..exposures import (
     Exposure,
     ExposureStamps,
@@ -69,7 +69,6 @@ from ..flags import FLAGS
 from ..likelihood.tiers import stamp_tiers, tier_sizes
 from ..psf import PSFResult
 from ..psfmodel import PSFModel
-from ..skyframe import SkyFrame
 from .catalogue_io import write_catalogue
 from .image_psf import starfield_task
 from .inputs import InputError, check_inputs, load_given, open_input, read_given_psfs
@@ -324,9 +323,13 @@ def jacobian_groups(exposures: Sequence[Exposure], ra, dec, tolerance: float) ->
         ``(n,)`` int group labels; positions without a finite Jacobian in some exposure
         are rounded there as if they had the median one.
     """
+    return _labels([local_jacobian(e.wcs, ra, dec) for e in exposures], tolerance)
+
+
+def _labels(jacobians: list[np.ndarray], tolerance: float) -> np.ndarray:
+    """:func:`jacobian_groups` of the positions' Jacobians, ``(n, 2, 2)`` per exposure."""
     keys = []
-    for e in exposures:
-        J = local_jacobian(e.wcs, ra, dec)
+    for J in jacobians:
         ok = np.all(np.isfinite(J), axis=(1, 2))
         med = np.median(J[ok], axis=0) if ok.any() else np.eye(2)
         D = np.where(ok[:, None, None], J @ np.linalg.inv(med) - np.eye(2), 0.0)
@@ -374,12 +377,14 @@ def _pairs(eset: ExposureSet, ra, dec, cfg: Config,
     x0, y0 = sky_to_pixel(eset.exposures[0].wcs, ra, dec)
     ok = np.isfinite(x0) & np.isfinite(y0)
     pairs = np.zeros(len(ra), bool)
-    pairs[ok] = close_pairs(x0[ok], y0[ok], stamp_size=cfg.stamp_size)
-    if t is not None:
-        flux = np.nan_to_num(np.asarray(t["model_flux"], dtype=float))
-        sig = ok & (np.nan_to_num(np.asarray(t["model_SNratio"], float)) >= cfg.close_pair_min_snr)
-        pairs[sig] = close_pairs(x0[sig], y0[sig], flux=flux[sig], stamp_size=cfg.stamp_size,
-                                 faint_ratio=cfg.close_pair_faint_ratio or None)  # fmt: skip
+    if t is None:
+        pairs[ok] = close_pairs(x0[ok], y0[ok], stamp_size=cfg.stamp_size)
+    else:
+        pairs[ok] = flag_close_pairs(x0[ok], y0[ok],
+                                     np.nan_to_num(np.asarray(t["model_flux"], float))[ok],
+                                     np.asarray(t["model_SNratio"], float)[ok],
+                                     stamp_size=cfg.stamp_size, min_snr=cfg.close_pair_min_snr,
+                                     faint_ratio=cfg.close_pair_faint_ratio)  # fmt: skip
     return ok, pairs
 
 
@@ -404,16 +409,18 @@ class _Groups:
     jacobians: np.ndarray  # (n_groups, K, 2, 2), pixels per arcsec
 
     @classmethod
-    def of(cls, eset: ExposureSet, ra, dec, labels: np.ndarray) -> _Groups:
-        K = len(eset.exposures)
-        jac = np.tile(np.eye(2), (int(labels.max(initial=0)) + 1, K, 1, 1))
+    def of(cls, eset: ExposureSet, ra, dec, tolerance: float) -> _Groups:
+        """The groups of :func:`jacobian_groups` and their Jacobians, from one evaluation
+        of every exposure's Jacobian at every position."""
+        Js = [local_jacobian(e.wcs, ra, dec) for e in eset.exposures]
+        labels = _labels(Js, tolerance)
+        jac = np.tile(np.eye(2), (int(labels.max(initial=0)) + 1, len(Js), 1, 1))
         for lab in np.unique(labels):
-            m = labels == lab
-            for k, e in enumerate(eset.exposures):
-                J = local_jacobian(e.wcs, ra[m], dec[m])
-                fin = np.isfinite(J).all(axis=(1, 2))
+            for k, J in enumerate(Js):
+                Jm = J[labels == lab]
+                fin = np.isfinite(Jm).all(axis=(1, 2))
                 if fin.any():
-                    jac[lab, k] = np.median(J[fin], axis=0)
+                    jac[lab, k] = np.median(Jm[fin], axis=0)
         return cls(labels=labels, jacobians=jac)
 
     def views(self, eset: ExposureSet, ra, dec, idx: np.ndarray, size: int) -> list:
@@ -434,20 +441,21 @@ def _tier_config(cfg: Config, side: int) -> Config:
                        k_max=float(np.pi * cfg.stamp_size / side))  # fmt: skip
 
 
-def _tier_sides(eset: ExposureSet, ra, dec, idx: np.ndarray, cfg: Config) -> np.ndarray:
+def _tier_sides(eset: ExposureSet, ra, dec, idx: np.ndarray, used: np.ndarray,
+                cfg: Config) -> np.ndarray:  # fmt: skip
     """Each galaxy's stamp side, by the single-image fit's rule
     (:func:`pylensfit.likelihood.tiers.stamp_tiers`: ``Config.stamp_hlr_ratio`` of its
     PSF-convolved half-light radius) on its first exposure usable at the largest side; a
-    galaxy that some exposure holds at the base side but not at the largest keeps the
-    base side."""
+    galaxy whose base fit used an exposure (``used``, the ``exposures_used`` bits) that
+    does not hold it at the largest side keeps the base side."""
     n0, top = cfg.stamp_size, cfg.largest_stamp
     sides = np.full(idx.size, n0)
     if top <= n0 or idx.size == 0:
         return sides
-    base = cut_exposures(eset.exposures, ra[idx], dec[idx], size=n0)
     big = cut_exposures(eset.exposures, ra[idx], dec[idx], size=top)
     use_t = np.stack([v.usable for v in big])
-    ok = (use_t == np.stack([v.usable for v in base])).all(axis=0) & use_t.any(axis=0)
+    use_b = (np.asarray(used, np.int64)[None] >> np.arange(len(big))[:, None]) & 1 == 1
+    ok = (use_t == use_b).all(axis=0) & use_t.any(axis=0)
     first = np.argmax(use_t, axis=0)
     sizes = tier_sizes(cfg, (top, top))
     for k in np.unique(first[ok]):
@@ -493,7 +501,7 @@ def _retier(eset: ExposureSet, ra, dec, groups: _Groups, chunk: int, priors: Pri
     for lab in np.unique(groups.labels[cand]):
         members = np.flatnonzero(cand & (groups.labels == lab))
         for idx in np.array_split(members, -(-members.size // chunk)):
-            sides = _tier_sides(eset, ra, dec, idx, cfg)
+            sides = _tier_sides(eset, ra, dec, idx, t["exposures_used"][idx], cfg)
             for side in np.unique(sides[sides > cfg.stamp_size]):
                 sub = idx[sides == side]
                 views = groups.views(eset, ra, dec, sub, side)
@@ -516,8 +524,7 @@ def _measure(eset: ExposureSet, ra, dec, groups: _Groups, chunk: int, priors: Pr
 def _take(view: ExposureStamps, sel: np.ndarray, less: np.ndarray) -> ExposureStamps:
     """The galaxies ``sel`` of one exposure's view, ``less`` taken out of their stamps
     (where the stamps have data)."""
-    fr = SkyFrame(*(np.asarray(getattr(view.frame, a))[sel]
-                    for a in ("angle", "flip", "g1", "g2", "has_wcs")))  # fmt: skip
+    fr = view.frame.take(sel)
     w = view.weights[sel]
     return replace(view, stamps=view.stamps[sel] - np.where(w > 0, less[sel], 0.0), weights=w,
                    noise_sigma=view.noise_sigma[sel],
@@ -715,10 +722,10 @@ def measure_exposures(
     ra, dec = np.asarray(pos["ra"], float), np.asarray(pos["dec"], float)
     ok, pairs = _pairs(eset, ra, dec, cfg)
     ra_n, dec_n = _nowhere(ra, dec)
-    groups = jacobian_groups(eset.exposures, ra_n, dec_n, jacobian_tolerance)
+    groups = _Groups.of(eset, ra_n, dec_n, jacobian_tolerance)
     if priors is None:
-        priors = _calibrate(eset, ra_n, dec_n, ok & ~pairs, groups, cfg)
-    t = _measure(eset, ra_n, dec_n, _Groups.of(eset, ra_n, dec_n, groups), chunk, priors, cfg)
+        priors = _calibrate(eset, ra_n, dec_n, ok & ~pairs, groups.labels, cfg)
+    t = _measure(eset, ra_n, dec_n, groups, chunk, priors, cfg)
     cat = _catalogue(t, pos, eset, _pairs(eset, ra, dec, cfg, t)[1], cfg)
     if output is not None:
         write_catalogue(cat, output, overwrite=overwrite)

@@ -541,10 +541,11 @@ def exposure_neighbour_stamps(field: np.ndarray, view, exposure, models: SkyMode
     if not sel.size:
         return out
     n_big = pat.shape[-1]
-    own = np.zeros((sel.size, n_big + 2 * N, n_big + 2 * N))  # each patch, padded by N
-    own[:, N : N + n_big, N : N + n_big] = pat
-    dx = np.clip(view.x0[sel] - bx0 + N, 0, n_big + N)[:, None] + np.arange(N)
-    dy = np.clip(view.y0[sel] - by0 + N, 0, n_big + N)[:, None] + np.arange(N)
-    win = own[np.arange(sel.size)[:, None, None], dy[:, :, None], dx[:, None, :]]
-    out[sel] -= np.where(inside[sel], win, 0.0)
+    px = (view.x0[sel] - bx0)[:, None] + np.arange(N)  # the window in each patch
+    py = (view.y0[sel] - by0)[:, None] + np.arange(N)
+    on = inside[sel] & ((py >= 0) & (py < n_big))[:, :, None] & \
+        ((px >= 0) & (px < n_big))[:, None, :]
+    win = pat[np.arange(sel.size)[:, None, None], np.clip(py, 0, n_big - 1)[:, :, None],
+              np.clip(px, 0, n_big - 1)[:, None, :]]  # fmt: skip
+    out[sel] -= np.where(on, win, 0.0)
     return out

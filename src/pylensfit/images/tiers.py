@@ -11,7 +11,7 @@ from astropy.table import Table
 from .. import flags as _flags
 from ..assemble import FIT_COLUMNS, fit_columns
 from ..config import Config
-from ..detection import close_pairs
+from ..detection import flag_close_pairs
 from ..forced import position_snr
 from ..likelihood import MixedPSF, StampFits, blend_fits, fit_stamps, merge_fits
 from ..prior import SizePrior
@@ -77,12 +77,9 @@ def image_stamps(sub: np.ndarray, img: Image, det: Table, cfg: Config,
     if n:
         # a galaxy is a close pair if a significant detection lies inside its stamp; a
         # faint detection (often a noise peak) is one if anything does
-        fr = cfg.close_pair_faint_ratio or None
-        flux = np.asarray(det["flux"], dtype=float)
-        sig = np.nan_to_num(np.asarray(det["snr"], dtype=float)) >= cfg.close_pair_min_snr
-        pair = close_pairs(x, y, flux=flux, stamp_size=cfg.stamp_size)
-        pair[sig] = close_pairs(x[sig], y[sig], flux=flux[sig], stamp_size=cfg.stamp_size,
-                                faint_ratio=fr)  # fmt: skip
+        pair = flag_close_pairs(x, y, det["flux"], det["snr"], stamp_size=cfg.stamp_size,
+                                min_snr=cfg.close_pair_min_snr,
+                                faint_ratio=cfg.close_pair_faint_ratio)  # fmt: skip
         flags[pair] |= _flags.flag_value("CLOSE_PAIR")
     flags[~(np.isfinite(noise) & (noise > 0))] |= _flags.flag_value("BAD_NOISE")
     return _ImageStamps(stamps=stamps, bstamps=bstamps, use_big=use_big, cx=cx, cy=cy,
