@@ -75,13 +75,15 @@ import numpy as np
 from astropy.table import Table
 
 from .config import Config
+from .joint import fit_exposures
 from .likelihood import fit_stamps
 from .prior import mix_bulge_fractions, usable_rows
+from .psf import centre_on_stamp
 from .shear import posterior_moments, shear_sensitivity
 
 __all__ = ["METACAL_TYPES", "MetacalBranches", "MetacalImages", "metacal_branches",
-           "metacal_fits", "metacal_images", "metacal_shapes", "metacal_shear", "response",
-           "round_reconvolution"]
+           "metacal_exposures", "metacal_fits", "metacal_images", "metacal_shapes",
+           "metacal_shear", "response", "round_reconvolution"]
 
 #: The images of one metacalibration: unsheared, and sheared by ``+-delta`` in ``e1``
 #: and in ``e2``.
@@ -553,6 +555,115 @@ def metacal_fits(
         cfg = cfg.replace(position_prior_sigma=float(position_prior_sigma))
     return {t: fit_stamps(mc.images[t], mc.psf, mc.noise_sigma, config=cfg,
                           size_prior=size_prior) for t in METACAL_TYPES}  # fmt: skip
+
+
+def metacal_exposures(
+    stamps: np.ndarray, psf: np.ndarray, noise_sigma, jacobian: np.ndarray, *,
+    offsets: tuple[np.ndarray, np.ndarray] | None = None, centres=None, flux_scale=1.0,
+    usable: np.ndarray | None = None, config=None, pixel_scale: float | None = None,
+    size_prior=None, step: float = 0.01, noise_fields: np.ndarray | None = None,
+    seed: int | None = None, position_prior_sigma: float | None = 2.0,
+    dilation: float | None = None, reconvolution: str = "dilate",
+) -> dict:
+    """The joint fits of the metacalibration images of galaxies seen in several exposures.
+
+    Each exposure's stamp of a galaxy is metacalibrated on its own (:func:`metacal_images`
+    with that exposure's PSF, noise, added noise field and Jacobian): the shears
+    ``+-delta`` are the sky's, whatever each exposure's rotation, flip or distortion,
+    about the galaxy's fitted sky position seen in that exposure. The five images are
+    then each fitted on all the exposures together
+    (:func:`pylensfit.joint.fit_exposures`, each exposure with its reconvolution PSF and
+    ``sqrt(2)`` times its noise), so that :func:`metacal_branches` of the result gives
+    the sky-frame posterior means and their response ``R_ij = d<e_i>/dg_j`` to the sky's
+    shear.
+
+    Parameters
+    ----------
+    stamps, psf, noise_sigma, jacobian, flux_scale, usable, centres, pixel_scale
+        As :func:`pylensfit.joint.fit_exposures` (``noise_sigma > 0``): ``(K, n, N, N)``
+        stamps; one PSF, one per exposure or one per exposure and galaxy; ``J_k =
+        d(x, y)/d(W, N)`` in pixels per arcsec; ``centres`` the catalogue positions, the
+        centres of the position prior. The stamps should hold the galaxies' light (module
+        docstring).
+    offsets : tuple of numpy.ndarray, optional
+        ``(x, y)`` each ``(n,)``: the galaxies' fitted sky offsets from the catalogue
+        positions, arcsec (:attr:`pylensfit.joint.JointFits.x`, ``.y``), about which the
+        images are sheared. Default: a joint fit of the stamps under ``config``.
+    config, size_prior
+        As :func:`pylensfit.joint.fit_exposures` (default ``Config()``).
+    step, dilation, reconvolution
+        As :func:`metacal_images`.
+    noise_fields : numpy.ndarray, optional
+        ``(K, n, N, N)`` the added noise fields, unit variance; drawn from ``seed`` if not
+        given.
+    seed : int, optional
+        Seed of the added noise fields.
+    position_prior_sigma : float or None
+        Width of the five fits' position prior, reference pixels (None: the
+        configuration's), as :func:`metacal_fits`.
+
+    Returns
+    -------
+    dict of pylensfit.joint.JointFits
+        The joint fits per type of :data:`METACAL_TYPES`.
+    """
+    st = np.asarray(stamps, dtype=float)
+    st = st[None] if st.ndim == 3 else st
+    K, n, N = st.shape[0], st.shape[1], st.shape[-1]
+    J = np.asarray(jacobian, dtype=float).reshape(K, 2, 2)
+    sig = _per_exposure(noise_sigma, K, n)
+    use = np.ones((K, n), bool) if usable is None else np.array(
+        np.broadcast_to(np.asarray(usable, dtype=bool), (K, n)))  # fmt: skip
+    use &= np.isfinite(st).all(axis=(2, 3)) & np.isfinite(sig) & (sig > 0)
+    st, sig = np.where(use[..., None, None], np.nan_to_num(st), 0.0), np.where(use, sig, 1.0)
+    cfg = config or Config()
+    kw = {"flux_scale": flux_scale, "usable": use, "centres": centres,
+          "pixel_scale": pixel_scale, "size_prior": size_prior}
+    if offsets is None:
+        f = fit_exposures(st, psf, sig, J, config=cfg, **kw)
+        offsets = (f.x, f.y)
+    X = np.nan_to_num(np.column_stack([np.broadcast_to(np.asarray(o, float), (n,))
+                                       for o in offsets]))  # fmt: skip
+    cx, cy = ((np.full((K, n), float(N // 2)),) * 2 if centres is None
+              else (_per_exposure(c, K, n) for c in centres))  # fmt: skip
+    at = (cx + J[:, 0, 0, None] * X[:, 0] + J[:, 0, 1, None] * X[:, 1],
+          cy + J[:, 1, 0, None] * X[:, 0] + J[:, 1, 1, None] * X[:, 1])
+    fields = (np.random.default_rng(seed).standard_normal(st.shape) if noise_fields is None
+              else np.asarray(noise_fields, dtype=float).reshape(st.shape))  # fmt: skip
+    images, psf_r, sig_r = _exposure_images(st, psf, sig, J, at, fields, step=step,
+                                            dilation=dilation, reconvolution=reconvolution)
+    if position_prior_sigma is not None:
+        cfg = cfg.replace(position_prior_sigma=float(position_prior_sigma))
+    return {t: fit_exposures(images[t], psf_r, sig_r, J, config=cfg, **kw)
+            for t in METACAL_TYPES}  # fmt: skip
+
+
+def _per_exposure(value, K: int, n: int) -> np.ndarray:
+    """A scalar, ``(K,)`` or ``(K, n)`` value as ``(K, n)`` floats."""
+    a = np.asarray(value, dtype=float)
+    return np.array(np.broadcast_to(a[:, None] if a.ndim == 1 and a.size == K else a, (K, n)))
+
+
+def _exposure_images(st, psf, sig, J, at, fields, **mc_kw):
+    """Each exposure's metacalibration images ``{type: (K, n, N, N)}``, their
+    reconvolution PSFs ``(K, N, N)`` (``(K, n, N, N)`` for a PSF per galaxy) and noise
+    ``(K, n)``; one :func:`metacal_images` per exposure and PSF image."""
+    K, n, N = st.shape[0], st.shape[1], st.shape[-1]
+    p = np.asarray(psf, dtype=float)
+    p = np.broadcast_to(p, (K, 1) + p.shape) if p.ndim == 2 else p
+    p = p[:, None] if p.ndim == 3 else p
+    images = {t: np.zeros(st.shape, np.float32) for t in METACAL_TYPES}
+    psf_r, sig_r = np.zeros(p.shape[:2] + (N, N)), np.zeros((K, n))
+    for k in range(K):
+        for j in range(p.shape[1]):  # one PSF for the exposure, or one per galaxy
+            g = np.arange(n) if p.shape[1] == 1 else np.array([j])
+            mc = metacal_images(st[k, g], centre_on_stamp(p[k, j], N), sig[k, g],
+                                noise_fields=fields[k, g], centres=(at[0][k, g], at[1][k, g]),
+                                jacobian=J[k], **mc_kw)  # fmt: skip
+            for t in METACAL_TYPES:
+                images[t][k, g] = mc.images[t]
+            psf_r[k, j], sig_r[k, g] = mc.psf, mc.noise_sigma
+    return images, psf_r[:, 0] if p.shape[1] == 1 else psf_r, sig_r
 
 
 @dataclass(frozen=True)
