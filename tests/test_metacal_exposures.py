@@ -80,9 +80,9 @@ def test_the_response_is_the_joint_fit_s_response_to_the_sky_s_shear(sky_metacal
     with its dilated PSF: GalSim's renderings of the galaxies sheared by +-delta on the
     sky, drawn through the three misaligned WCSs (rotated, mirror image, sheared) with
     each exposure's dilated PSF (pixel included), fitted jointly alike, give the same
-    ``R`` (measured within 3e-5) and the same unsheared means. The pixel frame's shears (each exposure's
-    stamp sheared in its own pixels: under a rotation or mirror another shear, ngmix
-    issue 72's kind of error) give a response 0.5 off."""
+    ``R`` (measured within 3e-5) and the same unsheared means. The pixel frame's shears
+    (each exposure's stamp sheared in its own pixels: under a rotation or mirror another
+    shear, ngmix issue 72's kind of error) give a response 0.5 off."""
     stamps, psf, sigma, fits = sky_metacal
     br = means(fits)
     assert all(br.usable[t].all() for t in METACAL_TYPES)
