@@ -189,6 +189,30 @@ def test_one_exposure_table_is_measure_stamps(model):
     assert jt["exposures_used"].description == COLUMNS["exposures_used"][1]
 
 
+def test_one_exposure_metacal_columns_are_measure_stamps():
+    """K = 1, J = I, ``response="metacal"`` with the same seed: the same added noise
+    fields, images and fits as :func:`pylensfit.measure_stamps`' metacalibration, so the
+    same ``e1_mcal, e2_mcal, R11 ... R22`` (to float32 rounding); another seed other
+    numbers."""
+    psf = gaussian_psf()
+    sigma = 1.5
+    img = galaxies(8, 9, psf) + np.random.default_rng(10).normal(0.0, sigma, (8, N, N))
+    priors = plf.Priors(ellipticity=plf.Prior(B=0.25, C=0.6, D=2.5), size=SIZE,
+                        position_sigma=0.8, info={"pixel_scale": 1.0})  # fmt: skip
+    kw = {"priors": priors, "config": CFG, "response": "metacal", "seed": 3}
+    tab = plf.measure_stamps(img, psf, sigma, **kw)
+    view = views_of(img[None], psf[None], [sigma], np.eye(2)[None])
+    jt = plf.measure_exposure_stamps(view, **kw)
+    mcal = ("e1_mcal", "e2_mcal", "R11", "R12", "R21", "R22")
+    assert np.isfinite([jt[c] for c in mcal]).all()
+    for c in mcal:
+        np.testing.assert_allclose(np.asarray(jt[c]), np.asarray(tab[c]), rtol=1e-4, atol=2e-5,
+                                   err_msg=c)  # fmt: skip
+    other = plf.measure_exposure_stamps(view, **(kw | {"seed": 4}))
+    assert np.abs(np.asarray(other["R11"]) - np.asarray(jt["R11"])).max() > 1e-3
+    assert jt.meta["metacal_step"] == 0.01
+
+
 def test_a_masked_exposure_leaves_the_fit_and_its_bit():
     """Three exposures (rotated, mirror image, aligned): galaxy 1 flagged in exposure 1 is
     measured from exposures 0 and 2, as the fit of those two alone (n_exposures 2, bit 1

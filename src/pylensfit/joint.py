@@ -92,8 +92,8 @@ from .prior import Prior, SizePrior
 from .psf import psf_transform
 from .skyframe import jacobian_frame, shear_to_pixel
 
-__all__ = ["JointFits", "fit_exposures", "fit_views", "lattice_symmetries", "pixel_cells",
-           "sky_frequencies"]
+__all__ = ["JointFits", "ViewArrays", "fit_exposures", "fit_views", "lattice_symmetries",
+           "pixel_cells", "sky_frequencies"]
 
 #: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 16 x n_r)
 _E_CHUNK = 16
@@ -1146,14 +1146,56 @@ def fit_views(views: Sequence[ExposureStamps], *, config: Config | None = None,
     """
     if any(v.psf is None for v in views):
         raise ValueError("fit_views needs each exposure's PSF at the galaxies (ExposureStamps.psf)")
-    J = np.stack([np.nanmedian(v.jacobian, axis=0) for v in views])
-    return fit_exposures(
-        np.stack([v.stamps for v in views]), np.stack([v.psf for v in views]),
-        np.stack([v.noise_sigma for v in views]), J,
-        flux_scale=np.array([v.flux_scale for v in views]),
-        usable=np.stack([v.usable for v in views]),
-        centres=(np.stack([v.centres[0] for v in views]),
-                 np.stack([v.centres[1] for v in views])),
-        config=config, pixel_scale=pixel_scale, size_prior=size_prior,
-        lnL_r_groups=lnL_r_groups,
-    )  # fmt: skip
+    a = ViewArrays.of(views)
+    return fit_exposures(a.stamps, a.psf, a.noise_sigma, a.jacobian, flux_scale=a.flux_scale,
+                         usable=a.usable, centres=a.centres, config=config,
+                         pixel_scale=pixel_scale, size_prior=size_prior,
+                         lnL_r_groups=lnL_r_groups)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class ViewArrays:
+    """The galaxies' views in ``K`` exposures stacked as :func:`fit_exposures`' arguments.
+
+    Attributes
+    ----------
+    stamps : numpy.ndarray
+        ``(K, n, N, N)``.
+    psf : numpy.ndarray
+        ``(K, n, s, s)`` each galaxy's PSF in each exposure.
+    noise_sigma, flux_scale : numpy.ndarray
+        ``(K, n)`` and ``(K,)``.
+    jacobian : numpy.ndarray
+        ``(K, 2, 2)`` each exposure's Jacobian, the median of its galaxies'.
+    usable : numpy.ndarray
+        ``(K, n)`` bool.
+    centres : tuple of numpy.ndarray
+        ``(x, y)``, each ``(K, n)``, the catalogue positions in the stamps.
+    """
+
+    stamps: np.ndarray
+    psf: np.ndarray
+    noise_sigma: np.ndarray
+    jacobian: np.ndarray
+    flux_scale: np.ndarray
+    usable: np.ndarray
+    centres: tuple[np.ndarray, np.ndarray]
+
+    @classmethod
+    def of(cls, views: Sequence[ExposureStamps]) -> ViewArrays:
+        """The arrays of ``views`` (:func:`fit_views`)."""
+        return cls(stamps=np.stack([v.stamps for v in views]),
+                   psf=np.stack([v.psf for v in views]),
+                   noise_sigma=np.stack([v.noise_sigma for v in views]),
+                   jacobian=np.stack([np.nanmedian(v.jacobian, axis=0) for v in views]),
+                   flux_scale=np.array([v.flux_scale for v in views]),
+                   usable=np.stack([v.usable for v in views]),
+                   centres=(np.stack([v.centres[0] for v in views]),
+                            np.stack([v.centres[1] for v in views])))  # fmt: skip
+
+    def take(self, rows: np.ndarray) -> ViewArrays:
+        """The galaxies ``rows`` alone."""
+        return ViewArrays(stamps=self.stamps[:, rows], psf=self.psf[:, rows],
+                          noise_sigma=self.noise_sigma[:, rows], jacobian=self.jacobian,
+                          flux_scale=self.flux_scale, usable=self.usable[:, rows],
+                          centres=(self.centres[0][:, rows], self.centres[1][:, rows]))  # fmt: skip

@@ -652,6 +652,8 @@ def _exposure_images(st, psf, sig, J, at, fields, **mc_kw):
     p = np.asarray(psf, dtype=float)
     p = np.broadcast_to(p, (K, 1) + p.shape) if p.ndim == 2 else p
     p = p[:, None] if p.ndim == 3 else p
+    if p.shape[1] > 1 and np.array_equal(p, np.broadcast_to(p[:, :1], p.shape)):
+        p = p[:, :1]  # the same PSF for every galaxy of an exposure: one operation each
     images = {t: np.zeros(st.shape, np.float32) for t in METACAL_TYPES}
     psf_r, sig_r = np.zeros(p.shape[:2] + (N, N)), np.zeros((K, n))
     for k in range(K):

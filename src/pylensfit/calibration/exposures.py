@@ -26,8 +26,9 @@ from ..catalogue import COLUMNS
 from ..config import Config
 from ..exposures import ExposureStamps
 from ..grid import ellipticity_grid
-from ..joint import JointFits, fit_views
+from ..joint import JointFits, ViewArrays, fit_views
 from ..likelihood import StampFits, e_annuli
+from ..metacal import metacal_branches, metacal_exposures
 from ..prior import Prior
 from ..psf import psf_diagnostics
 from .priors import CalibrationSample, Priors
@@ -178,6 +179,9 @@ def measure_exposure_stamps(
     *,
     priors: Priors | str | Path | None = None,
     config: Config | None = None,
+    response: str = "model",
+    metacal_step: float = 0.01,
+    seed: int = 0,
 ) -> Table:
     """Shapes, errors, sensitivities and weights of galaxies fitted on all of their
     exposures at once.
@@ -201,6 +205,11 @@ def measure_exposure_stamps(
         :func:`calibrate_exposures` estimates them from ``views`` themselves.
     config : Config, optional
         Settings (default ``Config()``); the one the priors were estimated with.
+    response, metacal_step, seed
+        As :func:`pylensfit.measure_stamps`: with ``"metacal"`` each galaxy is also
+        metacalibrated on all its exposures (:func:`pylensfit.metacal.metacal_exposures`:
+        each exposure's stamp sheared on the sky about the fitted position, the five
+        images fitted jointly); ``measure_stamps``' metacalibration columns, sky frame.
 
     Returns
     -------
@@ -220,6 +229,8 @@ def measure_exposure_stamps(
         exposure is flagged ``NOT_MEASURED`` with NaN shapes and weight 0. ``meta``: as
         :func:`pylensfit.measure_stamps`', and ``pixel_scale`` (arcsec).
     """
+    if response not in ("model", "metacal"):
+        raise ValueError(f"response must be 'model' or 'metacal', got {response!r}")
     cfg = config if config is not None else Config()
     if isinstance(priors, (str, Path)):
         priors = Priors.load(priors)
@@ -239,4 +250,40 @@ def measure_exposure_stamps(
     for c in ("n_exposures", "exposures_used"):
         t[c].description = COLUMNS[c][1]
     t.meta["pixel_scale"] = scale
+    if response == "metacal":
+        _add_metacal(t, ViewArrays.of(views), priors, run_cfg, fits, scale, metacal_step, seed)
     return t
+
+
+#: galaxies metacalibrated at a time by :func:`measure_exposure_stamps`
+_METACAL_BLOCK = 1024
+
+
+def _add_metacal(t: Table, arr: ViewArrays, priors: Priors, run_cfg: Config, fits: JointFits,
+                 scale: float, step: float, seed: int) -> None:  # fmt: skip
+    """:func:`measure_exposure_stamps`' metacalibration columns, in place: each block's
+    added noise fields drawn from ``(seed, first row)``; NaN where a galaxy has no
+    usable exposure or one of its five fits is not usable."""
+    cols = {c: np.full(len(t), np.nan) for c in ("e1_mcal", "e2_mcal", "R11", "R12", "R21",
+                                                 "R22")}  # fmt: skip
+    for start in range(0, len(t), _METACAL_BLOCK):
+        rows = np.arange(start, min(start + _METACAL_BLOCK, len(t)))
+        a = arr.take(rows)
+        fields = np.random.default_rng([seed, start]).standard_normal(a.stamps.shape)
+        mc = metacal_exposures(a.stamps, a.psf, a.noise_sigma, a.jacobian,
+                               offsets=(fits.x[rows], fits.y[rows]), centres=a.centres,
+                               flux_scale=a.flux_scale, usable=a.usable, config=run_cfg,
+                               pixel_scale=scale, size_prior=priors.size, step=step,
+                               noise_fields=fields)  # fmt: skip
+        br = metacal_branches(mc, priors.ellipticity, bulge_weights=priors.bulge_weights,
+                              refine=run_cfg.output_refine, step=step)  # fmt: skip
+        ok = np.all([br.usable[k] for k in br.usable], axis=0)
+        R = np.where(ok[:, None, None], br.R, np.nan)
+        for i in range(2):
+            cols[f"e{i + 1}_mcal"][rows] = np.where(ok, br.e["noshear"][:, i], np.nan)
+            for j in range(2):
+                cols[f"R{i + 1}{j + 1}"][rows] = R[:, i, j]
+    for c, v in cols.items():
+        t[c] = v
+        t[c].description = COLUMNS[c][1]
+    t.meta["metacal_step"] = float(step)

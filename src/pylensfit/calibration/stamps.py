@@ -265,4 +265,5 @@ def _add_metacal(t: Table, stamps: np.ndarray, psf: np.ndarray, noise_sigma, pri
             cols[f"e{i}_mcal"][idx] = mc[f"e{i}"]
     for c, v in cols.items():
         t[c] = v
+        t[c].description = COLUMNS[c][1]
     t.meta["metacal_step"] = float(step)
