@@ -68,12 +68,22 @@ noise in the four sets, the priors those of the PSFs without ``E``. Printed in m
 place: ``alpha_i = (c_i(+E) - c_i(-E)) / (2 E)`` per method and the paired differences
 of alpha; c is then the mean of the ``+E`` and ``-E`` sets' shears.
 
+``--response metacal``: the joint fit and the deep exposure's fit are also
+metacalibrated (``measure_exposure_stamps`` / ``measure_stamps(..., response="metacal")``,
+the added noise fields from ``--metacal-seed``, the same for ``+g`` and ``-g``; not
+negated in the noise twins), printed as ``joint mcal`` and ``deep mcal``: ``g_i = <e_i> /
+<R_ii>`` over the galaxies whose five fits are usable in both sets of a pair
+(unweighted), and their paired differences; the joint and deep rows' cost then includes
+their metacalibration.
+
 Usage::
 
     python benchmarks/joint_shear.py --ngal 300 --seed 1 --jobs 2   # ~6 min on 2 cores
     python benchmarks/joint_shear.py --ngal 400 --snr 10 15 --jobs 2  # the faint regime
     python benchmarks/joint_shear.py --ngal 150 --seed 1 --jobs 2 --noise-twins
     python benchmarks/joint_shear.py --ngal 150 --seed 2 --jobs 2 --psf-e 0.1 --noise-twins
+    python benchmarks/joint_shear.py --ngal 300 --seed 6 --jobs 2 --noise-twins \
+        --response metacal
 """
 
 from __future__ import annotations
@@ -103,6 +113,8 @@ FWHM = 0.7  # arcsec, the mean PSF's
 BETA = 3.5
 SIGMA = 1.0  # the deep exposure's noise; each of the K has 2 SIGMA
 ORDER = 5  # spline order of the co-add's resampling
+#: ``--response metacal``: the added noise fields' seed (None: no metacalibration)
+METACAL: dict = {"seed": None}
 
 
 def exposures(rng: np.random.Generator) -> list[dict]:
@@ -262,6 +274,15 @@ def as_dict(t) -> dict:
     return {c: np.asarray(t[c], dtype=float) for c in ("e1", "e2", "sens1", "sens2", "weight")}
 
 
+def metacal_dict(t) -> dict:
+    """A table's metacalibration shapes and responses as ``as_dict``'s, weight 1 where
+    all are finite."""
+    out = {"e1": np.asarray(t["e1_mcal"], float), "e2": np.asarray(t["e2_mcal"], float),
+           "sens1": np.asarray(t["R11"], float), "sens2": np.asarray(t["R22"], float)}
+    out["weight"] = np.all([np.isfinite(v) for v in out.values()], axis=0).astype(float)
+    return out
+
+
 def bootstrap(n_base: int, rng: np.random.Generator, copies: int, n_boot: int = 300) -> np.ndarray:
     """``(n_boot, copies n_base)`` bootstrap counts over the base galaxies, each galaxy's
     ``copies`` renderings (twins, noise twins) kept together: one set of resamplings for
@@ -331,9 +352,14 @@ def main() -> None:
     p.add_argument("--psf-e", type=float, default=0.0, metavar="E",
                    help="measure the PSF leakage alpha: unsheared sets with a sky-frame PSF "
                         "ellipticity +-E shared by every exposure")  # fmt: skip
+    p.add_argument("--response", choices=("model", "metacal"), default="model",
+                   help="also metacalibrate the joint and the deep fits")
+    p.add_argument("--metacal-seed", type=int, default=0)
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--jobs", type=int, default=2, help="threads of the fits' kernels")
     args = p.parse_args()
+    if args.response == "metacal":
+        METACAL["seed"] = args.metacal_seed
     numba.set_num_threads(args.jobs)
     rng = np.random.default_rng(args.seed)
     cfg = plf.Config().replace(stamp_size=N, max_stamp_size=0)
@@ -393,14 +419,21 @@ def measure(st: list, frames: tuple, off: list, cfg, priors: tuple, cost: dict) 
     exps, deep, co = frames
     pri_j, pri_d, pri_s, pri_c = priors
     out = {}
+    mc = ({} if METACAL["seed"] is None else
+          {"response": "metacal", "seed": METACAL["seed"]})  # fmt: skip
     t = time.time()
-    out["joint"] = as_dict(plf.measure_exposure_stamps(
-        views(st[:K], exps, off[:K]), priors=pri_j, config=cfg))  # fmt: skip
+    tab = plf.measure_exposure_stamps(views(st[:K], exps, off[:K]), priors=pri_j, config=cfg,
+                                      **mc)  # fmt: skip
+    out["joint"] = as_dict(tab)
+    if mc:
+        out["joint mcal"] = metacal_dict(tab)
     cost["joint"] += time.time() - t
     t = time.time()
-    out["deep"] = as_dict(plf.measure_stamps(
-        st[K], deep["psf_img"], SIGMA, priors=pri_d, config=cfg,
-        centres=tuple((N // 2 + off[K]).T)))  # fmt: skip
+    tab = plf.measure_stamps(st[K], deep["psf_img"], SIGMA, priors=pri_d, config=cfg,
+                             centres=tuple((N // 2 + off[K]).T), **mc)  # fmt: skip
+    out["deep"] = as_dict(tab)
+    if mc:
+        out["deep mcal"] = metacal_dict(tab)
     cost["deep"] += time.time() - t
     t = time.time()
     tabs = [plf.measure_stamps(st[k], exps[k]["psf_img"], 2 * SIGMA, priors=pri_s,
@@ -428,7 +461,10 @@ def run(base, n, frames, cfg, priors, rng, noise_twins=False, psf_e=0.0) -> None
     noise = [rng.normal(0, ex["sigma"], (2 * n, N, N)) for ex in exps + [deep]]
     if noise_twins:
         noise = [np.concatenate([nz, -nz]) for nz in noise]
-    out = {m: {} for m in ("joint", "deep", "single mean", "coadd")}
+    methods = ("joint", "deep", "single mean", "coadd")
+    if METACAL["seed"] is not None:
+        methods += ("joint mcal", "deep mcal")
+    out = {m: {} for m in methods}
     cost = dict.fromkeys(out, 0.0)
     for i in (0, 1):
         for sign in (1, -1):
@@ -437,7 +473,8 @@ def run(base, n, frames, cfg, priors, rng, noise_twins=False, psf_e=0.0) -> None
                   for ex, o, nz in zip(fr[0] + [fr[1]], off, noise, strict=True)]  # fmt: skip
             for m, shapes in measure(st, fr, off, cfg, priors, cost).items():
                 out[m][(i, sign)] = shapes
-    per = {"joint": K, "deep": 1, "single mean": K, "coadd": K}
+    per = {"joint": K, "deep": 1, "single mean": K, "coadd": K, "joint mcal": K,
+           "deep mcal": 1}  # the metacalibration's cost is in its fit's
     boot = bootstrap(n, np.random.default_rng(0), copies)
     name = "alpha" if psf_e else "m"
     stats = {m: shear_stats(out[m], boot, 2 * n, psf_e or G, name) for m in out}
@@ -461,15 +498,18 @@ def report(stats: dict, ms: dict, head: str, name: str = "m") -> None:
               f"{ms[m]:13.1f}")  # fmt: skip
     print(f"\npaired differences of {name} (the same galaxies and bootstrap resamplings)\n")
     w = len(name) + 7
-    print(f"{'pair':<20} {'d' + k1:>16} {'d' + k1 + '/err':>{w}} {'d' + k2:>16} "
+    print(f"{'pair':<24} {'d' + k1:>16} {'d' + k1 + '/err':>{w}} {'d' + k2:>16} "
           f"{'d' + k2 + '/err':>{w}}")  # fmt: skip
-    for other in ("single mean", "coadd", "deep"):
+    pairs = [("joint", o) for o in ("single mean", "coadd", "deep")]
+    if "joint mcal" in stats:
+        pairs += [("joint mcal", "deep mcal"), ("joint mcal", "joint")]
+    for one, other in pairs:
         row = ""
         for k in (k1, k2):
-            d = stats["joint"][k][0] - stats[other][k][0]
-            e = float(np.std(stats["joint"][f"{k}_boot"] - stats[other][f"{k}_boot"]))
+            d = stats[one][k][0] - stats[other][k][0]
+            e = float(np.std(stats[one][f"{k}_boot"] - stats[other][f"{k}_boot"]))
             row += f" {d:+.4f}+-{e:.4f} {d / e:+{w}.2f}"
-        print(f"{'joint - ' + other:<20}{row}")
+        print(f"{one + ' - ' + other:<24}{row}")
 
 
 if __name__ == "__main__":
