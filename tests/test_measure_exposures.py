@@ -272,3 +272,37 @@ def test_a_cosmic_ray_on_a_galaxy_drops_that_exposure_alone(dset, from_truth, tm
             assert np.nanmax(de[on][rest]) < 1e-3
     assert np.median(de[True][hit]) < 0.005  # measured 0.0005
     assert np.median(de[False][hit]) > 5 * np.median(de[True][hit])  # measured 0.022
+
+
+def test_metacal_columns_of_the_joint_fit(from_truth, dset, tmp_path, capsys):
+    """``Config.response = "metacal"``: every measured galaxy metacalibrated on all its
+    exposures, the single-image pipeline's columns (sky frame); every other column as
+    the measurement without it; the same numbers again for the same seed; ``shear
+    --estimator metacal`` reads the catalogue."""
+    cat, positions = from_truth
+    exps, stars = _files(dset)
+    out = tmp_path / "mcal.fits"
+    mc = measure_exposures(exps, stars=stars, catalogue=str(positions), priors=Priors(),
+                           config=CFG.replace(response="metacal"), output=out)  # fmt: skip
+    assert len(mc) == len(cat)
+    for c in cat.colnames:
+        np.testing.assert_array_equal(np.asarray(mc[c]), np.asarray(cat[c]), err_msg=c)
+    n = len(dset.truth)
+    ok = np.asarray(cat["weight"][:n]) > 0
+    mflags = np.asarray(mc["mcal_flags"])
+    assert (mflags[:n][ok] == 0).mean() > 0.9 and (mflags[n:] != 0).all()
+    good = np.flatnonzero(mflags == 0)
+    R = np.array([[mc["R11"], mc["R12"]], [mc["R21"], mc["R22"]]], float)[:, :, good]
+    assert np.isfinite(R).all()
+    assert 0.3 < np.median(R[0, 0]) < 1.2 and 0.3 < np.median(R[1, 1]) < 1.2
+    assert np.median(np.abs(R[0, 1])) < 0.1
+    # at S/N 200-300 the unsheared image's mean is the measurement's, in the sky frame
+    for c in ("e1", "e2"):
+        d = np.asarray(mc[c + "_mcal"])[good] - np.asarray(mc[c])[good]
+        assert np.median(np.abs(d)) < 0.03, c
+    assert (np.asarray(mc["mcal_snr_noshear"])[good] > 50).all()
+    again = measure_exposures(exps, stars=stars, catalogue=str(positions), priors=Priors(),
+                              config=CFG.replace(response="metacal"))  # fmt: skip
+    np.testing.assert_array_equal(np.asarray(again["R11"]), np.asarray(mc["R11"]))
+    assert main(["shear", str(out), "--estimator", "metacal"]) == 0
+    assert "g1" in capsys.readouterr().out

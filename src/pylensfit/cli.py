@@ -72,9 +72,6 @@ def _measure_exposures(args: argparse.Namespace, cfg: Config) -> int:
                              "--priors)")  # fmt: skip
     if args.catalogues and len(args.catalogues) != 1:
         raise InputError("measure --exposures: give one catalogue of sky positions (ra, dec)")
-    if cfg.response != "model":
-        raise InputError("measure --exposures: response 'metacal' is not available for "
-                         "joint fits")  # fmt: skip
     cat = measure_exposures(
         args.images, stars=args.stars or None,
         catalogue=args.catalogues[0] if args.catalogues else None, psf=_psf_arg(args.psf),

@@ -66,12 +66,15 @@ from ..exposures import (
     sky_to_pixel,
 )
 from ..flags import FLAGS
+from ..joint import ViewArrays
 from ..likelihood.tiers import stamp_tiers, tier_sizes
+from ..metacal import metacal_branches, metacal_exposures
 from ..psf import PSFResult
 from ..psfmodel import PSFModel
 from .catalogue_io import write_catalogue
 from .image_psf import starfield_task
 from .inputs import InputError, check_inputs, load_given, open_input, read_given_psfs
+from .metacal_rows import METACAL_BLOCK, empty_columns, noise_fields, store_branches
 from .neighbours import exposure_light, exposure_neighbour_stamps, sky_models
 from .records import StarfieldTask
 
@@ -518,7 +521,64 @@ def _measure(eset: ExposureSet, ra, dec, groups: _Groups, chunk: int, priors: Pr
     (:func:`_subtract_neighbours`)."""
     t = _measure_groups(eset, ra, dec, groups, chunk, priors, cfg)
     _retier(eset, ra, dec, groups, chunk, priors, cfg, t)
-    return _subtract_neighbours(eset, ra, dec, groups, chunk, priors, cfg, t)
+    t = _subtract_neighbours(eset, ra, dec, groups, chunk, priors, cfg, t)
+    if cfg.response == "metacal":
+        _metacalibrate(eset, ra, dec, groups, priors, cfg, t)
+    return t
+
+
+def _metacalibrate(eset: ExposureSet, ra, dec, groups: _Groups, priors: Priors, cfg: Config,
+                   t: Table) -> None:  # fmt: skip
+    """``Config.response = "metacal"``: the measured galaxies (:func:`_refittable`)
+    metacalibrated on all their exposures (:func:`pylensfit.metacal.metacal_exposures`),
+    the single-image pipeline's columns (:mod:`pylensfit.images.metacal_rows`) added to
+    ``t`` in the sky frame. Each galaxy's stamps are ``Config.largest_stamp`` pixels,
+    less the other objects' light where the neighbours are taken out, sheared about its
+    fitted sky position; an exposure that does not hold that stamp drops out of its
+    fits; its added noise fields are drawn from ``(Config.metacal_seed, exposure,
+    row)``."""
+    cols, todo, top = empty_columns(len(t)), _refittable(t), cfg.largest_stamp
+    run_cfg = priors.apply(cfg).replace(stamp_size=top, max_stamp_size=0)
+    light = None
+    if cfg.subtract_neighbours:
+        models = sky_models(t, *_fitted_sky(t, ra, dec, eset), cfg)
+        light = (models, [exposure_light(e, models, cfg) for e in eset.exposures])
+    X = _sky_offsets(t, groups, len(eset.exposures))
+    for lab in np.unique(groups.labels[todo]):
+        members = np.flatnonzero(todo & (groups.labels == lab))
+        for idx in np.array_split(members, -(-members.size // METACAL_BLOCK)):
+            views = groups.views(eset, ra, dec, idx, top)
+            if light is not None:
+                every = np.arange(idx.size)
+                views = [_take(v, every, exposure_neighbour_stamps(f, v, e, light[0], idx, cfg))
+                         for v, f, e in zip(views, light[1], eset.exposures, strict=True)]
+            a = ViewArrays.of(views)
+            fields = np.stack([noise_fields(cfg.metacal_seed, k, idx, top)
+                               for k in range(len(views))])  # fmt: skip
+            mc = metacal_exposures(a.stamps, a.psf, a.noise_sigma, a.jacobian,
+                                   offsets=(X[idx, 0], X[idx, 1]), centres=a.centres,
+                                   flux_scale=a.flux_scale, usable=a.usable, config=run_cfg,
+                                   pixel_scale=float(t.meta["pixel_scale"]),
+                                   size_prior=priors.size, step=cfg.metacal_step,
+                                   noise_fields=fields)  # fmt: skip
+            store_branches(cols, idx, metacal_branches(
+                mc, priors.ellipticity, bulge_weights=priors.bulge_weights,
+                refine=run_cfg.output_refine, step=cfg.metacal_step))  # fmt: skip
+    for c, v in cols.items():
+        t[c] = v
+
+
+def _sky_offsets(t: Table, groups: _Groups, K: int) -> np.ndarray:
+    """``(n, 2)`` each row's fitted sky offset from its catalogue position, arcsec (W, N):
+    its fitted centre's offset in its first used exposure's pixels through that
+    exposure's Jacobian (0 where none is used)."""
+    used = np.asarray(t["exposures_used"], np.int64)
+    first = np.where(used > 0, np.log2(np.maximum(used & -used, 1)).astype(int), 0)
+    J = groups.jacobians[groups.labels, np.minimum(first, K - 1)]
+    d = np.column_stack([np.asarray(t["x"], float) - np.asarray(t["x_detect"], float),
+                         np.asarray(t["y"], float) - np.asarray(t["y_detect"], float)])
+    X = np.linalg.solve(J, np.nan_to_num(d)[..., None])[..., 0]
+    return np.where((used > 0)[:, None], X, 0.0)
 
 
 def _take(view: ExposureStamps, sel: np.ndarray, less: np.ndarray) -> ExposureStamps:

@@ -30,7 +30,8 @@ from ..metacal import METACAL_TYPES, metacal_branches, metacal_fits
 from ..psf import PSFResult, centre_on_stamp
 from .image_psf import CellPSFs
 
-__all__ = ["METACAL_BLOCK", "MetacalInputs", "metacal_columns", "noise_fields"]
+__all__ = ["METACAL_BLOCK", "MetacalInputs", "empty_columns", "metacal_columns",
+           "noise_fields", "store_branches"]
 
 #: galaxies metacalibrated at a time (bounded memory: five images and their fits each)
 METACAL_BLOCK = 256
@@ -77,7 +78,9 @@ def noise_fields(seed: int, image_index: int, rows: np.ndarray, side: int) -> np
     return out
 
 
-def _empty(n: int) -> dict[str, np.ndarray]:
+def empty_columns(n: int) -> dict[str, np.ndarray]:
+    """The metacalibration columns of ``n`` rows, none metacalibrated (NaN,
+    ``NOT_METACALIBRATED``)."""
     cols = {c: np.full(n, np.nan) for c in ("e1_mcal", "e2_mcal", "R11", "R12", "R21", "R22")}
     cols.update({f"mcal_snr_{t}": np.full(n, np.nan) for t in METACAL_TYPES})
     cols["mcal_flags"] = np.full(n, _flags.METACAL_FLAGS["NOT_METACALIBRATED"][0], np.int32)
@@ -122,7 +125,7 @@ def metacal_columns(inp: MetacalInputs, cfg: Config, priors: Priors, image_index
         (:data:`pylensfit.flags.METACAL_FLAGS`), one entry per row, in the pixel frame.
     """
     n, side = inp.todo.size, inp.stamps.shape[-1]
-    cols = _empty(n)
+    cols = empty_columns(n)
     rows = np.flatnonzero(inp.todo & inp.full & np.isfinite(inp.cx) & np.isfinite(inp.cy)
                           & np.isfinite(inp.noise) & (inp.noise > 0))  # fmt: skip
     if psf is None or not rows.size:
@@ -150,14 +153,15 @@ def _metacal_group(cols: dict[str, np.ndarray], inp: MetacalInputs, grp: np.ndar
                    for p in images]  # fmt: skip
         fits = {t: per_psf[0][t] if len(per_psf) == 1 else
                 blend_fits([f[t] for f in per_psf], w) for t in METACAL_TYPES}  # fmt: skip
-        _store(cols, r, metacal_branches(fits, priors.ellipticity,
+        store_branches(cols, r, metacal_branches(fits, priors.ellipticity,
                                          bulge_weights=priors.bulge_weights,
                                          refine=mcfg.output_refine,
                                          step=mcfg.metacal_step))
 
 
-def _store(cols: dict[str, np.ndarray], r: np.ndarray, br) -> None:
-    """Write the branches ``br`` of rows ``r`` into ``cols``."""
+def store_branches(cols: dict[str, np.ndarray], r: np.ndarray, br) -> None:
+    """Write the branches ``br`` (:class:`pylensfit.metacal.MetacalBranches`) of rows
+    ``r`` into ``cols`` (:func:`empty_columns`)."""
     cols["e1_mcal"][r], cols["e2_mcal"][r] = br.e["noshear"][:, 0], br.e["noshear"][:, 1]
     R = br.R
     for i in range(2):
