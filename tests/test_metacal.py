@@ -287,11 +287,13 @@ def test_one_noise_level_per_stamp_is_each_stamp_s_own():
         metacal_images(stamps, psf, sig[:2], noise_fields=fields)
 
 
-def test_measure_stamps_metacal_columns_are_the_galaxies_metacalibration():
+@pytest.mark.parametrize("reconvolution", ["round", "dilate"])
+def test_measure_stamps_metacal_columns_are_the_galaxies_metacalibration(reconvolution):
     """``measure_stamps(response="metacal")`` adds the metacalibration of each stamp about
     its fitted centre (a PSF smaller than the stamps put on their grid), with its seeded
-    noise fields, fitted on the whole stamp: the columns are :func:`metacal_shapes`' for
-    the same fields and a configuration of one stamp size, the stamps'."""
+    noise fields and ``Config.metacal_reconvolution``'s PSF, fitted on the whole stamp:
+    the columns are :func:`metacal_shapes`' for the same fields and a configuration of one
+    stamp size, the stamps'."""
     import pylensfit as plf
     from pylensfit.psf import centre_on_stamp
 
@@ -304,12 +306,12 @@ def test_measure_stamps_metacal_columns_are_the_galaxies_metacalibration():
     stamps += np.random.default_rng(2).standard_normal(stamps.shape) * sigma
     psf_img = _draw(psf, n=25)
     priors = plf.Priors()
-    cfg = plf.Config(max_stamp_size=0)
+    cfg = plf.Config(max_stamp_size=0, metacal_reconvolution=reconvolution)
     t = plf.measure_stamps(stamps, psf_img, sigma, priors=priors, config=cfg,
                            response="metacal", seed=7)  # fmt: skip
     mc = metacal_shapes(stamps, centre_on_stamp(psf_img, N), sigma, priors.ellipticity,
                         config=priors.apply(cfg).replace(stamp_size=N), step=0.01,
-                        centres=(t["x"], t["y"]),
+                        centres=(t["x"], t["y"]), reconvolution=reconvolution,
                         noise_fields=np.random.default_rng([7, 0]).standard_normal(stamps.shape))
     assert (mc["flag"] == 0).all()
     for c in ("R11", "R12", "R21", "R22"):

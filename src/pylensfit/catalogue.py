@@ -180,8 +180,9 @@ COLUMNS: dict[str, tuple[str, str]] = {
                  "the LNLB planes (each fraction's ln L(e), HDU LNLB), which lnL mixes with "
                  "the bulge-fraction prior (header BULGEW; uniform if absent)"),
     "e1_mcal": ("", "Config.response 'metacal': the posterior mean <e1> of the unsheared "
-                "metacalibration image (deconvolved by the PSF, reconvolved with it dilated, "
-                "its noise made isotropic; pylensfit.metacal), sky frame as e1; NaN where "
+                "metacalibration image (deconvolved by the PSF, reconvolved with a slightly "
+                "larger one, Config.metacal_reconvolution, its noise made isotropic; "
+                "pylensfit.metacal), sky frame as e1; NaN where "
                 "that image's fit is not usable"),
     "e2_mcal": ("", "Config.response 'metacal': <e2> of the unsheared metacalibration "
                 "image, as e1_mcal"),

@@ -274,7 +274,8 @@ def _add_metacal(t: Table, arr: ViewArrays, priors: Priors, run_cfg: Config, fit
                                offsets=(fits.x[rows], fits.y[rows]), centres=a.centres,
                                flux_scale=a.flux_scale, usable=a.usable, config=run_cfg,
                                pixel_scale=scale, size_prior=priors.size, step=step,
-                               noise_fields=fields)  # fmt: skip
+                               noise_fields=fields,
+                               reconvolution=run_cfg.metacal_reconvolution)  # fmt: skip
         br = metacal_branches(mc, priors.ellipticity, bulge_weights=priors.bulge_weights,
                               refine=run_cfg.output_refine, step=step)  # fmt: skip
         ok = np.all([br.usable[k] for k in br.usable], axis=0)

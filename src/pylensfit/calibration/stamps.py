@@ -258,7 +258,8 @@ def _add_metacal(t: Table, stamps: np.ndarray, psf: np.ndarray, noise_sigma, pri
             continue
         mc = metacal_shapes(stamps[idx], psf, sig[idx], priors.ellipticity, config=run_cfg,
                             size_prior=priors.size, bulge_weights=priors.bulge_weights,
-                            step=step, noise_fields=fields, centres=(x[idx], y[idx]))  # fmt: skip
+                            step=step, noise_fields=fields, centres=(x[idx], y[idx]),
+                            reconvolution=run_cfg.metacal_reconvolution)  # fmt: skip
         for c in ("R11", "R12", "R21", "R22"):
             cols[c][idx] = mc[c]
         for i in (1, 2):

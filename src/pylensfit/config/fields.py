@@ -244,6 +244,11 @@ SHEAR = Section("shear", "Bayesian shear", "The shear sensitivity and its integr
       "metacal module).", choices=("model", "metacal")),
     P("metacal_step", float, 0.01, "With response 'metacal': the shear +-delta of the "
       "metacalibration images.", "", "(0, 0.2)"),
+    P("metacal_reconvolution", str, "round", "With response 'metacal': the PSF of the "
+      "metacalibration images, 'round' (round on the sky, nowhere above the PSF dilated "
+      "by 1 + 2 metacal_step: metacal.round_reconvolution; it keeps the PSF's anisotropy "
+      "out of the images, so out of c) or 'dilate' (that dilated PSF itself).",
+      choices=("round", "dilate")),
     P("metacal_seed", int, 0, "With response 'metacal': seed of the added noise fields "
       "(each object's from this seed, its image's index in the run and its row in the "
       "image).", "", "[0, inf)"),

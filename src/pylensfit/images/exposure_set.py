@@ -560,7 +560,8 @@ def _metacalibrate(eset: ExposureSet, ra, dec, groups: _Groups, priors: Priors, 
                                    flux_scale=a.flux_scale, usable=a.usable, config=run_cfg,
                                    pixel_scale=float(t.meta["pixel_scale"]),
                                    size_prior=priors.size, step=cfg.metacal_step,
-                                   noise_fields=fields)  # fmt: skip
+                                   noise_fields=fields,
+                                   reconvolution=cfg.metacal_reconvolution)  # fmt: skip
             store_branches(cols, idx, metacal_branches(
                 mc, priors.ellipticity, bulge_weights=priors.bulge_weights,
                 refine=run_cfg.output_refine, step=cfg.metacal_step))  # fmt: skip

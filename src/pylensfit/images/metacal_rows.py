@@ -149,7 +149,8 @@ def _metacal_group(cols: dict[str, np.ndarray], inp: MetacalInputs, grp: np.ndar
         fields = noise_fields(mcfg.metacal_seed, image_index, r, side)
         per_psf = [metacal_fits(data, centre_on_stamp(p, side), inp.noise[r], config=mcfg,
                                 size_prior=priors.size, step=mcfg.metacal_step,
-                                noise_fields=fields, centres=(inp.cx[r], inp.cy[r]))
+                                noise_fields=fields, centres=(inp.cx[r], inp.cy[r]),
+                                reconvolution=mcfg.metacal_reconvolution)
                    for p in images]  # fmt: skip
         fits = {t: per_psf[0][t] if len(per_psf) == 1 else
                 blend_fits([f[t] for f in per_psf], w) for t in METACAL_TYPES}  # fmt: skip
