@@ -191,6 +191,14 @@ class JointFits:
     def __len__(self) -> int:
         return self.lnL.shape[0]
 
+    def take(self, rows) -> JointFits:
+        """The galaxies ``rows`` (an index array, boolean mask or slice) alone."""
+        per = ("lnL", "lnL_peak", "n_exposures", "r_best", "flux", "x", "y", "snr",
+               "e1_best", "e2_best", "flags", "lnL_bulge", "lnL_star", "lnL_r",
+               "lnL_r_grouped", "r_marginal", "is_star", "bulge_best", "exposures_used")
+        return replace(self, **{a: None if getattr(self, a) is None else
+                                np.asarray(getattr(self, a))[rows] for a in per})  # fmt: skip
+
 
 @dataclass(frozen=True)
 class _Columns:

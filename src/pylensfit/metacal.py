@@ -634,8 +634,22 @@ def metacal_exposures(
                                             dilation=dilation, reconvolution=reconvolution)
     if position_prior_sigma is not None:
         cfg = cfg.replace(position_prior_sigma=float(position_prior_sigma))
-    return {t: fit_exposures(images[t], psf_r, sig_r, J, config=cfg, **kw)
-            for t in METACAL_TYPES}  # fmt: skip
+    kw.update(flux_scale=_per_exposure(flux_scale, K, n), centres=(cx, cy))
+    return _fit_branches(images, psf_r, sig_r, J, cfg, kw)
+
+
+def _fit_branches(images: dict, psf_r: np.ndarray, sig_r: np.ndarray, J: np.ndarray,
+                  cfg: Config, kw: dict) -> dict:  # fmt: skip
+    """The five images of every galaxy in one :func:`fit_exposures` (each exposure's bank
+    built once, the galaxies' fits independent of each other), split per type; ``kw``'s
+    ``flux_scale``, ``usable`` and ``centres`` per exposure and galaxy."""
+    T, n = len(METACAL_TYPES), sig_r.shape[1]
+    tile = {"flux_scale": np.tile(kw["flux_scale"], T), "usable": np.tile(kw["usable"], T),
+            "centres": tuple(np.tile(c, T) for c in kw["centres"])}
+    f = fit_exposures(np.concatenate([images[t] for t in METACAL_TYPES], axis=1),
+                      psf_r if psf_r.ndim == 3 else np.concatenate([psf_r] * T, axis=1),
+                      np.tile(sig_r, T), J, config=cfg, **(kw | tile))  # fmt: skip
+    return {t: f.take(slice(i * n, (i + 1) * n)) for i, t in enumerate(METACAL_TYPES)}
 
 
 def _per_exposure(value, K: int, n: int) -> np.ndarray:
