@@ -49,7 +49,7 @@ deep exposure's (target <= 1.1); and the cost of the measurement per (galaxy, ex
 paired differences of m between the joint fit and each other method: the difference on
 the same galaxies, its error the standard deviation of the difference over the same
 bootstrap resamplings, and the difference in units of that error. All fits with
-``Config()`` on 48-pixel stamps (``max_stamp_size = 0``: no tiers); the joint fit is of
+``Config()`` on 48-pixel stamps (``--stamp``; ``max_stamp_size = 0``: no tiers); the joint fit is of
 second order in position (``cubic_snr`` applies to the single fits only); every fit's
 models are cut at the stamp's edge (``truncate_models``).
 
@@ -352,12 +352,15 @@ def main() -> None:
     p.add_argument("--psf-e", type=float, default=0.0, metavar="E",
                    help="measure the PSF leakage alpha: unsheared sets with a sky-frame PSF "
                         "ellipticity +-E shared by every exposure")  # fmt: skip
+    p.add_argument("--stamp", type=int, default=N, help="stamp side, pixels")
     p.add_argument("--response", choices=("model", "metacal"), default="model",
                    help="also metacalibrate the joint and the deep fits")
     p.add_argument("--metacal-seed", type=int, default=0)
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--jobs", type=int, default=2, help="threads of the fits' kernels")
     args = p.parse_args()
+    global N
+    N = args.stamp
     if args.response == "metacal":
         METACAL["seed"] = args.metacal_seed
     numba.set_num_threads(args.jobs)
