@@ -342,6 +342,7 @@ def shear_stats(sets: dict, boot: np.ndarray, n_indep: int, step: float = G,
 
 
 def main() -> None:
+    global N
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--ngal", type=int, default=200, help="galaxies per set (each with a twin)")
     p.add_argument("--snr", type=float, nargs=2, metavar=("LO", "HI"),
@@ -359,7 +360,6 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--jobs", type=int, default=2, help="threads of the fits' kernels")
     args = p.parse_args()
-    global N
     N = args.stamp
     if args.response == "metacal":
         METACAL["seed"] = args.metacal_seed
