@@ -389,6 +389,18 @@ def test_the_benchmarks_use_no_private_name_of_the_harness():
     assert harness_private_uses(_scripts()) == []
 
 
+def test_the_benchmarks_compile():
+    """Every benchmark and study compiles (the symbol table's errors too, such as a name
+    used before its ``global`` declaration, which parsing alone does not see)."""
+    bad = []
+    for path in sorted(p for d in BENCHMARKS for p in d.glob("*.py")):
+        try:
+            compile(path.read_text(), str(path), "exec")
+        except SyntaxError as err:
+            bad.append(f"{path.name}: {err}")
+    assert bad == []
+
+
 def test_the_public_modules_are_documented():
     api = (ROOT / "docs" / "api.rst").read_text()
     assert [m for m in PUBLIC_MODULES[1:] if f".. automodule:: {m}\n" not in api] == []
