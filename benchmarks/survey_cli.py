@@ -22,6 +22,12 @@ Each takes about half an hour on 2 cores (``--jobs 2``).
 
 ``--keep DIR`` keeps the simulated set and the catalogues; ``--psfs 0,3`` measures only
 those PSFs; ``--config FILE`` passes a YAML configuration to ``pylensfit measure``.
+``--response metacal`` measures each galaxy's response on itself too, and ``--estimator
+fixed-point metacal`` reports each estimator on the same catalogues (the metacalibration's
+with the selection response of ``shear``'s cuts)::
+
+    python benchmarks/survey_cli.py --kind step1 --ngal 8000 --seed 11 --noise-twins \
+        --response metacal --estimator fixed-point metacal
 """
 
 from __future__ import annotations
@@ -46,59 +52,21 @@ def _cli(*args: str) -> None:
         raise SystemExit(f"{' '.join(args[:2])} failed:\n{res.stdout}\n{res.stderr}")
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--kind", choices=["step1", "step2"], default="step1")
-    ap.add_argument("--ngal", type=int, default=40000, help="galaxies over the shear fields")
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--psfs", default=None, help="comma-separated PSF indices (default all)")
-    ap.add_argument("--nshear", type=int, default=None, help="shear values per PSF")
-    ap.add_argument("--noise-twins", action="store_true",
-                    help="a noise twin of every field (the noise negated): the noise's first-order "
-                         "effect cancels in the pair means too; --ngal counts the renderings")
-    ap.add_argument("--config", default=None, help="YAML configuration for measure")
-    ap.add_argument("--keep", default=None, help="keep the set and catalogues here")
-    args = ap.parse_args(argv)
-
-    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="plf-survey-"))
-    work.mkdir(parents=True, exist_ok=True)
-    sim = work / "set"
-    t0 = time.perf_counter()
-    if not (sim / "manifest.json").exists():
-        extra = ["--nshear", str(args.nshear)] if args.nshear else []
-        extra += ["--noise-twins"] if args.noise_twins else []
-        _cli("simulate", args.kind, "--out", str(sim), "--ngal", str(args.ngal), "--seed",
-             str(args.seed), "--twins", "--jobs", str(args.jobs), "--quiet", *extra)  # fmt: skip
-    man = json.loads((sim / "manifest.json").read_text())
-    t_sim = time.perf_counter() - t0
-    shear_fields = [f for f in man["fields"] if f["role"] == "shear"]
-    psfs = sorted({f["psf"] for f in shear_fields})
-    if args.psfs:
-        psfs = [int(v) for v in args.psfs.split(",")]
-    print(f"{args.kind}: {man['ngal_shear_fields']} galaxies in {len(shear_fields)} shear "
-          f"fields of {man['field_size']} px, {len(man['psfs'])} PSFs; simulated in "
-          f"{t_sim:.0f} s")  # fmt: skip
+def _report(work: Path, man: dict, shear_fields: list, psfs: list, estimator: str) -> None:
+    """Fit ``g_meas = (1 + m) g + c`` per PSF and component to the group means of
+    ``pylensfit shear --estimator ESTIMATOR``'s per-image shears of each catalogue."""
     groups = []
-    n_meas = 0
-    t_meas = 0.0
     for k in psfs:
         fields = [f for f in shear_fields if f["psf"] == k]
         cat = work / f"cat{k}.fits"
-        t1 = time.perf_counter()
-        if not cat.exists():
-            cfg = ["--config", args.config] if args.config else []
-            _cli("measure", *[str(sim / f["file"]) for f in fields], "--stars",
-                 str(sim / f"psf{k}_stars.fits"), "-o", str(cat), "--jobs", str(args.jobs),
-                 "-q", *cfg)  # fmt: skip
-        t_meas += time.perf_counter() - t1
-        out = work / f"shear{k}.ecsv"
+        out = work / f"shear{k}_{estimator}.ecsv"
         out.unlink(missing_ok=True)
-        _cli("shear", str(cat), "-o", str(out))
+        _cli("shear", str(cat), "-o", str(out), "--estimator", estimator)
         tab = Table.read(out)
         c = Table.read(cat, hdu="CATALOG")
         usable = (np.asarray(c["flags"]) == 0) & (np.asarray(c["weight"]) > 0)
-        n_meas += int(usable.sum())
+        if estimator == "metacal":
+            usable = np.asarray(c["mcal_flags"]) == 0
         per = {str(g).split("=", 1)[1]: r
                for g, r in zip(tab["group"], tab, strict=True) if "=" in str(g)}
         by = {}
@@ -148,6 +116,63 @@ def main(argv: list[str] | None = None) -> int:
         if ok.any():
             err = np.sqrt(np.sum(e[ok] ** 2)) / ok.sum()
             print(f"<{q}> over PSFs {np.mean(v[ok]):+.4f} +- {err:.4f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--kind", choices=["step1", "step2"], default="step1")
+    ap.add_argument("--ngal", type=int, default=40000, help="galaxies over the shear fields")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--psfs", default=None, help="comma-separated PSF indices (default all)")
+    ap.add_argument("--nshear", type=int, default=None, help="shear values per PSF")
+    ap.add_argument("--noise-twins", action="store_true",
+                    help="a noise twin of every field (the noise negated): the noise's first-order "
+                         "effect cancels in the pair means too; --ngal counts the renderings")
+    ap.add_argument("--config", default=None, help="YAML configuration for measure")
+    ap.add_argument("--keep", default=None, help="keep the set and catalogues here")
+    ap.add_argument("--response", choices=("model", "metacal"), default=None,
+                    help="measure --response (default: the configuration's)")
+    ap.add_argument("--estimator", nargs="+", default=["fixed-point"],
+                    choices=("fixed-point", "key2", "metacal"),
+                    help="shear --estimator, each on the same catalogues")
+    args = ap.parse_args(argv)
+
+    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="plf-survey-"))
+    work.mkdir(parents=True, exist_ok=True)
+    sim = work / "set"
+    t0 = time.perf_counter()
+    if not (sim / "manifest.json").exists():
+        extra = ["--nshear", str(args.nshear)] if args.nshear else []
+        extra += ["--noise-twins"] if args.noise_twins else []
+        _cli("simulate", args.kind, "--out", str(sim), "--ngal", str(args.ngal), "--seed",
+             str(args.seed), "--twins", "--jobs", str(args.jobs), "--quiet", *extra)  # fmt: skip
+    man = json.loads((sim / "manifest.json").read_text())
+    t_sim = time.perf_counter() - t0
+    shear_fields = [f for f in man["fields"] if f["role"] == "shear"]
+    psfs = sorted({f["psf"] for f in shear_fields})
+    if args.psfs:
+        psfs = [int(v) for v in args.psfs.split(",")]
+    print(f"{args.kind}: {man['ngal_shear_fields']} galaxies in {len(shear_fields)} shear "
+          f"fields of {man['field_size']} px, {len(man['psfs'])} PSFs; simulated in "
+          f"{t_sim:.0f} s")  # fmt: skip
+    n_meas, t_meas = 0, 0.0
+    for k in psfs:
+        fields = [f for f in shear_fields if f["psf"] == k]
+        cat = work / f"cat{k}.fits"
+        t1 = time.perf_counter()
+        if not cat.exists():
+            cfg = ["--config", args.config] if args.config else []
+            cfg += ["--response", args.response] if args.response else []
+            _cli("measure", *[str(sim / f["file"]) for f in fields], "--stars",
+                 str(sim / f"psf{k}_stars.fits"), "-o", str(cat), "--jobs", str(args.jobs),
+                 "-q", *cfg)  # fmt: skip
+        t_meas += time.perf_counter() - t1
+        c = Table.read(cat, hdu="CATALOG")
+        n_meas += int(((np.asarray(c["flags"]) == 0) & (np.asarray(c["weight"]) > 0)).sum())
+    for estimator in args.estimator:
+        print(f"--estimator {estimator}:")
+        _report(work, man, shear_fields, psfs, estimator)
     if t_meas > 1.0:  # not when every catalogue was kept from an earlier run
         print(f"measured {n_meas} usable rows in {t_meas:.0f} s ({n_meas / t_meas:.1f} "
               f"galaxies/s, FITS to catalogue, --jobs {args.jobs})")  # fmt: skip

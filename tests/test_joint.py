@@ -9,7 +9,13 @@ import pytest
 from pylensfit.config import Config
 from pylensfit.exposures import Exposure, cut_exposures
 from pylensfit.flags import flag_value
-from pylensfit.joint import fit_exposures, fit_views, lattice_symmetries, sky_frequencies
+from pylensfit.joint import (
+    first_exposure,
+    fit_exposures,
+    fit_views,
+    lattice_symmetries,
+    sky_frequencies,
+)
 from pylensfit.likelihood import fit_stamps
 from pylensfit.models import fourier_profile, render_models, sheared_k
 from pylensfit.psf import psf_transform
@@ -339,3 +345,9 @@ def test_the_bank_caches_keep_within_their_bytes():
     for k in range(12):
         keep_last(cache, k, np.zeros(1), 8)
     assert list(cache) == list(range(4, 12))
+
+
+def test_first_exposure_is_the_lowest_set_bit():
+    used = np.array([0, 1, 2, 6, 8, 12, 2**40 + 2**41, 2**62])
+    np.testing.assert_array_equal(first_exposure(used), [-1, 0, 1, 1, 3, 2, 40, 62])
+    assert first_exposure(used, none=0)[0] == 0

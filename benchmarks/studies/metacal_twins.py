@@ -80,7 +80,8 @@ def measure(a) -> None:
     t0 = time.time()
     mc = metacal_shapes(st.reshape(-1, N, N), U.psf_image(a.psf).astype(float), U.SIGMA,
                         plf.Prior(), config=plf.Config(stamp_size=N, max_stamp_size=0),
-                        noise_fields=fl.reshape(-1, N, N), reconvolution=a.reconvolution)
+                        noise_fields=fl.reshape(-1, N, N), reconvolution=a.reconvolution,
+                        step=a.step)
     print(f"metacalibrated {st.shape[0] * st.shape[1]} renderings in {time.time() - t0:.0f} s")
     n_r = len(RENDERINGS)
     e = np.column_stack([mc["e1"], mc["e2"]]).reshape(-1, n_r, 2)
@@ -132,8 +133,8 @@ def report(paths) -> None:
 
 
 def paired(a_paths, b_paths) -> None:
-    """The second set's mean ellipticity minus the first's over the galaxies usable in
-    both (the same renderings under two settings), per kind."""
+    """The second set's mean ellipticity, m and c minus the first's over the galaxies
+    usable in both (the same renderings under two settings), per kind."""
     ea, Ra, kind, _ = _load(a_paths)
     eb, Rb, _, _ = _load(b_paths)
     ok = (np.isfinite(ea).all((1, 2)) & np.isfinite(eb).all((1, 2))
@@ -147,6 +148,11 @@ def paired(a_paths, b_paths) -> None:
         print(f"{name:12s} <e>: {ea[ok][s].mean((0, 1)).round(5)} -> "
               f"{eb[ok][s].mean((0, 1)).round(5)}; difference {d[s].mean(0).round(5)} +- "
               f"{err.round(5)}")
+    ea, Ra, eb, Rb, kind = ea[ok], Ra[ok], eb[ok], Rb[ok], kind[ok]
+    for name, i in [("all", np.arange(ok.sum()))] + [
+            (k, np.flatnonzero(kind == j)) for j, k in enumerate(U.KINDS)]:  # fmt: skip
+        _row(f"d {name}", *_jackknife(
+            lambda s, i=i: _m_c(eb[i[s]], Rb[i[s]]) - _m_c(ea[i[s]], Ra[i[s]]), i.size))
 
 
 def main() -> None:
@@ -156,6 +162,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=22)
     ap.add_argument("--part", type=int, default=-1, choices=(-1, 0, 1))
     ap.add_argument("--reconvolution", choices=("round", "dilate"), default="round")
+    ap.add_argument("--step", type=float, default=0.01,
+                    help="metacalibration's shear step delta (the dilation follows it)")
     ap.add_argument("--save", default="metacal_twins.npz")
     ap.add_argument("--report", nargs="+", metavar="NPZ")
     ap.add_argument("--paired", nargs="+", metavar="NPZ",

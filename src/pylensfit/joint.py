@@ -92,11 +92,31 @@ from .prior import Prior, SizePrior
 from .psf import psf_transform
 from .skyframe import jacobian_frame, shear_to_pixel
 
-__all__ = ["JointFits", "ViewArrays", "fit_exposures", "fit_views", "lattice_symmetries",
-           "pixel_cells", "sky_frequencies"]
+__all__ = ["JointFits", "ViewArrays", "first_exposure", "fit_exposures", "fit_views",
+           "lattice_symmetries", "pixel_cells", "sky_frequencies"]
 
 #: e cells evaluated together when a bank is built (memory of one chunk ~ n_freq x 16 x n_r)
 _E_CHUNK = 16
+
+
+def first_exposure(used: np.ndarray, none: int = -1) -> np.ndarray:
+    """Each galaxy's first used exposure: the lowest set bit of its ``exposures_used``.
+
+    Parameters
+    ----------
+    used : numpy.ndarray
+        ``(n,)`` integer bit masks (bit ``k``: exposure ``k`` entered the fit).
+    none : int
+        The value where no bit is set.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n,)`` int64 exposure indices.
+    """
+    used = np.asarray(used, np.int64)
+    low = np.maximum(used & -used, 1)
+    return np.where(used > 0, np.log2(low).round().astype(np.int64), none)
 
 
 @dataclass

@@ -26,7 +26,7 @@ from ..catalogue import COLUMNS
 from ..config import Config
 from ..exposures import ExposureStamps
 from ..grid import ellipticity_grid
-from ..joint import JointFits, ViewArrays, fit_views
+from ..joint import JointFits, ViewArrays, first_exposure, fit_views
 from ..likelihood import StampFits, e_annuli
 from ..metacal import metacal_branches, metacal_exposures
 from ..prior import Prior
@@ -109,12 +109,6 @@ def calibrate_exposures(
     return priors
 
 
-def _first_used(used: np.ndarray) -> np.ndarray:
-    """The index of the lowest set bit of each mask (0 where none is set)."""
-    low = used & -used
-    return np.where(used > 0, np.log2(np.maximum(low, 1)).round().astype(np.int64), 0)
-
-
 def _combined(views: Sequence[ExposureStamps], used: np.ndarray,
               scale: float) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Per galaxy, the noise and the PSF size of its used exposures combined, as one
@@ -155,7 +149,7 @@ def _as_stamp_fits(fits: JointFits, views: Sequence[ExposureStamps], used: np.nd
     common flux unit, ``STAR`` flagged as the single fit flags it; and the catalogue
     positions ``(x, y)`` in that exposure."""
     n = len(fits)
-    k0 = _first_used(used)
+    k0 = first_exposure(used, none=0)
     g = np.arange(n)
     xs, ys = np.stack([v.x for v in views]), np.stack([v.y for v in views])
     J = np.stack([v.jacobian for v in views])[k0, g]  # (n, 2, 2)

@@ -66,7 +66,7 @@ from ..exposures import (
     sky_to_pixel,
 )
 from ..flags import FLAGS
-from ..joint import ViewArrays
+from ..joint import ViewArrays, first_exposure
 from ..likelihood.tiers import stamp_tiers, tier_sizes
 from ..metacal import metacal_branches, metacal_exposures
 from ..psf import PSFResult
@@ -574,7 +574,7 @@ def _sky_offsets(t: Table, groups: _Groups, K: int) -> np.ndarray:
     its fitted centre's offset in its first used exposure's pixels through that
     exposure's Jacobian (0 where none is used)."""
     used = np.asarray(t["exposures_used"], np.int64)
-    first = np.where(used > 0, np.log2(np.maximum(used & -used, 1)).astype(int), 0)
+    first = first_exposure(used, none=0)
     J = groups.jacobians[groups.labels, np.minimum(first, K - 1)]
     d = np.column_stack([np.asarray(t["x"], float) - np.asarray(t["x_detect"], float),
                          np.asarray(t["y"], float) - np.asarray(t["y_detect"], float)])
@@ -700,8 +700,7 @@ def _fitted_sky(t: Table, ra: np.ndarray, dec: np.ndarray,
                 eset: ExposureSet) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The fitted sky position: the fitted centre (``x, y`` in the pixels of each row's
     first used exposure) through that exposure's WCS; the catalogue's where none."""
-    used = np.asarray(t["exposures_used"], np.int64)
-    first = np.where(used > 0, np.log2(np.maximum(used & -used, 1)).astype(int), -1)
+    first = first_exposure(t["exposures_used"])
     x, y = np.asarray(t["x"], float), np.asarray(t["y"], float)
     ra_f, dec_f = ra.copy(), dec.copy()
     for k, e in enumerate(eset.exposures):
