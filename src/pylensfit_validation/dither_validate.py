@@ -11,7 +11,9 @@ Every set is measured with :func:`pylensfit.measure_exposures` under one set of 
 estimated from the first set's own joint fits, and with :func:`pylensfit.measure` on one
 of its exposures alone (its star field's PSF; priors from that exposure of the first
 set). The shear of each set is :func:`pylensfit.estimate_shear` of every usable row,
-nothing matched to the truth. ``m`` and ``c`` per component are the least-squares line
+nothing matched to the truth; with ``Config.response = "metacal"`` also the
+metacalibration's (:class:`pylensfit.shear.MetacalSample`, the selection response of
+the cuts included). ``m`` and ``c`` per component are the least-squares line
 of the measured against the true shears; their errors are the jackknife over
 ``JACKKNIFE_SIDE^2`` cells of the sky, each cell left out of every set at once, so that
 the shape noise and noise the sets share cancel in them as in ``m`` and ``c``.
@@ -31,6 +33,7 @@ from pylensfit import Config, calibrate_images, estimate_shear, measure, measure
 from pylensfit.calibration import calibrate_exposures
 from pylensfit.exposures import cut_exposures
 from pylensfit.images import read_exposures
+from pylensfit.shear import MetacalSample
 
 from .dither import DitherSet, read_dither
 from .galaxies import PSFProfile
@@ -47,7 +50,9 @@ class DitherValidation:
     Attributes
     ----------
     shears : astropy.table.Table
-        One row per set and method: ``set``, ``method`` (``joint K``, ``exposure k``),
+        One row per set and method: ``set``, ``method`` (``joint K``, ``exposure k``;
+        each also as ``joint K mcal``, ``exposure k mcal``, the metacalibration's
+        estimate with its selection response, where ``Config.response`` is "metacal"),
         the true ``g1_true, g2_true``, the estimates ``g1, g2`` with ``g1_err, g2_err``,
         ``n`` usable rows.
     bias : astropy.table.Table
@@ -104,10 +109,21 @@ def _joint_priors(s: DitherSet, cfg: Config):
     return calibrate_exposures(views, config=cfg)
 
 
+#: the suffix of a method's name whose shear is the metacalibration's (``Config.response
+#: = "metacal"``: ``<R_gamma + R_S>^-1 <e_mcal>``, the selection response included)
+MCAL = " mcal"
+
+
+def _estimator(method: str, cat: Table):
+    """``rows -> ShearEstimate`` of one method's catalogue (``rows`` a mask)."""
+    if method.endswith(MCAL):
+        return MetacalSample.of(cat).estimate
+    return lambda rows: estimate_shear(cat[rows])
+
+
 def _shear_row(name: str, method: str, s: DitherSet, cat: Table) -> tuple:
-    est = estimate_shear(cat)
-    n = int(np.sum(np.asarray(cat["weight"]) > 0))
-    return (name, method, s.spec.g1, s.spec.g2, est.g1, est.g1_err, est.g2, est.g2_err, n)
+    est = _estimator(method, cat)(np.ones(len(cat), bool))
+    return (name, method, s.spec.g1, s.spec.g2, est.g1, est.g1_err, est.g2, est.g2_err, est.n)
 
 
 #: sky cells per side of the jackknife of m and c
@@ -140,9 +156,10 @@ def _bias(method: str, sets: list[DitherSet], cats: list[Table]) -> tuple:
     cells = _cells(cats, JACKKNIFE_SIDE)
     g1t = np.array([s.spec.g1 for s in sets])
     g2t = np.array([s.spec.g2 for s in sets])
+    fns = [_estimator(method, c) for c in cats]
     out = []
     for drop in range(-1, JACKKNIFE_SIDE**2):
-        est = [estimate_shear(c[cl != drop]) for c, cl in zip(cats, cells, strict=True)]
+        est = [fn(cl != drop) for fn, cl in zip(fns, cells, strict=True)]
         out.append(_line(g1t, np.array([e.g1 for e in est]))
                    + _line(g2t, np.array([e.g2 for e in est])))  # fmt: skip
     v = np.array(out)
@@ -150,7 +167,13 @@ def _bias(method: str, sets: list[DitherSet], cats: list[Table]) -> tuple:
     err = np.sqrt((k - 1) / k * ((v[1:] - v[1:].mean(0)) ** 2).sum(0))
     m1, c1, m2, c2 = v[0]
     return (method, m1, err[0], c1, err[1], m2, err[2], c2, err[3],
-            int(sum(np.sum(np.asarray(c["weight"]) > 0) for c in cats)))  # fmt: skip
+            int(sum(fn(np.ones(len(c), bool)).n for fn, c in zip(fns, cats, strict=True))))
+
+
+def _methods(name: str, cfg: Config) -> list[str]:
+    """A catalogue's shear estimators: the model's, and the metacalibration's where
+    ``cfg.response`` is ``"metacal"``."""
+    return [name] + ([name + MCAL] if cfg.response == "metacal" else [])
 
 
 def validate_dither(directories: Sequence[str | Path], *, config: Config | None = None,
@@ -192,14 +215,16 @@ def validate_dither(directories: Sequence[str | Path], *, config: Config | None 
         o = None if out is None else Path(out) / f"{name}_joint.fits"
         cat = measure_exposures(paths, stars=stars, priors=priors, config=cfg, output=o,
                                 overwrite=True)  # fmt: skip
-        rows.append(_shear_row(name, f"joint {len(paths)}", s, cat))
-        cats.setdefault(f"joint {len(paths)}", []).append(cat)
+        for method in _methods(f"joint {len(paths)}", cfg):
+            rows.append(_shear_row(name, method, s, cat))
+            cats.setdefault(method, []).append(cat)
         if single is not None:
             o = None if out is None else Path(out) / f"{name}_exp{exposure}.fits"
             one = measure([paths[exposure]], stars=[stars[exposure]], priors=single,
                           config=cfg, output=o, overwrite=True, progress=False)  # fmt: skip
-            rows.append(_shear_row(name, f"exposure {exposure}", s, one))
-            cats.setdefault(f"exposure {exposure}", []).append(one)
+            for method in _methods(f"exposure {exposure}", cfg):
+                rows.append(_shear_row(name, method, s, one))
+                cats.setdefault(method, []).append(one)
     shears = Table(rows=rows, names=("set", "method", "g1_true", "g2_true", "g1", "g1_err",
                                      "g2", "g2_err", "n"))  # fmt: skip
     bias = Table(rows=[_bias(k, sets, v) for k, v in cats.items()],
