@@ -95,9 +95,10 @@ def _load(paths):
     return tuple(np.concatenate([x[k] for x in d]) for k in ("e", "R", "kind", "snr"))
 
 
-def _m_c(e, R, full: bool = True) -> np.ndarray:
-    ep, em = e[:, PLUS].mean((0, 1)), e[:, ~PLUS].mean((0, 1))
-    Rp, Rm = R[:, PLUS].mean((0, 1)), R[:, ~PLUS].mean((0, 1))
+def _m_c(e, R, full: bool = True, w=None) -> np.ndarray:
+    """``m1, m2, c1, c2`` of galaxies ``e, R`` (weights ``w`` per galaxy: a mix)."""
+    ep, em = (np.average(e[:, s].mean(1), axis=0, weights=w) for s in (PLUS, ~PLUS))
+    Rp, Rm = (np.average(R[:, s].mean(1), axis=0, weights=w) for s in (PLUS, ~PLUS))
     if full:
         gp, gm = np.linalg.solve(Rp, ep), np.linalg.solve(Rm, em)
     else:
@@ -117,7 +118,7 @@ def _row(name: str, v, err) -> None:
           f"c1 {v[2]:+.5f} +- {err[2]:.5f}  c2 {v[3]:+.5f} +- {err[3]:.5f}")
 
 
-def report(paths) -> None:
+def report(paths, mixes=()) -> None:
     e, R, kind, snr = _load(paths)
     ok = np.isfinite(e).all((1, 2)) & np.isfinite(R).all((1, 2, 3))
     print(f"{ok.sum()} of {ok.size} galaxies with every rendering's five fits usable")
@@ -130,6 +131,12 @@ def report(paths) -> None:
     for lo, hi in ((10, 20), (20, 40), (40, 101)):
         i = np.flatnonzero((snr >= lo) & (snr < hi))
         _row(f"S/N {lo}-{hi}", *_jackknife(lambda s, i=i: _m_c(e[i[s]], R[i[s]]), i.size))
+    for mix in mixes:
+        # each kind's galaxies weighted so that the kinds' shares are the mix's
+        share = np.asarray(mix, float) / np.sum(mix)
+        w = share[kind] / np.bincount(kind, minlength=len(share))[kind]
+        _row("mix " + ":".join(f"{v:g}" for v in mix),
+             *_jackknife(lambda s, w=w: _m_c(e[s], R[s], w=w[s]), len(e)))
 
 
 def paired(a_paths, b_paths) -> None:
@@ -166,13 +173,16 @@ def main() -> None:
                     help="metacalibration's shear step delta (the dilation follows it)")
     ap.add_argument("--save", default="metacal_twins.npz")
     ap.add_argument("--report", nargs="+", metavar="NPZ")
+    ap.add_argument("--mix", nargs=3, type=float, action="append", default=[],
+                    metavar=("SERSIC", "KNOTTY", "BULGE_DISC"),
+                    help="--report: also the kinds mixed in these proportions (repeatable)")
     ap.add_argument("--paired", nargs="+", metavar="NPZ",
                     help="A.npz ... -- B.npz ...: B's mean ellipticity minus A's")
     a, rest = ap.parse_known_args()
     if a.paired:
         paired(a.paired, [r for r in rest if r != "--"])
     elif a.report:
-        report(a.report)
+        report(a.report, a.mix)
     else:
         measure(a)
 
