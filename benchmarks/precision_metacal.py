@@ -104,7 +104,8 @@ def _block(task: dict) -> dict:
                             noise_fields=fld if task["noise"] else np.zeros_like(fld),
                             size_prior=task["size_prior"],
                             position_prior_sigma=task["mc_position_prior"],
-                            dilation=task["dilation"])  # fmt: skip
+                            dilation=task["dilation"],
+                            reconvolution=task["reconvolution"] or cfg.metacal_reconvolution)
         ok &= okA.reshape(-1) & (np.asarray(sh["flag"]) == 0)
         w = 1.0 / len(sets)
         out["QA"] = out["QA"] + w * np.nan_to_num(QA)
@@ -175,6 +176,8 @@ def main() -> None:
     ap.add_argument("--step", type=float, default=0.01, help="metacalibration's delta")
     ap.add_argument("--dilation", type=float, default=None,
                     help="the reconvolution PSF's dilation (default 1 + 2 step)")
+    ap.add_argument("--reconvolution", choices=("round", "dilate"), default=None,
+                    help="the reconvolution PSF (default Config.metacal_reconvolution's)")
     ap.add_argument("--no-hsm", action="store_true",
                     help="skip GalSim HSM REGAUSS (timed on the same renderings otherwise)")
     ap.add_argument("--true-priors", action="store_true",
@@ -220,7 +223,8 @@ def main() -> None:
               "noise": not a.noise_free, "about_stamp": a.about_stamp_centre,
               "about_true": a.about_true_centre,
               "mc_position_prior": a.metacal_position_prior or None,
-              "antithetic": a.antithetic, "dilation": a.dilation, "hsm": not a.no_hsm}
+              "antithetic": a.antithetic, "dilation": a.dilation, "hsm": not a.no_hsm,
+              "reconvolution": a.reconvolution}
              for b in range(nb)]  # fmt: skip
     res = {}
     t0 = time.perf_counter()
