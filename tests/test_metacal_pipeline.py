@@ -220,6 +220,18 @@ def test_the_selection_response_corrects_the_bias_of_a_cut():
     assert abs(r0.R_S).max() < 1e-9
 
 
+def test_a_table_without_its_configuration_is_cut_at_no_snr_with_a_warning():
+    """A catalogue read without ``pylensfit.read_catalogue`` (``Table.read``) has lost its
+    configuration, and with it ``Config.min_snr``: the selection then cuts nowhere, which
+    it says, and a given ``min_snr`` is used silently."""
+    t = _selected_sample(np.zeros((10, 2)), np.zeros(2), 0.01)
+    t["mcal_snr_noshear"][0] = 1.0
+    with pytest.warns(UserWarning, match="no S/N cut"):
+        s = MetacalSample.of(t, step=0.01)
+    assert s.selections["noshear"].all()
+    assert not MetacalSample.of(t, step=0.01, min_snr=2.0).selections["noshear"][0]
+
+
 def test_each_branch_selects_on_its_own_quantities():
     t = _selected_sample(np.zeros((10, 2)), np.zeros(2), 0.01)
     t["mcal_flags"][0] = METACAL_FLAGS["1p"][0]

@@ -26,6 +26,7 @@ replaced by each branch's point-source decision and S/N; every other bit of ``fl
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -164,8 +165,14 @@ class MetacalSample:
     def of(cls, table: Table, *, min_snr: float | None = None,
            step: float | None = None) -> MetacalSample:  # fmt: skip
         """The inputs of ``table``; ``min_snr`` defaults to its configuration's
-        (``meta["config"].min_snr``, else 0), ``step`` to ``meta["metacal_step"]``."""
+        (``meta["config"].min_snr``; else 0, with a warning: a table read without
+        :func:`pylensfit.read_catalogue` has lost it), ``step`` to
+        ``meta["metacal_step"]``."""
         cfg = table.meta.get("config")
+        if min_snr is None and cfg is None:
+            warnings.warn("the table carries no configuration: no S/N cut (min_snr=0) in "
+                          "the metacalibration's selection; read catalogues with "
+                          "pylensfit.read_catalogue, or give min_snr", stacklevel=2)  # fmt: skip
         if min_snr is None:
             min_snr = float(cfg.min_snr) if cfg is not None else 0.0
         step = step if step is not None else table.meta.get(
