@@ -144,6 +144,14 @@ def test_the_shear_command_gives_the_metacal_estimate(field, tmp_path, capsys):
     r = MetacalSample.of(mcal).shear()  # the catalogue's own min_snr
     np.testing.assert_allclose([tab["g1"][-1], tab["g2"][-1]], r.g, rtol=1e-10)
     np.testing.assert_allclose([tab["g1_err"][-1], tab["g2_err"][-1]], r.g_err, rtol=1e-10)
+    # a catalogue measured with response "metacal" gets that estimator by default, and says so
+    d = tmp_path / "default.ecsv"
+    assert main(["shear", str(out), "-o", str(d)]) == 0
+    assert "--estimator fixed-point for the model's" in capsys.readouterr().out
+    np.testing.assert_array_equal(Table.read(d)["g1"], tab["g1"])
+    f = tmp_path / "model.ecsv"
+    assert main(["shear", str(out), "--estimator", "fixed-point", "-o", str(f)]) == 0
+    assert not np.allclose(Table.read(f)["g1"], tab["g1"])
 
 
 def test_the_response_turns_to_the_sky_as_a_spin_2_tensor():

@@ -231,7 +231,27 @@ def _print_shear(tab: Table, output: str | None) -> int:
     return 0
 
 
+def _measured_response(path: str) -> str | None:
+    """The ``Config.response`` a catalogue was measured with (its ``CONFIG`` HDU), None
+    where it cannot be read (reading the catalogue then says why)."""
+    from astropy.io import fits  # only the small CONFIG HDU, before the catalogue is read
+
+    try:
+        with fits.open(path, memmap=True) as h:
+            t = h["CONFIG"].data
+            vals = dict(zip(t["key"], t["value"], strict=True))
+            return str(vals.get("response", '"model"')).strip('"')
+    except (OSError, KeyError, TypeError, ValueError, IndexError):
+        return None
+
+
 def _shear(args: argparse.Namespace) -> int:
+    if args.estimator is None:  # the one the catalogue's measurement was made for
+        metacal = _measured_response(args.catalogs[0]) == "metacal"
+        args.estimator = "metacal" if metacal else "fixed-point"
+        if metacal:
+            print(f"{args.catalogs[0]} was measured with --response metacal: the "
+                  "metacalibration's estimator (--estimator fixed-point for the model's)")
     if args.estimator == "metacal":
         return _print_shear(_metacal_shear(args), args.output)
     per_image = () if args.no_per_image else ("image",)
@@ -425,13 +445,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also bin by a column, e.g. mag:20,22,24")  # fmt: skip
     sh.add_argument("--sensitivity", choices=("exact", "paper"), help="sensitivity formula")
     sh.add_argument("--estimator", choices=("fixed-point", "key2", "metacal"),
-                    default="fixed-point",
-                    help="the sheared-prior fixed point (default), exact to all orders in g, "
+                    help="the sheared-prior fixed point, exact to all orders in g, "
                     "Kitching et al. (2008)'s mean shear over mean sensitivity (docs: method, "
                     "eq-key2), high by a factor 1 + |g|^2, or (a catalogue measured with "
                     "--response metacal) the metacalibration's <R_gamma + R_S>^-1 <e_mcal>, "
                     "its cut made on each sheared image's S/N and fit (the selection "
-                    "response, R_S)")  # fmt: skip
+                    "response, R_S). Default: metacal for a catalogue measured with "
+                    "--response metacal, else fixed-point")  # fmt: skip
     sh.add_argument("--min-snr", type=float, help="--estimator metacal: the S/N cut on each "
                     "metacalibration image's mcal_snr_* (default the catalogue's "
                     "Config.min_snr)")  # fmt: skip
