@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import json
 import logging
 import sys
 from importlib.metadata import entry_points
@@ -239,9 +240,9 @@ def _measured_response(path: str) -> str | None:
     try:
         with fits.open(path, memmap=True) as h:
             t = h["CONFIG"].data
-            vals = dict(zip(t["key"], t["value"], strict=True))
-            return str(vals.get("response", '"model"')).strip('"')
-    except (OSError, KeyError, TypeError, ValueError, IndexError):
+            vals = {str(k): str(v) for k, v in zip(t["key"], t["value"], strict=True)}
+            return str(json.loads(vals.get("response", '"model"')))
+    except (OSError, KeyError, TypeError, ValueError, IndexError):  # JSONDecodeError too
         return None
 
 
