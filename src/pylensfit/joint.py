@@ -61,7 +61,7 @@ read in units of a reference pixel scale (``pixel_scale``, arcsec): with one exp
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -211,11 +211,12 @@ class JointFits:
     def __len__(self) -> int:
         return self.lnL.shape[0]
 
+    #: the attributes that all galaxies share (every other one has a row per galaxy)
+    _SHARED = ("egrid", "bulge_fractions", "pixel_scale", "meta", "radii")
+
     def take(self, rows) -> JointFits:
         """The galaxies ``rows`` (an index array, boolean mask or slice) alone."""
-        per = ("lnL", "lnL_peak", "n_exposures", "r_best", "flux", "x", "y", "snr",
-               "e1_best", "e2_best", "flags", "lnL_bulge", "lnL_star", "lnL_r",
-               "lnL_r_grouped", "r_marginal", "is_star", "bulge_best", "exposures_used")
+        per = [f.name for f in fields(self) if f.name not in self._SHARED]
         return replace(self, **{a: None if getattr(self, a) is None else
                                 np.asarray(getattr(self, a))[rows] for a in per})  # fmt: skip
 

@@ -157,17 +157,18 @@ def _bias(method: str, sets: list[DitherSet], cats: list[Table]) -> tuple:
     g1t = np.array([s.spec.g1 for s in sets])
     g2t = np.array([s.spec.g2 for s in sets])
     fns = [_estimator(method, c) for c in cats]
-    out = []
-    for drop in range(-1, JACKKNIFE_SIDE**2):
+    out, n = [], 0
+    for drop in range(-1, JACKKNIFE_SIDE**2):  # -1: no cell left out, every row
         est = [fn(cl != drop) for fn, cl in zip(fns, cells, strict=True)]
+        if drop == -1:
+            n = sum(e.n for e in est)
         out.append(_line(g1t, np.array([e.g1 for e in est]))
                    + _line(g2t, np.array([e.g2 for e in est])))  # fmt: skip
     v = np.array(out)
     k = len(v) - 1
     err = np.sqrt((k - 1) / k * ((v[1:] - v[1:].mean(0)) ** 2).sum(0))
     m1, c1, m2, c2 = v[0]
-    return (method, m1, err[0], c1, err[1], m2, err[2], c2, err[3],
-            int(sum(fn(np.ones(len(c), bool)).n for fn, c in zip(fns, cats, strict=True))))
+    return method, m1, err[0], c1, err[1], m2, err[2], c2, err[3], int(n)
 
 
 def _methods(name: str, cfg: Config) -> list[str]:
