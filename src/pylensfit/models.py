@@ -212,6 +212,27 @@ def _bulge_disc_transform(q: np.ndarray, bf: np.ndarray, bulge_size_ratio: float
     return F
 
 
+def _sheared_q(qx: np.ndarray, qy: np.ndarray, e1: np.ndarray, e2: np.ndarray,
+               r: np.ndarray) -> np.ndarray:  # fmt: skip
+    """``|S(e)^T q| r`` (:func:`sheared_k` times ``r``) for ``(m,)`` models, as the quadratic
+    form of ``q``: ``(|q|^2 (1 + |e|^2) + 2 e1 (qx^2 - qy^2) + 4 e2 qx qy) / (1 - |e|^2)``,
+    in fewer passes over the ``(m, ...)`` arrays."""
+    a1, a2 = e1[:, None, None], e2[:, None, None]
+    esq = a1 * a1 + a2 * a2
+    r2 = (r * r)[:, None, None] / (1.0 - esq)
+    q = qx * qx * ((1.0 + esq + 2.0 * a1) * r2)
+    q += qx * qy * ((4.0 * a2) * r2)
+    q += qy * qy * ((1.0 + esq - 2.0 * a1) * r2)
+    return np.sqrt(q, out=q)
+
+
+def _shift_phase(kx: np.ndarray, ky: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``exp(-i (kx x + ky y))`` ``(m, ny, nx)`` for ``(m,)`` centres on the separable grid of
+    ``kx`` ``(nx,)`` and ``ky`` ``(ny,)``: one exponential per row and per column."""
+    return (np.exp(-1j * np.multiply.outer(y, ky))[:, :, None]
+            * np.exp(-1j * np.multiply.outer(x, kx))[:, None, :])  # fmt: skip
+
+
 def render_models(
     n: int,
     psf: np.ndarray,
@@ -276,13 +297,15 @@ def render_models(
     else:
         J = np.broadcast_to(np.asarray(jacobian, dtype=float), (m, 2, 2))[:, :, :, None, None]
         qx, qy = J[:, 0, 0] * kx + J[:, 1, 0] * ky, J[:, 0, 1] * kx + J[:, 1, 1] * ky
-    q = sheared_k(qx, qy, e1[:, None, None], e2[:, None, None]) * r[:, None, None]
+    q = _sheared_q(qx, qy, e1, e2, r)
     if model == "bulge+disc":
         F = _bulge_disc_transform(q, bf, bulge_size_ratio)
     else:
         F = fourier_profile(q, model)
-    phase = np.exp(-1j * (kx[None] * x[:, None, None] + ky[None] * y[:, None, None]))
-    return np.fft.irfft2(flux[:, None, None] * F * P * phase, s=(n, n))
+    phase = _shift_phase(kx[0], ky[:, 0], x, y)
+    phase *= P
+    phase *= (flux[:, None, None] * F)
+    return np.fft.irfft2(phase, s=(n, n))
 
 
 @dataclass(frozen=True)
