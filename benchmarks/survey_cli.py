@@ -28,6 +28,10 @@ with the selection response of ``shear``'s cuts)::
 
     python benchmarks/survey_cli.py --kind step1 --ngal 8000 --seed 11 --noise-twins \
         --response metacal --estimator fixed-point metacal
+
+``--shear-positions`` shears the galaxies' positions with their shapes (the lensed sky):
+metacalibration shears the neighbours' light in its stamps too, and on fields whose
+lattice stays put at every shear it measures a response the fields do not have.
 """
 
 from __future__ import annotations
@@ -129,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise-twins", action="store_true",
                     help="a noise twin of every field (the noise negated): the noise's first-order "
                          "effect cancels in the pair means too; --ngal counts the renderings")
+    ap.add_argument("--shear-positions", action="store_true",
+                    help="simulate --shear-positions: the galaxies' positions sheared too")
     ap.add_argument("--config", default=None, help="YAML configuration for measure")
     ap.add_argument("--keep", default=None, help="keep the set and catalogues here")
     ap.add_argument("--response", choices=("model", "metacal"), default=None,
@@ -145,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     if not (sim / "manifest.json").exists():
         extra = ["--nshear", str(args.nshear)] if args.nshear else []
         extra += ["--noise-twins"] if args.noise_twins else []
+        extra += ["--shear-positions"] if args.shear_positions else []
         _cli("simulate", args.kind, "--out", str(sim), "--ngal", str(args.ngal), "--seed",
              str(args.seed), "--twins", "--jobs", str(args.jobs), "--quiet", *extra)  # fmt: skip
     man = json.loads((sim / "manifest.json").read_text())

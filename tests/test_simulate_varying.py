@@ -317,3 +317,27 @@ def test_simulate_command_with_a_varying_psf_and_a_rotated_wcs(tmp_path):
         assert hdr["SIMROT"] == 30.0 and hdr["SIMFLIP"] and hdr["SIMPSFV"] == "survey"
     with pytest.raises(ValueError, match="same PSF map"):
         main(["step2", "--out", str(tmp_path / "x"), "--star-field-size", "200", *argv[3:]])
+
+
+@pytest.mark.parametrize("rot, flip", FRAMES)
+def test_shear_positions_is_the_sky_shear_of_the_galaxies_positions(rot, flip):
+    """``shear_positions`` moves every galaxy as the sky frame's shear maps its offset from
+    the field's centre (through the WCS, whatever its rotation and flip), the shear GalSim
+    applies to the shapes; the stars and everything else stay as drawn."""
+    g = (0.05, -0.03)
+    spec = FieldSpec(size=400, g1=g[0], g2=g[1], wcs_rotation_deg=rot, wcs_flip=flip)
+    x0, y0, star0, *rest0 = draw_population(spec, np.random.default_rng(5))
+    x, y, star, *rest = draw_population(replace(spec, shear_positions=True),
+                                        np.random.default_rng(5))  # fmt: skip
+    assert np.array_equal(star, star0) and star.any() and (~star).any()
+    for a, b in zip(rest, rest0):
+        assert np.array_equal(a, b)
+    assert np.array_equal(x[star], x0[star]) and np.array_equal(y[star], y0[star])
+    jac = _local_jacobian(_wcs(spec, 150.0, 2.0), 199.5, 199.5)  # pixels -> (W, N)
+    c = (spec.size - 1) / 2.0
+    u0 = jac @ np.vstack([x0 - c, y0 - c])
+    u = jac @ np.vstack([x - c, y - c])
+    S = np.array([[1 + g[0], g[1]], [g[1], 1 - g[0]]]) / np.sqrt(1 - g[0] ** 2 - g[1] ** 2)
+    np.testing.assert_allclose(u[:, ~star], (S @ u0)[:, ~star], rtol=0, atol=1e-9 * np.abs(u0).max())
+    moved = np.hypot(x - x0, y - y0)[~star]
+    assert moved.max() > 0.04 * c  # a real move: up to |g| times the distance from the centre

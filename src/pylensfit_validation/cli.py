@@ -378,6 +378,9 @@ def _simulate_parser() -> argparse.ArgumentParser:
                         "shears are the sky frame's")
     p.add_argument("--wcs-flip", action="store_true",
                    help="flip every field's WCS (dy -> -dy before the rotation)")
+    p.add_argument("--shear-positions", action="store_true",
+                   help="step1, step2: shear the galaxies' positions too, about each field's "
+                        "centre (the lensed sky; metacalibration's response needs it)")
     p.add_argument("--population", choices=POPULATIONS, default="aligned",
                    help="step2 galaxies: aligned (bulges aligned with their discs, Sersic "
                         "n 0.5-4) or realistic (bulges of their own size, shape and "
@@ -413,8 +416,9 @@ def simulate_main(argv: list[str] | None = None) -> int:
     """``pylensfit simulate step1|step2|dither --out DIR [--ngal N] [--seed S] ...``.
 
     Among the options, ``--psf-variation {none,survey}``, ``--wcs-rotation DEG``,
-    ``--wcs-flip`` and ``--population {aligned,realistic}`` (:func:`simulate_step`'s
-    ``psf_variation``, ``wcs_rotation_deg``, ``wcs_flip``, ``population``);
+    ``--wcs-flip``, ``--population {aligned,realistic}`` and ``--shear-positions``
+    (:func:`simulate_step`'s ``psf_variation``, ``wcs_rotation_deg``, ``wcs_flip``,
+    ``population``, ``shear_positions``);
     ``dither --exposures K`` writes ``K`` dithered exposures of one patch
     (:func:`pylensfit_validation.dither.simulate_dither`; ``--ngal``, ``--seed``,
     ``--noise``, ``--star-field-size`` apply).
@@ -456,6 +460,7 @@ def simulate_main(argv: list[str] | None = None) -> int:
         wcs_rotation_deg=a.wcs_rotation,
         wcs_flip=a.wcs_flip,
         population=a.population,
+        shear_positions=a.shear_positions,
         jobs=a.jobs,
         progress=not a.quiet,
     )

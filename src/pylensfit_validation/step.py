@@ -307,6 +307,7 @@ def simulate_step(
     wcs_rotation_deg: float = 0.0,
     wcs_flip: bool = False,
     population: str = "aligned",
+    shear_positions: bool = False,
     jobs: int = 1,
     progress: bool = False,
 ) -> Path:
@@ -390,6 +391,11 @@ def simulate_step(
         (:data:`pylensfit_validation.galaxies.REALISTIC`), the same seed giving the same objects
         otherwise. A step1 set's galaxies are the model bank's bulge+disc family by
         design: only ``"aligned"``.
+    shear_positions : bool
+        Shear the galaxies' positions too, about each field's centre, with their shapes'
+        shear (:attr:`pylensfit_validation.simulate.FieldSpec.shear_positions`): the
+        lensed sky, which an estimator that shears its whole stamp (metacalibration)
+        needs; the same objects and noise otherwise.
     jobs : int
         Fields rendered in parallel by this many processes (the pipeline's runner); the
         set is the same for any ``jobs``: every field's seeds are drawn first, in order.
@@ -423,6 +429,7 @@ def simulate_step(
                       noise_twins=noise_twins, psf_variation=psf_variation,
                       wcs_rotation_deg=wcs_rotation_deg, wcs_flip=wcs_flip,
                       population=population)  # fmt: skip
+    lay.common["shear_positions"] = bool(shear_positions)
     tasks, star_files, fields = _field_tasks(kind, lay, out, rng)
     _render_fields(tasks, star_files, fields, jobs, progress)
     manifest = _set_manifest(kind, lay, star_files, fields, ngal=ngal, seed=seed,
