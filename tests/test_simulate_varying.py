@@ -330,7 +330,7 @@ def test_shear_positions_is_the_sky_shear_of_the_galaxies_positions(rot, flip):
     x, y, star, *rest = draw_population(replace(spec, shear_positions=True),
                                         np.random.default_rng(5))  # fmt: skip
     assert np.array_equal(star, star0) and star.any() and (~star).any()
-    for a, b in zip(rest, rest0):
+    for a, b in zip(rest, rest0, strict=True):
         assert np.array_equal(a, b)
     assert np.array_equal(x[star], x0[star]) and np.array_equal(y[star], y0[star])
     jac = _local_jacobian(_wcs(spec, 150.0, 2.0), 199.5, 199.5)  # pixels -> (W, N)
@@ -338,6 +338,7 @@ def test_shear_positions_is_the_sky_shear_of_the_galaxies_positions(rot, flip):
     u0 = jac @ np.vstack([x0 - c, y0 - c])
     u = jac @ np.vstack([x - c, y - c])
     S = np.array([[1 + g[0], g[1]], [g[1], 1 - g[0]]]) / np.sqrt(1 - g[0] ** 2 - g[1] ** 2)
-    np.testing.assert_allclose(u[:, ~star], (S @ u0)[:, ~star], rtol=0, atol=1e-9 * np.abs(u0).max())
+    tol = 1e-9 * np.abs(u0).max()
+    np.testing.assert_allclose(u[:, ~star], (S @ u0)[:, ~star], rtol=0, atol=tol)
     moved = np.hypot(x - x0, y - y0)[~star]
     assert moved.max() > 0.04 * c  # a real move: up to |g| times the distance from the centre
