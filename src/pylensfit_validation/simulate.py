@@ -100,11 +100,14 @@ class FieldSpec:
     (:data:`pylensfit_validation.galaxies.REALISTIC`). :func:`simulate_field` ignores it: its
     galaxies are the model bank's families.
 
-    ``shear_positions`` shears the galaxies' positions too, about the field's centre, with
-    the shear of their shapes (the lensing map; stars stay where they are). Without it
-    the lattice is the same at every shear, which no lensed sky does: an estimator that
-    shears its whole stamp (metacalibration) then measures a response to the neighbours'
-    moving light that the field's shear does not have.
+    ``shear_positions`` shears the positions too, about the field's centre, with the shear
+    of the galaxies' shapes: the lensing map of a galaxy's neighbours. Without it the
+    lattice is the same at every shear, which no lensed sky does: its neighbours do not
+    move against a galaxy, and an estimator that shears its whole stamp
+    (metacalibration) measures a response to their moving light that the field's shear
+    does not have. The stars move with the lattice (their shapes stay the PSF's): left
+    in place, the galaxies moved by up to ``|g|`` times their distance from the centre
+    would land on them at some shears and not at others.
     """
 
     size: int = 1024
@@ -559,24 +562,22 @@ def draw_population(spec: FieldSpec, rng: np.random.Generator) -> tuple[np.ndarr
     prior = Prior(B=spec.prior_params[0], C=spec.prior_params[1], D=spec.prior_params[2])
     e_int = draw_shapes(prior, n_obj, rng, spec.max_e)
     if spec.shear_positions:
-        x, y = lensed_positions(spec, x, y, is_star)
+        x, y = lensed_positions(spec, x, y)
     return x, y, is_star, r, snr, star_snr, e_int
 
 
-def lensed_positions(spec: FieldSpec, x: np.ndarray, y: np.ndarray,
-                     is_star: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """The galaxies' positions sheared about the field's centre ``(size - 1) / 2`` by the
-    field's pixel-frame shear (:func:`pixel_shear`), with the area-preserving matrix
-    ``[[1 + g1, g2], [g2, 1 - g1]] / sqrt(1 - |g|^2)`` that GalSim's ``shear`` applies to
-    the profiles; the stars' unchanged. A galaxy moved off the field is drawn as far as
-    it reaches into it."""
+def lensed_positions(spec: FieldSpec, x: np.ndarray,
+                     y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Positions sheared about the field's centre ``(size - 1) / 2`` by the field's
+    pixel-frame shear (:func:`pixel_shear`), with the area-preserving matrix ``[[1 + g1,
+    g2], [g2, 1 - g1]] / sqrt(1 - |g|^2)`` that GalSim's ``shear`` applies to the
+    profiles (:attr:`FieldSpec.shear_positions`). An object moved off the field is drawn
+    as far as it reaches into it."""
     g1, g2 = pixel_shear(spec)
     c = (spec.size - 1) / 2.0
     k = 1.0 / np.sqrt(1.0 - g1 * g1 - g2 * g2)
     dx, dy = x - c, y - c
-    xs = c + k * ((1.0 + g1) * dx + g2 * dy)
-    ys = c + k * (g2 * dx + (1.0 - g1) * dy)
-    return np.where(is_star, x, xs), np.where(is_star, y, ys)
+    return c + k * ((1.0 + g1) * dx + g2 * dy), c + k * (g2 * dx + (1.0 - g1) * dy)
 
 
 def draw_shapes(prior: Prior, n: int, rng: np.random.Generator, e_max: float) -> np.ndarray:
