@@ -29,6 +29,11 @@ with the selection response of ``shear``'s cuts)::
     python benchmarks/survey_cli.py --kind step1 --ngal 8000 --seed 11 --noise-twins \
         --response metacal --estimator fixed-point metacal
 
+``--priors-of DIR`` measures each PSF under the priors of an earlier ``--keep DIR`` run's
+catalogue (``measure --priors``: one pass, which reproduces that run's catalogue to the
+last bit on the same images), so that two sets of the same galaxies are compared under
+the same priors.
+
 ``--shear-positions`` shears the galaxies' positions with their shapes (the lensed sky):
 metacalibration shears the neighbours' light in its stamps too, and on fields whose
 lattice stays put at every shear it measures a response the fields do not have.
@@ -47,6 +52,8 @@ from pathlib import Path
 
 import numpy as np
 from astropy.table import Table
+
+from pylensfit import read_catalogue
 
 
 def _cli(*args: str) -> None:
@@ -135,6 +142,9 @@ def main(argv: list[str] | None = None) -> int:
                          "effect cancels in the pair means too; --ngal counts the renderings")
     ap.add_argument("--shear-positions", action="store_true",
                     help="simulate --shear-positions: the galaxies' positions sheared too")
+    ap.add_argument("--priors-of", default=None, metavar="DIR",
+                    help="measure each PSF K under the priors of DIR/catK.fits (an earlier "
+                         "--keep DIR run of the same kind): one pass, paired with that run")
     ap.add_argument("--config", default=None, help="YAML configuration for measure")
     ap.add_argument("--keep", default=None, help="keep the set and catalogues here")
     ap.add_argument("--response", choices=("model", "metacal"), default=None,
@@ -171,6 +181,10 @@ def main(argv: list[str] | None = None) -> int:
         if not cat.exists():
             cfg = ["--config", args.config] if args.config else []
             cfg += ["--response", args.response] if args.response else []
+            if args.priors_of:
+                pri = work / f"priors{k}.json"
+                read_catalogue(Path(args.priors_of) / f"cat{k}.fits").meta["priors"].save(pri)
+                cfg += ["--priors", str(pri)]
             _cli("measure", *[str(sim / f["file"]) for f in fields], "--stars",
                  str(sim / f"psf{k}_stars.fits"), "-o", str(cat), "--jobs", str(args.jobs),
                  "-q", *cfg)  # fmt: skip
