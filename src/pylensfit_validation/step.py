@@ -370,8 +370,7 @@ def simulate_step(
         in ``c`` and ``m`` is the measurement's response to the noise at second order
         (noise bias) and to the PSF: the offsets ``c`` are then resolved to ~1e-4 per PSF
         by a set whose independent noise leaves them at ~5e-4. ``ngal`` counts the
-        renderings, so the set holds half as many distinct galaxies. Off by default
-        (a set from a given seed is the same as before the option existed).
+        renderings, so the set holds half as many distinct galaxies.
     psf_variation : {"none", "survey"}
         How each PSF of ``psfs`` varies over the fields, about its parameters at the
         centre (:data:`pylensfit_validation.simulate.PSF_VARIATIONS`,
@@ -392,10 +391,8 @@ def simulate_step(
         otherwise. A step1 set's galaxies are the model bank's bulge+disc family by
         design: only ``"aligned"``.
     shear_positions : bool
-        Shear the galaxies' positions too, about each field's centre, with their shapes'
-        shear (:attr:`pylensfit_validation.simulate.FieldSpec.shear_positions`): the
-        lensed sky, which an estimator that shears its whole stamp (metacalibration)
-        needs; the same objects and noise otherwise.
+        Shear the positions too, about each field's centre, with the shapes' shear
+        (:attr:`pylensfit_validation.simulate.FieldSpec.shear_positions`): the lensed sky.
     jobs : int
         Fields rendered in parallel by this many processes (the pipeline's runner); the
         set is the same for any ``jobs``: every field's seeds are drawn first, in order.
