@@ -32,7 +32,8 @@ with the selection response of ``shear``'s cuts)::
 ``--priors-of DIR`` measures each PSF under the priors of an earlier ``--keep DIR`` run's
 catalogue (``measure --priors``: one pass, which reproduces that run's catalogue to the
 last bit on the same images), so that two sets of the same galaxies are compared under
-the same priors.
+the same priors; ``--paired-with DIR`` prints this run's m and c less that run's, image by
+image (the noise and the galaxies' shapes cancel in the differences).
 
 ``--shear-positions`` shears the galaxies' positions with their shapes (the lensed sky):
 metacalibration shears the neighbours' light in its stamps too, and on fields whose
@@ -63,31 +64,59 @@ def _cli(*args: str) -> None:
         raise SystemExit(f"{' '.join(args[:2])} failed:\n{res.stdout}\n{res.stderr}")
 
 
-def _report(work: Path, man: dict, shear_fields: list, psfs: list, estimator: str) -> None:
+def _shear_table(work: Path, k: int, estimator: str, run: bool = True) -> dict:
+    """``pylensfit shear --estimator ESTIMATOR``'s per-image shears of ``work/catK.fits``
+    (run unless ``run`` is false and the table is kept), by image file."""
+    out = work / f"shear{k}_{estimator}.ecsv"
+    if run or not out.exists():
+        out.unlink(missing_ok=True)
+        _cli("shear", str(work / f"cat{k}.fits"), "-o", str(out), "--estimator", estimator)
+    tab = Table.read(out)
+    return {str(g).split("=", 1)[1]: r for g, r in zip(tab["group"], tab, strict=True)
+            if "=" in str(g)}  # fmt: skip
+
+
+def _group_means(fields: list, per: dict, base: dict | None = None) -> np.ndarray:
+    """``(g1, g2, g1_meas, g2_meas)`` averaged over each shear's images; with ``base``
+    (another run's ``per`` of the same images) the measured shear is ``g + (this run's -
+    base's)``, so that the fit's m and c are the paired differences."""
+    by = {}
+    for f in fields:
+        r = per[f["file"]]
+        d = (r["g1"], r["g2"]) if base is None else (
+            f["g1"] + r["g1"] - base[f["file"]]["g1"], f["g2"] + r["g2"] - base[f["file"]]["g2"])
+        by.setdefault(f["shear_index"], []).append((f["g1"], f["g2"], *d))
+    return np.array([np.mean(v, axis=0) for _, v in sorted(by.items())])
+
+
+def _usable(work: Path, k: int, estimator: str) -> tuple[int, int]:
+    """The usable rows of ``work/catK.fits`` under ``estimator`` and all its rows."""
+    c = Table.read(work / f"cat{k}.fits", hdu="CATALOG")
+    usable = (np.asarray(c["flags"]) == 0) & (np.asarray(c["weight"]) > 0)
+    if estimator == "metacal":
+        usable = np.asarray(c["mcal_flags"]) == 0
+    return int(usable.sum()), len(c)
+
+
+def _report(work: Path, man: dict, shear_fields: list, psfs: list, estimator: str,
+            paired: Path | None = None) -> None:  # fmt: skip
     """Fit ``g_meas = (1 + m) g + c`` per PSF and component to the group means of
-    ``pylensfit shear --estimator ESTIMATOR``'s per-image shears of each catalogue."""
+    ``pylensfit shear --estimator ESTIMATOR``'s per-image shears of each catalogue; with
+    ``paired`` (an earlier ``--keep`` run of the same images' galaxies) the paired
+    differences ``dm, dc`` of this run less that one."""
     groups = []
     for k in psfs:
         fields = [f for f in shear_fields if f["psf"] == k]
-        cat = work / f"cat{k}.fits"
-        out = work / f"shear{k}_{estimator}.ecsv"
-        out.unlink(missing_ok=True)
-        _cli("shear", str(cat), "-o", str(out), "--estimator", estimator)
-        tab = Table.read(out)
-        c = Table.read(cat, hdu="CATALOG")
-        usable = (np.asarray(c["flags"]) == 0) & (np.asarray(c["weight"]) > 0)
-        if estimator == "metacal":
-            usable = np.asarray(c["mcal_flags"]) == 0
-        per = {str(g).split("=", 1)[1]: r
-               for g, r in zip(tab["group"], tab, strict=True) if "=" in str(g)}
-        by = {}
-        for f in fields:
-            r = per[f["file"]]
-            by.setdefault(f["shear_index"], []).append((f["g1"], f["g2"], r["g1"], r["g2"]))
-        pairs = np.array([np.mean(v, axis=0) for _, v in sorted(by.items())])
-        groups.append((k, int(usable.sum()), len(c), pairs))
-    # each PSF and component fitted on its own; the residuals' variance pooled over all of
-    # them (the groups' noise is alike), so that a fit of 4-5 points gets a stable error
+        per = _shear_table(work, k, estimator, run=paired is None)
+        base = None if paired is None else _shear_table(paired, k, estimator, run=False)
+        groups.append((k, *_usable(work, k, estimator), _group_means(fields, per, base)))
+    _print_fits(man, groups, "d" if paired is not None else "")
+
+
+def _print_fits(man: dict, groups: list, d: str) -> None:
+    """The fits of :func:`_report`, each PSF and component on its own; the residuals'
+    variance pooled over all of them (the groups' noise is alike), so that a fit of 4-5
+    points gets a stable error. ``d`` prefixes the names (paired differences)."""
     fits, resid = [], []
     for k, n_use, n_rows, pairs in groups:
         row = {"psf": k, "n": n_use, "rows": n_rows}
@@ -115,18 +144,18 @@ def _report(work: Path, man: dict, shear_fields: list, psfs: list, estimator: st
         p = man["psfs"][row["psf"]]
         print(f"PSF {row['psf']} (fwhm {p['fwhm']}, beta {p['beta']}, e {p['e1']:+.2f},"
               f"{p['e2']:+.2f}): {row['n']} usable rows of {row['rows']}; "
-              + "  ".join(f"{q} {vals[q][0]:+.4f} +- {vals[q][1]:.4f}" for q in ("m1", "m2"))
-              + "  " + "  ".join(f"{q} {vals[q][0]:+.5f} +- {vals[q][1]:.5f}"
+              + "  ".join(f"{d}{q} {vals[q][0]:+.4f} +- {vals[q][1]:.4f}" for q in ("m1", "m2"))
+              + "  " + "  ".join(f"{d}{q} {vals[q][0]:+.5f} +- {vals[q][1]:.5f}"
                                  for q in ("c1", "c2")), flush=True)  # fmt: skip
     print(f"(errors from the fits' residuals pooled over PSFs and components: {dof} degrees "
           f"of freedom, rms {np.sqrt(s2):.5f} per group mean)")  # fmt: skip
-    for q in ("m1", "m2"):
+    for q in ("m1", "m2", "c1", "c2"):
         v = np.array([r[q][0] for r in out_rows])
         e = np.array([r[q][1] for r in out_rows])
         ok = np.isfinite(v)
         if ok.any():
             err = np.sqrt(np.sum(e[ok] ** 2)) / ok.sum()
-            print(f"<{q}> over PSFs {np.mean(v[ok]):+.4f} +- {err:.4f}")
+            print(f"<{d}{q}> over PSFs {np.mean(v[ok]):+.5f} +- {err:.5f}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -145,6 +174,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--priors-of", default=None, metavar="DIR",
                     help="measure each PSF K under the priors of DIR/catK.fits (an earlier "
                          "--keep DIR run of the same kind): one pass, paired with that run")
+    ap.add_argument("--paired-with", default=None, metavar="DIR",
+                    help="also print m and c of this run less those of DIR (an earlier --keep "
+                         "run of the same galaxies, with the same --estimator), paired image "
+                         "by image")
     ap.add_argument("--config", default=None, help="YAML configuration for measure")
     ap.add_argument("--keep", default=None, help="keep the set and catalogues here")
     ap.add_argument("--response", choices=("model", "metacal"), default=None,
@@ -194,6 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     for estimator in args.estimator:
         print(f"--estimator {estimator}:")
         _report(work, man, shear_fields, psfs, estimator)
+        if args.paired_with:
+            print(f"--estimator {estimator}, this run less {args.paired_with}, paired:")
+            _report(work, man, shear_fields, psfs, estimator, Path(args.paired_with))
     if t_meas > 1.0:  # not when every catalogue was kept from an earlier run
         print(f"measured {n_meas} usable rows in {t_meas:.0f} s ({n_meas / t_meas:.1f} "
               f"galaxies/s, FITS to catalogue, --jobs {args.jobs})")  # fmt: skip
