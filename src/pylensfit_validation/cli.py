@@ -380,7 +380,7 @@ def _simulate_parser() -> argparse.ArgumentParser:
                    help="flip every field's WCS (dy -> -dy before the rotation)")
     p.add_argument("--shear-positions", action="store_true",
                    help="step1, step2: shear the galaxies' positions too, about each field's "
-                        "centre (the lensed sky; metacalibration's response needs it)")
+                        "centre (the lensed sky: each galaxy's neighbours move with the shear)")
     p.add_argument("--population", choices=POPULATIONS, default="aligned",
                    help="step2 galaxies: aligned (bulges aligned with their discs, Sersic "
                         "n 0.5-4) or realistic (bulges of their own size, shape and "
