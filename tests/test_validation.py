@@ -244,6 +244,12 @@ def test_pylensfit_simulate_command(tmp_path):
     assert cli_main(["simulate", "step1", "--out", str(tmp_path / "s1"), "--ngal", "200"]) == 0
     man = read_manifest(tmp_path / "s1")
     assert man["kind"] == "step1" and len(man["fields"]) >= 5 * 6
+    # a wider lattice: the same objects per field on fields 1.5 times the side
+    assert cli_main(["simulate", "step1", "--out", str(tmp_path / "s2"), "--ngal", "200",
+                     "--spacing", "60", "--quiet"]) == 0  # fmt: skip
+    wide = read_manifest(tmp_path / "s2")
+    assert wide["fieldspec"]["spacing"] == 60.0
+    assert wide["field_size"] * 2 == man["field_size"] * 3
 
 
 def test_fit_m_c_and_quality_factor():

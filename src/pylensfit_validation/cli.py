@@ -378,6 +378,9 @@ def _simulate_parser() -> argparse.ArgumentParser:
                         "shears are the sky frame's")
     p.add_argument("--wcs-flip", action="store_true",
                    help="flip every field's WCS (dy -> -dy before the rotation)")
+    p.add_argument("--spacing", type=float, default=40.0,
+                   help="step1, step2: pitch of the objects' lattice (px, default 40); a wider "
+                        "one keeps the neighbours' light out of the stamps")
     p.add_argument("--shear-positions", action="store_true",
                    help="step1, step2: shear the galaxies' positions too, about each field's "
                         "centre (the lensed sky: each galaxy's neighbours move with the shear)")
@@ -461,6 +464,7 @@ def simulate_main(argv: list[str] | None = None) -> int:
         wcs_flip=a.wcs_flip,
         population=a.population,
         shear_positions=a.shear_positions,
+        spacing=a.spacing,
         jobs=a.jobs,
         progress=not a.quiet,
     )
