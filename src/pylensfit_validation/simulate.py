@@ -103,9 +103,10 @@ class FieldSpec:
     ``shear_positions`` shears the positions too, about the field's centre, with the shear
     of the galaxies' shapes: the lensing map of a galaxy's neighbours. Without it the
     lattice is the same at every shear, which no lensed sky does: its neighbours do not
-    move against a galaxy, and an estimator that shears its whole stamp
-    (metacalibration) measures a response to their moving light that the field's shear
-    does not have. The stars move with the lattice (their shapes stay the PSF's): left
+    move against a galaxy, so the light they leave in its stamp does not change with the
+    shear as a lensed sky's does (both estimators' m1 moves by -0.03 to -0.05 on
+    STEP1-like fields, ``benchmarks/survey_cli.py --shear-positions --paired-with``).
+    The stars move with the lattice (their shapes stay the PSF's): left
     in place, the galaxies moved by up to ``|g|`` times their distance from the centre
     would land on them at some shears and not at others.
     """
